@@ -1,0 +1,32 @@
+"""Small shared helpers."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+
+def as_float_array(x):
+    """Converter for differentiable fields: Python/numpy numbers become JAX float arrays.
+
+    Traced values pass through untouched, so the converter is safe inside ``jit``.
+    """
+    if isinstance(x, (int, float, list, tuple, np.ndarray, np.generic)):
+        return jnp.asarray(x, dtype=jnp.result_type(float))
+    return x
+
+
+def safe_norm(v, axis=-1, keepdims=False):
+    """Euclidean norm with a finite (zero) gradient at the zero vector (double-``where``)."""
+    sq = jnp.sum(v * v, axis=axis, keepdims=keepdims)
+    ok = sq > 0
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
+
+
+def safe_normalize(v, axis=-1, fallback=None):
+    """``v / |v|``; returns ``fallback`` (default zeros) for zero-length vectors, with finite gradients."""
+    sq = jnp.sum(v * v, axis=axis, keepdims=True)
+    ok = sq > 0
+    out = v / jnp.sqrt(jnp.where(ok, sq, 1.0))
+    fb = jnp.zeros_like(v) if fallback is None else jnp.broadcast_to(fallback, v.shape)
+    return jnp.where(ok, out, fb)
