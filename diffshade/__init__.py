@@ -1,15 +1,44 @@
-"""diffshade: a differentiable rasterize-and-shade pipeline for the classic local illumination model."""
+"""diffshade: a differentiable rasterize-and-shade pipeline for the classic local illumination model.
+
+Pipeline (each stage a function of its own)::
+
+    clip = camera.world_to_clip(mesh.vertices)
+    ids = visibility(clip, mesh.faces, camera.resolution, layers)   # discrete, cached for fixed geometry
+    frags = fragments(clip, mesh.faces, ids)                         # differentiable barycentrics/depth
+    image = shade(scene, ids, options)                               # terms of MODEL.md, fog
+"""
 
 from ._camera import Camera
-from ._raster import Fragments, fragments, interpolate, pixel_centres, rasterize, visibility, visibility_passes
+from ._io import DEFAULT_SCENE, SceneError, default_scene, load_scene, scene_from_dict
+from ._mesh import Mesh, MeshError, icosphere, load_mesh, mesh_from_arrays
+from ._raster import (
+    Fragments,
+    fragments,
+    interpolate,
+    pixel_centres,
+    rasterize,
+    visibility,
+    visibility_passes,
+)
+from ._render import render, scene_visibility, shade, to_uint8
+from ._scene import (
+    DirectionalLights,
+    Fog,
+    Material,
+    PointLights,
+    RenderOptions,
+    Scene,
+    SpotLights,
+    no_directional,
+    no_point,
+    no_spot,
+)
+from ._shade import blinn_to_phong, phong_to_blinn
 
 __all__ = [
-    "Camera",
-    "Fragments",
-    "fragments",
-    "interpolate",
-    "pixel_centres",
-    "rasterize",
-    "visibility",
-    "visibility_passes",
+    "Camera", "DEFAULT_SCENE", "DirectionalLights", "Fog", "Fragments", "Material", "Mesh", "MeshError",
+    "PointLights", "RenderOptions", "Scene", "SceneError", "SpotLights", "blinn_to_phong", "default_scene",
+    "fragments", "icosphere", "interpolate", "load_mesh", "load_scene", "mesh_from_arrays", "no_directional",
+    "no_point", "no_spot", "phong_to_blinn", "pixel_centres", "rasterize", "render", "scene_from_dict",
+    "scene_visibility", "shade", "to_uint8", "visibility", "visibility_passes",
 ]

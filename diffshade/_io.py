@@ -1,0 +1,311 @@
+"""Scene files (TOML), validated on the host, and the built-in default scene.
+
+A scene file::
+
+    [mesh]
+    path = "bunny.ply"          # relative to the scene file; or: icosphere = 3 (subdivisions)
+    [camera]
+    eye = [0, 0, 3]; target = [0, 0, 0]; up = [0, 1, 0]
+    fov_y = 45.0; near = 0.1; far = 100.0; width = 256; height = 256
+    [render]                    # static options (RenderOptions)
+    shading = "phong"; specular = "phong"; fog = "exp"; layers = 1
+    [material]
+    ambient = [0.1, 0.1, 0.1]; diffuse = [0.7, 0.2, 0.2]; specular = 0.5; shininess = 40
+    [[light]]
+    type = "point"; color = [1, 1, 1]; position = [2, 2, 3]; attenuation = [1, 0.1, 0.01]
+    [fog]
+    color = [0.6, 0.6, 0.7]; density = 0.15
+
+Every error names the file, the field and the allowed range.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ._camera import Camera
+from ._mesh import MeshError, icosphere, load_mesh
+from ._scene import (
+    DirectionalLights,
+    Fog,
+    Material,
+    PointLights,
+    RenderOptions,
+    Scene,
+    SpotLights,
+    no_directional,
+    no_point,
+    no_spot,
+)
+
+
+class SceneError(ValueError):
+    """A scene file or dictionary that is malformed; the message names the field."""
+
+
+class _V:
+    """Field validation helpers bound to a source name."""
+
+    def __init__(self, source: str):
+        self.source = source
+
+    def fail(self, where: str, msg: str):
+        raise SceneError(f"{self.source}: {where}: {msg}")
+
+    def num(self, d: dict, key: str, where: str, default=None, lo=None, hi=None, lo_open=False, hi_open=False):
+        if key not in d:
+            if default is None:
+                self.fail(f"{where}.{key}", "missing (required)")
+            return float(default)
+        x = d[key]
+        if isinstance(x, bool) or not isinstance(x, (int, float)):
+            self.fail(f"{where}.{key}", f"must be a number, got {x!r}")
+        x = float(x)
+        if not math.isfinite(x):
+            self.fail(f"{where}.{key}", f"must be finite, got {x}")
+        rng = f"{'(' if lo_open else '['}{'-inf' if lo is None else lo}, {'inf' if hi is None else hi}{')' if hi_open else ']'}"
+        if lo is not None and (x < lo or (lo_open and x == lo)):
+            self.fail(f"{where}.{key}", f"must lie in {rng}, got {x}")
+        if hi is not None and (x > hi or (hi_open and x == hi)):
+            self.fail(f"{where}.{key}", f"must lie in {rng}, got {x}")
+        return x
+
+    def vec(self, d: dict, key: str, where: str, n=3, default=None, lo=None, hi=None, scalar_ok=False, nonzero=False):
+        if key not in d:
+            if default is None:
+                self.fail(f"{where}.{key}", "missing (required)")
+            return np.asarray(default, dtype=np.float64)
+        x = d[key]
+        if scalar_ok and isinstance(x, (int, float)) and not isinstance(x, bool):
+            x = [x] * n
+        if not isinstance(x, list) or len(x) != n or any(isinstance(e, bool) or not isinstance(e, (int, float)) for e in x):
+            self.fail(f"{where}.{key}", f"must be a list of {n} numbers{' (or one number)' if scalar_ok else ''}, got {x!r}")
+        a = np.asarray(x, dtype=np.float64)
+        if not np.isfinite(a).all():
+            self.fail(f"{where}.{key}", f"must be finite, got {x!r}")
+        if lo is not None and (a < lo).any():
+            self.fail(f"{where}.{key}", f"each entry must be >= {lo}, got {x!r}")
+        if hi is not None and (a > hi).any():
+            self.fail(f"{where}.{key}", f"each entry must be <= {hi}, got {x!r}")
+        if nonzero and not np.any(a):
+            self.fail(f"{where}.{key}", "must not be the zero vector")
+        return a
+
+    def table(self, d: dict, key: str, required=False) -> dict:
+        if key not in d:
+            if required:
+                self.fail(key, "missing section (required)")
+            return {}
+        t = d[key]
+        if not isinstance(t, dict):
+            self.fail(key, f"must be a table, got {type(t).__name__}")
+        return t
+
+    def unknown(self, d: dict, allowed, where: str):
+        extra = sorted(set(d) - set(allowed))
+        if extra:
+            self.fail(where, f"unknown field(s) {extra}; allowed: {sorted(allowed)}")
+
+
+def _options(v: _V, r: dict) -> RenderOptions:
+    import dataclasses
+
+    fields = {f.name: f for f in dataclasses.fields(RenderOptions)}
+    v.unknown(r, fields, "render")
+    kw = {}
+    for k, x in r.items():
+        default = fields[k].default
+        if isinstance(default, bool):
+            if not isinstance(x, bool):
+                v.fail(f"render.{k}", f"must be true or false, got {x!r}")
+        elif isinstance(default, int):
+            if isinstance(x, bool) or not isinstance(x, int) or x < 1:
+                v.fail(f"render.{k}", f"must be a positive integer, got {x!r}")
+        kw[k] = x
+    try:
+        return RenderOptions(**kw)
+    except ValueError as exc:
+        v.fail("render", str(exc).replace("RenderOptions.", ""))
+
+
+def _material(v: _V, m: dict, where: str) -> Material:
+    keys = ("emission", "ambient", "diffuse", "specular", "shininess", "ior")
+    v.unknown(m, keys, where)
+    d = Material()
+    return Material(
+        emission=v.vec(m, "emission", where, default=np.asarray(d.emission), lo=0.0, scalar_ok=True),
+        ambient=v.vec(m, "ambient", where, default=np.asarray(d.ambient), lo=0.0, hi=1.0, scalar_ok=True),
+        diffuse=v.vec(m, "diffuse", where, default=np.asarray(d.diffuse), lo=0.0, hi=1.0, scalar_ok=True),
+        specular=v.vec(m, "specular", where, default=np.asarray(d.specular), lo=0.0, hi=1.0, scalar_ok=True),
+        shininess=v.num(m, "shininess", where, default=float(d.shininess), lo=0.0, lo_open=True),
+        ior=v.num(m, "ior", where, default=float(d.ior), lo=0.0, lo_open=True),
+    )
+
+
+def _lights(v: _V, lights: list):
+    if not isinstance(lights, list):
+        v.fail("light", "must be an array of tables ([[light]])")
+    groups: dict[str, list] = {"directional": [], "point": [], "spot": []}
+    for i, l in enumerate(lights):
+        w = f"light[{i}]"
+        if not isinstance(l, dict):
+            v.fail(w, "must be a table")
+        kind = l.get("type")
+        if kind not in groups:
+            v.fail(f"{w}.type", f"must be one of 'directional', 'point', 'spot', got {kind!r}")
+        common = ("type", "color", "ambient")
+        color = v.vec(l, "color", w, default=[1.0, 1.0, 1.0], lo=0.0, scalar_ok=True)
+        amb = v.vec(l, "ambient", w, default=[0.0, 0.0, 0.0], lo=0.0, scalar_ok=True)
+        if kind == "directional":
+            v.unknown(l, common + ("direction",), w)
+            groups[kind].append((color, v.vec(l, "direction", w, nonzero=True), amb))
+            continue
+        pos = v.vec(l, "position", w)
+        att = v.vec(l, "attenuation", w, default=[1.0, 0.0, 0.0], lo=0.0)
+        if not np.any(att):
+            v.fail(f"{w}.attenuation", "a0, a1, a2 must not all be 0")
+        if kind == "point":
+            v.unknown(l, common + ("position", "attenuation"), w)
+            groups[kind].append((color, pos, att, amb))
+        else:
+            v.unknown(l, common + ("position", "attenuation", "axis", "cutoff", "exponent", "edge"), w)
+            axis = v.vec(l, "axis", w, nonzero=True)
+            cutoff = v.num(l, "cutoff", w, lo=0.0, hi=90.0, lo_open=True)
+            exponent = v.num(l, "exponent", w, default=0.0, lo=0.0)
+            edge = v.num(l, "edge", w, default=0.0, lo=0.0, hi=cutoff)
+            groups[kind].append((color, pos, att, amb, axis, cutoff, exponent, edge))
+
+    def stack(rows, k):
+        return np.stack([r[k] for r in rows]) if rows else np.zeros((0, 3))
+
+    g = groups["directional"]
+    directional = DirectionalLights(color=stack(g, 0), direction=stack(g, 1), ambient=stack(g, 2)) if g else no_directional()
+    g = groups["point"]
+    point = PointLights(color=stack(g, 0), position=stack(g, 1), attenuation=stack(g, 2), ambient=stack(g, 3)) if g else no_point()
+    g = groups["spot"]
+    spot = (
+        SpotLights(
+            color=stack(g, 0), position=stack(g, 1), attenuation=stack(g, 2), ambient=stack(g, 3), axis=stack(g, 4),
+            cutoff=np.array([r[5] for r in g]), exponent=np.array([r[6] for r in g]), edge=np.array([r[7] for r in g]),
+        )
+        if g
+        else no_spot()
+    )
+    return directional, point, spot
+
+
+def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None = None) -> tuple[Scene, RenderOptions]:
+    """Build and validate a scene from a dictionary (the parsed TOML)."""
+    v = _V(source)
+    v.unknown(d, ("mesh", "camera", "render", "material", "back_material", "light", "fog", "ambient_light", "background"), "scene")
+    opts = _options(v, v.table(d, "render"))
+
+    m = v.table(d, "mesh", required=True)
+    v.unknown(m, ("path", "icosphere"), "mesh")
+    if ("path" in m) == ("icosphere" in m):
+        v.fail("mesh", "give exactly one of 'path' (a mesh file) or 'icosphere' (subdivisions)")
+    if "path" in m:
+        if not isinstance(m["path"], str):
+            v.fail("mesh.path", f"must be a string, got {m['path']!r}")
+        p = Path(m["path"])
+        if not p.is_absolute() and base is not None:
+            p = base / p
+        try:
+            mesh = load_mesh(p)
+        except MeshError as exc:
+            v.fail("mesh.path", str(exc))
+    else:
+        sub = m["icosphere"]
+        if isinstance(sub, bool) or not isinstance(sub, int) or not 0 <= sub <= 7:
+            v.fail("mesh.icosphere", f"must be an integer in [0, 7], got {sub!r}")
+        mesh = icosphere(sub)
+
+    c = v.table(d, "camera", required=True)
+    v.unknown(c, ("eye", "target", "up", "fov_y", "near", "far", "width", "height"), "camera")
+    eye = v.vec(c, "eye", "camera")
+    target = v.vec(c, "target", "camera", default=[0.0, 0.0, 0.0])
+    up = v.vec(c, "up", "camera", default=[0.0, 1.0, 0.0], nonzero=True)
+    if np.allclose(eye, target):
+        v.fail("camera.target", "must differ from camera.eye")
+    if np.linalg.norm(np.cross(target - eye, up)) < 1e-9 * np.linalg.norm(target - eye) * np.linalg.norm(up):
+        v.fail("camera.up", "must not be parallel to the viewing direction")
+    fov = v.num(c, "fov_y", "camera", default=45.0, lo=0.0, hi=180.0, lo_open=True, hi_open=True)
+    near = v.num(c, "near", "camera", default=0.1, lo=0.0, lo_open=True)
+    far = v.num(c, "far", "camera", default=100.0, lo=near, lo_open=True)
+    size = {}
+    for k in ("width", "height"):
+        x = c.get(k, 256)
+        if isinstance(x, bool) or not isinstance(x, int) or not 1 <= x <= 8192:
+            v.fail(f"camera.{k}", f"must be an integer in [1, 8192], got {x!r}")
+        size[k] = x
+    camera = Camera(eye=eye, target=target, up=up, fov_y=fov, near=near, far=far, **size)
+
+    material = _material(v, v.table(d, "material"), "material")
+    back = _material(v, d["back_material"], "back_material") if "back_material" in d else None
+    if back is not None and not opts.back_material:
+        opts = opts.replace(back_material=True)
+    directional, point, spot = _lights(v, d.get("light", []))
+
+    f = v.table(d, "fog")
+    v.unknown(f, ("color", "start", "end", "density"), "fog")
+    fog_default = Fog()
+    start = v.num(f, "start", "fog", default=float(fog_default.start), lo=0.0)
+    end = v.num(f, "end", "fog", default=max(float(fog_default.end), start), lo=start)
+    fog = Fog(
+        color=v.vec(f, "color", "fog", default=np.asarray(fog_default.color), lo=0.0, scalar_ok=True),
+        start=start,
+        end=end,
+        density=v.num(f, "density", "fog", default=float(fog_default.density), lo=0.0),
+    )
+    if f and opts.fog == "none":
+        v.fail("render.fog", "a [fog] section is given but render.fog is 'none'; set it to 'linear', 'exp' or 'exp2'")
+    ambient = v.vec(d, "ambient_light", "scene", default=[0.2, 0.2, 0.2], lo=0.0, scalar_ok=True)
+    # A fogged scene shows the fog colour where nothing is drawn, unless told otherwise (MODEL.md §3).
+    bg_default = np.asarray(fog.color) if opts.fog != "none" else [0.0, 0.0, 0.0]
+    background = v.vec(d, "background", "scene", default=bg_default, lo=0.0, scalar_ok=True)
+    scene = Scene(
+        mesh=mesh, camera=camera, material=material, back_material=back, directional=directional,
+        point=point, spot=spot, ambient_light=ambient, background=background, fog=fog,
+    )
+    return scene, opts
+
+
+def load_scene(path: str | Path) -> tuple[Scene, RenderOptions]:
+    """Load and validate a TOML scene file; returns ``(scene, options)``."""
+    path = Path(path)
+    if not path.exists():
+        raise SceneError(f"{path}: scene file not found")
+    try:
+        with open(path, "rb") as fh:
+            d = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise SceneError(f"{path}: not valid TOML: {exc}") from exc
+    except OSError as exc:
+        raise SceneError(f"{path}: cannot read: {exc}") from exc
+    return scene_from_dict(d, str(path), path.parent)
+
+
+DEFAULT_SCENE: dict[str, Any] = {
+    "mesh": {"icosphere": 4},
+    "camera": {"eye": [0.0, 0.0, 3.0], "target": [0.0, 0.0, 0.0], "up": [0.0, 1.0, 0.0], "fov_y": 45.0,
+               "near": 0.5, "far": 10.0, "width": 256, "height": 256},
+    "render": {"shading": "phong", "specular": "phong", "fog": "exp"},
+    "material": {"ambient": [0.15, 0.12, 0.1], "diffuse": [0.75, 0.35, 0.25], "specular": [0.5, 0.5, 0.5],
+                 "shininess": 30.0},
+    "light": [
+        {"type": "point", "color": [1.0, 1.0, 1.0], "position": [2.0, 2.0, 3.0], "attenuation": [1.0, 0.05, 0.02]},
+        {"type": "directional", "color": [0.3, 0.3, 0.35], "direction": [1.0, -0.5, -1.0]},
+    ],
+    "fog": {"color": [0.55, 0.6, 0.7], "density": 0.12},
+    "ambient_light": [0.3, 0.3, 0.3],
+}
+
+
+def default_scene() -> tuple[Scene, RenderOptions]:
+    """The built-in default scene: a 5,120-face icosphere, a point and a directional light, exp fog."""
+    return scene_from_dict(DEFAULT_SCENE, "default scene")

@@ -1,0 +1,1 @@
+"""fitting: recover material, light and fog parameters from images (builds on diffshade)."""
