@@ -116,10 +116,11 @@ def load_mesh(path: str | Path) -> Mesh:
         raise MeshError(
             f"{path}: {int(bad.sum())} vertex position(s) are NaN or infinite (first: vertex {int(np.argmax(bad))})"
         )
-    # Merge vertices by exact position (keeps geometry, drops UV/normal/colour splits).
-    uniq, inverse = np.unique(v, axis=0, return_inverse=True)
-    f = inverse.reshape(-1)[f]
-    v, f = validate_arrays(uniq, f, str(path))
+    # Merge vertices that coincide (to trimesh's tolerance), ignoring UV/normal/colour splits:
+    # diffshade shades geometry only.
+    geom = trimesh.Trimesh(vertices=v, faces=f, process=False)
+    geom.merge_vertices(merge_tex=True, merge_norm=True)
+    v, f = validate_arrays(geom.vertices, geom.faces, str(path))
     return Mesh(vertices=v, faces=f)
 
 

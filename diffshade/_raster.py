@@ -20,9 +20,14 @@ plane are clipped exactly, per pixel.
 
 Watertightness: each edge function is evaluated in a canonical vertex order (smaller vertex index
 first) and only its sign is flipped per triangle, so the two triangles that share an edge compute
-bit-identical values of opposite sign; a pixel exactly on the edge (:math:`E = 0`) belongs to the
-one triangle for which the canonical orientation is the inside. A closed mesh is thus covered
-with no gaps and no double coverage (up to pixels exactly on a shared *vertex*).
+bit-identical values of opposite sign. A pixel centre exactly on an edge or vertex
+(:math:`E = 0`) is decided as if it were displaced by an infinitesimal :math:`(\epsilon,
+\epsilon^2)`: inside iff :math:`A_x > 0`, or :math:`A_x = 0` and :math:`A_y > 0`, for the
+inside-positive coefficients. A closed mesh is thus covered with no gaps and no double coverage,
+shared vertices included — with one exception that floating point (without snapping vertices to
+a fixed-point grid) cannot avoid: a pixel centre that coincides with a projected vertex only up
+to float32 rounding (the edge functions through it are then tiny and not exactly zero) can be
+missed or covered twice.
 
 Visibility keeps, per pixel, the ``K`` nearest fragments by (NDC depth, triangle id). It is a
 discrete choice and carries no gradient; :func:`fragments` recomputes barycentrics and depth from
@@ -35,7 +40,12 @@ Two backends compute the same visibility, bit for bit:
   (tile, triangle) pairs; each tile tests its candidates in chunks of a static capacity. A tile
   with more candidates than the capacity, or more pairs than the pair buffer holds, is processed
   in further chunks by a ``while_loop``: nothing is ever dropped, and nothing recompiles.
-- ``"native"``: a C++ scanline-over-bounding-box kernel registered with ``jax.ffi`` (CPU only).
+- ``"native"``: a C++ kernel over each triangle's bounding box, registered with ``jax.ffi`` (CPU
+  only), with the same set-up and per-pixel test. XLA contracts ``a*b + c`` into fused
+  multiply-adds and the kernel does not, so the two can round an edge function or a depth
+  differently in the last bit: they agree on every pixel except where a pixel centre lies within
+  float32 rounding of an edge, or two fragments within rounding of the same depth (duplicate
+  faces). The tests check exactly that, against a float64 brute-force reference.
 """
 
 from __future__ import annotations
@@ -75,11 +85,17 @@ class Fragments(eqx.Module):
         return self.tri_id >= 0
 
 
+def _centres_np(n: int, size: int, dtype) -> np.ndarray:
+    # Host constants (IEEE arithmetic in numpy), shared by both backends bit for bit.
+    dtype = np.dtype(dtype)
+    return ((dtype.type(2.0) * (np.arange(n, dtype=dtype) + dtype.type(0.5))) / dtype.type(size) - dtype.type(1.0)).astype(dtype)
+
+
 def pixel_centres(height: int, width: int, dtype=jnp.float32):
-    """NDC coordinates of the pixel centres: ``(xs [W], ys [H])``."""
-    xs = (2.0 * (jnp.arange(width, dtype=dtype) + 0.5)) / width - 1.0
-    ys = 1.0 - (2.0 * (jnp.arange(height, dtype=dtype) + 0.5)) / height
-    return xs.astype(dtype), ys.astype(dtype)
+    """NDC coordinates of the pixel centres: ``(xs [W], ys [H])``; ``ys`` decreases (row 0 at the top)."""
+    xs = _centres_np(width, width, dtype)
+    ys = -_centres_np(height, height, dtype)
+    return jnp.asarray(xs), jnp.asarray(ys)
 
 
 # --------------------------------------------------------------------------------------------
@@ -114,10 +130,14 @@ def _setup(clip: Float[Array, "V 4"], faces: Int[Array, "F 3"], height: int, wid
         xa, ya, wa = (jnp.where(swap, q[b], q[a]) for q in (x, y, w))
         xb, yb, wb = (jnp.where(swap, q[a], q[b]) for q in (x, y, w))
         s = jnp.where(swap, -sdet, sdet)
-        coef += [s * (xa * yb - xb * ya), s * (wb * ya - wa * yb), s * (xb * wa - xa * wb)]
-        owns.append(s > 0)
-    zw = [sum(coef[3 * i + j] * z[i] for i in range(3)) for j in range(3)]
-    zw += [sum(coef[3 * i + j] * w[i] for i in range(3)) for j in range(3)]
+        cc, ax, ay = s * (xa * yb - xb * ya), s * (wb * ya - wa * yb), s * (xb * wa - xa * wb)
+        coef += [cc, ax, ay]
+        # Tie rule: a pixel centre exactly on an edge (E' = 0) is treated as displaced by an
+        # infinitesimal (eps, eps^2), so it is inside iff Ax' > 0, or Ax' = 0 and Ay' > 0. The
+        # displaced point lies inside exactly one triangle of a closed fan, vertices included.
+        owns.append((ax > 0) | ((ax == 0) & (ay > 0)))
+    zw = [(coef[j] * z[0] + coef[3 + j] * z[1]) + coef[6 + j] * z[2] for j in range(3)]
+    zw += [(coef[j] * w[0] + coef[3 + j] * w[1]) + coef[6 + j] * w[2] for j in range(3)]
 
     # Conservative pixel bounding box of the part in front of the near plane (z >= -w).
     dist = [z[k] + w[k] for k in range(3)]
@@ -190,8 +210,8 @@ def _visibility_jax(setup: _Setup, height: int, width: int, layers: int, tile_ca
     # Pixel centres of each tile (pixels beyond the image are masked by the bbox test).
     col = (jnp.arange(ntiles) % ntx)[:, None] * TILE + (jnp.arange(npx) % TILE)[None, :]
     row = (jnp.arange(ntiles) // ntx)[:, None] * TILE + (jnp.arange(npx) // TILE)[None, :]
-    px = (2.0 * (col.astype(jnp.float32) + 0.5)) / width - 1.0
-    py = 1.0 - (2.0 * (row.astype(jnp.float32) + 0.5)) / height
+    px = jnp.asarray(_centres_np(ntx * TILE, width, np.float32))[col]
+    py = -jnp.asarray(_centres_np(nty * TILE, height, np.float32))[row]
     pxe, pye = px[:, :, None], py[:, :, None]
     cole, rowe = col[:, :, None], row[:, :, None]
 
@@ -342,6 +362,13 @@ def visibility_passes(clip, faces, resolution, layers=1, tile_capacity=None, pai
     return _visibility_jax(setup, h, w, layers, tile_capacity or tc, pair_capacity or pc)
 
 
+def _pixel_vertex_ids(faces, tri_id, valid):
+    """Vertex index ``k`` of each pixel's triangle, as three flat ``[N]`` arrays (1-D gathers are
+    much faster than row gathers on XLA's CPU backend)."""
+    t = jnp.where(valid, tri_id, 0).reshape(-1)
+    return [faces[:, k][t] for k in range(3)]
+
+
 def fragments(
     clip: Float[Array, "V 4"], faces: Int[Array, "F 3"], tri_id: Int[Array, "K H W"]
 ) -> Fragments:
@@ -354,34 +381,36 @@ def fragments(
     """
     clip = jnp.asarray(clip)
     dtype = clip.dtype
-    k, h, w = tri_id.shape[-3:]
+    shape = tri_id.shape
+    k, h, w = shape[-3:]
     valid = tri_id >= 0
-    tri = clip[faces[jnp.where(valid, tri_id, 0)]]  # K H W 3 4
+    vid = _pixel_vertex_ids(faces, tri_id, valid)
+    ct = clip.T
+    # tx[c][k]: component c (x, y, z, w) of vertex k, per pixel
+    comp = [[ct[c][vid[j]].reshape(shape) for j in range(3)] for c in range(4)]
+    X, Y, Z, Wc = comp
     xs, ys = pixel_centres(h, w, dtype)
     x = xs[None, None, :]
     y = ys[None, :, None]
     es = []
     for i in range(3):
-        ca, cb = tri[..., (i + 1) % 3, :], tri[..., (i + 2) % 3, :]
-        cc = ca[..., 0] * cb[..., 1] - cb[..., 0] * ca[..., 1]
-        ax = cb[..., 3] * ca[..., 1] - ca[..., 3] * cb[..., 1]
-        ay = cb[..., 0] * ca[..., 3] - ca[..., 0] * cb[..., 3]
+        a, b = (i + 1) % 3, (i + 2) % 3
+        cc = X[a] * Y[b] - X[b] * Y[a]
+        ax = Wc[b] * Y[a] - Wc[a] * Y[b]
+        ay = X[b] * Wc[a] - X[a] * Wc[b]
         es.append(cc + x * ax + y * ay)
-    e = jnp.stack(es, axis=-1)
-    s = jnp.sum(e, axis=-1)
+    s = es[0] + es[1] + es[2]
     ok = valid & (s != 0)
-    bary = jnp.where(ok[..., None], e / jnp.where(ok, s, 1.0)[..., None], 0.0)
-    wv = jnp.sum(bary * tri[..., 3], axis=-1)
-    zv = jnp.sum(bary * tri[..., 2], axis=-1)
+    inv = 1.0 / jnp.where(ok, s, 1.0)
+    bary = [jnp.where(ok, e * inv, 0.0) for e in es]
+    wv = bary[0] * Wc[0] + bary[1] * Wc[1] + bary[2] * Wc[2]
+    zv = bary[0] * Z[0] + bary[1] * Z[1] + bary[2] * Z[2]
     okw = ok & (wv != 0)
     depth = jnp.where(okw, zv / jnp.where(okw, wv, 1.0), 1.0)
-    tx, ty, tw = tri[..., 0], tri[..., 1], tri[..., 3]
-    det = (
-        tx[..., 0] * (ty[..., 1] * tw[..., 2] - ty[..., 2] * tw[..., 1])
-        - ty[..., 0] * (tx[..., 1] * tw[..., 2] - tx[..., 2] * tw[..., 1])
-        + tw[..., 0] * (tx[..., 1] * ty[..., 2] - tx[..., 2] * ty[..., 1])
+    det = X[0] * (Y[1] * Wc[2] - Y[2] * Wc[1]) - Y[0] * (X[1] * Wc[2] - X[2] * Wc[1]) + Wc[0] * (X[1] * Y[2] - X[2] * Y[1])
+    return Fragments(
+        tri_id=tri_id, bary=jnp.stack(bary, axis=-1), depth=depth, w=jnp.where(ok, wv, 0.0), front=valid & (det > 0)
     )
-    return Fragments(tri_id=tri_id, bary=bary, depth=depth, w=jnp.where(ok, wv, 0.0), front=valid & (det > 0))
 
 
 def rasterize(
@@ -399,6 +428,11 @@ def rasterize(
 def interpolate(attr: Float[Array, "V C"], faces: Int[Array, "F 3"], frags: Fragments) -> Float[Array, "K H W C"]:
     """Perspective-correct interpolation of per-vertex attributes; zeros on empty pixels."""
     valid = frags.tri_id >= 0
-    va = attr[faces[jnp.where(valid, frags.tri_id, 0)]]  # K H W 3 C
-    out = jnp.sum(frags.bary[..., None] * va, axis=-2)
-    return jnp.where(valid[..., None], out, 0.0)
+    vid = _pixel_vertex_ids(faces, frags.tri_id, valid)
+    at = attr.T
+    shape = frags.tri_id.shape
+    out = []
+    for c in range(attr.shape[-1]):
+        acc = sum(frags.bary[..., j] * at[c][vid[j]].reshape(shape) for j in range(3))
+        out.append(jnp.where(valid, acc, 0.0))
+    return jnp.stack(out, axis=-1)

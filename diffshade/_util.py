@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -13,6 +14,9 @@ def as_float_array(x):
     """
     if isinstance(x, (int, float, list, tuple, np.ndarray, np.generic)):
         return jnp.asarray(x, dtype=jnp.result_type(float))
+    if isinstance(x, jax.Array) and not isinstance(x, jax.core.Tracer) and getattr(x, "weak_type", False):
+        # jnp.array(1.0) is weakly typed; a weak leaf would retrace a jitted render.
+        return jnp.asarray(x, dtype=x.dtype)
     return x
 
 

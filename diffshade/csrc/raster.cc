@@ -46,7 +46,7 @@ void RasterBand(const float* xs, const float* ys, const float* coef, const float
       const float y = ys[py];
       for (int64_t px = x0; px <= x1; ++px) {
         const float x = xs[px];
-        const float e0 = (c[0] + x * c[1]) + y * c[2];
+        const float e0 = (c[0] + x * c[1]) + y * c[2];  // same operand order as _raster.py
         if (e0 < 0.0f || (e0 == 0.0f && !own0)) continue;
         const float e1 = (c[3] + x * c[4]) + y * c[5];
         if (e1 < 0.0f || (e1 == 0.0f && !own1)) continue;
@@ -92,7 +92,7 @@ void Setup(const float* clip, const int32_t* faces, int64_t num_verts, int64_t n
       const float* c = clip + 4 * static_cast<int64_t>(vi[k]);
       x[k] = c[0]; y[k] = c[1]; z[k] = c[2]; w[k] = c[3];
     }
-    const float det = x[0] * (y[1] * w[2] - y[2] * w[1]) - y[0] * (x[1] * w[2] - x[2] * w[1]) +
+    const float det = (x[0] * (y[1] * w[2] - y[2] * w[1]) - y[0] * (x[1] * w[2] - x[2] * w[1])) +
                       w[0] * (x[1] * y[2] - x[2] * y[1]);
     const float sdet = det > 0 ? 1.0f : -1.0f;
     float cf[9];
@@ -104,11 +104,12 @@ void Setup(const float* clip, const int32_t* faces, int64_t num_verts, int64_t n
       cf[3 * i + 0] = s * (x[a] * y[b] - x[b] * y[a]);
       cf[3 * i + 1] = s * (w[b] * y[a] - w[a] * y[b]);
       cf[3 * i + 2] = s * (x[b] * w[a] - x[a] * w[b]);
-      if (s > 0) own |= 1 << i;
+      // Tie rule (see _raster.py): the centre is displaced by (eps, eps^2).
+      if (cf[3 * i + 1] > 0 || (cf[3 * i + 1] == 0 && cf[3 * i + 2] > 0)) own |= 1 << i;
     }
     for (int j = 0; j < 3; ++j) {
-      zw[j * nf + f] = cf[j] * z[0] + cf[3 + j] * z[1] + cf[6 + j] * z[2];
-      zw[(3 + j) * nf + f] = cf[j] * w[0] + cf[3 + j] * w[1] + cf[6 + j] * w[2];
+      zw[j * nf + f] = (cf[j] * z[0] + cf[3 + j] * z[1]) + cf[6 + j] * z[2];
+      zw[(3 + j) * nf + f] = (cf[j] * w[0] + cf[3 + j] * w[1]) + cf[6 + j] * w[2];
     }
     for (int k = 0; k < 9; ++k) coef[k * nf + f] = cf[k];
     // Bounding box of the part in front of the near plane (z >= -w).

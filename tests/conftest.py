@@ -1,0 +1,28 @@
+import os
+
+# Tests compare against float64 finite differences; the library itself never changes jax.config.
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import numpy as np
+import pytest
+
+MESHES = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "meshes")
+
+
+def shared_mesh_dir():
+    path = os.path.abspath(MESHES)
+    if not os.path.isdir(path):
+        pytest.skip("../shared/meshes is not beside the checkout")
+    return path
+
+
+@pytest.fixture(scope="session")
+def meshes_dir():
+    return shared_mesh_dir()
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(1234)

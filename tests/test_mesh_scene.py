@@ -1,0 +1,169 @@
+import os
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import trimesh
+
+import diffshade as ds
+
+
+@pytest.mark.parametrize(
+    "name,faces", [("bunny.ply", 16301), ("fandisk.obj", 5750), ("featuretype.STL", 3476), ("fuze.obj", 1000), ("rabbit.obj", 1252)]
+)
+def test_shared_meshes_load(name, faces, meshes_dir):
+    m = ds.load_mesh(os.path.join(meshes_dir, name))
+    assert m.faces.shape == (faces, 3)
+    assert np.isfinite(np.asarray(m.vertices)).all()
+    # duplicated vertices (STL facets, OBJ seams) are merged
+    assert len(np.unique(np.asarray(m.vertices), axis=0)) == m.vertices.shape[0]
+
+
+def test_stl_is_closed_after_merging(meshes_dir):
+    m = ds.load_mesh(os.path.join(meshes_dir, "featuretype.STL"))
+    assert trimesh.Trimesh(np.asarray(m.vertices), np.asarray(m.faces), process=False).is_watertight
+
+
+@pytest.mark.parametrize("name,msg", [("empty.obj", "no triangles"), ("obj_points.obj", "no triangles"), ("notenoughindices.obj", r"line \d+: a face needs at least 3")])
+def test_bad_meshes_are_rejected_clearly(name, msg, meshes_dir):
+    path = os.path.join(meshes_dir, "bad", name)
+    with pytest.raises(ds.MeshError, match=msg) as exc:
+        ds.load_mesh(path)
+    assert name in str(exc.value)
+
+
+def test_negative_indices_load_as_a_cube(meshes_dir):
+    m = ds.load_mesh(os.path.join(meshes_dir, "bad", "negative_indices.obj"))
+    assert m.vertices.shape == (8, 3) and m.faces.shape == (12, 3)
+    assert trimesh.Trimesh(np.asarray(m.vertices), np.asarray(m.faces), process=False).is_watertight
+
+
+def test_nan_colours_do_not_matter(meshes_dir):
+    # colours are not used; positions are fine, so the mesh loads and renders without NaN
+    m = ds.load_mesh(os.path.join(meshes_dir, "bad", "nancolor.obj"))
+    assert m.faces.shape == (12, 3) and np.isfinite(np.asarray(m.vertices)).all()
+
+
+def test_missing_file_and_nan_vertices(tmp_path):
+    with pytest.raises(ds.MeshError, match="not found"):
+        ds.load_mesh(tmp_path / "nope.obj")
+    p = tmp_path / "nan.obj"
+    p.write_text("v 0 0 0\nv 1 0 nan\nv 0 1 0\nf 1 2 3\n")
+    with pytest.raises(ds.MeshError, match="NaN or infinite"):
+        ds.load_mesh(p)
+    with pytest.raises(ds.MeshError, match="face indices"):
+        ds.mesh_from_arrays(np.zeros((3, 3)), [[0, 1, 3]])
+
+
+def test_vertex_normals_area_weighted():
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 2.0]])
+    f = np.array([[0, 1, 2], [0, 3, 1]])  # areas 0.5 (normal +z) and 1.0 (normal +y)
+    n = np.asarray(ds.Mesh(vertices=v, faces=f).vertex_normals())
+    expected = np.array([0, 2.0, 1.0]) / np.sqrt(5)
+    np.testing.assert_allclose(n[0], expected, atol=1e-12)
+    np.testing.assert_allclose(n[2], [0, 0, 1], atol=1e-12)
+    sphere = ds.icosphere(3)
+    vn = np.asarray(sphere.vertex_normals())
+    np.testing.assert_allclose(vn, np.asarray(sphere.vertices), atol=2e-2)
+
+
+def scene_dict(**over):
+    d = {
+        "mesh": {"icosphere": 2},
+        "camera": {"eye": [0, 0, 3.0], "width": 32, "height": 32},
+        "render": {"fog": "linear"},
+        "light": [{"type": "point", "position": [1, 1, 3.0], "attenuation": [1, 0.1, 0.0]}],
+        "fog": {"start": 1.0, "end": 6.0, "color": [0.2, 0.3, 0.4]},
+    }
+    for k, v in over.items():
+        d[k] = v
+    return d
+
+
+@pytest.mark.parametrize(
+    "patch,msg",
+    [
+        ({"light": [{"type": "point", "position": [0, 0, 1], "attenuation": [-1, 0, 0]}]}, r"light\[0\].attenuation: each entry must be >= 0"),
+        ({"light": [{"type": "spot", "position": [0, 0, 1], "axis": [0, 0, -1], "cutoff": 120}]}, r"light\[0\].cutoff: must lie in \(0.0, 90.0\]"),
+        ({"light": [{"type": "laser"}]}, r"light\[0\].type: must be one of"),
+        ({"camera": {"eye": [0, 0, 3.0], "width": 0}}, r"camera.width: must be an integer in \[1, 8192\]"),
+        ({"camera": {"eye": [0, 0, 3.0], "fov_y": "wide"}}, r"camera.fov_y: must be a number"),
+        ({"fog": {"start": 5.0, "end": 1.0}}, r"fog.end: must lie in \[5.0, inf\]"),
+        ({"material": {"diffuse": [0.5, 2.0, 0.5]}}, r"material.diffuse: each entry must be <= 1.0"),
+        ({"material": {"shininess": 0}}, r"material.shininess: must lie in \(0.0, inf\]"),
+        ({"material": {"colour": 1}}, r"material: unknown field"),
+        ({"render": {"shading": "toon"}}, r"render: shading must be one of"),
+        ({"mesh": {"path": "missing.obj"}}, r"mesh.path: .*missing.obj: mesh file not found"),
+    ],
+)
+def test_scene_validation_names_the_field(patch, msg):
+    with pytest.raises(ds.SceneError, match=msg):
+        ds.scene_from_dict(scene_dict(**patch), "test.toml")
+
+
+def test_scene_file_roundtrip_and_fog_background(tmp_path):
+    p = tmp_path / "s.toml"
+    p.write_text(
+        '[mesh]\nicosphere = 2\n[camera]\neye = [0, 0, 3]\nwidth = 24\nheight = 16\n[render]\nfog = "exp"\n'
+        '[fog]\ncolor = [0.2, 0.3, 0.4]\ndensity = 0.3\n[[light]]\ntype = "directional"\ndirection = [0, 0, -1]\n'
+    )
+    scene, opts = ds.load_scene(p)
+    assert opts.fog == "exp" and scene.camera.resolution == (16, 24)
+    np.testing.assert_allclose(np.asarray(scene.background), [0.2, 0.3, 0.4])  # defaults to the fog colour
+    img = np.asarray(jax.jit(ds.render, static_argnames="opts")(scene, opts))
+    assert img.shape == (16, 24, 3) and np.isfinite(img).all()
+    np.testing.assert_allclose(img[0, 0], [0.2, 0.3, 0.4])
+    (tmp_path / "bad.toml").write_text("[mesh\n")
+    with pytest.raises(ds.SceneError, match="not valid TOML"):
+        ds.load_scene(tmp_path / "bad.toml")
+
+
+def test_changing_numbers_never_recompiles():
+    import equinox as eqx
+
+    scene, opts = ds.scene_from_dict(scene_dict())
+
+    @jax.jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def f(s):
+        return ds.render(s, opts)
+
+    f(scene)
+    s2 = eqx.tree_at(lambda s: (s.material.diffuse, s.camera.eye, s.point.attenuation, s.fog.end),
+                     scene, (jnp.array([0.1, 0.2, 0.3]), jnp.array([0.3, 0.2, 2.5]), jnp.array([[1.0, 0.3, 0.1]]), jnp.asarray(9.0, jnp.float64)))
+    out = f(s2)
+    assert np.isfinite(np.asarray(out)).all()
+
+
+def test_lambert_sphere_centre_closed_form():
+    # Directional light along the view axis: the pixel at the image centre sees n = (0, 0, 1).
+    d = scene_dict(render={"shading": "phong", "specular": "none"}, light=[{"type": "directional", "direction": [0, 0, -1.0], "color": [0.8, 0.6, 0.4]}])
+    d.pop("fog")
+    d["mesh"] = {"icosphere": 5}
+    d["camera"] = {"eye": [0, 0, 3.0], "width": 33, "height": 33}
+    d["material"] = {"ambient": 0.1, "diffuse": [0.5, 0.7, 0.9]}
+    d["ambient_light"] = [0.2, 0.2, 0.2]
+    scene, opts = ds.scene_from_dict(d)
+    img = np.asarray(ds.render(scene, opts))
+    expected = 0.1 * 0.2 + np.array([0.5, 0.7, 0.9]) * np.array([0.8, 0.6, 0.4]) * 1.0
+    np.testing.assert_allclose(img[16, 16], expected, rtol=2e-3)
+
+
+def test_cli_demo_and_errors(tmp_path):
+    exe = [sys.executable, "-m", "fitting.cli"]
+    out = tmp_path / "demo.png"
+    r = subprocess.run(exe + ["demo", "-o", str(out)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert out.exists() and "wrote" in r.stdout
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[mesh]\nicosphere = 2\n")
+    r = subprocess.run(exe + ["render", str(bad), "-o", str(tmp_path / "x.png")], capture_output=True, text=True)
+    assert r.returncode == 3 and "camera: missing section" in r.stderr and "Traceback" not in r.stderr
+    good = tmp_path / "good.toml"
+    good.write_text("[mesh]\nicosphere = 1\n[camera]\neye = [0, 0, 3]\nwidth = 8\nheight = 8\n")
+    before = out.read_bytes()
+    r = subprocess.run(exe + ["render", str(good), "-o", str(out)], capture_output=True, text=True)
+    assert r.returncode == 3 and "exists" in r.stderr and out.read_bytes() == before

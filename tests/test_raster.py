@@ -1,0 +1,284 @@
+import functools
+import os
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import trimesh
+from jax.test_util import check_grads
+
+import diffshade as ds
+from diffshade import _native
+from reference import brute_force
+
+BACKENDS = ["jax", pytest.param("native", marks=pytest.mark.skipif(not _native.available(), reason="no C++ compiler"))]
+TIE = dict(tie_eps=1e-5, depth_eps=1e-5)
+
+
+def camera(res=64, eye=(0.0, 0.0, 3.0), near=0.1, far=20.0):
+    return ds.Camera(eye=eye, target=[0.0, 0.0, 0.0], up=[0.0, 1.0, 0.0], fov_y=45.0, near=near, far=far, width=res, height=res)
+
+
+@functools.lru_cache(maxsize=None)
+def _vis_fn(res_h, res_w, layers, backend, tile_capacity=None, pair_capacity=None):
+    return jax.jit(
+        lambda c, f: ds.visibility(c, f, (res_h, res_w), layers, backend, tile_capacity, pair_capacity)
+    )
+
+
+def vis(clip, faces, res, layers=1, backend="jax", **kw):
+    h, w = (res, res) if isinstance(res, int) else res
+    return np.asarray(_vis_fn(h, w, layers, backend, kw.get("tile_capacity"), kw.get("pair_capacity"))(
+        jnp.asarray(clip, jnp.float32), jnp.asarray(faces, jnp.int32)))
+
+
+def random_soup(rng, n, spread=1.0, size=0.4):
+    centres = rng.uniform(-spread, spread, (n, 1, 3))
+    v = (centres + rng.normal(0, size, (n, 3, 3))).reshape(-1, 3)
+    return v, np.arange(3 * n).reshape(n, 3)
+
+
+def assert_matches_reference(ids, clip, faces, res, layers, min_checked=0.9):
+    h, w = (res, res) if isinstance(res, int) else res
+    ref, amb = brute_force(np.asarray(clip), faces, h, w, layers, **TIE)
+    ok = ~amb
+    assert ok.mean() >= min_checked, f"too many ambiguous pixels ({1 - ok.mean():.3f})"
+    for k in range(layers):
+        bad = (ids[k] != ref[k]) & ok
+        assert not bad.any(), f"layer {k}: {bad.sum()} pixels differ from the brute-force reference"
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("layers", [1, 3])
+def test_random_soup_matches_brute_force(backend, layers, rng):
+    v, f = random_soup(rng, 60)
+    clip = np.asarray(camera(48).world_to_clip(jnp.asarray(v)))
+    ids = vis(clip, f, 48, layers, backend)
+    assert (ids[0] >= 0).mean() > 0.3
+    assert_matches_reference(ids, clip, f, 48, layers)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_non_square_image_and_near_plane_crossing(backend, rng):
+    # Triangles straddle the near plane and reach behind the eye: clipped exactly per pixel.
+    v, f = random_soup(rng, 40, spread=2.5, size=1.5)
+    v[:, 2] += 1.5  # many vertices now lie between the near plane and the eye, or behind it
+    cam = ds.Camera(eye=[0, 0, 3.0], target=[0, 0, 0], up=[0, 1, 0], fov_y=60.0, near=0.5, far=8.0, width=40, height=28)
+    clip = np.asarray(cam.world_to_clip(jnp.asarray(v)))
+    w = clip[:, 3]
+    assert (w < 0).any() and (w > 0.5).any() and ((w > 0) & (w < 0.5)).any()
+    ids = vis(clip, f, (28, 40), 2, backend)
+    assert_matches_reference(ids, clip, f, (28, 40), 2, min_checked=0.8)
+
+
+def _unit(mesh):
+    v = np.asarray(mesh.vertices)
+    v = v - (v.max(0) + v.min(0)) / 2
+    return v / np.abs(v).max(), np.asarray(mesh.faces)
+
+
+@pytest.mark.parametrize("name", ["bunny.ply", "fandisk.obj", "featuretype.STL", "fuze.obj", "rabbit.obj"])
+def test_shared_meshes_match_brute_force(name, meshes_dir):
+    mesh = ds.load_mesh(os.path.join(meshes_dir, name))
+    v, f = _unit(mesh)
+    cam = ds.Camera(eye=[1.2, 0.9, 2.4], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.1, far=10.0, width=40, height=40)
+    clip = np.asarray(cam.world_to_clip(jnp.asarray(v)))
+    for backend in ["jax", "native"] if _native.available() else ["jax"]:
+        ids = vis(clip, f, 40, 2, backend)
+        assert_matches_reference(ids, clip, f, 40, 2, min_checked=0.75)
+
+
+@pytest.mark.skipif(not _native.available(), reason="no C++ compiler")
+@pytest.mark.parametrize("layers", [1, 4])
+def test_native_and_jax_agree_pixel_for_pixel(layers):
+    # Bunny (which has duplicate faces) at 96x96 and a random soup: both backends give the same
+    # id on every pixel that is not within float32 rounding of an edge or a depth tie.
+    mesh = trimesh.load(os.path.join(os.path.dirname(__file__), "..", "..", "shared", "meshes", "bunny.ply"))
+    v, f = _unit(mesh)
+    v2, f2 = random_soup(np.random.default_rng(7), 300)
+    for verts, faces in ((v, f), (v2, f2)):
+        clip = np.asarray(camera(96, eye=(0.5, 0.4, 2.5)).world_to_clip(jnp.asarray(verts, jnp.float32)), np.float32)
+        a = vis(clip, faces, 96, layers, "jax")
+        b = vis(clip, faces, 96, layers, "native")
+        assert (a[0] >= 0).sum() > 1000
+        _, amb = brute_force(clip, faces, 96, 96, layers, **TIE)
+        differ = np.any(a != b, axis=0)
+        assert not (differ & ~amb).any()
+        assert differ.sum() <= 0.002 * differ.size
+
+
+def _grid_plane_clip(res, cells, rng, perspective):
+    # A quad grid whose vertices sit exactly on pixel centres: every grid edge and diagonal
+    # passes through pixel centres, so the fill rule decides many pixels.
+    xs = (2.0 * (np.arange(res) + 0.5)) / res - 1.0
+    idx = np.linspace(2, res - 3, cells + 1).astype(int)
+    gx, gy = np.meshgrid(xs[idx], -xs[idx])
+    v = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size), np.ones(gx.size)], 1)
+    if perspective:  # same projection, different w per vertex
+        v = v * rng.uniform(0.5, 3.0, (len(v), 1))
+    n = cells + 1
+    faces = []
+    for r in range(cells):
+        for c in range(cells):
+            a, b, cc, d = r * n + c, r * n + c + 1, (r + 1) * n + c, (r + 1) * n + c + 1
+            faces += [[a, cc, d], [a, d, b]] if (r + c) % 2 else [[a, cc, b], [b, cc, d]]
+    faces = np.array(faces)
+    # A random permutation of the vertex indices and of the faces changes nothing.
+    perm = rng.permutation(len(v))
+    inv = np.argsort(perm)
+    return v[perm], inv[faces][rng.permutation(len(faces))], idx
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("perspective", [False, True])
+def test_watertight_grid_no_gaps_no_double_coverage(backend, perspective, rng):
+    res = 64
+    clip, faces, idx = _grid_plane_clip(res, 9, rng, perspective)
+    ids = vis(clip, faces, res, 2, backend)
+    inner = np.zeros((res, res), bool)
+    inner[idx[0] + 1 : idx[-1], idx[0] + 1 : idx[-1]] = True
+    if perspective:
+        # With w != 1 a vertex lands on its pixel centre only up to float32 rounding, and the
+        # edge functions through it are no longer exactly zero: the one documented exception.
+        inner[np.ix_(idx, idx)] = False
+    assert (ids[0][inner] >= 0).all(), "gap inside the closed grid"
+    assert (ids[1][inner] < 0).all(), "a pixel covered twice by one surface"
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_watertight_closed_mesh_two_hits(backend):
+    # Every pixel inside a closed convex mesh's silhouette sees exactly one front and one back face.
+    m = trimesh.creation.icosphere(subdivisions=3)
+    clip = np.asarray(camera(64).world_to_clip(jnp.asarray(m.vertices)))
+    ids = vis(clip, m.faces, 64, 3, backend)
+    frags = ds.fragments(jnp.asarray(clip), jnp.asarray(m.faces), jnp.asarray(ids))
+    covered = ids[0] >= 0
+    assert covered.sum() > 1000
+    assert (ids[1][covered] >= 0).all() and (ids[2] < 0).all()
+    front = np.asarray(frags.front)
+    assert front[0][covered].all() and not front[1][covered].any()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_empty_and_culled_scenes(backend):
+    assert (vis(np.zeros((0, 4)), np.zeros((0, 3), int), 16, 2, backend) == -1).all()
+    v = np.array([[0, 0, 5.0], [1, 0, 5.0], [0, 1, 5.0]])  # behind the eye
+    clip = np.asarray(camera(16).world_to_clip(jnp.asarray(v)))
+    assert (vis(clip, [[0, 1, 2]], 16, 1, backend) == -1).all()
+    v = np.array([[0, 0, -50.0], [1, 0, -50.0], [0, 1, -50.0]])  # beyond the far plane
+    clip = np.asarray(camera(16).world_to_clip(jnp.asarray(v)))
+    assert (vis(clip, [[0, 1, 2]], 16, 1, backend) == -1).all()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_triangle_larger_than_screen(backend):
+    v = np.array([[-100, -100, 0.0], [100, -100, 0.0], [0, 100, 0.0]])
+    clip = np.asarray(camera(32).world_to_clip(jnp.asarray(v)))
+    ids = vis(clip, [[0, 1, 2]], 32, 2, backend)
+    assert (ids[0] == 0).all() and (ids[1] == -1).all()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_degenerate_triangles_cover_nothing(backend, rng):
+    v, f = random_soup(rng, 30)
+    degenerate_v = np.array([[0, 0, 0.5], [0, 0, 0.5], [0.3, 0.3, 0.5], [0.1, 0.1, 0.1], [0.2, 0.2, 0.2], [0.3, 0.3, 0.3]])
+    v2 = np.concatenate([degenerate_v, v])
+    f2 = np.concatenate([[[0, 1, 2], [3, 4, 5], [0, 0, 0]], f + len(degenerate_v)])
+    cam = camera(48)
+    ids = vis(np.asarray(cam.world_to_clip(jnp.asarray(v))), f, 48, 2, backend)
+    ids2 = vis(np.asarray(cam.world_to_clip(jnp.asarray(v2))), f2, 48, 2, backend)
+    np.testing.assert_array_equal(np.where(ids2 >= 3, ids2 - 3, ids2), ids)
+    frags = ds.fragments(cam.world_to_clip(jnp.asarray(v2)), jnp.asarray(f2), jnp.asarray(ids2))
+    assert np.isfinite(np.asarray(frags.bary)).all() and np.isfinite(np.asarray(frags.depth)).all()
+
+
+def test_bin_overflow_is_never_silent():
+    # Tiny static capacities: tiles overflow and the pair buffer overflows; the chunked path must
+    # still give exactly the same result, with more passes and no recompilation.
+    m = trimesh.creation.icosphere(subdivisions=3)
+    clip = jnp.asarray(camera(48).world_to_clip(jnp.asarray(m.vertices)), jnp.float32)
+    f = jnp.asarray(m.faces, jnp.int32)
+    ref = vis(clip, f, 48, 2, "jax")
+    ids, passes = jax.jit(lambda c: ds.visibility_passes(c, f, (48, 48), 2, tile_capacity=2, pair_capacity=64))(clip)
+    np.testing.assert_array_equal(np.asarray(ids), ref)
+    ids1, passes1 = jax.jit(lambda c: ds.visibility_passes(c, f, (48, 48), 2))(clip)
+    assert int(passes1) == 1 and int(passes) > 50
+    np.testing.assert_array_equal(np.asarray(ids1), ref)
+
+
+def _interior(frags, margin=0.05):
+    return np.asarray((frags.tri_id[0] >= 0) & (jnp.min(frags.bary[0], -1) > margin))
+
+
+def test_fragments_gradients_match_finite_differences():
+    # d(barycentrics, depth)/d(vertices, camera) at interior pixels, forward and reverse mode.
+    m = trimesh.creation.icosphere(subdivisions=1)
+    v0 = jnp.asarray(m.vertices, jnp.float64)
+    f = jnp.asarray(m.faces)
+    cam = camera(24)
+    ids = ds.visibility(cam.world_to_clip(v0), f, (24, 24), 1)
+    mask = _interior(ds.fragments(cam.world_to_clip(v0), f, ids))
+    w = jnp.asarray(np.random.default_rng(0).normal(size=(24, 24, 3)))
+
+    def loss(v, eye):
+        c = eqx.tree_at(lambda c: c.eye, cam, eye)
+        fr = ds.rasterize(c.world_to_clip(v), f, (24, 24), 1)
+        return jnp.where(mask, jnp.sum(fr.bary[0] * w, -1) + fr.depth[0] + 0.1 * fr.w[0], 0.0)
+
+    assert mask.sum() > 50
+    check_grads(loss, (v0, cam.eye), order=1, modes=("fwd", "rev"), eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
+def test_fragments_jvp_and_linearize_run_under_jit():
+    m = trimesh.creation.icosphere(subdivisions=2)
+    v0 = jnp.asarray(m.vertices)
+    f = jnp.asarray(m.faces)
+    cam = camera(32)
+    fn = jax.jit(lambda v: ds.rasterize(cam.world_to_clip(v), f, (32, 32), 2).bary)
+    out, tan = jax.jvp(fn, (v0,), (jnp.ones_like(v0),))
+    _, lin = jax.linearize(fn, v0)
+    np.testing.assert_allclose(np.asarray(lin(jnp.ones_like(v0))), np.asarray(tan), rtol=1e-10, atol=1e-12)
+    assert np.isfinite(np.asarray(tan)).all()
+    g = jax.grad(lambda v: jnp.sum(fn(v) ** 2))(v0)
+    assert np.isfinite(np.asarray(g)).all()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_vmap_over_vertices(backend, rng):
+    m = trimesh.creation.icosphere(subdivisions=2)
+    f = jnp.asarray(m.faces)
+    cam = camera(32)
+    vs = jnp.stack([jnp.asarray(m.vertices) * s + o for s, o in [(1.0, 0.0), (0.7, 0.2), (1.2, -0.1)]])
+    fn = lambda v: ds.rasterize(cam.world_to_clip(v), f, (32, 32), 2, backend)
+    batched = jax.jit(jax.vmap(fn))(vs)
+    for i in range(3):
+        single = fn(vs[i])
+        np.testing.assert_array_equal(np.asarray(batched.tri_id[i]), np.asarray(single.tri_id))
+        np.testing.assert_allclose(np.asarray(batched.bary[i]), np.asarray(single.bary), atol=1e-12)
+
+
+def test_bary_reproduce_pixel_position():
+    # Perspective-correct: interpolating clip coordinates with the barycentrics lands on the pixel centre.
+    m = trimesh.creation.icosphere(subdivisions=2)
+    cam = camera(32)
+    clip = cam.world_to_clip(jnp.asarray(m.vertices))
+    fr = ds.rasterize(clip, jnp.asarray(m.faces), (32, 32), 1)
+    c = ds.interpolate(clip, jnp.asarray(m.faces), fr)[0]
+    xs, ys = ds.pixel_centres(32, 32, jnp.float64)
+    mask = np.asarray(fr.tri_id[0] >= 0)
+    np.testing.assert_allclose(np.asarray(c[..., 0] / c[..., 3])[mask], np.broadcast_to(np.asarray(xs), (32, 32))[mask], atol=1e-9)
+    np.testing.assert_allclose(np.asarray(c[..., 1] / c[..., 3])[mask], np.broadcast_to(np.asarray(ys)[:, None], (32, 32))[mask], atol=1e-9)
+    np.testing.assert_allclose(np.asarray(c[..., 2] / c[..., 3])[mask], np.asarray(fr.depth[0])[mask], atol=1e-9)
+
+
+def test_bad_arguments_raise_clear_errors():
+    with pytest.raises(ValueError, match="clip must have shape"):
+        ds.visibility(jnp.zeros((3, 3)), jnp.zeros((1, 3), int), (8, 8))
+    with pytest.raises(ValueError, match="faces must be an integer"):
+        ds.visibility(jnp.zeros((3, 4)), jnp.zeros((1, 3)), (8, 8))
+    with pytest.raises(ValueError, match="layers"):
+        ds.visibility(jnp.zeros((3, 4)), jnp.zeros((1, 3), int), (8, 8), layers=0)
+    with pytest.raises(ValueError, match="backend"):
+        ds.visibility(jnp.zeros((3, 4)), jnp.zeros((1, 3), int), (8, 8), backend="gpu")
