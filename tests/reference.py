@@ -17,7 +17,7 @@ def pixel_centres(h, w):
 
 
 def brute_force(clip, faces, h, w, layers=1, chunk=512, tie_eps=1e-7, depth_eps=1e-6):
-    """Returns (ids [K,H,W], ambiguous [H,W]): ambiguous marks pixels within ``tie_eps`` of an edge
+    """Returns (ids [K,H,W], ambiguous [H,W], depth [K,H,W] NDC z/w): ambiguous marks pixels within ``tie_eps`` of an edge
     of some triangle or with two fragments within ``depth_eps`` in depth among the first K+1."""
     clip = np.asarray(clip, np.float64)
     faces = np.asarray(faces)
@@ -56,7 +56,8 @@ def brute_force(clip, faces, h, w, layers=1, chunk=512, tie_eps=1e-7, depth_eps=
     Ds = np.take_along_axis(D, order, 1)
     Is = np.take_along_axis(I, order, 1)
     ids = np.where(np.isfinite(Ds[:, :layers]), Is[:, :layers], -1)
-    gaps = np.abs(np.diff(Ds, axis=1))
+    with np.errstate(invalid="ignore"):
+        gaps = np.abs(np.diff(Ds, axis=1))
     close = np.isfinite(Ds[:, 1:]) & (gaps <= depth_eps * (1 + np.abs(Ds[:, 1:])))
     amb |= np.any(close, axis=1)
-    return ids.T.reshape(layers, h, w), amb.reshape(h, w)
+    return ids.T.reshape(layers, h, w), amb.reshape(h, w), Ds[:, :layers].T.reshape(layers, h, w)

@@ -42,12 +42,16 @@ def random_soup(rng, n, spread=1.0, size=0.4):
 
 def assert_matches_reference(ids, clip, faces, res, layers, min_checked=0.9):
     h, w = (res, res) if isinstance(res, int) else res
-    ref, amb = brute_force(np.asarray(clip), faces, h, w, layers, **TIE)
+    ref, amb, ref_depth = brute_force(np.asarray(clip), faces, h, w, layers, **TIE)
     ok = ~amb
     assert ok.mean() >= min_checked, f"too many ambiguous pixels ({1 - ok.mean():.3f})"
     for k in range(layers):
         bad = (ids[k] != ref[k]) & ok
         assert not bad.any(), f"layer {k}: {bad.sum()} pixels differ from the brute-force reference"
+    # depths of the differentiable recomputation (float64 here) equal the reference's
+    frags = ds.fragments(jnp.asarray(clip, jnp.float64), jnp.asarray(faces), jnp.asarray(ids))
+    hit = (ids >= 0) & (ids == ref)
+    np.testing.assert_allclose(np.asarray(frags.depth)[hit], ref_depth[hit], rtol=0, atol=1e-9)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -103,7 +107,7 @@ def test_native_and_jax_agree_pixel_for_pixel(layers):
         a = vis(clip, faces, 96, layers, "jax")
         b = vis(clip, faces, 96, layers, "native")
         assert (a[0] >= 0).sum() > 1000
-        _, amb = brute_force(clip, faces, 96, 96, layers, **TIE)
+        _, amb, _ = brute_force(clip, faces, 96, 96, layers, **TIE)
         differ = np.any(a != b, axis=0)
         assert not (differ & ~amb).any()
         assert differ.sum() <= 0.002 * differ.size
