@@ -71,13 +71,16 @@ def shade_points(P, n, eye, mat: Material, scene: Scene, opts: RenderOptions):
     return c
 
 
+def _back_material(scene: Scene, opts: RenderOptions) -> Material:
+    return scene.back_material if (opts.back_material and scene.back_material is not None) else scene.material
+
+
 def _two_sided(front, n_front, c_front_fn, scene: Scene, opts: RenderOptions):
     """Colour using ``n`` on front-facing and ``-n`` (and the back material) on back-facing fragments."""
     c_front = c_front_fn(n_front, scene.material)
     if not opts.two_sided:
         return c_front
-    back_mat = scene.back_material if (opts.back_material and scene.back_material is not None) else scene.material
-    c_back = c_front_fn(-n_front, back_mat)
+    c_back = c_front_fn(-n_front, _back_material(scene, opts))
     return jnp.where(front[..., None], c_front, c_back)
 
 
@@ -101,7 +104,7 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions) -> Float[
         cf = shade_points(mesh.vertices, vn, eye, scene.material, scene, opts)
         colors = interpolate(cf, mesh.faces, frags)[0]
         if opts.two_sided:
-            back_mat = scene.back_material if (opts.back_material and scene.back_material is not None) else scene.material
+            back_mat = _back_material(scene, opts)
             cb = shade_points(mesh.vertices, -vn, eye, back_mat, scene, opts)
             colors = jnp.where(front[..., None], colors, interpolate(cb, mesh.faces, frags)[0])
         color = colors
@@ -112,7 +115,7 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions) -> Float[
         cf = shade_points(centroid, fn, eye, scene.material, scene, opts)
         color = cf[safe_tid]
         if opts.two_sided:
-            back_mat = scene.back_material if (opts.back_material and scene.back_material is not None) else scene.material
+            back_mat = _back_material(scene, opts)
             cb = shade_points(centroid, -fn, eye, back_mat, scene, opts)
             color = jnp.where(front[..., None], color, cb[safe_tid])
 

@@ -28,7 +28,6 @@ void RasterBand(const float* xs, const float* ys, const float* coef, const float
                 const int32_t* meta, int64_t num_faces, int64_t height, int64_t width,
                 int64_t layers, int64_t row_begin, int64_t row_end, float* depth_buf,
                 int32_t* ids) {
-  const float inf = std::numeric_limits<float>::infinity();
   for (int64_t f = 0; f < num_faces; ++f) {
     // Structure of arrays: field k of face f is at [k * num_faces + f].
     const int64_t nf = num_faces;
@@ -74,7 +73,6 @@ void RasterBand(const float* xs, const float* ys, const float* coef, const float
       }
     }
   }
-  (void)inf;
 }
 
 
