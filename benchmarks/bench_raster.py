@@ -6,7 +6,7 @@ kernel) and pure JAX. If the optional ``deodr`` package is installed (``pip inst
 DEODR's C++ scanline renderer (rasterization + Gouraud shading) is measured in the same run and
 the ratio printed.
 
-    python benchmarks/bench_raster.py [--repeats N] [--quick]
+    python benchmarks/bench_raster.py [--repeats N] [--quick] [--backends native,jax]
 """
 
 from __future__ import annotations
@@ -88,9 +88,10 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--quick", action="store_true", help="icospheres at 256² only")
+    ap.add_argument("--backends", default="native,jax", help="comma-separated subset of native,jax")
     args = ap.parse_args()
     print(f"jax {jax.__version__}, device {jax.devices()[0]}, native kernel: {_native.available()}")
-    backends = ["native", "jax"] if _native.available() else ["jax"]
+    backends = [b for b in args.backends.split(",") if b == "jax" or (b == "native" and _native.available())]
     rows = []
     for name, v, f in scenes(args.quick):
         for res in (256,) if args.quick else (256, 512):

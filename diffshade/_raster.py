@@ -41,11 +41,16 @@ Two backends compute the same visibility, bit for bit:
   with more candidates than the capacity, or more pairs than the pair buffer holds, is processed
   in further chunks by a ``while_loop``: nothing is ever dropped, and nothing recompiles.
 - ``"native"``: a C++ kernel over each triangle's bounding box, registered with ``jax.ffi`` (CPU
-  only), with the same set-up and per-pixel test. XLA contracts ``a*b + c`` into fused
-  multiply-adds and the kernel does not, so the two can round an edge function or a depth
-  differently in the last bit: they agree on every pixel except where a pixel centre lies within
-  float32 rounding of an edge, or two fragments within rounding of the same depth (duplicate
-  faces). The tests check exactly that, against a float64 brute-force reference.
+  only), with the same set-up and per-pixel test, operation for operation.
+
+Bit-for-bit agreement: XLA's CPU backend contracts ``a*b + c`` into fused multiply-adds where it
+likes, which would change the last bit of an edge function. So every product in the visibility
+arithmetic is exact (factors are split into pieces short enough that each partial product is
+representable, see :func:`_xmul` and :func:`_plane_eval`), planes are evaluated in pixel units
+``(2i + 1, 2j + 1)`` (small exact integers), additions happen in one fixed order, and the native
+kernel flushes denormals as XLA does. Contraction then cannot change a result, and the two
+backends agree on every pixel, edge and depth ties included (tested). Image sides are limited to
+``MAX_SIDE`` = 8192 pixels so that three pieces suffice.
 """
 
 from __future__ import annotations
@@ -99,45 +104,123 @@ def pixel_centres(height: int, width: int, dtype=jnp.float32):
 
 
 # --------------------------------------------------------------------------------------------
+# Exact products
+# --------------------------------------------------------------------------------------------
+#
+# XLA's CPU backend contracts ``a*b + c`` into a fused multiply-add where it likes; the native
+# kernel does not. Every product in the visibility arithmetic is therefore made *exact*: its
+# factors are split into pieces whose significands are short enough that each partial product is
+# representable, so rounding happens only in additions, in a fixed order, and a fused
+# multiply-add gives the same bits as a multiply followed by an add. Both backends follow the
+# same sequence and agree bit for bit.
+
+
+def _trunc(a, keep: int):
+    """``a`` truncated to its leading ``keep`` significant bits, and the (exact) remainder."""
+    mask = np.uint32((0xFFFFFFFF << (24 - keep)) & 0xFFFFFFFF)
+    hi = jax.lax.bitcast_convert_type(jax.lax.bitcast_convert_type(a, jnp.uint32) & mask, jnp.float32)
+    return hi, a - hi
+
+
+def _xmul(a, b):
+    """``a * b`` as a sum of four exact 12 x 12-bit partial products (same order as raster.cc)."""
+    ah, al = _trunc(a, 12)
+    bh, bl = _trunc(b, 12)
+    return (ah * bh + (ah * bl + al * bh)) + al * bl
+
+
+def _pieces(a, keep: int, count: int):
+    """Split ``a`` into ``count`` pieces of at most ``keep`` significant bits (the last may be shorter)."""
+    out = []
+    for _ in range(count - 1):
+        hi, a = _trunc(a, keep)
+        out.append(hi)
+    out.append(a)
+    return out
+
+
+MAX_SIDE = 8192
+
+
+def _piece_plan(height: int, width: int) -> tuple[int, int]:
+    """Bits per piece and piece count so that piece x (2i + 1) is exact for every pixel index."""
+    qbits = (2 * max(height, width) - 1).bit_length()
+    keep = 24 - qbits
+    return keep, -(-24 // keep)
+
+
+def _plane_eval(c0, cx, cy, qx, qy, keep: int, count: int):
+    """``c0 + cx qx + cy qy`` with exact partial products, in the fixed order shared with raster.cc."""
+    e = c0
+    for p in _pieces(cx, keep, count):
+        e = e + p * qx
+    for p in _pieces(cy, keep, count):
+        e = e + p * qy
+    return e
+
+
+# --------------------------------------------------------------------------------------------
 # Triangle set-up (shared by both backends)
 # --------------------------------------------------------------------------------------------
 
 
 class _Setup(eqx.Module):
     # Structure of arrays (leading axis = field) for vectorised set-up and cache-friendly reads.
-    coef: Float[Array, "9 F"]  # (C, Ax, Ay) of E'_0, E'_1, E'_2 (inside: > 0)
-    zw: Float[Array, "6 F"]  # (Zc, Zx, Zy, Wc, Wx, Wy)
+    # Planes are in pixel units: value = c0 + cx * (2i + 1) + cy * (2j + 1) at column i, row j
+    # (the NDC plane scaled by W * H > 0, which changes no sign and no depth ratio).
+    coef: Float[Array, "9 F"]  # (c0, cx, cy) of E'_0, E'_1, E'_2 (inside: > 0)
+    zw: Float[Array, "6 F"]  # (Z0, Zx, Zy, W0, Wx, Wy)
     meta: Int[Array, "5 F"]  # pixel bbox x0, x1, y0, y1 (inclusive; empty if x0 > x1), own mask
+
+
+def _to_pixel_units(c, ax, ay, height: int, width: int):
+    # E = c + ax x + ay y with x = qx / W - 1, y = 1 - qy / H; times W H:
+    # E' = (c - ax + ay) W H + (ax H) qx - (ay W) qy, every product exact (see _xmul).
+    wh = jnp.float32(width * height)
+    return _xmul((c - ax) + ay, wh), _xmul(ax, jnp.float32(height)), -_xmul(ay, jnp.float32(width))
 
 
 def _setup(clip: Float[Array, "V 4"], faces: Int[Array, "F 3"], height: int, width: int) -> _Setup:
     # Structure-of-arrays throughout: XLA's CPU backend vectorises [F] vectors far better than
-    # arrays with a minor axis of 3 or 4.
+    # arrays with a minor axis of 3 or 4. Same operations, in the same order, as raster.cc.
     ct = clip.astype(jnp.float32).T  # 4 V
     faces = faces.astype(jnp.int32)
     fi = [faces[:, k] for k in range(3)]
     x, y, z, w = ([ct[c][fi[k]] for k in range(3)] for c in range(4))
-    det = (
-        x[0] * (y[1] * w[2] - y[2] * w[1])
-        - y[0] * (x[1] * w[2] - x[2] * w[1])
-        + w[0] * (x[1] * y[2] - x[2] * y[1])
-    )
-    sdet = jnp.where(det > 0, 1.0, -1.0).astype(jnp.float32)
-    coef, owns = [], []
+    minors, swaps = [], []
     for i in range(3):
         a, b = (i + 1) % 3, (i + 2) % 3
         swap = fi[a] > fi[b]
+        xa, ya = (jnp.where(swap, q[b], q[a]) for q in (x, y))
+        xb, yb = (jnp.where(swap, q[a], q[b]) for q in (x, y))
+        minors.append(_xmul(xa, yb) - _xmul(xb, ya))  # canonical order
+        swaps.append(swap)
+    # det [x y w] = sum_i w_i (x_a y_b - x_b y_a), natural order (a, b) = (i+1, i+2).
+    nat = [jnp.where(swaps[i], -minors[i], minors[i]) for i in range(3)]
+    det = (_xmul(w[0], nat[0]) + _xmul(w[1], nat[1])) + _xmul(w[2], nat[2])
+    sdet = jnp.where(det > 0, 1.0, -1.0).astype(jnp.float32)
+    ndc, coef, owns = [], [], []
+    for i in range(3):
+        a, b = (i + 1) % 3, (i + 2) % 3
+        swap = swaps[i]
         xa, ya, wa = (jnp.where(swap, q[b], q[a]) for q in (x, y, w))
         xb, yb, wb = (jnp.where(swap, q[a], q[b]) for q in (x, y, w))
         s = jnp.where(swap, -sdet, sdet)
-        cc, ax, ay = s * (xa * yb - xb * ya), s * (wb * ya - wa * yb), s * (xb * wa - xa * wb)
-        coef += [cc, ax, ay]
+        cc = s * minors[i]
+        ax = s * (_xmul(wb, ya) - _xmul(wa, yb))
+        ay = s * (_xmul(xb, wa) - _xmul(xa, wb))
+        ndc.append((cc, ax, ay))
+        c0, cx, cy = _to_pixel_units(cc, ax, ay, height, width)
+        coef += [c0, cx, cy]
         # Tie rule: a pixel centre exactly on an edge (E' = 0) is treated as displaced by an
-        # infinitesimal (eps, eps^2), so it is inside iff Ax' > 0, or Ax' = 0 and Ay' > 0. The
-        # displaced point lies inside exactly one triangle of a closed fan, vertices included.
-        owns.append((ax > 0) | ((ax == 0) & (ay > 0)))
-    zw = [(coef[j] * z[0] + coef[3 + j] * z[1]) + coef[6 + j] * z[2] for j in range(3)]
-    zw += [(coef[j] * w[0] + coef[3 + j] * w[1]) + coef[6 + j] * w[2] for j in range(3)]
+        # infinitesimal (eps, eps^2) in pixel units (x right, y down), so it is inside iff
+        # cx > 0, or cx = 0 and cy > 0. The displaced point lies inside exactly one triangle of
+        # a closed fan, vertices included.
+        owns.append((cx > 0) | ((cx == 0) & (cy > 0)))
+    zw = []
+    for q in (z, w):
+        plane = [(_xmul(ndc[0][j], q[0]) + _xmul(ndc[1][j], q[1])) + _xmul(ndc[2][j], q[2]) for j in range(3)]
+        zw += list(_to_pixel_units(*plane, height, width))
 
     # Conservative pixel bounding box of the part in front of the near plane (z >= -w).
     dist = [z[k] + w[k] for k in range(3)]
@@ -210,9 +293,10 @@ def _visibility_jax(setup: _Setup, height: int, width: int, layers: int, tile_ca
     # Pixel centres of each tile (pixels beyond the image are masked by the bbox test).
     col = (jnp.arange(ntiles) % ntx)[:, None] * TILE + (jnp.arange(npx) % TILE)[None, :]
     row = (jnp.arange(ntiles) // ntx)[:, None] * TILE + (jnp.arange(npx) // TILE)[None, :]
-    px = jnp.asarray(_centres_np(ntx * TILE, width, np.float32))[col]
-    py = -jnp.asarray(_centres_np(nty * TILE, height, np.float32))[row]
-    pxe, pye = px[:, :, None], py[:, :, None]
+    # Pixel coordinates 2i + 1, 2j + 1 (exact small integers; see _plane_eval).
+    pxe = (2 * col + 1).astype(jnp.float32)[:, :, None]
+    pye = (2 * row + 1).astype(jnp.float32)[:, :, None]
+    keep, count = _piece_plan(height, width)
     cole, rowe = col[:, :, None], row[:, :, None]
 
     def process(cand, state):
@@ -224,11 +308,11 @@ def _visibility_jax(setup: _Setup, height: int, width: int, layers: int, tile_ca
         mf = meta.T[c][:, None, :, :]
         inside = valid[:, None, :] & (cole >= mf[..., 0]) & (cole <= mf[..., 1]) & (rowe >= mf[..., 2]) & (rowe <= mf[..., 3])
         for i in range(3):
-            e = (cf[..., 3 * i] + pxe * cf[..., 3 * i + 1]) + pye * cf[..., 3 * i + 2]
+            e = _plane_eval(cf[..., 3 * i], cf[..., 3 * i + 1], cf[..., 3 * i + 2], pxe, pye, keep, count)
             own = ((mf[..., 4] >> i) & 1) == 1
             inside = inside & ((e > 0) | ((e == 0) & own))
-        zz = (zf[..., 0] + pxe * zf[..., 1]) + pye * zf[..., 2]
-        ww = (zf[..., 3] + pxe * zf[..., 4]) + pye * zf[..., 5]
+        zz = _plane_eval(zf[..., 0], zf[..., 1], zf[..., 2], pxe, pye, keep, count)
+        ww = _plane_eval(zf[..., 3], zf[..., 4], zf[..., 5], pxe, pye, keep, count)
         inside = inside & (zz >= -ww) & (zz <= ww)
         d = jnp.where(inside, zz / jnp.where(inside, ww, 1.0), jnp.inf)
         ids = jnp.broadcast_to(jnp.where(valid, cand, _BIG)[:, None, :], d.shape)
@@ -276,11 +360,10 @@ def _visibility_jax(setup: _Setup, height: int, width: int, layers: int, tile_ca
 
 def _visibility_native(clip, faces, height: int, width: int, layers: int):
     target = _native.ensure_registered()
-    xs, ys = pixel_centres(height, width)
     call = jax.ffi.ffi_call(
         target, jax.ShapeDtypeStruct((layers, height, width), jnp.int32), vmap_method="broadcast_all"
     )
-    return call(xs, ys, clip.astype(jnp.float32), faces.astype(jnp.int32))
+    return call(clip.astype(jnp.float32), faces.astype(jnp.int32))
 
 
 def default_capacities(num_faces: int, height: int, width: int) -> tuple[int, int]:
@@ -310,8 +393,8 @@ def _check(clip, faces, resolution, layers):
     if not jnp.issubdtype(faces.dtype, jnp.integer):
         raise ValueError(f"faces must be an integer array, got {faces.dtype}")
     h, w = resolution
-    if not (isinstance(h, (int, np.integer)) and isinstance(w, (int, np.integer)) and h > 0 and w > 0):
-        raise ValueError(f"resolution must be two positive integers (height, width), got {resolution}")
+    if not (isinstance(h, (int, np.integer)) and isinstance(w, (int, np.integer)) and 0 < h <= MAX_SIDE and 0 < w <= MAX_SIDE):
+        raise ValueError(f"resolution must be two integers (height, width) in [1, {MAX_SIDE}], got {resolution}")
     if not (isinstance(layers, (int, np.integer)) and layers >= 1):
         raise ValueError(f"layers must be a positive integer, got {layers}")
 

@@ -1,14 +1,16 @@
 // diffshade native visibility kernel (CPU), registered with XLA through jax.ffi.
 //
 // It implements the same set-up and per-pixel test as the pure-JAX tiled rasterizer
-// (diffshade/_raster.py): a pixel (x, y) is covered by triangle f when, for each edge i,
-//     E'_i = (C_i + x * Ax_i) + y * Ay_i  >  0,  or  == 0 and the edge owns ties,
-// and the interpolated NDC depth d = Z / W with Z = (Zc + x Zx) + y Zy, W = (Wc + x Wx) + y Wy
-// satisfies -W <= Z <= W. Fragments are kept per pixel as the K nearest by (depth, triangle id).
-// Compiled with -ffp-contract=off so that the arithmetic is the plain IEEE sequence above. XLA
-// may contract a*b + c into a fused multiply-add, so the two paths can differ in the last bit
-// of an edge function; only pixels exactly on an edge (E = 0 in exact arithmetic) can then be
-// assigned differently. The tests compare the two everywhere else.
+// (diffshade/_raster.py), operation for operation: a pixel (column i, row j) with
+// qx = 2i + 1, qy = 2j + 1 is covered by triangle f when, for each edge k,
+//     E_k = c0 + cx qx + cy qy  >  0,  or  == 0 and the edge owns ties,
+// and the interpolated depth d = Z / W of the planes Z, W (same form) satisfies -W <= Z <= W.
+// Fragments are kept per pixel as the K nearest by (depth, triangle id).
+//
+// Bit-for-bit agreement with XLA: XLA may contract a*b + c into a fused multiply-add, so every
+// product here is exact (factors split into short pieces, see Mul and Plane), which makes
+// contraction irrelevant; additions happen in the same order as in _raster.py; and denormals
+// are flushed to zero (FTZ/DAZ) as XLA's CPU backend does. Compiled with -ffp-contract=off.
 
 #include <algorithm>
 #include <cmath>
@@ -16,6 +18,12 @@
 #include <limits>
 #include <thread>
 #include <vector>
+#include <cstring>
+
+#if defined(__SSE2__) || defined(__x86_64__)
+#include <xmmintrin.h>
+#define DIFFSHADE_X86 1
+#endif
 
 #include "xla/ffi/api/ffi.h"
 
@@ -23,36 +31,122 @@ namespace ffi = xla::ffi;
 
 namespace {
 
+// Flush denormals to zero (results and inputs) for the lifetime of the object, as XLA does.
+class ScopedFlushDenormals {
+ public:
+  ScopedFlushDenormals() {
+#if defined(DIFFSHADE_X86)
+    saved_ = _mm_getcsr();
+    _mm_setcsr(saved_ | 0x8040);  // FTZ | DAZ
+#elif defined(__aarch64__)
+    uint64_t fpcr;
+    __asm__ __volatile__("mrs %0, fpcr" : "=r"(fpcr));
+    saved_ = fpcr;
+    fpcr |= (1ull << 24);  // FZ
+    __asm__ __volatile__("msr fpcr, %0" : : "r"(fpcr));
+#endif
+  }
+  ~ScopedFlushDenormals() {
+#if defined(DIFFSHADE_X86)
+    _mm_setcsr(static_cast<unsigned>(saved_));
+#elif defined(__aarch64__)
+    __asm__ __volatile__("msr fpcr, %0" : : "r"(saved_));
+#endif
+  }
+
+ private:
+  uint64_t saved_ = 0;
+};
+
+// a truncated to its leading `keep` significant bits; the remainder a - hi is exact.
+inline float Trunc(float a, int keep) {
+  uint32_t bits;
+  std::memcpy(&bits, &a, 4);
+  bits &= static_cast<uint32_t>(0xFFFFFFFFull << (24 - keep));
+  float hi;
+  std::memcpy(&hi, &bits, 4);
+  return hi;
+}
+
+// a * b as four exact 12 x 12-bit partial products, summed in the order of _raster.py::_xmul.
+inline float Mul(float a, float b) {
+  const float ah = Trunc(a, 12), al = a - ah, bh = Trunc(b, 12), bl = b - bh;
+  return (ah * bh + (ah * bl + al * bh)) + al * bl;
+}
+
+// Pieces of at most `keep` bits (see _raster.py::_pieces); count is 2 or 3.
+struct Pieces {
+  float p[3];
+};
+inline Pieces Split(float a, int keep, int count) {
+  Pieces out{{0.0f, 0.0f, 0.0f}};
+  for (int k = 0; k < count - 1; ++k) {
+    const float hi = Trunc(a, keep);
+    out.p[k] = hi;
+    a = a - hi;
+  }
+  out.p[count - 1] = a;
+  return out;
+}
+
+// A plane c0 + cx qx + cy qy with pre-split coefficients (_raster.py::_plane_eval).
+struct Plane {
+  float c0;
+  Pieces x, y;
+};
+template <int kCount>
+inline float Eval(const Plane& pl, float qx, float qy) {
+  float e = pl.c0;
+  for (int k = 0; k < kCount; ++k) e = e + pl.x.p[k] * qx;
+  for (int k = 0; k < kCount; ++k) e = e + pl.y.p[k] * qy;
+  return e;
+}
+
+// Bits per piece and piece count (_raster.py::_piece_plan).
+inline void PiecePlan(int64_t height, int64_t width, int* keep, int* count) {
+  int64_t q = 2 * std::max(height, width) - 1;
+  int qbits = 0;
+  while (q > 0) { ++qbits; q >>= 1; }
+  *keep = 24 - qbits;
+  *count = (24 + *keep - 1) / *keep;
+}
+
 // Rasterize one image: rows [row_begin, row_end) only (row bands are independent).
-void RasterBand(const float* xs, const float* ys, const float* coef, const float* zw,
-                const int32_t* meta, int64_t num_faces, int64_t height, int64_t width,
-                int64_t layers, int64_t row_begin, int64_t row_end, float* depth_buf,
-                int32_t* ids) {
-  for (int64_t f = 0; f < num_faces; ++f) {
+template <int kCount>
+void RasterBand(const float* coef, const float* zw, const int32_t* meta, int64_t num_faces,
+                int64_t height, int64_t width, int64_t layers, int keep, int64_t row_begin,
+                int64_t row_end, float* depth_buf, int32_t* ids) {
+  ScopedFlushDenormals ftz;
+  const int64_t nf = num_faces;
+  const int64_t stride = height * width;
+  for (int64_t f = 0; f < nf; ++f) {
     // Structure of arrays: field k of face f is at [k * num_faces + f].
-    const int64_t nf = num_faces;
     int64_t x0 = meta[f], x1 = meta[nf + f], y0 = meta[2 * nf + f], y1 = meta[3 * nf + f];
     if (x0 > x1) continue;
     if (y0 < row_begin) y0 = row_begin;
     if (y1 >= row_end) y1 = row_end - 1;
     if (y0 > y1) continue;
     const int32_t own = meta[4 * nf + f];
-    float c[9], z[6];
-    for (int k = 0; k < 9; ++k) c[k] = coef[k * nf + f];
-    for (int k = 0; k < 6; ++k) z[k] = zw[k * nf + f];
+    Plane pl[5];
+    for (int k = 0; k < 5; ++k) {
+      const float* src = k < 3 ? coef + 3 * k * nf : zw + 3 * (k - 3) * nf;
+      pl[k].c0 = src[f];
+      pl[k].x = Split(src[nf + f], keep, kCount);
+      pl[k].y = Split(src[2 * nf + f], keep, kCount);
+    }
     const bool own0 = own & 1, own1 = own & 2, own2 = own & 4;
     for (int64_t py = y0; py <= y1; ++py) {
-      const float y = ys[py];
+      const float qy = static_cast<float>(2 * py + 1);
       for (int64_t px = x0; px <= x1; ++px) {
-        const float x = xs[px];
-        const float e0 = (c[0] + x * c[1]) + y * c[2];  // same operand order as _raster.py
+        const float qx = static_cast<float>(2 * px + 1);
+        const float e0 = Eval<kCount>(pl[0], qx, qy);
         if (e0 < 0.0f || (e0 == 0.0f && !own0)) continue;
-        const float e1 = (c[3] + x * c[4]) + y * c[5];
+        const float e1 = Eval<kCount>(pl[1], qx, qy);
         if (e1 < 0.0f || (e1 == 0.0f && !own1)) continue;
-        const float e2 = (c[6] + x * c[7]) + y * c[8];
+        const float e2 = Eval<kCount>(pl[2], qx, qy);
         if (e2 < 0.0f || (e2 == 0.0f && !own2)) continue;
-        const float zz = (z[0] + x * z[1]) + y * z[2];
-        const float ww = (z[3] + x * z[4]) + y * z[5];
+        const float zz = Eval<kCount>(pl[3], qx, qy);
+        const float ww = Eval<kCount>(pl[4], qx, qy);
         if (!(zz >= -ww && zz <= ww)) continue;
         const float d = zz / ww;
         const int64_t pix = py * width + px;
@@ -60,7 +154,6 @@ void RasterBand(const float* xs, const float* ys, const float* coef, const float
         // order, so equal depths keep the earlier (smaller) id first.
         float* dl = depth_buf + pix * layers;
         int32_t* il = ids + pix;  // stride height * width between layers
-        const int64_t stride = height * width;
         if (!(d < dl[layers - 1])) continue;
         int64_t k = layers - 1;
         while (k > 0 && dl[k - 1] > d) {
@@ -75,12 +168,20 @@ void RasterBand(const float* xs, const float* ys, const float* coef, const float
   }
 }
 
+// NDC plane (c, ax, ay) scaled by W * H into pixel units (_raster.py::_to_pixel_units).
+inline void ToPixelUnits(float c, float ax, float ay, int64_t height, int64_t width, float* out) {
+  const float wh = static_cast<float>(width * height);
+  out[0] = Mul((c - ax) + ay, wh);
+  out[1] = Mul(ax, static_cast<float>(height));
+  out[2] = -Mul(ay, static_cast<float>(width));
+}
 
-// Triangle set-up: the same formulas as diffshade/_raster.py::_setup (canonical edge order,
-// conservative near-clipped bounding box), written to structure-of-arrays buffers.
-void Setup(const float* clip, const int32_t* faces, int64_t num_verts, int64_t nf, int64_t height,
-           int64_t width, float* coef, float* zw, int32_t* meta) {
-  for (int64_t f = 0; f < nf; ++f) {
+// Triangle set-up: the same operations as diffshade/_raster.py::_setup (canonical edge order,
+// exact products, conservative near-clipped bounding box), written to structure-of-arrays.
+void Setup(const float* clip, const int32_t* faces, int64_t num_verts, int64_t nf, int64_t f_begin,
+           int64_t f_end, int64_t height, int64_t width, float* coef, float* zw, int32_t* meta) {
+  ScopedFlushDenormals ftz;
+  for (int64_t f = f_begin; f < f_end; ++f) {
     int32_t vi[3];
     float x[3], y[3], z[3], w[3];
     bool bad = false;
@@ -90,24 +191,38 @@ void Setup(const float* clip, const int32_t* faces, int64_t num_verts, int64_t n
       const float* c = clip + 4 * static_cast<int64_t>(vi[k]);
       x[k] = c[0]; y[k] = c[1]; z[k] = c[2]; w[k] = c[3];
     }
-    const float det = (x[0] * (y[1] * w[2] - y[2] * w[1]) - y[0] * (x[1] * w[2] - x[2] * w[1])) +
-                      w[0] * (x[1] * y[2] - x[2] * y[1]);
+    float minor[3], nat[3];
+    bool swap[3];
+    for (int i = 0; i < 3; ++i) {
+      int a = (i + 1) % 3, b = (i + 2) % 3;
+      swap[i] = vi[a] > vi[b];
+      if (swap[i]) std::swap(a, b);
+      minor[i] = Mul(x[a], y[b]) - Mul(x[b], y[a]);
+      nat[i] = swap[i] ? -minor[i] : minor[i];
+    }
+    const float det = (Mul(w[0], nat[0]) + Mul(w[1], nat[1])) + Mul(w[2], nat[2]);
     const float sdet = det > 0 ? 1.0f : -1.0f;
-    float cf[9];
+    float ndc[9], cf[9];
     int32_t own = 0;
     for (int i = 0; i < 3; ++i) {
       int a = (i + 1) % 3, b = (i + 2) % 3;
-      const float s = vi[a] > vi[b] ? -sdet : sdet;
-      if (vi[a] > vi[b]) std::swap(a, b);
-      cf[3 * i + 0] = s * (x[a] * y[b] - x[b] * y[a]);
-      cf[3 * i + 1] = s * (w[b] * y[a] - w[a] * y[b]);
-      cf[3 * i + 2] = s * (x[b] * w[a] - x[a] * w[b]);
-      // Tie rule (see _raster.py): the centre is displaced by (eps, eps^2).
+      if (swap[i]) std::swap(a, b);
+      const float s = swap[i] ? -sdet : sdet;
+      ndc[3 * i + 0] = s * minor[i];
+      ndc[3 * i + 1] = s * (Mul(w[b], y[a]) - Mul(w[a], y[b]));
+      ndc[3 * i + 2] = s * (Mul(x[b], w[a]) - Mul(x[a], w[b]));
+      ToPixelUnits(ndc[3 * i], ndc[3 * i + 1], ndc[3 * i + 2], height, width, cf + 3 * i);
+      // Tie rule (see _raster.py): the centre is displaced by (eps, eps^2) in pixel units.
       if (cf[3 * i + 1] > 0 || (cf[3 * i + 1] == 0 && cf[3 * i + 2] > 0)) own |= 1 << i;
     }
-    for (int j = 0; j < 3; ++j) {
-      zw[j * nf + f] = (cf[j] * z[0] + cf[3 + j] * z[1]) + cf[6 + j] * z[2];
-      zw[(3 + j) * nf + f] = (cf[j] * w[0] + cf[3 + j] * w[1]) + cf[6 + j] * w[2];
+    float plane[3], out[3];
+    for (int q = 0; q < 2; ++q) {
+      const float* v = q == 0 ? z : w;
+      for (int j = 0; j < 3; ++j) {
+        plane[j] = (Mul(ndc[j], v[0]) + Mul(ndc[3 + j], v[1])) + Mul(ndc[6 + j], v[2]);
+      }
+      ToPixelUnits(plane[0], plane[1], plane[2], height, width, out);
+      for (int j = 0; j < 3; ++j) zw[(3 * q + j) * nf + f] = out[j];
     }
     for (int k = 0; k < 9; ++k) coef[k * nf + f] = cf[k];
     // Bounding box of the part in front of the near plane (z >= -w).
@@ -148,10 +263,22 @@ void Setup(const float* clip, const int32_t* faces, int64_t num_verts, int64_t n
   }
 }
 
-ffi::Error RasterImpl(ffi::Buffer<ffi::F32> xs, ffi::Buffer<ffi::F32> ys,
-                      ffi::Buffer<ffi::F32> clip, ffi::Buffer<ffi::S32> faces,
+// Run fn(0 .. n-1) on n threads (inline when n == 1).
+template <typename Fn>
+void ParallelFor(int64_t n, Fn fn) {
+  if (n <= 1) {
+    fn(0);
+    return;
+  }
+  std::vector<std::thread> pool;
+  for (int64_t t = 1; t < n; ++t) pool.emplace_back(fn, t);
+  fn(0);
+  for (auto& th : pool) th.join();
+}
+
+ffi::Error RasterImpl(ffi::Buffer<ffi::F32> clip, ffi::Buffer<ffi::S32> faces,
                       ffi::ResultBuffer<ffi::S32> out) {
-  // Shapes: xs [..., W], ys [..., H], clip [..., V, 4], faces [..., F, 3], out [..., K, H, W].
+  // Shapes: clip [..., V, 4], faces [..., F, 3], out [..., K, H, W].
   // Leading dimensions are a batch (vmap with broadcast_all).
   auto odims = out->dimensions();
   auto cdims = clip.dimensions();
@@ -164,6 +291,11 @@ ffi::Error RasterImpl(ffi::Buffer<ffi::F32> xs, ffi::Buffer<ffi::F32> ys,
   const int64_t layers = odims[odims.size() - 3];
   const int64_t num_verts = cdims[cdims.size() - 2];
   const int64_t num_faces = fdims[fdims.size() - 2];
+  int keep = 0, count = 0;
+  PiecePlan(height, width, &keep, &count);
+  if (count < 2 || count > 3) {
+    return ffi::Error::InvalidArgument("diffshade_raster: image side out of range");
+  }
   std::vector<float> coef(static_cast<size_t>(9 * num_faces)), zw(static_cast<size_t>(6 * num_faces));
   std::vector<int32_t> meta(static_cast<size_t>(5 * num_faces));
   int64_t batch = 1;
@@ -176,29 +308,25 @@ ffi::Error RasterImpl(ffi::Buffer<ffi::F32> xs, ffi::Buffer<ffi::F32> ys,
   if (nthreads > 8) nthreads = 8;
   if (nthreads > height) nthreads = height;
   if (num_faces * 1.0 * npix < 2.0e6) nthreads = 1;  // not worth a thread for tiny jobs
+  auto band = count == 2 ? RasterBand<2> : RasterBand<3>;
   for (int64_t b = 0; b < batch; ++b) {
     int32_t* ids = ids_all + b * layers * npix;
     std::fill(depth.begin(), depth.end(), std::numeric_limits<float>::infinity());
     std::fill(ids, ids + layers * npix, -1);
-    const float* bx = xs.typed_data() + b * width;
-    const float* by = ys.typed_data() + b * height;
-    Setup(clip.typed_data() + b * num_verts * 4, faces.typed_data() + b * num_faces * 3, num_verts,
-          num_faces, height, width, coef.data(), zw.data(), meta.data());
-    const float* bc = coef.data();
-    const float* bz = zw.data();
-    const int32_t* bm = meta.data();
-    if (nthreads <= 1) {
-      RasterBand(bx, by, bc, bz, bm, num_faces, height, width, layers, 0, height, depth.data(),
-                 ids);
-    } else {
-      std::vector<std::thread> pool;
-      for (int64_t t = 0; t < nthreads; ++t) {
-        const int64_t r0 = height * t / nthreads, r1 = height * (t + 1) / nthreads;
-        pool.emplace_back(RasterBand, bx, by, bc, bz, bm, num_faces, height, width, layers, r0,
-                          r1, depth.data(), ids);
-      }
-      for (auto& th : pool) th.join();
-    }
+    const float* bclip = clip.typed_data() + b * num_verts * 4;
+    const int32_t* bfaces = faces.typed_data() + b * num_faces * 3;
+    float* pc = coef.data();
+    float* pz = zw.data();
+    int32_t* pm = meta.data();
+    // Set-up over face ranges, then rasterization over row bands, on the same threads.
+    ParallelFor(nthreads, [&](int64_t t) {
+      const int64_t f0 = num_faces * t / nthreads, f1 = num_faces * (t + 1) / nthreads;
+      Setup(bclip, bfaces, num_verts, num_faces, f0, f1, height, width, pc, pz, pm);
+    });
+    ParallelFor(nthreads, [&](int64_t t) {
+      const int64_t r0 = height * t / nthreads, r1 = height * (t + 1) / nthreads;
+      band(pc, pz, pm, num_faces, height, width, layers, keep, r0, r1, depth.data(), ids);
+    });
   }
   return ffi::Error::Success();
 }
@@ -207,8 +335,6 @@ ffi::Error RasterImpl(ffi::Buffer<ffi::F32> xs, ffi::Buffer<ffi::F32> ys,
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(DiffshadeRaster, RasterImpl,
                               ffi::Ffi::Bind()
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // xs
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // ys
                                   .Arg<ffi::Buffer<ffi::F32>>()  // clip
                                   .Arg<ffi::Buffer<ffi::S32>>()  // faces
                                   .Ret<ffi::Buffer<ffi::S32>>());  // ids
