@@ -130,6 +130,7 @@ Fresnel = Literal["none", "schlick", "dielectric"]
 FogMode = Literal["none", "linear", "exp", "exp2"]
 FogDistance = Literal["euclidean", "depth"]
 SpotEdge = Literal["hard", "smooth"]
+Interpolation = Literal["perspective", "affine"]
 
 _CHOICES = {
     "shading": ("flat", "gouraud", "phong"),
@@ -138,6 +139,7 @@ _CHOICES = {
     "fog": ("none", "linear", "exp", "exp2"),
     "fog_distance": ("euclidean", "depth"),
     "spot_edge": ("hard", "smooth"),
+    "interpolation": ("perspective", "affine"),
     "backend": ("auto", "native", "jax"),
 }
 
@@ -149,6 +151,7 @@ class RenderOptions:
     never does."""
 
     shading: Shading = "phong"
+    interpolation: Interpolation = "perspective"
     specular: SpecularModel = "phong"
     fresnel: Fresnel = "none"
     emission: bool = False

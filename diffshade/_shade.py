@@ -1,26 +1,76 @@
 r"""Illumination terms of the classic local model (MODEL.md §1–3), one function per term.
 
-All functions are elementwise over leading axes, differentiable, and finite (values and
-gradients) on the whole valid domain: powers, norms and divisions use the double-``where``
-pattern.
+Vectors are tuples of three arrays (``(x, y, z)``, structure of arrays): XLA's CPU backend
+vectorises plain elementwise arithmetic on ``[H, W]`` arrays several times better than reductions
+over a minor axis of length 3 (measured 3.8x on the Phong term at 256²). All functions are
+elementwise, differentiable, and finite (values and gradients) on the whole valid domain:
+powers, norms and divisions use the double-``where`` pattern.
 """
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 
-from ._util import safe_norm, safe_normalize
+V3 = tuple  # (x, y, z) of equally shaped arrays
+
+
+def vec(a) -> V3:
+    """``[..., 3]`` array (or a length-3 vector) as a component tuple."""
+    return (a[..., 0], a[..., 1], a[..., 2])
+
+
+def dot(a: V3, b: V3):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def add(a: V3, b: V3) -> V3:
+    return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
+
+
+def sub(a: V3, b: V3) -> V3:
+    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
+
+
+def scale(a: V3, s) -> V3:
+    return (a[0] * s, a[1] * s, a[2] * s)
+
+
+def neg(a: V3) -> V3:
+    return (-a[0], -a[1], -a[2])
+
+
+def norm(a: V3):
+    """``|a|`` with a finite (zero) gradient at the zero vector."""
+    sq = dot(a, a)
+    ok = sq > 0
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
+
+
+def normalize(a: V3) -> V3:
+    """``a / |a|``; the zero vector (a degenerate normal, a light on the surface) gives zeros,
+    with finite gradients."""
+    sq = dot(a, a)
+    ok = sq > 0
+    inv = jnp.where(ok, jax.lax.rsqrt(jnp.where(ok, sq, 1.0)), 0.0)
+    return scale(a, inv)
 
 
 def safe_pow(x, m):
-    r""":math:`x^m` for :math:`x \ge 0, m > 0`, with :math:`0^m = 0` and finite gradients at 0."""
+    r""":math:`x^m` for :math:`x \ge 0, m > 0`, with :math:`0^m = 0`; values and gradients (in
+    :math:`x` and :math:`m`) finite everywhere, also where :math:`x^m` underflows (tiny
+    :math:`x`, huge :math:`m`: there :math:`m/x` alone would overflow to inf and
+    :math:`0 \cdot \infty` give NaN). Where :math:`m \log x` is below the log of the smallest
+    normal float the result is 0 with zero gradient (it is below float resolution anyway)."""
+    dtype = jnp.result_type(x, m)
+    floor = float(np.log(np.finfo(dtype).tiny))
     pos = x > 0
     xs = jnp.where(pos, x, 1.0)
-    return jnp.where(pos, jnp.exp(m * jnp.log(xs)), 0.0)
-
-
-def dot(a, b):
-    return jnp.sum(a * b, axis=-1)
+    t = m * jnp.log(xs)
+    keep = pos & (jax.lax.stop_gradient(t) > floor)
+    xs = jnp.where(keep, x, 1.0)
+    return jnp.where(keep, jnp.exp(m * jnp.log(xs)), 0.0)
 
 
 def phong_to_blinn(m):
@@ -38,14 +88,18 @@ def blinn_to_phong(mp):
 
 
 def radial_attenuation(d, a):
-    r""":math:`f_{rad} = 1/(a_0 + a_1 d + a_2 d^2)` (eq. 1). ``a`` has ``[..., 3]`` coefficients.
+    r""":math:`f_{rad} = 1/(a_0 + a_1 d + a_2 d^2)` (eq. 1). ``a`` is ``(a0, a1, a2)``.
 
-    With :math:`a_0 = 0` and a light on the surface (:math:`d = 0`) the denominator is 0; it is
-    floored at the smallest normal float so the value stays finite.
+    With :math:`a_0 = 0` and a light on (or within rounding of) the surface the denominator
+    tends to 0. It is floored at :math:`\varepsilon = \text{tiny}^{1/3}` of the float type
+    (2.3e-13 in float32, 2.8e-103 in float64): the value (at most :math:`1/\varepsilon`) and
+    its gradient (at most :math:`1/\varepsilon^2`, 1.9e25 in float32) stay finite with room to
+    spare, and below the floor the gradient is 0 (double ``where``).
     """
-    den = a[..., 0] + a[..., 1] * d + a[..., 2] * d * d
-    tiny = jnp.finfo(jnp.result_type(den)).tiny
-    return 1.0 / jnp.maximum(den, tiny)
+    den = a[0] + a[1] * d + a[2] * d * d
+    eps = float(np.finfo(jnp.result_type(den)).tiny) ** (1.0 / 3.0)
+    ok = den > eps
+    return jnp.where(ok, 1.0 / jnp.where(ok, den, 1.0), 1.0 / eps)
 
 
 def spot_factor(l, axis, cutoff_deg, exponent, edge_deg, smooth: bool):
@@ -55,7 +109,7 @@ def spot_factor(l, axis, cutoff_deg, exponent, edge_deg, smooth: bool):
     ``smooth`` replaces the hard cutoff by a smoothstep from :math:`\cos\theta_l` to
     :math:`\cos(\theta_l - \text{edge})`, so that :math:`\theta_l` has a gradient.
     """
-    c = dot(-l, safe_normalize(axis))
+    c = -dot(l, normalize(axis))
     cos_cut = jnp.cos(jnp.deg2rad(cutoff_deg))
     lobe = safe_pow(c, exponent)
     if not smooth:
@@ -77,15 +131,15 @@ def phong_specular(n, l, v, m):
     r"""Phong factor :math:`(v\cdot r)^m`, :math:`r = 2(n\cdot l)n - l`; 0 unless
     :math:`v\cdot r > 0` and :math:`n\cdot l > 0` (eq. 12–13)."""
     ndl = dot(n, l)
-    r = 2.0 * ndl[..., None] * n - l
-    vr = dot(v, r)
+    # v.r = 2 (n.l)(n.v) - v.l, without forming r
+    vr = 2.0 * ndl * dot(n, v) - dot(v, l)
     return jnp.where(ndl > 0, safe_pow(vr, m), 0.0)
 
 
 def blinn_specular(n, l, v, m):
     r"""Blinn–Phong factor :math:`(n\cdot h)^{m'}`, :math:`h = (l+v)/\|l+v\|`; 0 unless
     :math:`n\cdot l > 0`."""
-    h = safe_normalize(l + v)
+    h = normalize(add(l, v))
     return jnp.where(dot(n, l) > 0, safe_pow(dot(n, h), m), 0.0)
 
 
@@ -129,10 +183,10 @@ def fog_factor(d, mode: str, start, end, density):
     raise ValueError(f"unknown fog mode {mode!r}")
 
 
-def apply_fog(color, f, fog_color):
-    r"""Final colour :math:`f I_{obj} + (1 - f) I_{fog}`."""
-    return f[..., None] * color + (1.0 - f[..., None]) * fog_color
+def apply_fog(color: V3, f, fog_color) -> V3:
+    r"""Final colour :math:`f I_{obj} + (1 - f) I_{fog}` (per channel)."""
+    return tuple(f * color[c] + (1.0 - f) * fog_color[c] for c in range(3))
 
 
-def distance(a, b):
-    return safe_norm(a - b)
+def distance(a: V3, b: V3):
+    return norm(sub(a, b))

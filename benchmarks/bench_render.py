@@ -1,0 +1,139 @@
+"""Render benchmark: full render and shading-only (cached visibility), forward, jvp with 12
+tangents (one Levenberg–Marquardt Jacobian) and vjp, for three term sets.
+
+Term sets (static, so each is its own compiled program):
+
+- ``diffuse``: Lambert only, one directional light;
+- ``phong``: ambient + Lambert + Phong specular, one point and one directional light;
+- ``all``: emission, ambient, per-light ambient, Lambert, Blinn–Phong with dielectric Fresnel,
+  two-sided with a back material, point + directional + smooth-edged spot light, exp² fog.
+
+The 12 parameters of the jvp/vjp are k_a (RGB), k_d (RGB), k_s (RGB), m, a1, a2 of the first
+point light (or of nothing for ``diffuse``, whose Jacobian is then mostly zero columns — it is
+timed on the same 12-vector for comparability). Compile time is reported apart from the median
+steady-state time. DEODR (rasterize + Gouraud, optional ``.[bench]`` extra) is measured in the
+same run as the baseline for the full render.
+
+    python benchmarks/bench_render.py [--repeats N] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import trimesh
+
+import diffshade as ds
+
+from bench_raster import deodr_time
+
+
+def timed(fn, *args, repeats):
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    compile_s = time.perf_counter() - t0
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        ts.append(time.perf_counter() - t0)
+    return compile_s, statistics.median(ts) * 1e3
+
+
+def make_scene(v, f, res, terms):
+    cam = ds.Camera(eye=[0, 0, 3.0], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.1, far=10.0, width=res, height=res)
+    mat = ds.Material(emission=[0.02, 0.01, 0.0], ambient=[0.15, 0.12, 0.1], diffuse=[0.75, 0.35, 0.25],
+                      specular=[0.5, 0.5, 0.5], shininess=30.0, ior=1.5)
+    point = ds.PointLights(color=[[1.0, 1.0, 1.0]], position=[[2.0, 2.0, 3.0]], attenuation=[[1.0, 0.05, 0.02]],
+                           ambient=[[0.05, 0.05, 0.05]])
+    dirl = ds.DirectionalLights(color=[[0.3, 0.3, 0.35]], direction=[[1.0, -0.5, -1.0]], ambient=[[0.0, 0.0, 0.0]])
+    spot = ds.SpotLights(color=[[0.8, 0.8, 0.6]], position=[[-2.0, 1.0, 3.0]], attenuation=[[1.0, 0.0, 0.01]],
+                         ambient=[[0.0, 0.0, 0.0]], axis=[[0.6, -0.3, -1.0]], cutoff=[30.0], exponent=[4.0], edge=[5.0])
+    base = dict(mesh=ds.Mesh(vertices=v, faces=f), camera=cam, material=mat, ambient_light=[0.3, 0.3, 0.3])
+    if terms == "diffuse":
+        scene = ds.Scene(**base, directional=dirl)
+        opts = ds.RenderOptions(shading="phong", specular="none", ambient=False)
+    elif terms == "phong":
+        scene = ds.Scene(**base, directional=dirl, point=point)
+        opts = ds.RenderOptions(shading="phong", specular="phong")
+    else:
+        scene = ds.Scene(**base, directional=dirl, point=point, spot=spot, back_material=mat,
+                         fog=ds.Fog(color=[0.55, 0.6, 0.7], density=0.12), background=[0.55, 0.6, 0.7])
+        opts = ds.RenderOptions(shading="phong", specular="blinn", fresnel="dielectric", emission=True,
+                                per_light_ambient=True, back_material=True, spot_edge="smooth", fog="exp2")
+    return scene, opts
+
+
+def params_of(scene):
+    m = scene.material
+    att = scene.point.attenuation[0, 1:] if scene.point.count else jnp.zeros(2)
+    return jnp.concatenate([m.ambient, m.diffuse, m.specular, m.shininess[None], att])
+
+
+def with_params(scene, p):
+    m = scene.material
+    mat = eqx.tree_at(lambda x: (x.ambient, x.diffuse, x.specular, x.shininess), m, (p[0:3], p[3:6], p[6:9], p[9]))
+    scene = eqx.tree_at(lambda s: s.material, scene, mat)
+    if scene.point.count:
+        att = scene.point.attenuation.at[0, 1:].set(p[10:12])
+        scene = eqx.tree_at(lambda s: s.point.attenuation, scene, att)
+    return scene
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--repeats", type=int, default=10)
+    ap.add_argument("--quick", action="store_true", help="5,120 faces at 256² only")
+    args = ap.parse_args()
+    print(f"jax {jax.__version__}, device {jax.devices()[0]}")
+    subs = (4,) if args.quick else (4, 6)
+    sizes = (256,) if args.quick else (256, 512)
+    rows = []
+    for sub in subs:
+        mesh = trimesh.creation.icosphere(subdivisions=sub)
+        v, f = np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
+        for res in sizes:
+            ref = deodr_time(v, f, res, args.repeats)
+            for terms in ("diffuse", "phong", "all"):
+                scene, opts = make_scene(v, f, res, terms)
+                p0 = params_of(scene)
+                ids = jax.jit(ds.scene_visibility, static_argnums=1)(scene, opts)
+                full = jax.jit(lambda s: ds.render(s, opts))
+                shade = jax.jit(lambda s, i: ds.render(s, opts, ids=i))
+                img_of = lambda p: ds.render(with_params(scene, p), opts, ids=ids).reshape(-1)  # noqa: E731
+                jac = jax.jit(jax.jacfwd(img_of))  # 12 jvps (vmapped): one LM Jacobian
+                ct = jnp.ones(res * res * 3, jnp.float32)
+                vjp = jax.jit(lambda p: jax.vjp(img_of, p)[1](ct)[0])
+                r = {"faces": len(f), "res": res, "terms": terms, "deodr": ref}
+                r["full_c"], r["full"] = timed(full, scene, repeats=args.repeats)
+                r["shade_c"], r["shade"] = timed(shade, scene, ids, repeats=args.repeats)
+                r["jvp_c"], r["jvp"] = timed(jac, p0, repeats=args.repeats)
+                r["vjp_c"], r["vjp"] = timed(vjp, p0, repeats=args.repeats)
+                hlo = full.lower(scene).compile().as_text()
+                r["hlo_lines"] = hlo.count("\n")
+                rows.append(r)
+                print(
+                    f"{len(f):6d} faces {res:4d}² {terms:8s} full {r['full']:8.2f} ms (compile {r['full_c']:.2f} s)  "
+                    f"shade {r['shade']:8.2f} ms  jvp×12 {r['jvp']:8.2f} ms  vjp {r['vjp']:8.2f} ms  "
+                    f"program {r['hlo_lines']} HLO lines" + (f"  DEODR {ref:.2f} ms" if ref else ""),
+                    flush=True,
+                )
+    print("\n| faces | size | terms | full ms | compile s | shade-only ms | jvp×12 ms | vjp ms | HLO lines | DEODR ms | full/DEODR |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        d = r["deodr"]
+        print(
+            f"| {r['faces']} | {r['res']}² | {r['terms']} | {r['full']:.2f} | {r['full_c']:.2f} | {r['shade']:.2f} | "
+            f"{r['jvp']:.2f} | {r['vjp']:.2f} | {r['hlo_lines']} | {'%.2f' % d if d else '-'} | "
+            f"{'%.2f' % (r['full'] / d) if d else '-'} |"
+        )
+
+
+if __name__ == "__main__":
+    main()

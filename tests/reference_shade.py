@@ -1,0 +1,193 @@
+"""Independent reference for the shading pipeline: plain numpy, float64, one ray per pixel.
+
+Written from MODEL.md, not from diffshade's code: a ray through the pixel centre is intersected
+with every triangle (Möller–Trumbore), the nearest hit is shaded with the formulas of MODEL.md
+§1–4 (flat / Gouraud / Phong, perspective-correct or affine weights), clamped if asked, fogged,
+and misses get the background. Returns the image and, per pixel, how far the evaluation is from
+a discontinuity (triangle edge, n·l = 0, spot cutoff, fog range ends), so that tests compare
+only where a float32 rasterizer and a float64 ray caster must agree.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def _n(v):
+    v = np.asarray(v, float)
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    return np.where(n > 0, v / np.where(n > 0, n, 1), 0.0)
+
+
+def vertex_normals(V, F):
+    acc = np.zeros_like(V)
+    for f in F:
+        c = np.cross(V[f[1]] - V[f[0]], V[f[2]] - V[f[0]])
+        for k in f:
+            acc[k] += c
+    return _n(acc)
+
+
+def _pow(x, m):
+    return x**m if x > 0 else 0.0
+
+
+class Ref:
+    """``s`` is a plain dict of numpy arrays/numbers (see tests/test_shading.py::to_ref)."""
+
+    def __init__(self, s, opts):
+        self.s, self.o = s, opts
+
+    # -- MODEL.md §1–2 at one point ------------------------------------------------------------
+    def point_color(self, P, n, mat, margin):
+        s, o = self.s, self.o
+        v = _n(s["eye"] - P)
+        c = np.zeros(3)
+        lights = []
+        for col, d, amb in s["directional"]:
+            lights.append((col, -_n(d), 1.0, amb))
+        for col, pos, att, amb in s["point"]:
+            dist = np.linalg.norm(pos - P)
+            lights.append((col, _n(pos - P), 1.0 / max(att[0] + att[1] * dist + att[2] * dist**2, 1e-300), amb))
+        for col, pos, att, amb, axis, cut, expo, edge in s["spot"]:
+            dist = np.linalg.norm(pos - P)
+            l = _n(pos - P)
+            cc = float(np.dot(-l, _n(axis)))
+            cos_cut = np.cos(np.deg2rad(cut))
+            margin.append(abs(cc - cos_cut))
+            lobe = _pow(cc, expo)
+            if o.spot_edge == "hard":
+                fang = lobe if cc >= cos_cut else 0.0
+            else:
+                cos_in = np.cos(np.deg2rad(max(cut - edge, 0.0)))
+                t = np.clip((cc - cos_cut) / (cos_in - cos_cut), 0, 1)
+                fang = lobe * t * t * (3 - 2 * t)
+                margin.append(abs(cc - cos_in))
+            lights.append((col, l, fang / max(att[0] + att[1] * dist + att[2] * dist**2, 1e-300), amb))
+        for col, l, f, amb in lights:
+            ndl = float(np.dot(n, l))
+            margin.append(abs(ndl))
+            direct = np.zeros(3)
+            if o.diffuse:
+                direct += mat["diffuse"] * max(ndl, 0.0)
+            if o.specular != "none" and ndl > 0:
+                if o.specular == "phong":
+                    r = 2 * ndl * n - l
+                    spec = _pow(float(np.dot(v, r)), mat["shininess"])
+                else:
+                    h = _n(l + v)
+                    spec = _pow(float(np.dot(n, h)), mat["shininess"])
+                if o.fresnel == "none":
+                    direct += mat["specular"] * spec
+                else:
+                    direct += self.fresnel(ndl, mat["ior"]) * spec
+            term = col * direct
+            if o.per_light_ambient:
+                term = term + mat["ambient"] * amb
+            c += f * term
+        if o.ambient:
+            c += mat["ambient"] * s["ambient_light"]
+        if o.emission:
+            c += mat["emission"]
+        return c
+
+    def fresnel(self, cos_t, eta):
+        if self.o.fresnel == "schlick":
+            f0 = ((eta - 1) / (eta + 1)) ** 2
+            return f0 + (1 - f0) * (1 - cos_t) ** 5
+        # Unpolarised dielectric (Fresnel equations), from air into index eta.
+        sin_t = np.sqrt(max(0.0, 1 - cos_t**2)) / eta
+        if sin_t >= 1:
+            return 1.0
+        ct = np.sqrt(1 - sin_t**2)
+        rs = (cos_t - eta * ct) / (cos_t + eta * ct)
+        rp = (eta * cos_t - ct) / (eta * cos_t + ct)
+        return 0.5 * (rs**2 + rp**2)
+
+    # -- camera rays ---------------------------------------------------------------------------
+    def ray(self, i, j):
+        s = self.s
+        W, H = s["width"], s["height"]
+        x = 2 * (i + 0.5) / W - 1
+        y = 1 - 2 * (j + 0.5) / H
+        f = _n(s["target"] - s["eye"])
+        side = _n(np.cross(f, s["up"]))
+        up = np.cross(side, f)
+        t = np.tan(np.deg2rad(s["fov_y"]) / 2)
+        d = x * t * (W / H) * side + y * t * up + f
+        return s["eye"], d, f
+
+    def pixel(self, i, j):
+        """Colour of pixel (column i, row j) and its distance to the nearest discontinuity."""
+        s, o = self.s, self.o
+        V, F = s["vertices"], s["faces"]
+        orig, d, fwd = self.ray(i, j)
+        A, B, C = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+        e1, e2 = B - A, C - A
+        p = np.cross(d, e2)
+        det = np.einsum("fi,fi->f", e1, p)
+        ok = np.abs(det) > 1e-14
+        det = np.where(ok, det, 1.0)
+        tv = orig - A
+        u = np.einsum("fi,fi->f", tv, p) / det
+        q = np.cross(tv, e1)
+        w = (q @ d) / det
+        t = np.einsum("fi,fi->f", e2, q) / det  # d has unit forward component: t is eye depth
+        hit = ok & (u >= 0) & (w >= 0) & (u + w <= 1) & (t >= s["near"]) & (t <= s["far"])
+        if not hit.any():
+            return s["background"].copy(), np.inf, -1
+        fi = int(np.argmin(np.where(hit, t, np.inf)))
+        best = (t[fi], fi, np.array([1 - u[fi] - w[fi], u[fi], w[fi]]))
+        t, fi, bary = best
+        margin = [bary.min() * 10]  # keep well inside the triangle (edges are float32 ties)
+        f = F[fi]
+        tri = V[f]
+        P = orig + t * d
+        front = np.dot(np.cross(tri[1] - tri[0], tri[2] - tri[0]), s["eye"] - P) > 0
+        wts = bary
+        if o.interpolation == "affine":
+            wv = np.array([np.dot(tri[k] - s["eye"], fwd) for k in range(3)])
+            wts = bary * wv / np.dot(bary, wv)
+        mat = s["material"]
+        back = o.two_sided and not front
+        bmat = s["back_material"] if (back and o.back_material) else mat
+        sign = -1.0 if back else 1.0
+        if o.shading == "phong":
+            Pi = wts @ tri
+            n = sign * _n(wts @ s["normals"][f])
+            color = self.point_color(Pi, n, bmat, margin)
+        elif o.shading == "gouraud":
+            cols = [self.point_color(tri[k], sign * s["normals"][f[k]], bmat, []) for k in range(3)]
+            color = wts @ np.array(cols)
+            Pi = wts @ tri
+        else:
+            cen = tri.mean(0)
+            fn = _n(np.cross(tri[1] - tri[0], tri[2] - tri[0]))
+            color = self.point_color(cen, sign * fn, bmat, margin)
+            Pi = P
+        if o.clamp:
+            color = np.clip(color, 0, 1)
+        if o.fog != "none":
+            dist = np.linalg.norm((wts @ tri if o.shading != "flat" else P) - s["eye"])
+            if o.fog_distance == "depth":
+                dist = float(np.dot(P - s["eye"], fwd))
+            fog = s["fog"]
+            if o.fog == "linear":
+                if fog["end"] > fog["start"]:
+                    ff = np.clip((fog["end"] - dist) / (fog["end"] - fog["start"]), 0, 1)
+                else:
+                    ff = 1.0 if dist <= fog["end"] else 0.0
+                margin += [abs(dist - fog["end"]), abs(dist - fog["start"])]
+            elif o.fog == "exp":
+                ff = np.exp(-fog["density"] * dist)
+            else:
+                ff = np.exp(-((fog["density"] * dist) ** 2))
+            color = ff * color + (1 - ff) * fog["color"]
+        return color, min(margin), fi
+
+    def image(self, pixels):
+        out, margins, ids = [], [], []
+        for i, j in pixels:
+            c, m, fi = self.pixel(i, j)
+            out.append(c), margins.append(m), ids.append(fi)
+        return np.array(out), np.array(margins), np.array(ids)
