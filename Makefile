@@ -24,3 +24,4 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(VENV)/bin/python -m pip install --quiet -e '.[bench]'
 	$(VENV)/bin/python benchmarks/bench_raster.py
+	$(VENV)/bin/python benchmarks/bench_render.py

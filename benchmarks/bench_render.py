@@ -20,7 +20,9 @@ same run as the baseline for the full render.
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
+import sys
 import time
 
 import equinox as eqx
@@ -31,7 +33,8 @@ import trimesh
 
 import diffshade as ds
 
-from bench_raster import deodr_time
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_raster import deodr_time  # noqa: E402
 
 
 def timed(fn, *args, repeats):
