@@ -155,9 +155,12 @@ def test_lambert_sphere_centre_closed_form():
 def test_cli_demo_and_errors(tmp_path):
     exe = [sys.executable, "-m", "fitting.cli"]
     out = tmp_path / "demo.png"
-    r = subprocess.run(exe + ["demo", "-o", str(out)], capture_output=True, text=True)
+    r = subprocess.run(exe + ["demo", "--size", "48", "-o", str(out)], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert out.exists() and "wrote" in r.stdout
+    # The demo recovers all 13 parameters (k_a, k_d, k_s RGB, m, a1, a2, fog density).
+    max_err = float(r.stdout.split("max rel. error ")[1].split(";")[0])
+    assert max_err < 1e-4, r.stdout
     bad = tmp_path / "bad.toml"
     bad.write_text("[mesh]\nicosphere = 2\n")
     r = subprocess.run(exe + ["render", str(bad), "-o", str(tmp_path / "x.png")], capture_output=True, text=True)

@@ -1,0 +1,193 @@
+"""Recover scene parameters from images with optimistix (Levenberg–Marquardt by default).
+
+The visibility of the fixed geometry and camera is computed once per view; the residual
+``(render(θ(u)) − target) · √mask`` is a smooth function of the unconstrained ``u`` (see
+:mod:`fitting.params`), and its Jacobian is built in forward mode. After the solve, the
+Gauss–Newton covariance ``s² (JᵀJ)⁻¹`` in the natural parameters gives standard errors, and the
+singular values of the column-scaled Jacobian say which parameters the images do not determine.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+import diffshade as ds
+
+from .params import ParamSet
+
+SOLVERS = {
+    "lm": lambda rtol, atol: optx.LevenbergMarquardt(rtol=rtol, atol=atol),
+    "dogleg": lambda rtol, atol: optx.Dogleg(rtol=rtol, atol=atol),
+    "gauss-newton": lambda rtol, atol: optx.GaussNewton(rtol=rtol, atol=atol),
+    "bfgs": lambda rtol, atol: optx.BFGS(rtol=rtol, atol=atol),
+}
+
+
+class FitError(ValueError):
+    """Observations that do not match the scene (size, channels, count)."""
+
+
+@dataclass
+class FitResult:
+    names: list[str]  # one label per scalar (RGB fields as name[r], name[g], name[b])
+    values: np.ndarray  # fitted θ
+    start: np.ndarray
+    stderr: np.ndarray  # Gauss–Newton standard errors (inf where not determined)
+    result: str  # optimistix result message ("" = successful)
+    successful: bool
+    steps: int
+    compile_s: float
+    solve_s: float
+    rms: float  # final root-mean-square residual
+    psnr: float
+    ssim: float
+    undetermined: list[str] = field(default_factory=list)  # labels the images do not determine
+    gauges: list[str] = field(default_factory=list)  # near-degenerate combinations, described
+
+    def as_dict(self) -> dict:
+        return {
+            "parameters": {n: {"value": float(v), "stderr": float(e), "start": float(s)}
+                           for n, v, e, s in zip(self.names, self.values, self.stderr, self.start)},
+            "result": self.result or "successful", "successful": self.successful, "steps": self.steps,
+            "compile_s": self.compile_s, "solve_s": self.solve_s, "rms": self.rms, "psnr": self.psnr,
+            "ssim": self.ssim, "undetermined": self.undetermined, "gauges": self.gauges,
+        }
+
+
+def _check_target(t, scene, k):
+    t = np.asarray(t)
+    h, w = scene.camera.resolution
+    if t.ndim != 3 or t.shape[2] != 3:
+        raise FitError(f"target {k}: expected an RGB image of shape ({h}, {w}, 3), got shape {t.shape}")
+    if t.shape[:2] != (h, w):
+        raise FitError(f"target {k}: image is {t.shape[1]}x{t.shape[0]} but the camera renders {w}x{h}")
+    if not np.isfinite(t).all():
+        raise FitError(f"target {k}: contains NaN or inf")
+    return t
+
+
+def fit(
+    scene: ds.Scene,
+    opts: ds.RenderOptions,
+    targets,
+    free,
+    *,
+    views=None,
+    masks=None,
+    shared=(),
+    solver: str = "lm",
+    max_steps: int = 100,
+    rtol: float = 1e-9,
+    atol: float = 1e-9,
+) -> FitResult:
+    """Fit the ``free`` parameters of ``scene`` (start values = the scene's) to ``targets``.
+
+    ``targets``: one image or a list, one per view; ``views``: the scenes of the views (same
+    structure; they differ in camera, lights, ...), default ``scene`` for every target. The free
+    parameters are shared by all views. ``masks``: optional per-view ``[H, W]`` weights.
+    """
+    if isinstance(targets, np.ndarray) or hasattr(targets, "shape"):
+        targets = [targets]
+    views = list(views) if views is not None else [scene] * len(targets)
+    if len(views) != len(targets):
+        raise FitError(f"{len(targets)} targets but {len(views)} views")
+    if solver not in SOLVERS:
+        raise FitError(f"unknown solver {solver!r}; one of {sorted(SOLVERS)}")
+    dtype = scene.mesh.vertices.dtype
+    targets = [jnp.asarray(_check_target(t, v, k), dtype) for k, (t, v) in enumerate(zip(targets, views))]
+    if masks is None:
+        masks = [None] * len(targets)
+    weights = []
+    for k, (m, v) in enumerate(zip(masks, views)):
+        if m is None:
+            weights.append(jnp.ones(v.camera.resolution + (1,), dtype))
+        else:
+            m = np.asarray(m, np.float64)
+            if m.shape != v.camera.resolution:
+                raise FitError(f"mask {k}: shape {m.shape}, expected {v.camera.resolution}")
+            weights.append(jnp.asarray(np.sqrt(np.clip(m, 0, None)), dtype)[..., None])
+
+    pset = ParamSet(list(free), scene, shared)
+    theta0 = pset.theta_of(scene)
+    pset.check(theta0)
+    ids = [jax.jit(ds.scene_visibility, static_argnums=1)(v, opts) for v in views]
+
+    def residual(u, _):
+        return _residual_theta(pset, views, ids, targets, weights, opts, pset.theta_from_u(u))
+
+    solver_obj = SOLVERS[solver](rtol, atol)
+    if solver == "bfgs":
+        def solve(u0):
+            sol = optx.minimise(lambda u, a: 0.5 * jnp.sum(residual(u, a) ** 2), solver_obj, u0, max_steps=max_steps, throw=False)
+            return sol.value, sol.result, sol.stats["num_steps"]
+    else:
+        def solve(u0):
+            sol = optx.least_squares(residual, solver_obj, u0, max_steps=max_steps, throw=False)
+            return sol.value, sol.result, sol.stats["num_steps"]
+
+    u0 = pset.u_from_theta(theta0)
+    t0 = time.perf_counter()
+    compiled = jax.jit(solve).lower(u0).compile()
+    compile_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    u_hat, result, steps = compiled(u0)
+    jax.block_until_ready(u_hat)
+    solve_s = time.perf_counter() - t0
+
+    theta = pset.theta_from_u(u_hat)
+    # Gauss–Newton uncertainty in the natural parameters.
+    r = np.asarray(residual(u_hat, None), np.float64)
+    J = np.asarray(jax.jit(jax.jacfwd(lambda th: _residual_theta(pset, views, ids, targets, weights, opts, th)))(theta), np.float64)
+    n, p = J.shape
+    s2 = float(r @ r) / max(n - p, 1)
+    col = np.linalg.norm(J, axis=0)
+    undetermined_mask = col <= 1e-10 * max(col.max(), 1e-300)
+    labels = pset.labels
+    stderr = np.full(p, np.inf)
+    gauges = []
+    keep = ~undetermined_mask
+    if keep.any():
+        Js = J[:, keep] / col[keep]
+        _, sv, vt = np.linalg.svd(Js, full_matrices=False)
+        cond = sv[0] / max(sv[-1], 1e-300)
+        if cond > 1e6:
+            # Report the weakest direction: the combination the images barely constrain.
+            v = vt[-1]
+            lab = [labels[i] for i in np.flatnonzero(keep)]
+            big = np.argsort(-np.abs(v))[:4]
+            gauges.append("condition number %.1e; weakest combination: %s" % (
+                cond, " ".join(f"{v[i]:+.2f}·{lab[i]}" for i in big if abs(v[i]) > 0.1)))
+        cov = np.linalg.pinv(Js.T @ Js) * s2
+        stderr[keep] = np.sqrt(np.clip(np.diag(cov), 0, None)) / col[keep]
+    undetermined = [labels[i] for i in np.flatnonzero(undetermined_mask)]
+
+    # Image quality of the fit (first view; scikit-image metrics).
+    from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+    fitted = np.asarray(ds.render(pset.apply(views[0], theta), opts, ids=ids[0]), np.float64)
+    tgt = np.asarray(targets[0], np.float64)
+    rng = max(float(tgt.max() - tgt.min()), 1e-12)
+    mse = float(np.mean((fitted - tgt) ** 2))
+    psnr = float("inf") if mse == 0 else float(peak_signal_noise_ratio(tgt, fitted, data_range=rng))
+    ssim = float(structural_similarity(tgt, fitted, channel_axis=-1, data_range=rng))
+    msg = optx.RESULTS[result]
+    return FitResult(
+        names=labels, values=np.asarray(theta, np.float64), start=np.asarray(theta0, np.float64), stderr=stderr,
+        result=msg, successful=bool(result == optx.RESULTS.successful), steps=int(steps),
+        compile_s=compile_s, solve_s=solve_s, rms=float(np.sqrt(np.mean(r**2))), psnr=psnr, ssim=ssim,
+        undetermined=undetermined, gauges=gauges,
+    )
+
+
+def _residual_theta(pset, views, ids, targets, weights, opts, theta):
+    out = []
+    for v, i, t, wgt in zip(views, ids, targets, weights):
+        img = ds.render(pset.apply(v, theta), opts, ids=i)
+        out.append(((img - t) * wgt).reshape(-1))
+    return jnp.concatenate(out)

@@ -1,0 +1,207 @@
+"""Free parameters by name, with their domains handled by reparametrisation.
+
+optimistix's least-squares solvers are unconstrained, so each free parameter ``θ`` is solved for
+through an unconstrained ``u``:
+
+- ``unit`` ([0, 1], reflectances k_a, k_d, k_s, fog colour): ``θ = sigmoid(u)``;
+- ``positive`` (exponent m, attenuation a_i, fog density, light colours, emission):
+  ``θ = exp(u)``, so the solver works on a log scale (m from 1 to 10⁴ is one scale);
+- ``interval(lo, hi)`` (spot cutoff, index of refraction): ``θ = lo + (hi - lo) sigmoid(u)``.
+
+Names: ``material.<field>`` and ``back_material.<field>`` (emission, ambient, diffuse, specular,
+shininess, ior); ``ambient_light``; ``<kind>[i].<field>`` with kind ``directional``, ``point`` or
+``spot`` and field ``color``, ``ambient``, ``a0``/``a1``/``a2`` (attenuation), ``cutoff``,
+``exponent``, ``edge``; ``fog.<field>`` (color, start, end, density). RGB fields are per channel
+unless listed as shared (one value for the three channels).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import diffshade as ds
+
+
+class ParamError(ValueError):
+    """An unknown parameter name, or a start value outside the parameter's domain."""
+
+
+_RGB = {"emission", "ambient", "diffuse", "specular", "color"}
+_MATERIAL = {
+    "emission": "positive", "ambient": "unit", "diffuse": "unit", "specular": "unit",
+    "shininess": "positive", "ior": (1.0, 4.0),
+}
+_LIGHT = {"color": "positive", "ambient": "positive", "a0": "positive", "a1": "positive", "a2": "positive",
+          "cutoff": (0.0, 90.0), "exponent": "positive", "edge": (0.0, 90.0)}
+_FOG = {"color": "unit", "start": "positive", "end": "positive", "density": "positive"}
+_LIGHT_RE = re.compile(r"^(directional|point|spot)\[(\d+)\]\.(\w+)$")
+
+
+def _domain_str(domain) -> str:
+    if domain == "unit":
+        return "[0, 1]"
+    if domain == "positive":
+        return "(0, inf)"
+    return f"({domain[0]}, {domain[1]})"
+
+
+@dataclass(frozen=True)
+class Param:
+    """One free parameter: where it lives in a Scene, its size and its domain."""
+
+    name: str
+    path: tuple  # ("material", "diffuse") / ("point", 0, "a1") / ("fog", "density") / ("ambient_light",)
+    size: int  # 3 for a per-channel RGB field, else 1
+    domain: object  # "unit" | "positive" | (lo, hi)
+
+    def get(self, scene: ds.Scene):
+        return self._leaf(scene)
+
+    def _node(self, scene):
+        p = self.path
+        if p[0] in ("directional", "point", "spot"):
+            lights = getattr(scene, p[0])
+            field = p[2]
+            if field in ("a0", "a1", "a2"):
+                return lights.attenuation[p[1], int(field[1])]
+            return getattr(lights, field)[p[1]]
+        node = scene
+        for k in p:
+            node = getattr(node, k)
+        return node
+
+    def _leaf(self, scene):
+        x = jnp.asarray(self._node(scene))
+        return x if self.size == 3 or x.ndim == 0 else jnp.mean(x)
+
+    def set(self, scene: ds.Scene, value) -> ds.Scene:
+        p = self.path
+        if p[0] in ("directional", "point", "spot"):
+            kind, i, field = p
+            if field in ("a0", "a1", "a2"):
+                att = getattr(scene, kind).attenuation
+                return eqx.tree_at(lambda s: getattr(s, kind).attenuation, scene, att.at[i, int(field[1])].set(value))
+            arr = getattr(getattr(scene, kind), field)
+            new = arr.at[i].set(jnp.broadcast_to(value, arr[i].shape).astype(arr.dtype))
+            return eqx.tree_at(lambda s: getattr(getattr(s, kind), field), scene, new)
+        old = self._node(scene)
+        new = jnp.broadcast_to(jnp.asarray(value, old.dtype), old.shape)
+
+        def where(s):
+            node = s
+            for k in p:
+                node = getattr(node, k)
+            return node
+
+        return eqx.tree_at(where, scene, new)
+
+    # -- reparametrisation -----------------------------------------------------------------
+    def to_u(self, theta):
+        theta = jnp.asarray(theta)
+        if self.domain == "unit":
+            t = jnp.clip(theta, 1e-6, 1 - 1e-6)
+            return jnp.log(t) - jnp.log1p(-t)
+        if self.domain == "positive":
+            return jnp.log(jnp.maximum(theta, 1e-30))
+        lo, hi = self.domain
+        t = jnp.clip((theta - lo) / (hi - lo), 1e-6, 1 - 1e-6)
+        return jnp.log(t) - jnp.log1p(-t)
+
+    def from_u(self, u):
+        if self.domain == "unit":
+            return jax.nn.sigmoid(u)
+        if self.domain == "positive":
+            return jnp.exp(u)
+        lo, hi = self.domain
+        return lo + (hi - lo) * jax.nn.sigmoid(u)
+
+    def check(self, value, what="value"):
+        v = np.asarray(value, np.float64)
+        ok = np.isfinite(v).all()
+        if self.domain == "unit":
+            ok = ok and (v >= 0).all() and (v <= 1).all()
+        elif self.domain == "positive":
+            ok = ok and (v > 0).all()
+        else:
+            ok = ok and (v > self.domain[0]).all() and (v < self.domain[1]).all()
+        if not ok:
+            raise ParamError(f"{self.name}: {what} {np.round(v, 6).tolist()} is outside its domain {_domain_str(self.domain)}")
+
+    def labels(self) -> list[str]:
+        return [f"{self.name}[{'rgb'[c]}]" for c in range(3)] if self.size == 3 else [self.name]
+
+
+def parse(name: str, scene: ds.Scene, shared: bool = False) -> Param:
+    """The :class:`Param` called ``name`` in ``scene`` (raises :class:`ParamError`)."""
+    m = _LIGHT_RE.match(name)
+    if m:
+        kind, i, field = m.group(1), int(m.group(2)), m.group(3)
+        count = getattr(scene, kind).count
+        if field not in _LIGHT or (kind != "spot" and field in ("cutoff", "exponent", "edge")) or (kind == "directional" and field[0] == "a" and field != "ambient"):
+            raise ParamError(f"unknown parameter {name!r}: a {kind} light has no field {field!r}")
+        if i >= count:
+            raise ParamError(f"unknown parameter {name!r}: the scene has {count} {kind} light(s)")
+        size = 3 if field in _RGB and not shared else 1
+        return Param(name, (kind, i, field), size, _LIGHT[field])
+    parts = name.split(".")
+    if parts[0] in ("material", "back_material") and len(parts) == 2 and parts[1] in _MATERIAL:
+        if parts[0] == "back_material" and scene.back_material is None:
+            raise ParamError(f"unknown parameter {name!r}: the scene has no back material")
+        size = 3 if parts[1] in _RGB and not shared else 1
+        return Param(name, tuple(parts), size, _MATERIAL[parts[1]])
+    if parts[0] == "fog" and len(parts) == 2 and parts[1] in _FOG:
+        size = 3 if parts[1] == "color" and not shared else 1
+        return Param(name, tuple(parts), size, _FOG[parts[1]])
+    if name == "ambient_light":
+        return Param(name, ("ambient_light",), 1 if shared else 3, "positive")
+    raise ParamError(
+        f"unknown parameter {name!r}; known: material.<emission|ambient|diffuse|specular|shininess|ior>, "
+        "back_material.<...>, ambient_light, <directional|point|spot>[i].<color|ambient|a0|a1|a2|cutoff|exponent|edge>, "
+        "fog.<color|start|end|density>"
+    )
+
+
+class ParamSet:
+    """An ordered set of free parameters and the flat vectors ``θ`` (natural) and ``u`` (solver)."""
+
+    def __init__(self, names, scene: ds.Scene, shared=()):
+        shared = set(shared)
+        unknown_shared = shared - set(names)
+        if unknown_shared:
+            raise ParamError(f"shared parameters {sorted(unknown_shared)} are not among the free parameters")
+        if len(set(names)) != len(names):
+            raise ParamError("a parameter is listed twice")
+        self.params = [parse(n, scene, n in shared) for n in names]
+        self.sizes = [p.size for p in self.params]
+        self.offsets = np.cumsum([0] + self.sizes)
+
+    @property
+    def labels(self) -> list[str]:
+        return [lab for p in self.params for lab in p.labels()]
+
+    def theta_of(self, scene):
+        return jnp.concatenate([jnp.atleast_1d(p.get(scene)) for p in self.params])
+
+    def split(self, vec):
+        return [vec[a:b] if p.size == 3 else vec[a] for p, a, b in zip(self.params, self.offsets[:-1], self.offsets[1:])]
+
+    def apply(self, scene, theta):
+        for p, v in zip(self.params, self.split(theta)):
+            scene = p.set(scene, v)
+        return scene
+
+    def theta_from_u(self, u):
+        return jnp.concatenate([jnp.atleast_1d(p.from_u(v)) for p, v in zip(self.params, self.split(u))])
+
+    def u_from_theta(self, theta):
+        return jnp.concatenate([jnp.atleast_1d(p.to_u(v)) for p, v in zip(self.params, self.split(theta))])
+
+    def check(self, theta, what="start value"):
+        for p, v in zip(self.params, self.split(np.asarray(theta))):
+            p.check(v, what)

@@ -1,0 +1,58 @@
+"""fitting: parameter names and domains, bad observations, identifiability reports."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import diffshade as ds
+from fitting.fit import FitError, fit
+from fitting.params import ParamError, ParamSet
+
+
+def small_scene(**render):
+    d = {k: v for k, v in ds.DEFAULT_SCENE.items()}
+    d["camera"] = dict(d["camera"], width=32, height=32)
+    d["mesh"] = {"icosphere": 2}
+    d["render"] = dict(d["render"], **render)
+    return ds.scene_from_dict(d)
+
+
+def test_parameter_names_and_domains():
+    scene, _ = small_scene()
+    ps = ParamSet(["material.diffuse", "point[0].a2", "fog.density", "material.specular"], scene, shared=["material.specular"])
+    assert ps.labels == ["material.diffuse[r]", "material.diffuse[g]", "material.diffuse[b]", "point[0].a2", "fog.density", "material.specular"]
+    theta = ps.theta_of(scene)
+    np.testing.assert_allclose(np.asarray(ps.theta_from_u(ps.u_from_theta(theta))), np.asarray(theta), rtol=1e-6)
+    with pytest.raises(ParamError, match="unknown parameter 'material.colour'"):
+        ParamSet(["material.colour"], scene)
+    with pytest.raises(ParamError, match="the scene has 1 point light"):
+        ParamSet(["point[3].a1"], scene)
+    with pytest.raises(ParamError, match="a point light has no field 'cutoff'"):
+        ParamSet(["point[0].cutoff"], scene)
+    bad = ps.apply(scene, theta.at[0].set(1.5))
+    with pytest.raises(ParamError, match=r"material.diffuse: start value .* outside its domain \[0, 1\]"):
+        fit(bad, ds.RenderOptions(), np.zeros((32, 32, 3)), ["material.diffuse"])
+
+
+def test_bad_targets_are_named():
+    scene, opts = small_scene()
+    with pytest.raises(FitError, match="image is 16x16 but the camera renders 32x32"):
+        fit(scene, opts, np.zeros((16, 16, 3)), ["material.diffuse"])
+    with pytest.raises(FitError, match="expected an RGB image"):
+        fit(scene, opts, np.zeros((32, 32, 4)), ["material.diffuse"])
+    with pytest.raises(FitError, match="NaN"):
+        fit(scene, opts, np.full((32, 32, 3), np.nan), ["material.diffuse"])
+
+
+def test_undetermined_parameter_and_gauge_are_reported():
+    # No specular term: the image says nothing about m. k_a and I_a only appear as a product.
+    scene, opts = small_scene(specular="none")
+    target = jax.jit(ds.render, static_argnames="opts")(scene, opts)
+    r = fit(scene, opts, target, ["material.diffuse", "material.shininess", "material.ambient", "ambient_light"],
+            shared=["material.ambient", "ambient_light"], max_steps=20)
+    assert r.undetermined == ["material.shininess"]
+    assert np.isinf(r.stderr[r.names.index("material.shininess")])
+    assert r.gauges and "material.ambient" in r.gauges[0] and "ambient_light" in r.gauges[0]
