@@ -83,14 +83,17 @@ def fit(
     shared=(),
     solver: str = "lm",
     max_steps: int = 100,
-    rtol: float = 1e-9,
-    atol: float = 1e-9,
+    rtol: float | None = None,
+    atol: float | None = None,
 ) -> FitResult:
     """Fit the ``free`` parameters of ``scene`` (start values = the scene's) to ``targets``.
 
     ``targets``: one image or a list, one per view; ``views``: the scenes of the views (same
     structure; they differ in camera, lights, ...), default ``scene`` for every target. The free
     parameters are shared by all views. ``masks``: optional per-view ``[H, W]`` weights.
+    ``rtol``/``atol``: the solver's step tolerances, by default 1e-6 in float32 and 1e-10 in
+    float64 (tighter than float32 can resolve only adds steps: measured 33 instead of 17 steps
+    for the demo, same 7e-7 parameter error).
     """
     if isinstance(targets, np.ndarray) or hasattr(targets, "shape"):
         targets = [targets]
@@ -113,6 +116,9 @@ def fit(
                 raise FitError(f"mask {k}: shape {m.shape}, expected {v.camera.resolution}")
             weights.append(jnp.asarray(np.sqrt(np.clip(m, 0, None)), dtype)[..., None])
 
+    tol = 1e-6 if dtype == jnp.float32 else 1e-10
+    rtol = tol if rtol is None else rtol
+    atol = tol if atol is None else atol
     pset = ParamSet(list(free), scene, shared)
     theta0 = pset.theta_of(scene)
     pset.check(theta0)
