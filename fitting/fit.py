@@ -124,32 +124,19 @@ def fit(
     pset.check(theta0)
     ids = [jax.jit(ds.scene_visibility, static_argnums=1)(v, opts) for v in views]
 
-    def residual(u, _):
-        return _residual_theta(pset, views, ids, targets, weights, opts, pset.theta_from_u(u))
-
-    solver_obj = SOLVERS[solver](rtol, atol)
-    if solver == "bfgs":
-        def solve(u0):
-            sol = optx.minimise(lambda u, a: 0.5 * jnp.sum(residual(u, a) ** 2), solver_obj, u0, max_steps=max_steps, throw=False)
-            return sol.value, sol.result, sol.stats["num_steps"]
-    else:
-        def solve(u0):
-            sol = optx.least_squares(residual, solver_obj, u0, max_steps=max_steps, throw=False)
-            return sol.value, sol.result, sol.stats["num_steps"]
-
+    data = (views, ids, targets, weights)
     u0 = pset.u_from_theta(theta0)
+    solve_fn, jac_fn = _compiled(pset, opts, solver, rtol, atol, max_steps, u0, data)
+    compile_s = solve_fn.compile_s + jac_fn.compile_s
     t0 = time.perf_counter()
-    compiled = jax.jit(solve).lower(u0).compile()
-    compile_s = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    u_hat, result, steps = compiled(u0)
+    u_hat, result, steps = solve_fn(u0, data)
     jax.block_until_ready(u_hat)
     solve_s = time.perf_counter() - t0
 
     theta = pset.theta_from_u(u_hat)
     # Gauss–Newton uncertainty in the natural parameters.
-    r = np.asarray(residual(u_hat, None), np.float64)
-    J = np.asarray(jax.jit(jax.jacfwd(lambda th: _residual_theta(pset, views, ids, targets, weights, opts, th)))(theta), np.float64)
+    r_dev, J_dev = jac_fn(theta, data)
+    r, J = np.asarray(r_dev, np.float64), np.asarray(J_dev, np.float64)
     n, p = J.shape
     s2 = float(r @ r) / max(n - p, 1)
     col = np.linalg.norm(J, axis=0)
@@ -189,6 +176,53 @@ def fit(
         compile_s=compile_s, solve_s=solve_s, rms=float(np.sqrt(np.mean(r**2))), psnr=psnr, ssim=ssim,
         undetermined=undetermined, gauges=gauges,
     )
+
+
+class _Timed:
+    def __init__(self, compiled, compile_s):
+        self.compiled, self.compile_s = compiled, compile_s
+
+    def __call__(self, *args):
+        return self.compiled(*args)
+
+
+_CACHE: dict = {}
+
+
+def _compiled(pset, opts, solver, rtol, atol, max_steps, u0, data):
+    """The compiled solve and Jacobian for this problem structure (cached: a second fit with the
+    same free parameters, options and image sizes compiles nothing; ``compile_s`` is then 0)."""
+    leaves, treedef = jax.tree.flatten((u0, data))
+    key = (tuple(pset.labels), tuple(p.size for p in pset.params), tuple(p.path for p in pset.params), opts, solver,
+           rtol, atol, max_steps, treedef, tuple((x.shape, x.dtype) for x in leaves))
+    if key in _CACHE:
+        solve_fn, jac_fn = _CACHE[key]
+        return _Timed(solve_fn.compiled, 0.0), _Timed(jac_fn.compiled, 0.0)
+
+    def residual(u, data):
+        return _residual_theta(pset, *data, opts, pset.theta_from_u(u))
+
+    solver_obj = SOLVERS[solver](rtol, atol)
+
+    def solve(u0, data):
+        if solver == "bfgs":
+            sol = optx.minimise(lambda u, d: 0.5 * jnp.sum(residual(u, d) ** 2), solver_obj, u0, args=data,
+                                max_steps=max_steps, throw=False)
+        else:
+            sol = optx.least_squares(residual, solver_obj, u0, args=data, max_steps=max_steps, throw=False)
+        return sol.value, sol.result, sol.stats["num_steps"]
+
+    def jac(theta, data):
+        f = lambda th: _residual_theta(pset, *data, opts, th)  # noqa: E731
+        return f(theta), jax.jacfwd(f)(theta)
+
+    out = []
+    for fn, arg in ((solve, u0), (jac, pset.theta_from_u(u0))):
+        t0 = time.perf_counter()
+        compiled = jax.jit(fn).lower(arg, data).compile()
+        out.append(_Timed(compiled, time.perf_counter() - t0))
+    _CACHE[key] = tuple(out)
+    return tuple(out)
 
 
 def _residual_theta(pset, views, ids, targets, weights, opts, theta):
