@@ -14,7 +14,7 @@ timed on the same 12-vector for comparability). Compile time is reported apart f
 steady-state time. DEODR (rasterize + Gouraud, optional ``.[bench]`` extra) is measured in the
 same run as the baseline for the full render.
 
-    python benchmarks/bench_render.py [--repeats N] [--quick]
+    python benchmarks/bench_render.py [--repeats N] [--quick] [--sizes 256,512] [--subdivisions 4,6]
 """
 
 from __future__ import annotations
@@ -93,10 +93,12 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--quick", action="store_true", help="5,120 faces at 256² only")
+    ap.add_argument("--sizes", default="256,512", help="image sides (default 256,512)")
+    ap.add_argument("--subdivisions", default="4,6", help="icosphere subdivisions (4: 5,120 faces, 6: 81,920)")
     args = ap.parse_args()
     print(f"jax {jax.__version__}, device {jax.devices()[0]}")
-    subs = (4,) if args.quick else (4, 6)
-    sizes = (256,) if args.quick else (256, 512)
+    subs = (4,) if args.quick else tuple(int(x) for x in args.subdivisions.split(","))
+    sizes = (256,) if args.quick else tuple(int(x) for x in args.sizes.split(","))
     rows = []
     for sub in subs:
         mesh = trimesh.creation.icosphere(subdivisions=sub)
