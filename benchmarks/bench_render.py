@@ -21,9 +21,7 @@ from __future__ import annotations
 
 import argparse
 import os
-import statistics
 import sys
-import time
 
 import equinox as eqx
 import jax
@@ -34,19 +32,7 @@ import trimesh
 import diffshade as ds
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bench_raster import deodr_time  # noqa: E402
-
-
-def timed(fn, *args, repeats):
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn(*args))
-    compile_s = time.perf_counter() - t0
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        ts.append(time.perf_counter() - t0)
-    return compile_s, statistics.median(ts) * 1e3
+from bench_raster import deodr_time, timed  # noqa: E402
 
 
 def make_scene(v, f, res, terms):

@@ -91,7 +91,7 @@ class Fragments(eqx.Module):
 
 
 def _centres_np(n: int, size: int, dtype) -> np.ndarray:
-    # Host constants (IEEE arithmetic in numpy), shared by both backends bit for bit.
+    # Host constants (IEEE arithmetic in numpy) for the differentiable fragments.
     dtype = np.dtype(dtype)
     return ((dtype.type(2.0) * (np.arange(n, dtype=dtype) + dtype.type(0.5))) / dtype.type(size) - dtype.type(1.0)).astype(dtype)
 

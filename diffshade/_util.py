@@ -20,13 +20,6 @@ def as_float_array(x):
     return x
 
 
-def safe_norm(v, axis=-1, keepdims=False):
-    """Euclidean norm with a finite (zero) gradient at the zero vector (double-``where``)."""
-    sq = jnp.sum(v * v, axis=axis, keepdims=keepdims)
-    ok = sq > 0
-    return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
-
-
 def safe_normalize(v, axis=-1, fallback=None):
     """``v / |v|``; returns ``fallback`` (default zeros) for zero-length vectors, with finite gradients."""
     sq = jnp.sum(v * v, axis=axis, keepdims=True)

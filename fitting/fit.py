@@ -135,7 +135,7 @@ def fit(
 
     theta = pset.theta_from_u(u_hat)
     # Gauss–Newton uncertainty in the natural parameters.
-    r_dev, J_dev = jac_fn(theta, data)
+    r_dev, J_dev, fitted0 = jac_fn(theta, data)
     r, J = np.asarray(r_dev, np.float64), np.asarray(J_dev, np.float64)
     n, p = J.shape
     s2 = float(r @ r) / max(n - p, 1)
@@ -163,7 +163,7 @@ def fit(
     # Image quality of the fit (first view; scikit-image metrics).
     from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-    fitted = np.asarray(ds.render(pset.apply(views[0], theta), opts, ids=ids[0]), np.float64)
+    fitted = np.asarray(fitted0, np.float64)
     tgt = np.asarray(targets[0], np.float64)
     rng = max(float(tgt.max() - tgt.min()), 1e-12)
     mse = float(np.mean((fitted - tgt) ** 2))
@@ -213,8 +213,10 @@ def _compiled(pset, opts, solver, rtol, atol, max_steps, u0, data):
         return sol.value, sol.result, sol.stats["num_steps"]
 
     def jac(theta, data):
+        # Residual, Jacobian in the natural parameters, and the first view's fitted image.
         f = lambda th: _residual_theta(pset, *data, opts, th)  # noqa: E731
-        return f(theta), jax.jacfwd(f)(theta)
+        views, ids = data[0], data[1]
+        return f(theta), jax.jacfwd(f)(theta), ds.render(pset.apply(views[0], theta), opts, ids=ids[0])
 
     out = []
     for fn, arg in ((solve, u0), (jac, pset.theta_from_u(u0))):
