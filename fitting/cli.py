@@ -1,5 +1,14 @@
-"""The ``diffshade`` command line: ``render`` a scene file to a PNG; ``demo``: render the default
-scene from known parameters, perturb them, fit them back with Levenberg–Marquardt and report."""
+"""The ``diffshade`` command line.
+
+- ``render``: a scene file to a PNG;
+- ``fit``: a scene file + target image(s) + free parameter names → fitted parameters as JSON and
+  as a Wavefront MTL file, a target | fit | residual PNG and a printed report (also saved);
+- ``demo``: render the default scene from known parameters, perturb them, fit them back with
+  Levenberg–Marquardt and report true vs recovered vs error.
+
+Exit codes: 0 success; 2 usage; 3 bad input (missing or malformed file, image of the wrong size
+or channel count, unknown parameter, value out of its domain, output exists); 4 the fit did not
+succeed (the outputs are still written, with the solver's message)."""
 
 from __future__ import annotations
 
@@ -9,6 +18,82 @@ import time
 from pathlib import Path
 
 EXIT_OK, EXIT_USAGE, EXIT_INPUT, EXIT_FIT = 0, 2, 3, 4
+
+
+class InputError(ValueError):
+    """A bad command-line input (the message names the file and the problem)."""
+
+
+def load_target(path: Path, resolution: tuple[int, int]):
+    """A target image as float64 ``[H, W, 3]`` and its saturation level (1.0 for integer files,
+    whose brightest code is a clipped value; None for ``.npy`` floats, which are not clipped)."""
+    import numpy as np
+
+    if not path.exists():
+        raise InputError(f"{path}: target image not found")
+    if path.suffix.lower() == ".npy":
+        try:
+            img = np.load(path, allow_pickle=False)
+        except (ValueError, OSError) as exc:
+            raise InputError(f"{path}: not a readable .npy array: {exc}") from exc
+        sat = None
+        if not np.issubdtype(img.dtype, np.floating):
+            raise InputError(f"{path}: a .npy target must hold floats (linear radiance), got {img.dtype}")
+    else:
+        import skimage.io
+
+        try:
+            img = skimage.io.imread(path)
+        except Exception as exc:  # noqa: BLE001 - imageio raises many types; name the file
+            raise InputError(f"{path}: cannot read as an image: {exc}") from exc
+        if img.dtype == np.uint8:
+            img, sat = img / 255.0, 1.0
+        elif img.dtype == np.uint16:
+            img, sat = img / 65535.0, 1.0
+        elif np.issubdtype(img.dtype, np.floating):
+            sat = None
+        else:
+            raise InputError(f"{path}: unsupported pixel type {img.dtype} (8- or 16-bit or float images)")
+    img = np.asarray(img, np.float64)
+    h, w = resolution
+    if img.ndim == 2 or (img.ndim == 3 and img.shape[2] != 3):
+        ch = 1 if img.ndim == 2 else img.shape[2]
+        what = {1: "grayscale", 2: "grayscale + alpha", 4: "RGBA"}.get(ch, f"{ch}-channel")
+        raise InputError(f"{path}: a {what} image ({ch} channel(s)); expected RGB (3 channels)")
+    if img.ndim != 3:
+        raise InputError(f"{path}: expected an RGB image, got an array of shape {img.shape}")
+    if img.shape[:2] != (h, w):
+        raise InputError(f"{path}: image is {img.shape[1]}x{img.shape[0]} but the scene's camera renders {w}x{h}")
+    if not np.isfinite(img).all():
+        raise InputError(f"{path}: contains NaN or inf")
+    return img, sat
+
+
+def write_mtl(scene, opts, path: Path, header: str) -> None:
+    """The scene's material (and back material) as a Wavefront MTL file."""
+    import numpy as np
+
+    def rgb(x):
+        return " ".join(f"{float(c):.6g}" for c in np.broadcast_to(np.asarray(x), (3,)))
+
+    lines = [f"# {ln}" for ln in header.splitlines()]
+    lines.append(f"# Ns is the {'Blinn-Phong' if opts.specular == 'blinn' else 'Phong'} exponent; "
+                 "colours are linear; Ke = emission")
+    mats = [("material", scene.material)]
+    if scene.back_material is not None:
+        mats.append(("back_material", scene.back_material))
+    for name, m in mats:
+        lines += ["", f"newmtl {name}", f"Ka {rgb(m.ambient)}", f"Kd {rgb(m.diffuse)}", f"Ks {rgb(m.specular)}",
+                  f"Ns {float(m.shininess):.6g}", f"Ke {rgb(m.emission)}", f"Ni {float(m.ior):.6g}", "d 1",
+                  f"illum {1 if opts.specular == 'none' else 2}"]
+    _write_text("\n".join(lines) + "\n", path)
+
+
+def _write_text(text: str, out: Path) -> None:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".tmp")
+    tmp.write_text(text)
+    tmp.replace(out)
 
 
 def _write_png(image, out: Path, overwrite: bool) -> None:
@@ -103,6 +188,117 @@ def cmd_demo(args) -> int:
     return EXIT_OK if r.successful else EXIT_FIT
 
 
+FIT_OUTPUTS = ("fit.json", "material.mtl", "fit.png", "report.txt")
+
+
+def _report_table(r, true=None) -> list[str]:
+    lines = [f"{'parameter':26s} {'start':>11s} {'fitted':>11s} {'std. error':>11s} {'rel. s.e.':>10s}"]
+    for n, s_, v, se in zip(r.names, r.start, r.values, r.stderr):
+        rel = se / abs(v) if v != 0 else float("inf")
+        lines.append(f"{n:26s} {s_:11.5g} {v:11.5g} {se:11.3g} {rel:10.2e}")
+    lines.append(f"result: {r.result or 'successful'}; {r.steps} steps; compile {r.compile_s:.2f} s, solve {r.solve_s:.2f} s; "
+                 f"RMS residual {r.rms:.3e}; PSNR {r.psnr:.2f} dB; SSIM {r.ssim:.5f}")
+    if r.undetermined:
+        lines.append("NOT DETERMINED by the images (values are the starts, not estimates): " + ", ".join(r.undetermined))
+    for g in r.gauges:
+        lines.append("near-gauge (the images barely constrain this combination): " + g)
+    return lines
+
+
+def cmd_fit(args) -> int:
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import diffshade as ds
+
+    from .fit import compare_models, fit
+    from .params import ParamSet
+
+    scene_path = Path(args.scene)
+    scene, opts = ds.load_scene(scene_path)
+    view_paths = [Path(v) for v in args.views] if args.views else []
+    if view_paths and len(view_paths) != len(args.targets):
+        raise InputError(f"{len(args.targets)} target(s) but {len(view_paths)} --views scene file(s); give one per target")
+    views = [ds.load_scene(v)[0] for v in view_paths] if view_paths else [scene] * len(args.targets)
+    target_paths = [Path(t) for t in args.targets]
+    loaded = [load_target(t, v.camera.resolution) for t, v in zip(target_paths, views)]
+    targets = [img for img, _ in loaded]
+    sats = {sat for _, sat in loaded}
+    saturation = 1.0 if sats == {1.0} and not args.no_censor else None
+    masks = None
+    mask_paths = [Path(m) for m in args.mask] if args.mask else []
+    if mask_paths:
+        if len(mask_paths) != len(targets):
+            raise InputError(f"{len(targets)} target(s) but {len(mask_paths)} mask(s); give one per target")
+        import skimage.io
+
+        masks = []
+        for mp, v in zip(mask_paths, views):
+            if not mp.exists():
+                raise InputError(f"{mp}: mask image not found")
+            m = np.asarray(skimage.io.imread(mp), np.float64)
+            m = m[..., 0] if m.ndim == 3 else m
+            if m.shape != v.camera.resolution:
+                raise InputError(f"{mp}: mask is {m.shape[1]}x{m.shape[0]} but the camera renders "
+                                 f"{v.camera.width}x{v.camera.height}")
+            masks.append(m / max(m.max(), 1e-300))
+
+    out_dir = Path(args.output_dir)
+    outputs = [out_dir / n for n in FIT_OUTPUTS]
+    inputs = {p.resolve() for p in [scene_path, *view_paths, *target_paths, *mask_paths]}
+    for o in outputs:
+        if o.resolve() in inputs:
+            raise InputError(f"{o}: is one of the inputs; choose another --output-dir (inputs are never overwritten)")
+        if o.exists() and not args.overwrite:
+            raise InputError(f"{o}: exists; pass --overwrite to replace it or choose another --output-dir")
+
+    ParamSet(args.free, scene, args.shared or ())  # name errors before any compile
+    print(f"fitting {', '.join(args.free)} to {len(targets)} image(s) of {views[0].camera.width}x"
+          f"{views[0].camera.height} with {args.solver}" + (" (clipped pixels censored)" if saturation else ""))
+    kw = dict(views=views, masks=masks, shared=args.shared or (), solver=args.solver, max_steps=args.max_steps,
+              saturation=saturation)
+    r = fit(scene, opts, targets, args.free, verbose=args.verbose, **kw)
+    report = [f"diffshade fit: scene {scene_path}, target(s) {', '.join(map(str, target_paths))}", *_report_table(r)]
+    comparison = []
+    if args.compare:
+        scores = compare_models(scene, opts, targets, args.free, given=r, **kw)
+        report += ["", "model comparison (lowest BIC first; ΔBIC > 10 is strong evidence):",
+                   f"{'model':14s} {'k':>3s} {'RSS':>11s} {'AIC':>14s} {'BIC':>14s} {'ΔBIC':>9s} result"]
+        for m in scores:
+            report.append(f"{m.name:14s} {m.k:3d} {m.rss:11.4e} {m.aic:14.1f} {m.bic:14.1f} "
+                          f"{m.bic - scores[0].bic:9.1f} {m.fit.result or 'successful'}")
+            comparison.append({"model": m.name, "specular": m.opts.specular, "fog": m.opts.fog, "free": m.free,
+                               "k": m.k, "n": m.n, "rss": m.rss, "aic": m.aic, "bic": m.bic,
+                               "delta_bic": m.bic - scores[0].bic, "fit": m.fit.as_dict()})
+        report.append(f"the images support: {scores[0].name}")
+    print("\n".join(report[1:]))
+
+    pset = ParamSet(args.free, scene, args.shared or ())
+    theta = jnp.asarray(r.values, scene.mesh.vertices.dtype)
+    fitted_scene = pset.apply(scene, theta)
+    render = jax.jit(ds.render, static_argnames="opts")
+    rows = []
+    for v, t in zip(views, targets):
+        img = np.asarray(render(pset.apply(v, theta), opts), np.float64)
+        rows.append(np.concatenate([t, img, np.clip(0.5 + 10.0 * (img - t), 0, 1)], axis=1))
+    import json
+
+    meta = {"scene": str(scene_path), "targets": [str(t) for t in target_paths], "views": [str(v) for v in view_paths],
+            "free": args.free, "shared": args.shared or [], "solver": args.solver, "censored_at": saturation,
+            "options": {k: getattr(opts, k) for k in opts.__dataclass_fields__}}
+    doc = {**meta, **r.as_dict()}
+    if comparison:
+        doc["comparison"] = comparison
+    _write_text(json.dumps(doc, indent=2, default=float) + "\n", outputs[0])
+    write_mtl(fitted_scene, opts, outputs[1], f"{report[0]}\nfree: {' '.join(args.free)}; result: "
+              f"{r.result or 'successful'}; standard errors in fit.json")
+    _write_png(np.concatenate(rows, axis=0), outputs[2], True)
+    _write_text("\n".join(report) + "\n", outputs[3])
+    print(f"wrote {', '.join(str(o) for o in outputs)} (fit.png: target | fit | 10x residual + 0.5)")
+    return EXIT_OK if r.successful else EXIT_FIT
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="diffshade", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -111,6 +307,27 @@ def main(argv=None) -> int:
     p.add_argument("-o", "--output", default="render.png", help="output PNG (default: render.png)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     p.set_defaults(func=cmd_render)
+    p = sub.add_parser("fit", help="fit named scene parameters to target image(s)",
+                       description="Fit the named free parameters of a scene file to target images (PNG: 8/16-bit, "
+                       "linear; or .npy floats). Start values are the scene file's. Writes fit.json, material.mtl, "
+                       "fit.png and report.txt into --output-dir.")
+    p.add_argument("scene", help="scene file (.toml); its values are the starting point")
+    p.add_argument("targets", nargs="+", help="target image(s), one per view, each the camera's size")
+    p.add_argument("-p", "--free", nargs="+", required=True, metavar="NAME",
+                   help="free parameters, e.g. material.diffuse material.shininess point[0].a1 fog.density")
+    p.add_argument("--shared", nargs="+", metavar="NAME", help="RGB parameters fitted as one value for all channels")
+    p.add_argument("--views", nargs="+", metavar="SCENE", help="one scene file per target (other cameras/lights)")
+    p.add_argument("--mask", nargs="+", metavar="IMAGE", help="one weight image per target (0 = ignore)")
+    p.add_argument("--solver", default="lm", choices=["lm", "dogleg", "gauss-newton", "bfgs"])
+    p.add_argument("--max-steps", type=int, default=200)
+    p.add_argument("--compare", action="store_true",
+                   help="also fit the nested term sets (no specular, Phong<->Blinn, no fog) and rank by BIC")
+    p.add_argument("--no-censor", action="store_true",
+                   help="do not treat fully saturated channels of 8/16-bit targets as clipped")
+    p.add_argument("-v", "--verbose", action="store_true", help="print the loss at every solver step")
+    p.add_argument("-o", "--output-dir", default="fit_out", help="output folder (default: fit_out)")
+    p.add_argument("--overwrite", action="store_true", help="replace existing outputs (never inputs)")
+    p.set_defaults(func=cmd_fit)
     p = sub.add_parser("demo", help="fit the built-in default scene's material, attenuation and fog back from its image")
     p.add_argument("-o", "--output", default="out/demo.png", help="output PNG (default: out/demo.png)")
     p.add_argument("--size", type=int, default=256, help="image side in pixels (default 256)")
@@ -119,9 +336,12 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     import diffshade as ds
 
+    from .fit import FitError
+    from .params import ParamError
+
     try:
         return args.func(args)
-    except (ds.SceneError, ds.MeshError, FileExistsError, FileNotFoundError) as exc:
+    except (ds.SceneError, ds.MeshError, FileExistsError, FileNotFoundError, InputError, ParamError, FitError) as exc:
         print(f"diffshade: error: {exc}", file=sys.stderr)
         return EXIT_INPUT
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -22,11 +23,19 @@ import diffshade as ds
 from .params import ParamSet
 
 SOLVERS = {
-    "lm": lambda rtol, atol: optx.LevenbergMarquardt(rtol=rtol, atol=atol),
-    "dogleg": lambda rtol, atol: optx.Dogleg(rtol=rtol, atol=atol),
-    "gauss-newton": lambda rtol, atol: optx.GaussNewton(rtol=rtol, atol=atol),
-    "bfgs": lambda rtol, atol: optx.BFGS(rtol=rtol, atol=atol),
+    "lm": optx.LevenbergMarquardt,
+    "dogleg": optx.Dogleg,
+    "gauss-newton": optx.GaussNewton,
+    "bfgs": optx.BFGS,
 }
+
+
+def _progress(**kw):
+    """Per-step progress line (optimistix's ``verbose`` hook, printed from inside the compiled solve)."""
+    names = ("num_steps", "loss_this_step", "loss_last_accepted_step", "step_size")
+    got = [kw[n] for n in names if n in kw]
+    if got:
+        jax.debug.print("  " + ", ".join(f"{label.lower()} {{}}" for label, _ in got), *[v for _, v in got])
 
 
 class FitError(ValueError):
@@ -47,6 +56,8 @@ class FitResult:
     rms: float  # final root-mean-square residual
     psnr: float
     ssim: float
+    rss: float = 0.0  # final residual sum of squares
+    n_residuals: int = 0  # pixels × channels with non-zero weight
     undetermined: list[str] = field(default_factory=list)  # labels the images do not determine
     gauges: list[str] = field(default_factory=list)  # near-degenerate combinations, described
 
@@ -55,7 +66,8 @@ class FitResult:
             "parameters": {n: {"value": float(v), "stderr": float(e), "start": float(s)}
                            for n, v, e, s in zip(self.names, self.values, self.stderr, self.start)},
             "result": self.result or "successful", "successful": self.successful, "steps": self.steps,
-            "compile_s": self.compile_s, "solve_s": self.solve_s, "rms": self.rms, "psnr": self.psnr,
+            "compile_s": self.compile_s, "solve_s": self.solve_s, "rms": self.rms, "rss": self.rss,
+            "n_residuals": self.n_residuals, "psnr": self.psnr,
             "ssim": self.ssim, "undetermined": self.undetermined, "gauges": self.gauges,
         }
 
@@ -85,6 +97,8 @@ def fit(
     max_steps: int = 100,
     rtol: float | None = None,
     atol: float | None = None,
+    saturation: float | None = None,
+    verbose: bool = False,
 ) -> FitResult:
     """Fit the ``free`` parameters of ``scene`` (start values = the scene's) to ``targets``.
 
@@ -94,6 +108,11 @@ def fit(
     ``rtol``/``atol``: the solver's step tolerances, by default 1e-6 in float32 and 1e-10 in
     float64 (tighter than float32 can resolve only adds steps: measured 33 instead of 17 steps
     for the demo, same 7e-7 parameter error).
+    ``saturation``: the level at which the camera clipped (1.0 for images read from 8- or
+    16-bit files). A target channel at or above it is *censored*: it says only "at least this
+    bright", so its residual is ``min(render, saturation) − target`` (zero once the model is
+    bright enough too) instead of pulling the model down to the clipped value.
+    ``verbose``: print the loss and step size at every solver step (optimistix's own report).
     """
     if isinstance(targets, np.ndarray) or hasattr(targets, "shape"):
         targets = [targets]
@@ -124,9 +143,10 @@ def fit(
     pset.check(theta0)
     ids = [jax.jit(ds.scene_visibility, static_argnums=1)(v, opts) for v in views]
 
-    data = (views, ids, targets, weights)
+    sat = jnp.asarray(np.inf if saturation is None else saturation, dtype)
+    data = (views, ids, targets, weights, sat)
     u0 = pset.u_from_theta(theta0)
-    solve_fn, jac_fn = _compiled(pset, opts, solver, rtol, atol, max_steps, u0, data)
+    solve_fn, jac_fn = _compiled(pset, opts, solver, rtol, atol, max_steps, u0, data, verbose)
     compile_s = solve_fn.compile_s + jac_fn.compile_s
     t0 = time.perf_counter()
     u_hat, result, steps = solve_fn(u0, data)
@@ -174,6 +194,8 @@ def fit(
         names=labels, values=np.asarray(theta, np.float64), start=np.asarray(theta0, np.float64), stderr=stderr,
         result=msg, successful=bool(result == optx.RESULTS.successful), steps=int(steps),
         compile_s=compile_s, solve_s=solve_s, rms=float(np.sqrt(np.mean(r**2))), psnr=psnr, ssim=ssim,
+        rss=float(r @ r), n_residuals=int(sum(int(np.count_nonzero(np.broadcast_to(np.asarray(w), t.shape)))
+                                          for w, t in zip(weights, targets))),
         undetermined=undetermined, gauges=gauges,
     )
 
@@ -189,12 +211,12 @@ class _Timed:
 _CACHE: dict = {}
 
 
-def _compiled(pset, opts, solver, rtol, atol, max_steps, u0, data):
+def _compiled(pset, opts, solver, rtol, atol, max_steps, u0, data, verbose=False):
     """The compiled solve and Jacobian for this problem structure (cached: a second fit with the
     same free parameters, options and image sizes compiles nothing; ``compile_s`` is then 0)."""
     leaves, treedef = jax.tree.flatten((u0, data))
     key = (tuple(pset.labels), tuple(p.size for p in pset.params), tuple(p.path for p in pset.params), opts, solver,
-           rtol, atol, max_steps, treedef, tuple((x.shape, x.dtype) for x in leaves))
+           rtol, atol, max_steps, verbose, treedef, tuple((x.shape, x.dtype) for x in leaves))
     if key in _CACHE:
         solve_fn, jac_fn = _CACHE[key]
         return _Timed(solve_fn.compiled, 0.0), _Timed(jac_fn.compiled, 0.0)
@@ -202,7 +224,7 @@ def _compiled(pset, opts, solver, rtol, atol, max_steps, u0, data):
     def residual(u, data):
         return _residual_theta(pset, *data, opts, pset.theta_from_u(u))
 
-    solver_obj = SOLVERS[solver](rtol, atol)
+    solver_obj = SOLVERS[solver](rtol=rtol, atol=atol, verbose=_progress if verbose else False)
 
     def solve(u0, data):
         if solver == "bfgs":
@@ -227,9 +249,82 @@ def _compiled(pset, opts, solver, rtol, atol, max_steps, u0, data):
     return tuple(out)
 
 
-def _residual_theta(pset, views, ids, targets, weights, opts, theta):
+def _residual_theta(pset, views, ids, targets, weights, sat, opts, theta):
     out = []
     for v, i, t, wgt in zip(views, ids, targets, weights):
         img = ds.render(pset.apply(v, theta), opts, ids=i)
+        # Censored (clipped) target channels compare against the model clipped the same way.
+        img = jnp.where(t >= sat, jnp.minimum(img, sat), img)
         out.append(((img - t) * wgt).reshape(-1))
     return jnp.concatenate(out)
+
+
+# ------------------------------------------------------------------------------------------
+# Nested models: which terms do the images support?
+# ------------------------------------------------------------------------------------------
+
+_SPECULAR_PARAMS = ("material.specular", "material.shininess", "material.ior",
+                    "back_material.specular", "back_material.shininess", "back_material.ior")
+
+
+@dataclass
+class ModelScore:
+    name: str  # e.g. "as given", "no specular", "blinn", "no fog"
+    opts: ds.RenderOptions
+    free: list[str]
+    fit: FitResult
+    n: int  # residuals (pixels × channels with non-zero weight)
+    k: int  # determined free scalars
+    rss: float
+    aic: float
+    bic: float
+
+
+def model_variants(scene: ds.Scene, opts: ds.RenderOptions, free):
+    """The nested or competing term sets of ``opts``: ``[(name, opts, free, scene), ...]``.
+
+    Given specular: without it, and Phong ↔ Blinn–Phong (the exponent's start converted by
+    m' = 4m); given fog: without it. Free parameters of a removed term are dropped."""
+    out = [("as given", opts, list(free), scene)]
+    if opts.specular != "none":
+        drop = [n for n in free if n in _SPECULAR_PARAMS]
+        out.append(("no specular", opts.replace(specular="none", fresnel="none"),
+                    [n for n in free if n not in drop], scene))
+        other = "blinn" if opts.specular == "phong" else "phong"
+        conv = ds.phong_to_blinn if other == "blinn" else ds.blinn_to_phong
+        s2 = eqx.tree_at(lambda s: s.material.shininess, scene, conv(scene.material.shininess))
+        out.append((other, opts.replace(specular=other), list(free), s2))
+    if opts.fog != "none":
+        out.append(("no fog", opts.replace(fog="none"), [n for n in free if not n.startswith("fog.")], scene))
+    return out
+
+
+def compare_models(scene, opts, targets, free, *, variants=None, given: FitResult | None = None,
+                   **fit_kw) -> list[ModelScore]:
+    r"""Fit every variant (default :func:`model_variants`) and score it by AIC and BIC,
+
+    .. math:: \mathrm{AIC} = n \ln(\mathrm{RSS}/n) + 2k, \qquad \mathrm{BIC} = n \ln(\mathrm{RSS}/n) + k \ln n
+
+    (Gaussian residuals of unknown variance; ``k`` counts only the parameters the images
+    determine). Sorted best (lowest BIC) first. ``RSS/n`` is floored at float rounding
+    (``(ε · rms target)²``), so among models that all reproduce a noise-free target exactly
+    the one with fewer parameters wins instead of a comparison of rounding noise.
+    ``given``: an existing fit of the model as given (not repeated).
+    """
+    if isinstance(targets, np.ndarray) or hasattr(targets, "shape"):
+        targets = [targets]
+    variants = model_variants(scene, opts, free) if variants is None else variants
+    dtype = scene.mesh.vertices.dtype
+    eps = float(jnp.finfo(dtype).eps)
+    scale2 = float(np.mean([np.mean(np.asarray(t, np.float64) ** 2) for t in targets]))
+    out = []
+    for name, o, fr, sc in variants:
+        r = given if (given is not None and name == "as given") else fit(sc, o, targets, fr, **fit_kw)
+        n = int(r.n_residuals)
+        k = len(r.names) - len(r.undetermined)
+        ms = max(r.rss / n, (eps ** 2) * scale2)
+        aic = n * np.log(ms) + 2 * k
+        bic = n * np.log(ms) + k * np.log(n)
+        out.append(ModelScore(name, o, fr, r, n, k, r.rss, float(aic), float(bic)))
+    out.sort(key=lambda m: m.bic)
+    return out
