@@ -30,12 +30,27 @@ SOLVERS = {
 }
 
 
-def _progress(**kw):
-    """Per-step progress line (optimistix's ``verbose`` hook, printed from inside the compiled solve)."""
-    names = ("num_steps", "loss_this_step", "loss_last_accepted_step", "step_size")
-    got = [kw[n] for n in names if n in kw]
-    if got:
-        jax.debug.print("  " + ", ".join(f"{label.lower()} {{}}" for label, _ in got), *[v for _, v in got])
+_RECORDER: list | None = None  # where the per-step history of the running fit goes (host side)
+
+
+def _record(loss, u):
+    if _RECORDER is not None:
+        _RECORDER.append((float(loss), np.asarray(u, np.float64)))
+
+
+def _make_verbose(show: bool, history: bool):
+    """optimistix's ``verbose`` hook: a progress line per step (``show``) and/or the loss and
+    point of every trial step sent to the host (``history``; for convergence plots)."""
+
+    def hook(**kw):
+        if show:
+            names = ("num_steps", "loss_this_step", "loss_last_accepted_step", "step_size")
+            got = [kw[n] for n in names if n in kw]
+            jax.debug.print("  " + ", ".join(f"{label.lower()} {{}}" for label, _ in got), *[v for _, v in got])
+        if history and "loss_this_step" in kw and "y" in kw:
+            jax.debug.callback(_record, kw["loss_this_step"][1], kw["y"][1], ordered=True)
+
+    return hook if (show or history) else False
 
 
 class FitError(ValueError):
@@ -60,6 +75,7 @@ class FitResult:
     n_residuals: int = 0  # pixels × channels with non-zero weight
     undetermined: list[str] = field(default_factory=list)  # labels the images do not determine
     gauges: list[str] = field(default_factory=list)  # near-degenerate combinations, described
+    history: list = field(default_factory=list)  # (loss, θ) of every trial step, with ``history=True``
 
     def as_dict(self) -> dict:
         return {
@@ -99,6 +115,7 @@ def fit(
     atol: float | None = None,
     saturation: float | None = None,
     verbose: bool = False,
+    history: bool = False,
 ) -> FitResult:
     """Fit the ``free`` parameters of ``scene`` (start values = the scene's) to ``targets``.
 
@@ -113,6 +130,8 @@ def fit(
     bright", so its residual is ``min(render, saturation) − target`` (zero once the model is
     bright enough too) instead of pulling the model down to the clipped value.
     ``verbose``: print the loss and step size at every solver step (optimistix's own report).
+    ``history``: keep every trial step's loss and parameters in ``FitResult.history`` (a host
+    callback per step; for convergence plots).
     """
     if isinstance(targets, np.ndarray) or hasattr(targets, "shape"):
         targets = [targets]
@@ -145,13 +164,23 @@ def fit(
 
     sat = jnp.asarray(np.inf if saturation is None else saturation, dtype)
     data = (views, ids, targets, weights, sat)
-    u0 = pset.u_from_theta(theta0)
-    solve_fn, jac_fn = _compiled(pset, opts, solver, rtol, atol, max_steps, u0, data, verbose)
+    # The solver works in JAX's default float type: optimistix builds its damping terms in that
+    # type, and float32 vectors in a float64 session fail inside lineax. The render itself runs
+    # in the scene's dtype; only the parameters and residuals are converted.
+    u0 = pset.u_from_theta(theta0).astype(jnp.result_type(float))
+    solve_fn, jac_fn = _compiled(pset, opts, solver, rtol, atol, max_steps, u0, data, verbose, history)
     compile_s = solve_fn.compile_s + jac_fn.compile_s
-    t0 = time.perf_counter()
-    u_hat, result, steps = solve_fn(u0, data)
-    jax.block_until_ready(u_hat)
-    solve_s = time.perf_counter() - t0
+    global _RECORDER
+    _RECORDER = trace = []
+    try:
+        t0 = time.perf_counter()
+        u_hat, result, steps = solve_fn(u0, data)
+        jax.block_until_ready(u_hat)
+        jax.effects_barrier()
+        solve_s = time.perf_counter() - t0
+    finally:
+        _RECORDER = None
+    hist = [(loss, np.asarray(pset.theta_from_u(jnp.asarray(u)), np.float64)) for loss, u in trace]
 
     theta = pset.theta_from_u(u_hat)
     # Gauss–Newton uncertainty in the natural parameters.
@@ -196,7 +225,7 @@ def fit(
         compile_s=compile_s, solve_s=solve_s, rms=float(np.sqrt(np.mean(r**2))), psnr=psnr, ssim=ssim,
         rss=float(r @ r), n_residuals=int(sum(int(np.count_nonzero(np.broadcast_to(np.asarray(w), t.shape)))
                                           for w, t in zip(weights, targets))),
-        undetermined=undetermined, gauges=gauges,
+        undetermined=undetermined, gauges=gauges, history=hist,
     )
 
 
@@ -211,20 +240,21 @@ class _Timed:
 _CACHE: dict = {}
 
 
-def _compiled(pset, opts, solver, rtol, atol, max_steps, u0, data, verbose=False):
+def _compiled(pset, opts, solver, rtol, atol, max_steps, u0, data, verbose=False, history=False):
     """The compiled solve and Jacobian for this problem structure (cached: a second fit with the
     same free parameters, options and image sizes compiles nothing; ``compile_s`` is then 0)."""
     leaves, treedef = jax.tree.flatten((u0, data))
     key = (tuple(pset.labels), tuple(p.size for p in pset.params), tuple(p.path for p in pset.params), opts, solver,
-           rtol, atol, max_steps, verbose, treedef, tuple((x.shape, x.dtype) for x in leaves))
+           rtol, atol, max_steps, verbose, history, treedef, tuple((x.shape, x.dtype) for x in leaves))
     if key in _CACHE:
         solve_fn, jac_fn = _CACHE[key]
         return _Timed(solve_fn.compiled, 0.0), _Timed(jac_fn.compiled, 0.0)
 
     def residual(u, data):
-        return _residual_theta(pset, *data, opts, pset.theta_from_u(u))
+        r = _residual_theta(pset, *data, opts, pset.theta_from_u(u).astype(data[2][0].dtype))
+        return r.astype(u.dtype)
 
-    solver_obj = SOLVERS[solver](rtol=rtol, atol=atol, verbose=_progress if verbose else False)
+    solver_obj = SOLVERS[solver](rtol=rtol, atol=atol, verbose=_make_verbose(verbose, history))
 
     def solve(u0, data):
         if solver == "bfgs":

@@ -55,3 +55,19 @@ def test_undetermined_parameter_and_gauge_are_reported():
     assert r.undetermined == ["material.shininess"]
     assert np.isinf(r.stderr[r.names.index("material.shininess")])
     assert r.gauges and "material.ambient" in r.gauges[0] and "ambient_light" in r.gauges[0]
+
+
+def test_float32_scene_fits_in_a_float64_session():
+    # The test session has jax_enable_x64 on; optimistix's damping terms are then float64, and a
+    # float32 solver vector used to fail deep inside lineax. The render stays float32.
+    scene, opts = small_scene()
+    scene = jax.tree.map(lambda x: x.astype(np.float32) if np.issubdtype(x.dtype, np.floating) else x, scene)
+    target = jax.jit(ds.render, static_argnames="opts")(scene, opts)
+    assert target.dtype == np.float32
+    from fitting.params import ParamSet
+
+    ps = ParamSet(["material.diffuse"], scene)
+    s0 = ps.apply(scene, ps.theta_of(scene) * 0.8)
+    r = fit(s0, opts, target, ["material.diffuse"])
+    assert r.successful
+    np.testing.assert_allclose(r.values, np.asarray(ps.theta_of(scene)), rtol=1e-5)
