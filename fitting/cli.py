@@ -179,6 +179,8 @@ def cmd_demo(args) -> int:
           f"max rel. error {err.max():.2e}; RMS residual {r.rms:.2e}; PSNR {r.psnr:.1f} dB; SSIM {r.ssim:.6f}")
     if r.undetermined or r.gauges:
         print(f"not determined by the image: {r.undetermined}; {r.gauges}")
+    for n in r.notes:
+        print("trap detected, " + n)
     fitted = render(pset.apply(scene, jnp.asarray(r.values, jnp.float32)), opts)
     start_img = render(s0, opts)
     resid = jnp.clip(0.5 + 10.0 * (fitted - target), 0.0, 1.0)
@@ -198,6 +200,8 @@ def _report_table(r, true=None) -> list[str]:
         lines.append(f"{n:26s} {s_:11.5g} {v:11.5g} {se:11.3g} {rel:10.2e}")
     lines.append(f"result: {r.result or 'successful'}; {r.steps} steps; compile {r.compile_s:.2f} s, solve {r.solve_s:.2f} s; "
                  f"RMS residual {r.rms:.3e}; PSNR {r.psnr:.2f} dB; SSIM {r.ssim:.5f}")
+    for n in r.notes:
+        lines.append("trap detected, " + n)
     if r.undetermined:
         lines.append("NOT DETERMINED by the images (values are the starts, not estimates): " + ", ".join(r.undetermined))
     for g in r.gauges:

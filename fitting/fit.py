@@ -76,6 +76,7 @@ class FitResult:
     undetermined: list[str] = field(default_factory=list)  # labels the images do not determine
     gauges: list[str] = field(default_factory=list)  # near-degenerate combinations, described
     history: list = field(default_factory=list)  # (loss, θ) of every trial step, with ``history=True``
+    notes: list[str] = field(default_factory=list)  # traps detected and restarts made
 
     def as_dict(self) -> dict:
         return {
@@ -84,7 +85,7 @@ class FitResult:
             "result": self.result or "successful", "successful": self.successful, "steps": self.steps,
             "compile_s": self.compile_s, "solve_s": self.solve_s, "rms": self.rms, "rss": self.rss,
             "n_residuals": self.n_residuals, "psnr": self.psnr,
-            "ssim": self.ssim, "undetermined": self.undetermined, "gauges": self.gauges,
+            "ssim": self.ssim, "undetermined": self.undetermined, "gauges": self.gauges, "notes": self.notes,
         }
 
 
@@ -116,6 +117,7 @@ def fit(
     saturation: float | None = None,
     verbose: bool = False,
     history: bool = False,
+    restarts: int = 2,
 ) -> FitResult:
     """Fit the ``free`` parameters of ``scene`` (start values = the scene's) to ``targets``.
 
@@ -132,6 +134,8 @@ def fit(
     ``verbose``: print the loss and step size at every solver step (optimistix's own report).
     ``history``: keep every trial step's loss and parameters in ``FitResult.history`` (a host
     callback per step; for convergence plots).
+    ``restarts``: how often a fit that ended in a trap is restarted (see :func:`_trapped`); a
+    fit still trapped after them is reported unsuccessful, with the reason in ``result``.
     """
     if isinstance(targets, np.ndarray) or hasattr(targets, "shape"):
         targets = [targets]
@@ -172,15 +176,33 @@ def fit(
     compile_s = solve_fn.compile_s + jac_fn.compile_s
     global _RECORDER
     _RECORDER = trace = []
+    notes, steps_total, u_start, theta_ref = [], 0, u0, np.asarray(theta0, np.float64)
     try:
         t0 = time.perf_counter()
-        u_hat, result, steps = solve_fn(u0, data)
-        jax.block_until_ready(u_hat)
+        for attempt in range(restarts + 1):
+            u_hat, result, steps = solve_fn(u_start, data)
+            jax.block_until_ready(u_hat)
+            steps_total += int(steps)
+            theta_try = np.asarray(pset.theta_from_u(u_hat), np.float64)
+            trapped = _trapped(pset, theta_try, theta_ref)
+            if not trapped:
+                break
+            notes.append(f"attempt {attempt + 1}: " + "; ".join(msg for _, msg in trapped))
+            if attempt == restarts:
+                break
+            # Restart: the runaway parameters go back to a neutral value, the rest keep theirs.
+            theta_new = theta_try.copy()
+            for i, _ in trapped:
+                theta_new[i] = _neutral(pset, i, float(theta0[i]))
+            u_start = pset.u_from_theta(jnp.asarray(theta_new, dtype)).astype(u0.dtype)
+            theta_ref = theta_new
         jax.effects_barrier()
         solve_s = time.perf_counter() - t0
     finally:
         _RECORDER = None
     hist = [(loss, np.asarray(pset.theta_from_u(jnp.asarray(u)), np.float64)) for loss, u in trace]
+    if notes and not trapped:
+        notes.append(f"recovered by restart {len(notes)}")
 
     theta = pset.theta_from_u(u_hat)
     # Gauss–Newton uncertainty in the natural parameters.
@@ -219,14 +241,59 @@ def fit(
     psnr = float("inf") if mse == 0 else float(peak_signal_noise_ratio(tgt, fitted, data_range=rng))
     ssim = float(structural_similarity(tgt, fitted, channel_axis=-1, data_range=rng))
     msg = optx.RESULTS[result]
+    if trapped:
+        msg = (msg + "; " if msg else "") + "ended in a trap: " + "; ".join(m for _, m in trapped)
     return FitResult(
         names=labels, values=np.asarray(theta, np.float64), start=np.asarray(theta0, np.float64), stderr=stderr,
-        result=msg, successful=bool(result == optx.RESULTS.successful), steps=int(steps),
+        result=msg, successful=bool(result == optx.RESULTS.successful) and not trapped, steps=steps_total,
         compile_s=compile_s, solve_s=solve_s, rms=float(np.sqrt(np.mean(r**2))), psnr=psnr, ssim=ssim,
         rss=float(r @ r), n_residuals=int(sum(int(np.count_nonzero(np.broadcast_to(np.asarray(w), t.shape)))
                                           for w, t in zip(weights, targets))),
-        undetermined=undetermined, gauges=gauges, history=hist,
+        undetermined=undetermined, gauges=gauges, history=hist, notes=notes,
     )
+
+
+SHININESS_MAX = 1e4  # (cos θ)^m = ½ at θ ≈ 0.7° for m = 10⁴: beyond it no image resolves the highlight
+_NEUTRAL_SHININESS = 10.0
+
+
+def _trapped(pset: ParamSet, theta, theta0):
+    """Parameters that ran off to where the images cannot pull them back: ``[(index, reason)]``.
+
+    - a [0, 1] or interval parameter pinned at its rail (the logistic map is flat there, so the
+      gradient vanishes) when it did not start there;
+    - a positive parameter that moved by more than 10³× from its start (walked down a valley,
+      e.g. the common scale of k_d, k_s against a1, a2 once a1·d + a2·d² ≫ a0);
+    - an exponent above 10⁴ (also when it started there): the highlight is switched off and
+      m's gradient is zero.
+    """
+    out = []
+    for p, off in zip(pset.params, pset.offsets[:-1]):
+        for j in range(p.size):
+            i = off + j
+            x, x0 = float(theta[i]), float(theta0[i])
+            if p.domain == "positive":
+                if p.path[-1] == "shininess" and x > SHININESS_MAX:
+                    out.append((i, f"{pset.labels[i]} = {x:.3g} > {SHININESS_MAX:.0e} (highlight switched off)"))
+                elif x > 1e3 * x0 or x < 1e-3 * x0:
+                    out.append((i, f"{pset.labels[i]} ran from {x0:.3g} to {x:.3g}"))
+            else:
+                lo, hi = (0.0, 1.0) if p.domain == "unit" else p.domain
+                t, t0 = (x - lo) / (hi - lo), (x0 - lo) / (hi - lo)
+                if min(t, 1 - t) < 1e-4 and min(t0, 1 - t0) >= 1e-4:
+                    out.append((i, f"{pset.labels[i]} = {x:.6g} pinned at the edge of [{lo}, {hi}]"))
+    return out
+
+
+def _neutral(pset: ParamSet, i: int, start: float) -> float:
+    """Where a runaway parameter restarts: the start (if sane), mid-range for bounded ones."""
+    p = next(p for p, off in zip(pset.params, pset.offsets[:-1]) if off <= i < off + p.size)
+    if p.domain == "positive":
+        if p.path[-1] == "shininess":
+            return min(start, _NEUTRAL_SHININESS) if start <= SHININESS_MAX else _NEUTRAL_SHININESS
+        return start
+    lo, hi = (0.0, 1.0) if p.domain == "unit" else p.domain
+    return lo + 0.5 * (hi - lo)
 
 
 class _Timed:

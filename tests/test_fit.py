@@ -71,3 +71,19 @@ def test_float32_scene_fits_in_a_float64_session():
     r = fit(s0, opts, target, ["material.diffuse"])
     assert r.successful
     np.testing.assert_allclose(r.values, np.asarray(ps.theta_of(scene)), rtol=1e-5)
+
+
+def test_highlight_switched_off_is_detected_and_recovered():
+    # A start with m = 1e6: (v.r)^m underflows everywhere, so m and k_s have zero gradients and a
+    # plain solve stays there. The fit detects it, restarts m at a neutral value and converges.
+    scene, opts = small_scene()
+    target = jax.jit(ds.render, static_argnames="opts")(scene, opts)
+    free = ["material.specular", "material.shininess"]
+    ps = ParamSet(free, scene)
+    true = np.asarray(ps.theta_of(scene))
+    s0 = ps.apply(scene, jax.numpy.asarray([0.3, 0.3, 0.3, 1e6]))
+    plain = fit(s0, opts, target, free, restarts=0)
+    assert not plain.successful and "highlight switched off" in plain.result
+    r = fit(s0, opts, target, free)
+    assert r.successful and r.notes and "recovered by restart" in r.notes[-1], (r.result, r.notes)
+    np.testing.assert_allclose(r.values, true, rtol=1e-4)
