@@ -134,8 +134,9 @@ def fit(
     ``verbose``: print the loss and step size at every solver step (optimistix's own report).
     ``history``: keep every trial step's loss and parameters in ``FitResult.history`` (a host
     callback per step; for convergence plots).
-    ``restarts``: how often a fit that ended in a trap is restarted (see :func:`_trapped`); a
-    fit still trapped after them is reported unsuccessful, with the reason in ``result``.
+    ``restarts``: how often a fit that ended in a trap is restarted (see :func:`_trapped`), or
+    one that used up ``max_steps`` still making progress is continued; a fit still trapped or
+    unconverged after them is reported unsuccessful, with the reason in ``result``.
     """
     if isinstance(targets, np.ndarray) or hasattr(targets, "shape"):
         targets = [targets]
@@ -185,6 +186,12 @@ def fit(
             steps_total += int(steps)
             theta_try = np.asarray(pset.theta_from_u(u_hat), np.float64)
             trapped = _trapped(pset, theta_try, theta_ref)
+            if not trapped and result == optx.RESULTS.nonlinear_max_steps_reached and attempt < restarts:
+                # Still creeping along a curved valley (e.g. the attenuation scale): go on from
+                # here with the solver's damping reset, within the restart budget.
+                notes.append(f"attempt {attempt + 1}: {int(steps)} steps without converging; continued from there")
+                u_start, theta_ref = u_hat, theta_try
+                continue
             if not trapped:
                 break
             notes.append(f"attempt {attempt + 1}: " + "; ".join(msg for _, msg in trapped))
@@ -201,7 +208,7 @@ def fit(
     finally:
         _RECORDER = None
     hist = [(loss, np.asarray(pset.theta_from_u(jnp.asarray(u)), np.float64)) for loss, u in trace]
-    if notes and not trapped:
+    if notes and not trapped and result == optx.RESULTS.successful:
         notes.append(f"recovered by restart {len(notes)}")
 
     theta = pset.theta_from_u(u_hat)

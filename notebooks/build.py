@@ -21,8 +21,6 @@ SETUP = """\
 import os, time
 import numpy as np
 import jax, jax.numpy as jnp
-import matplotlib
-matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import diffshade as ds
 

@@ -87,3 +87,16 @@ def test_highlight_switched_off_is_detected_and_recovered():
     r = fit(s0, opts, target, free)
     assert r.successful and r.notes and "recovered by restart" in r.notes[-1], (r.result, r.notes)
     np.testing.assert_allclose(r.values, true, rtol=1e-4)
+
+
+def test_unconverged_fit_is_continued_within_the_restart_budget():
+    scene, opts = small_scene()
+    target = jax.jit(ds.render, static_argnames="opts")(scene, opts)
+    free = ["material.diffuse", "material.shininess"]
+    ps = ParamSet(free, scene)
+    s0 = ps.apply(scene, ps.theta_of(scene) * jax.numpy.asarray([0.5, 1.5, 2.0, 3.0]))
+    capped = fit(s0, opts, target, free, max_steps=2, restarts=0)
+    assert not capped.successful and "maximum number of steps" in capped.result
+    r = fit(s0, opts, target, free, max_steps=2, restarts=20)
+    assert r.successful and any("continued" in n for n in r.notes), r.notes
+    np.testing.assert_allclose(r.values, np.asarray(ps.theta_of(scene)), rtol=1e-4)
