@@ -95,8 +95,8 @@ def test_unconverged_fit_is_continued_within_the_restart_budget():
     free = ["material.diffuse", "material.shininess"]
     ps = ParamSet(free, scene)
     s0 = ps.apply(scene, ps.theta_of(scene) * jax.numpy.asarray([0.5, 1.5, 2.0, 3.0]))
-    capped = fit(s0, opts, target, free, max_steps=2, restarts=0)
+    capped = fit(s0, opts, target, free, max_steps=5, restarts=0)
     assert not capped.successful and "maximum number of steps" in capped.result
-    r = fit(s0, opts, target, free, max_steps=2, restarts=20)
+    r = fit(s0, opts, target, free, max_steps=5, restarts=20)
     assert r.successful and any("continued" in n for n in r.notes), r.notes
     np.testing.assert_allclose(r.values, np.asarray(ps.theta_of(scene)), rtol=1e-4)
