@@ -86,7 +86,8 @@ class Param:
             kind, i, field = p
             if field in ("a0", "a1", "a2"):
                 att = getattr(scene, kind).attenuation
-                return eqx.tree_at(lambda s: getattr(s, kind).attenuation, scene, att.at[i, int(field[1])].set(value))
+                new = att.at[i, int(field[1])].set(jnp.asarray(value, att.dtype))
+                return eqx.tree_at(lambda s: getattr(s, kind).attenuation, scene, new)
             arr = getattr(getattr(scene, kind), field)
             new = arr.at[i].set(jnp.broadcast_to(value, arr[i].shape).astype(arr.dtype))
             return eqx.tree_at(lambda s: getattr(getattr(s, kind), field), scene, new)

@@ -335,7 +335,7 @@ caps = (5, 100) if SMALL else (5, 10, 20, 100)
 runs = []
 for sv in solvers:
     for cap in caps:
-        rr = fit(s0, fo, tgt, DEMO_FREE, solver=sv, max_steps=cap)
+        rr = fit(s0, fo, tgt, DEMO_FREE, solver=sv, max_steps=cap, restarts=0)  # the cap is the cap
         runs.append((sv, cap, rr.steps, rr.solve_s * 1e3, float(np.max(np.abs(rr.values - true) / true)),
                      (rr.result or "successful").split(".")[0]))
 pts = [(r[3], r[4]) for r in runs]
