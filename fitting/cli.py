@@ -193,7 +193,7 @@ def cmd_demo(args) -> int:
 FIT_OUTPUTS = ("fit.json", "material.mtl", "fit.png", "report.txt")
 
 
-def _report_table(r, true=None) -> list[str]:
+def _report_table(r) -> list[str]:
     lines = [f"{'parameter':26s} {'start':>11s} {'fitted':>11s} {'std. error':>11s} {'rel. s.e.':>10s}"]
     for n, s_, v, se in zip(r.names, r.start, r.values, r.stderr):
         rel = se / abs(v) if v != 0 else float("inf")
@@ -257,7 +257,7 @@ def cmd_fit(args) -> int:
         if o.exists() and not args.overwrite:
             raise InputError(f"{o}: exists; pass --overwrite to replace it or choose another --output-dir")
 
-    ParamSet(args.free, scene, args.shared or ())  # name errors before any compile
+    pset = ParamSet(args.free, scene, args.shared or ())  # name errors before any compile
     print(f"fitting {', '.join(args.free)} to {len(targets)} image(s) of {views[0].camera.width}x"
           f"{views[0].camera.height} with {args.solver}" + (" (clipped pixels censored)" if saturation else ""))
     kw = dict(views=views, masks=masks, shared=args.shared or (), solver=args.solver, max_steps=args.max_steps,
@@ -278,7 +278,6 @@ def cmd_fit(args) -> int:
         report.append(f"the images support: {scores[0].name}")
     print("\n".join(report[1:]))
 
-    pset = ParamSet(args.free, scene, args.shared or ())
     theta = jnp.asarray(r.values, scene.mesh.vertices.dtype)
     fitted_scene = pset.apply(scene, theta)
     render = jax.jit(ds.render, static_argnames="opts")

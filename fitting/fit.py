@@ -57,6 +57,11 @@ class FitError(ValueError):
     """Observations that do not match the scene (size, channels, count)."""
 
 
+def _as_list(targets) -> list:
+    """One image or a list of images, as a list."""
+    return [targets] if hasattr(targets, "shape") else list(targets)
+
+
 @dataclass
 class FitResult:
     names: list[str]  # one label per scalar (RGB fields as name[r], name[g], name[b])
@@ -138,8 +143,7 @@ def fit(
     one that used up ``max_steps`` still making progress is continued; a fit still trapped or
     unconverged after them is reported unsuccessful, with the reason in ``result``.
     """
-    if isinstance(targets, np.ndarray) or hasattr(targets, "shape"):
-        targets = [targets]
+    targets = _as_list(targets)
     views = list(views) if views is not None else [scene] * len(targets)
     if len(views) != len(targets):
         raise FitError(f"{len(targets)} targets but {len(views)} views")
@@ -194,13 +198,13 @@ def fit(
                 continue
             if not trapped:
                 break
-            notes.append(f"attempt {attempt + 1}: " + "; ".join(msg for _, msg in trapped))
+            notes.append(f"attempt {attempt + 1}: " + "; ".join(msg for _, _, msg in trapped))
             if attempt == restarts:
                 break
             # Restart: the runaway parameters go back to a neutral value, the rest keep theirs.
             theta_new = theta_try.copy()
-            for i, _ in trapped:
-                theta_new[i] = _neutral(pset, i, float(theta0[i]))
+            for i, p, _ in trapped:
+                theta_new[i] = _neutral(p, float(theta0[i]))
             u_start = pset.u_from_theta(jnp.asarray(theta_new, dtype)).astype(u0.dtype)
             theta_ref = theta_new
         jax.effects_barrier()
@@ -247,15 +251,15 @@ def fit(
     mse = float(np.mean((fitted - tgt) ** 2))
     psnr = float("inf") if mse == 0 else float(peak_signal_noise_ratio(tgt, fitted, data_range=rng))
     ssim = float(structural_similarity(tgt, fitted, channel_axis=-1, data_range=rng))
+    n_used = sum(int(np.count_nonzero(np.broadcast_to(np.asarray(w), t.shape))) for w, t in zip(weights, targets))
     msg = optx.RESULTS[result]
     if trapped:
-        msg = (msg + "; " if msg else "") + "ended in a trap: " + "; ".join(m for _, m in trapped)
+        msg = (msg + "; " if msg else "") + "ended in a trap: " + "; ".join(m for _, _, m in trapped)
     return FitResult(
         names=labels, values=np.asarray(theta, np.float64), start=np.asarray(theta0, np.float64), stderr=stderr,
         result=msg, successful=bool(result == optx.RESULTS.successful) and not trapped, steps=steps_total,
         compile_s=compile_s, solve_s=solve_s, rms=float(np.sqrt(np.mean(r**2))), psnr=psnr, ssim=ssim,
-        rss=float(r @ r), n_residuals=int(sum(int(np.count_nonzero(np.broadcast_to(np.asarray(w), t.shape)))
-                                          for w, t in zip(weights, targets))),
+        rss=float(r @ r), n_residuals=n_used,
         undetermined=undetermined, gauges=gauges, history=hist, notes=notes,
     )
 
@@ -265,7 +269,7 @@ _NEUTRAL_SHININESS = 10.0
 
 
 def _trapped(pset: ParamSet, theta, theta0):
-    """Parameters that ran off to where the images cannot pull them back: ``[(index, reason)]``.
+    """Parameters that ran off to where the images cannot pull them back: ``[(index, param, reason)]``.
 
     - a [0, 1] or interval parameter pinned at its rail (the logistic map is flat there, so the
       gradient vanishes) when it did not start there;
@@ -276,31 +280,27 @@ def _trapped(pset: ParamSet, theta, theta0):
     """
     out = []
     for p, off in zip(pset.params, pset.offsets[:-1]):
-        for j in range(p.size):
-            i = off + j
-            x, x0 = float(theta[i]), float(theta0[i])
-            if p.domain == "positive":
+        for i in range(off, off + p.size):
+            x, x0, label = float(theta[i]), float(theta0[i]), pset.labels[i]
+            if p.bounds is None:
                 if p.path[-1] == "shininess" and x > SHININESS_MAX:
-                    out.append((i, f"{pset.labels[i]} = {x:.3g} > {SHININESS_MAX:.0e} (highlight switched off)"))
+                    out.append((i, p, f"{label} = {x:.3g} > {SHININESS_MAX:.0e} (highlight switched off)"))
                 elif x > 1e3 * x0 or x < 1e-3 * x0:
-                    out.append((i, f"{pset.labels[i]} ran from {x0:.3g} to {x:.3g}"))
+                    out.append((i, p, f"{label} ran from {x0:.3g} to {x:.3g}"))
             else:
-                lo, hi = (0.0, 1.0) if p.domain == "unit" else p.domain
+                lo, hi = p.bounds
                 t, t0 = (x - lo) / (hi - lo), (x0 - lo) / (hi - lo)
                 if min(t, 1 - t) < 1e-4 and min(t0, 1 - t0) >= 1e-4:
-                    out.append((i, f"{pset.labels[i]} = {x:.6g} pinned at the edge of [{lo}, {hi}]"))
+                    out.append((i, p, f"{label} = {x:.6g} pinned at the edge of [{lo}, {hi}]"))
     return out
 
 
-def _neutral(pset: ParamSet, i: int, start: float) -> float:
-    """Where a runaway parameter restarts: the start (if sane), mid-range for bounded ones."""
-    p = next(p for p, off in zip(pset.params, pset.offsets[:-1]) if off <= i < off + p.size)
-    if p.domain == "positive":
-        if p.path[-1] == "shininess":
-            return min(start, _NEUTRAL_SHININESS) if start <= SHININESS_MAX else _NEUTRAL_SHININESS
-        return start
-    lo, hi = (0.0, 1.0) if p.domain == "unit" else p.domain
-    return lo + 0.5 * (hi - lo)
+def _neutral(p, start: float) -> float:
+    """Where a runaway parameter restarts: its start (an exponent at most 10), mid-range if bounded."""
+    if p.bounds is None:
+        return min(start, _NEUTRAL_SHININESS) if p.path[-1] == "shininess" else start
+    lo, hi = p.bounds
+    return 0.5 * (lo + hi)
 
 
 class _Timed:
@@ -415,8 +415,7 @@ def compare_models(scene, opts, targets, free, *, variants=None, given: FitResul
     the one with fewer parameters wins instead of a comparison of rounding noise.
     ``given``: an existing fit of the model as given (not repeated).
     """
-    if isinstance(targets, np.ndarray) or hasattr(targets, "shape"):
-        targets = [targets]
+    targets = _as_list(targets)
     variants = model_variants(scene, opts, free) if variants is None else variants
     dtype = scene.mesh.vertices.dtype
     eps = float(jnp.finfo(dtype).eps)

@@ -103,23 +103,25 @@ class Param:
         return eqx.tree_at(where, scene, new)
 
     # -- reparametrisation -----------------------------------------------------------------
+    @property
+    def bounds(self) -> tuple[float, float] | None:
+        """``(lo, hi)`` of a bounded domain ([0, 1] or an interval); None for a positive one."""
+        if self.domain == "positive":
+            return None
+        return (0.0, 1.0) if self.domain == "unit" else self.domain
+
     def to_u(self, theta):
         theta = jnp.asarray(theta)
-        if self.domain == "unit":
-            t = jnp.clip(theta, 1e-6, 1 - 1e-6)
-            return jnp.log(t) - jnp.log1p(-t)
-        if self.domain == "positive":
+        if self.bounds is None:
             return jnp.log(jnp.maximum(theta, 1e-30))
-        lo, hi = self.domain
+        lo, hi = self.bounds
         t = jnp.clip((theta - lo) / (hi - lo), 1e-6, 1 - 1e-6)
         return jnp.log(t) - jnp.log1p(-t)
 
     def from_u(self, u):
-        if self.domain == "unit":
-            return jax.nn.sigmoid(u)
-        if self.domain == "positive":
+        if self.bounds is None:
             return jnp.exp(u)
-        lo, hi = self.domain
+        lo, hi = self.bounds
         return lo + (hi - lo) * jax.nn.sigmoid(u)
 
     def check(self, value, what="value"):
