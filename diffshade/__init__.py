@@ -10,7 +10,7 @@ Pipeline (each stage a function of its own)::
 
 from ._camera import Camera
 from ._io import DEFAULT_SCENE, SceneError, default_scene, load_scene, scene_from_dict
-from ._mesh import Mesh, MeshError, icosphere, load_mesh, mesh_from_arrays
+from ._mesh import Mesh, MeshError, box, combine, icosphere, load_mesh, mesh_from_arrays, quad
 from ._raster import (
     Fragments,
     fragments,
@@ -20,7 +20,7 @@ from ._raster import (
     visibility,
     visibility_passes,
 )
-from ._render import render, scene_visibility, shade, to_uint8
+from ._render import render, scene_visibility, shade, to_uint8, truncated_pixels
 from ._scene import (
     DirectionalLights,
     Fog,
@@ -40,5 +40,6 @@ __all__ = [
     "PointLights", "RenderOptions", "Scene", "SceneError", "SpotLights", "blinn_to_phong", "default_scene",
     "fragments", "icosphere", "interpolate", "load_mesh", "load_scene", "mesh_from_arrays", "no_directional",
     "no_point", "no_spot", "phong_to_blinn", "pixel_centres", "rasterize", "render", "scene_from_dict",
-    "scene_visibility", "shade", "to_uint8", "visibility", "visibility_passes",
+    "scene_visibility", "shade", "to_uint8", "visibility", "visibility_passes", "box", "combine", "quad",
+    "truncated_pixels",
 ]

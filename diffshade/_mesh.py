@@ -19,11 +19,20 @@ class MeshError(ValueError):
     """A mesh file or array that cannot be rendered; the message names the file and the problem."""
 
 
+def _ids(x):
+    return None if x is None else jnp.asarray(x, dtype=jnp.int32)
+
+
 class Mesh(eqx.Module):
-    """Vertices (traced, differentiable) and triangles (integer data, counter-clockwise = front)."""
+    """Vertices (traced, differentiable) and triangles (integer data, counter-clockwise = front).
+
+    ``material_ids`` (optional, one per face) picks each face's material in
+    :meth:`diffshade.Scene.all_materials`; without it every face uses material 0.
+    """
 
     vertices: Float[Array, "V 3"] = eqx.field(converter=as_float_array)
     faces: Int[Array, "F 3"] = eqx.field(converter=lambda f: jnp.asarray(f, dtype=jnp.int32))
+    material_ids: Int[Array, " F"] | None = eqx.field(converter=_ids, default=None)
 
     def face_normals(self, normalize: bool = True) -> Float[Array, "F 3"]:
         r"""Per-face normal :math:`(v_1 - v_0) \times (v_2 - v_0)` (unit length if ``normalize``).
@@ -138,3 +147,48 @@ def mesh_from_arrays(vertices, faces, name: str = "mesh") -> Mesh:
         return Mesh(vertices=vertices, faces=faces)
     v, f = validate_arrays(vertices, faces, name)
     return Mesh(vertices=v, faces=f)
+
+
+def combine(*meshes: Mesh) -> Mesh:
+    """One mesh from several, the faces of the ``i``-th carrying material id ``i``.
+
+    Use with ``Scene(material=<id 0>, materials=(<id 1>, ...))``.
+    """
+    verts, faces, ids, offset = [], [], [], 0
+    for i, m in enumerate(meshes):
+        if m.material_ids is not None:
+            raise ValueError(f"combine: mesh {i} already has material ids; combine meshes without them")
+        verts.append(m.vertices)
+        faces.append(m.faces + offset)
+        ids.append(jnp.full(m.faces.shape[0], i, jnp.int32))
+        offset += m.vertices.shape[0]
+    return Mesh(vertices=jnp.concatenate(verts), faces=jnp.concatenate(faces), material_ids=jnp.concatenate(ids))
+
+
+def box(extents=(1.0, 1.0, 1.0), center=(0.0, 0.0, 0.0)) -> Mesh:
+    """A closed axis-aligned box (12 outward-facing triangles), ``trimesh.creation.box``."""
+    import trimesh
+
+    tm = trimesh.creation.box(extents=np.asarray(extents, float))
+    return Mesh(vertices=np.asarray(tm.vertices) + np.asarray(center, float), faces=np.asarray(tm.faces))
+
+
+def quad(size=(1.0, 1.0), center=(0.0, 0.0, 0.0), normal=(0.0, 0.0, 1.0), divisions: int = 1) -> Mesh:
+    """A flat rectangle of ``size`` centred at ``center``, facing ``normal`` (its front side),
+    split into ``divisions``² squares of two triangles each."""
+    n = np.asarray(normal, float)
+    n = n / np.linalg.norm(n)
+    helper = np.array([0.0, 1.0, 0.0]) if abs(n[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    u = np.cross(helper, n)
+    u /= np.linalg.norm(u)
+    v = np.cross(n, u)
+    k = int(divisions)
+    s = np.linspace(-0.5, 0.5, k + 1)
+    gu, gv = np.meshgrid(s * size[0], s * size[1], indexing="xy")
+    verts = np.asarray(center, float) + gu.reshape(-1, 1) * u + gv.reshape(-1, 1) * v
+    faces = []
+    for j in range(k):
+        for i in range(k):
+            a, b, c, d = j * (k + 1) + i, j * (k + 1) + i + 1, (j + 1) * (k + 1) + i + 1, (j + 1) * (k + 1) + i
+            faces += [(a, b, c), (a, c, d)]
+    return Mesh(vertices=verts, faces=np.asarray(faces))

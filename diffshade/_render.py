@@ -15,6 +15,7 @@ from jaxtyping import Array, Float, Int
 from . import _shade as S
 from ._raster import _pixel_vertex_ids, fragments, visibility
 from ._scene import Material, RenderOptions, Scene
+from ._shadow import light_visibility
 
 
 def _keep(*xs):
@@ -36,16 +37,17 @@ def _keep(*xs):
 
 
 def _rgb(c):
-    """A colour ``[3]`` as a component tuple (per-channel coefficients, eq. 15)."""
-    return (c[0], c[1], c[2])
+    """A colour ``[..., 3]`` as a component tuple (per-channel coefficients, eq. 15)."""
+    return (c[..., 0], c[..., 1], c[..., 2])
 
 
-def _light_sum(P, n, v, mat: Material, scene: Scene, opts: RenderOptions):
-    """Σ over lights of attenuated direct terms at points ``P`` with unit normals ``n`` (component
-    tuples), as a colour tuple."""
-    out = None
+def _light_sum(P, n, v, mat: Material, scene: Scene, opts: RenderOptions, back: bool = False):
+    """Per light (directional, point, spot order) the attenuated direct terms (diffuse,
+    specular, transmission) and the per-light ambient term at points ``P`` with unit normals
+    ``n`` (component tuples), as two lists of colour tuples (the ambient one holds None where
+    ``per_light_ambient`` is off)."""
     smooth = opts.spot_edge == "smooth"
-    kd, ks, ka = _rgb(mat.diffuse), _rgb(mat.specular), _rgb(mat.ambient)
+    kd, ks, ka, kt = _rgb(mat.diffuse), _rgb(mat.specular), _rgb(mat.ambient), _rgb(mat.transmission)
 
     def terms(l, att, color, amb):
         ndl = S.dot(n, l)
@@ -60,29 +62,32 @@ def _light_sum(P, n, v, mat: Material, scene: Scene, opts: RenderOptions):
             if opts.fresnel != "none":
                 fres = S.fresnel_schlick if opts.fresnel == "schlick" else S.fresnel_dielectric
                 spec = fres(ndl, mat.ior) * spec
-        factors = [x for x in (att, dif, spec) if x is not None and not isinstance(x, float)]
+        trans = None
+        if opts.transmission:
+            trans = S.directed_transmission(n, l, v, mat.shininess, mat.ior, back, opts.fresnel)
+        factors = [x for x in (att, dif, spec, trans) if x is not None and not isinstance(x, float)]
         kept = iter(_keep(*factors)) if factors else iter(())
         att = next(kept) if not isinstance(att, float) else att
         dif = next(kept) if dif is not None else None
         spec = next(kept) if spec is not None else None
+        trans = next(kept) if trans is not None else None
         acc = [0.0, 0.0, 0.0]
         if dif is not None:
             acc = [acc[c] + kd[c] * dif for c in range(3)]
         if spec is not None:
             ws = ks if opts.fresnel == "none" else (1.0, 1.0, 1.0)
             acc = [acc[c] + ws[c] * spec for c in range(3)]
-        acc = [acc[c] * color[c] for c in range(3)]
-        if opts.per_light_ambient:
-            acc = [acc[c] + ka[c] * amb[c] for c in range(3)]
-        return [att * acc[c] for c in range(3)]
+        if trans is not None:
+            acc = [acc[c] + kt[c] * trans for c in range(3)]
+        direct = [att * (acc[c] * color[c]) for c in range(3)]
+        ambient = [att * (ka[c] * amb[c]) for c in range(3)] if opts.per_light_ambient else None
+        return direct, ambient
 
-    def accumulate(out, t):
-        return t if out is None else [out[c] + t[c] for c in range(3)]
-
+    out = []
     d = scene.directional
     for i in range(d.count):
         l = S.neg(S.normalize(_rgb(d.direction[i])))
-        out = accumulate(out, terms(l, 1.0, _rgb(d.color[i]), _rgb(d.ambient[i])))
+        out.append(terms(l, 1.0, _rgb(d.color[i]), _rgb(d.ambient[i])))
     for lights, is_spot in ((scene.point, False), (scene.spot, True)):
         for i in range(lights.count):
             L = S.sub(_rgb(lights.position[i]), P)
@@ -92,23 +97,42 @@ def _light_sum(P, n, v, mat: Material, scene: Scene, opts: RenderOptions):
                 att = att * S.spot_factor(
                     l, _rgb(lights.axis[i]), lights.cutoff[i], lights.exponent[i], lights.edge[i], smooth
                 )
-            out = accumulate(out, terms(l, att, _rgb(lights.color[i]), _rgb(lights.ambient[i])))
-    if out is None:
-        out = [0.0, 0.0, 0.0]
-    return out
+            out.append(terms(l, att, _rgb(lights.color[i]), _rgb(lights.ambient[i])))
+    return [t[0] for t in out], [t[1] for t in out]
 
 
-def shade_points(P, n, eye, mat: Material, scene: Scene, opts: RenderOptions):
+def _sum(cols):
+    """Sum of colour tuples (None entries skipped); ``[0, 0, 0]`` if there are none."""
+    acc = None
+    for c in cols:
+        if c is not None:
+            acc = list(c) if acc is None else [acc[k] + c[k] for k in range(3)]
+    return acc if acc is not None else [0.0, 0.0, 0.0]
+
+
+def shade_points(P, n, eye, mat: Material, scene: Scene, opts: RenderOptions, back: bool = False, shadow=None, split=False):
     """Unfogged colour (tuple of 3 arrays) of surface points ``P`` with unit normals ``n``
-    (component tuples) seen from ``eye``."""
+    (component tuples) seen from ``eye``. ``shadow`` is a list of :math:`S_i` (one per light)
+    multiplying each light's direct terms. With ``split`` the result is ``(base, directs)``:
+    the unshadowed part and each light's direct terms, for shadows applied after interpolation.
+    ``back`` marks back-facing fragments (the viewer inside the material, for refraction)."""
     v = S.normalize(S.sub(_rgb(eye), P))
-    c = _light_sum(P, n, v, mat, scene, opts)
+    direct, ambient = _light_sum(P, n, v, mat, scene, opts, back)
+    base = _sum(ambient)
     if opts.ambient:
-        c = [c[k] + mat.ambient[k] * scene.ambient_light[k] for k in range(3)]
+        base = [base[k] + mat.ambient[..., k] * scene.ambient_light[k] for k in range(3)]
     if opts.emission:
-        c = [c[k] + mat.emission[k] for k in range(3)]
+        base = [base[k] + mat.emission[..., k] for k in range(3)]
     shape = jnp.shape(P[0])
-    return tuple(jnp.broadcast_to(c[k], shape) for k in range(3))
+
+    def full(c):
+        return tuple(jnp.broadcast_to(c[k], shape) for k in range(3))
+
+    if split:
+        return full(base), [full(d) for d in direct]
+    if shadow is not None:
+        direct = [[s * d[k] for k in range(3)] for s, d in zip(shadow, direct)]
+    return full(_sum([base, *direct]))
 
 
 def _back_material(scene: Scene, opts: RenderOptions) -> Material:
@@ -119,22 +143,38 @@ def _select(front, a, b):
     return tuple(jnp.where(front, a[c], b[c]) for c in range(3))
 
 
+_MATERIAL_FIELDS = ("emission", "ambient", "diffuse", "specular", "shininess", "ior", "opacity", "kay_min",
+                    "kay_max", "kay_power", "transmission", "absorption")
+
+
+def _material_at(mats, idx) -> Material:
+    """A :class:`Material` whose fields are those of ``mats[idx]``, gathered per element of ``idx``."""
+    return Material(**{f: jnp.stack([getattr(m, f) for m in mats])[idx] for f in _MATERIAL_FIELDS})
+
+
 def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions) -> Float[Array, "H W 3"]:
-    """Shade layer 0 of precomputed visibility ``ids`` (differentiable in every scene number)."""
+    """Shade precomputed visibility ``ids`` (differentiable in every scene number).
+
+    Only layer 0 is shaded unless ``opts`` asks for transparency (or absorption): then every
+    layer is shaded, fogged, and composited front to back (MODEL.md §5).
+    """
     mesh, cam = scene.mesh, scene.camera
+    layered = opts.layered
+    ids = ids if layered else ids[:1]
     clip = cam.world_to_clip(mesh.vertices)
-    frags = fragments(clip, mesh.faces, ids[:1])
-    tid = frags.tri_id[0]
-    h, w = tid.shape
+    frags = fragments(clip, mesh.faces, ids)
+    tid = frags.tri_id
+    shape = tid.shape  # [K, H, W]
     valid = tid >= 0
-    front = frags.front[0]
+    front = frags.front
     eye = cam.eye
-    bary = [frags.bary[0, ..., j] for j in range(3)]
-    vid = _pixel_vertex_ids(mesh.faces, frags.tri_id[:1], frags.tri_id[:1] >= 0)
+    bary = [frags.bary[..., j] for j in range(3)]
+    vid = _pixel_vertex_ids(mesh.faces, tid, valid)
+    safe_tid = jnp.where(valid, tid, 0)
     if opts.interpolation == "affine":
         # Screen-space weights lambda_i = b_i w_i / sum_j b_j w_j (what perspective-correct
         # interpolation undoes); w_i are the clip w of the triangle's vertices.
-        wv = [clip[:, 3][vid[j]].reshape(h, w) * bary[j] for j in range(3)]
+        wv = [clip[:, 3][vid[j]].reshape(shape) * bary[j] for j in range(3)]
         sw = wv[0] + wv[1] + wv[2]
         ok = sw != 0
         inv = 1.0 / jnp.where(ok, sw, 1.0)
@@ -145,46 +185,122 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions) -> Float[
     def lerp(attr):
         """Interpolate per-vertex component tuple ``attr`` ([V] arrays) to the pixels."""
         return _keep(*(
-            jnp.where(valid, sum(bary[j] * a[vid[j]].reshape(h, w) for j in range(3)), 0.0) for a in attr
+            jnp.where(valid, sum(bary[j] * a[vid[j]].reshape(shape) for j in range(3)), 0.0) for a in attr
         ))
+
+    def lerp_corners(attr):
+        """Interpolate per-corner component tuple ``attr`` ([F * 3] arrays, face-major)."""
+        flat = safe_tid.reshape(-1) * 3
+        return _keep(*(
+            jnp.where(valid, sum(bary[j] * a[flat + j].reshape(shape) for j in range(3)), 0.0) for a in attr
+        ))
+
+    mats = scene.all_materials()
+    multi = len(mats) > 1 and mesh.material_ids is not None
+    if multi and opts.back_material and scene.back_material is not None:
+        raise ValueError("a back material applies to a one-material scene; give each object's material instead")
+    pmat = _material_at(mats, mesh.material_ids[safe_tid]) if multi else scene.material
+    back_mat = pmat if multi else _back_material(scene, opts)
 
     Pv = S.vec(mesh.vertices)
     P = None
-    if opts.shading == "phong":
+    if opts.shading == "phong" or opts.shadows or opts.absorption or (opts.fog != "none" and opts.fog_distance == "euclidean"):
         P = lerp(Pv)
+    shadow = None
+    if opts.shadows:
+        ng = tuple(c[safe_tid] for c in S.vec(mesh.face_normals()))
+        shadow = light_visibility(scene, opts, P, ng)
+    n_px = None  # the pixel's unit normal, where Kay's opacity needs it
+
+    def apply_shadow(base, directs):
+        return _sum([base, *([s * d[k] for k in range(3)] for s, d in zip(shadow, directs))])
+
+    if opts.shading == "phong":
         n = _keep(*S.normalize(lerp(S.vec(mesh.vertex_normals()))))
-        color = shade_points(P, n, eye, scene.material, scene, opts)
+        n_px = n
+        color = shade_points(P, n, eye, pmat, scene, opts, shadow=shadow)
         if opts.two_sided:
-            color = _select(front, color, shade_points(P, S.neg(n), eye, _back_material(scene, opts), scene, opts))
+            color = _select(front, color, shade_points(P, S.neg(n), eye, back_mat, scene, opts, True, shadow))
     elif opts.shading == "gouraud":
-        vn = S.vec(mesh.vertex_normals())
-        vn = _keep(*vn)
-        color = lerp(_keep(*shade_points(Pv, vn, eye, scene.material, scene, opts)))
+        # Lighting at the vertices (at each face's corners when faces have different materials),
+        # interpolated; with shadows each light's part is interpolated apart and multiplied by S.
+        vn = mesh.vertex_normals()
+        if multi:
+            corners = mesh.faces.reshape(-1)
+            pts, nrm, interp = S.vec(mesh.vertices[corners]), S.vec(vn[corners]), lerp_corners
+            vmat = _material_at(mats, jnp.repeat(mesh.material_ids, 3))
+            vback = vmat
+        else:
+            pts, nrm, interp = Pv, S.vec(vn), lerp
+            vmat, vback = scene.material, back_mat
+        nrm = _keep(*nrm)
+
+        def side(normal, mat, back):
+            if shadow is None:
+                return interp(_keep(*shade_points(pts, normal, eye, mat, scene, opts, back)))
+            base, directs = shade_points(pts, normal, eye, mat, scene, opts, back, split=True)
+            return tuple(apply_shadow(interp(_keep(*base)), [interp(_keep(*d)) for d in directs]))
+
+        color = side(nrm, vmat, False)
         if opts.two_sided:
-            back = lerp(_keep(*shade_points(Pv, S.neg(vn), eye, _back_material(scene, opts), scene, opts)))
-            color = _select(front, color, back)
+            color = _select(front, color, side(S.neg(nrm), vback, True))
+        if opts.transparency == "kay":
+            n_px = S.normalize(lerp(S.vec(vn)))
     else:  # flat: lighting once per triangle, at its centroid
         tri = mesh.vertices[mesh.faces]
         centroid = S.vec(jnp.mean(tri, axis=1))
         fn = S.vec(mesh.face_normals())
-        safe_tid = jnp.where(valid, tid, 0)
-        cf = _keep(*shade_points(centroid, fn, eye, scene.material, scene, opts))
-        color = tuple(c[safe_tid] for c in cf)
+        fmat = _material_at(mats, mesh.material_ids) if multi else scene.material
+        fback = fmat if multi else back_mat
+
+        def side(normal, mat, back):
+            if shadow is None:
+                cf = _keep(*shade_points(centroid, normal, eye, mat, scene, opts, back))
+                return tuple(c[safe_tid] for c in cf)
+            base, directs = shade_points(centroid, normal, eye, mat, scene, opts, back, split=True)
+            gather = lambda col: tuple(c[safe_tid] for c in _keep(*col))  # noqa: E731
+            return tuple(apply_shadow(gather(base), [gather(d) for d in directs]))
+
+        color = side(fn, fmat, False)
         if opts.two_sided:
-            cb = _keep(*shade_points(centroid, S.neg(fn), eye, _back_material(scene, opts), scene, opts))
-            color = _select(front, color, tuple(c[safe_tid] for c in cb))
+            color = _select(front, color, side(S.neg(fn), fback, True))
+        if opts.transparency == "kay":
+            n_px = tuple(c[safe_tid] for c in fn)
 
     if opts.clamp:
         color = tuple(jnp.clip(c, 0.0, 1.0) for c in color)
     if opts.fog != "none":
-        if opts.fog_distance == "depth":
-            dist = frags.w[0]
-        else:
-            P = lerp(Pv) if P is None else P
-            dist = S.distance(P, _rgb(eye))
+        dist = frags.w if opts.fog_distance == "depth" else S.distance(P, _rgb(eye))
         f = S.fog_factor(dist, opts.fog, scene.fog.start, scene.fog.end, scene.fog.density)
         color = S.apply_fog(color, f, _rgb(scene.fog.color))
-    out = [jnp.where(valid, color[c], scene.background[c]) for c in range(3)]
+    if not layered:
+        out = [jnp.where(valid[0], color[c][0], scene.background[c]) for c in range(3)]
+        return jnp.stack(out, axis=-1)
+
+    # Front-to-back compositing (MODEL.md §5): I = t I_1 + (1 - t) I_2, recursively, then the
+    # background; absorption e^{-mu l} between an entry (front-facing) layer and the next one.
+    if opts.transparency == "kay":
+        view_z = _rgb(cam.view_matrix()[2, :3])
+        t = S.kay_opacity(S.dot(n_px, view_z), pmat.kay_min, pmat.kay_max, pmat.kay_power)
+    else:
+        t = jnp.broadcast_to(pmat.opacity, shape)
+    t = jnp.where(valid, t, 0.0)
+    absorb = None
+    if opts.absorption:
+        seg = S.distance(tuple(p[1:] for p in P), tuple(p[:-1] for p in P))  # [K-1, H, W]
+        entry = valid[:-1] & front[:-1] & valid[1:]
+        mu = _rgb(pmat.absorption) if multi else tuple(jnp.broadcast_to(x, shape) for x in _rgb(pmat.absorption))
+        absorb = [jnp.where(entry, jnp.exp(-mu[c][:-1] * seg), 1.0) for c in range(3)]
+    K = shape[0]
+    out = [0.0, 0.0, 0.0]
+    trans = [1.0, 1.0, 1.0]
+    for k in range(K):
+        for c in range(3):
+            out[c] = out[c] + trans[c] * t[k] * jnp.where(valid[k], color[c][k], 0.0)
+            trans[c] = trans[c] * (1.0 - t[k])
+            if absorb is not None and k < K - 1:
+                trans[c] = trans[c] * absorb[c][k]
+    out = [out[c] + trans[c] * scene.background[c] for c in range(3)]
     return jnp.stack(out, axis=-1)
 
 
@@ -204,6 +320,14 @@ def scene_visibility(scene: Scene, opts: RenderOptions = RenderOptions()) -> Int
     cam = scene.camera
     clip = cam.world_to_clip(jax.lax.stop_gradient(scene.mesh.vertices))
     return visibility(clip, scene.mesh.faces, cam.resolution, opts.layers, opts.backend)
+
+
+def truncated_pixels(scene: Scene, opts: RenderOptions = RenderOptions()) -> int:
+    """How many pixels have more surfaces than ``opts.layers`` (their deeper surfaces are not
+    composited: the light left after the last layer comes from the background)."""
+    more = opts.replace(layers=opts.layers + 1)
+    ids = scene_visibility(scene, more)
+    return int(jnp.sum(ids[-1] >= 0))
 
 
 def to_uint8(image: Float[Array, "H W 3"]) -> Array:

@@ -46,7 +46,18 @@ class Material(eqx.Module):
     ``emission`` :math:`I_{surf}`, ``ambient`` :math:`k_a`, ``diffuse`` :math:`k_d`,
     ``specular`` :math:`k_s`, ``shininess`` :math:`m > 0` (Phong exponent; Blinn–Phong uses
     it as :math:`m'` directly, see :func:`diffshade.phong_to_blinn`), ``ior`` :math:`\eta`
-    (for the Fresnel-weighted specular).
+    (for the Fresnel-weighted specular and the refraction of directed transmission).
+
+    Transparency and transmission (MODEL.md §2, §5; used only where :class:`RenderOptions` turns
+    them on): ``opacity`` :math:`t \in [0, 1]` (1 opaque, 0 invisible); Kay's opacity
+    :math:`t = t_{min} + (t_{max} - t_{min})[1 - (1 - |n_z|)^p]` with ``kay_min`` :math:`t_{min}`
+    (the value at :math:`|n_z| = 0`, a silhouette), ``kay_max`` :math:`t_{max}` (the value at
+    :math:`|n_z| = 1`, face-on) and ``kay_power`` :math:`p > 0`. The names are the seed's, not an
+    ordering: Kay's thicker-at-the-silhouette look has ``kay_min > kay_max`` (his formula gives
+    the transmission :math:`1 - t`, which is the same family with the two values swapped to
+    :math:`1 - t`). ``transmission`` :math:`k_t` (RGB) weights the directed transmission
+    :math:`k_t I_p \cos^m\beta`; ``absorption`` :math:`\mu` (RGB, per unit length) gives
+    Bouguer's :math:`e^{-\mu\ell}` inside a closed mesh.
     """
 
     emission: Float[Array, "3"] = eqx.field(converter=_rgb, default=(0.0, 0.0, 0.0))
@@ -55,6 +66,12 @@ class Material(eqx.Module):
     specular: Float[Array, "3"] = eqx.field(converter=_rgb, default=(0.3, 0.3, 0.3))
     shininess: Float[Array, ""] = eqx.field(converter=as_float_array, default=32.0)
     ior: Float[Array, ""] = eqx.field(converter=as_float_array, default=1.5)
+    opacity: Float[Array, ""] = eqx.field(converter=as_float_array, default=1.0)
+    kay_min: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.9)
+    kay_max: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.2)
+    kay_power: Float[Array, ""] = eqx.field(converter=as_float_array, default=2.0)
+    transmission: Float[Array, "3"] = eqx.field(converter=_rgb, default=(0.0, 0.0, 0.0))
+    absorption: Float[Array, "3"] = eqx.field(converter=_rgb, default=(0.0, 0.0, 0.0))
 
 
 class DirectionalLights(eqx.Module):
@@ -131,6 +148,7 @@ FogMode = Literal["none", "linear", "exp", "exp2"]
 FogDistance = Literal["euclidean", "depth"]
 SpotEdge = Literal["hard", "smooth"]
 Interpolation = Literal["perspective", "affine"]
+Transparency = Literal["none", "linear", "kay"]
 
 _CHOICES = {
     "shading": ("flat", "gouraud", "phong"),
@@ -141,14 +159,32 @@ _CHOICES = {
     "spot_edge": ("hard", "smooth"),
     "interpolation": ("perspective", "affine"),
     "backend": ("auto", "native", "jax"),
+    "transparency": ("none", "linear", "kay"),
 }
 
 
 @dataclass(frozen=True)
 class RenderOptions:
-    """Static configuration: which terms exist and how they are evaluated (hashable; part of the
+    r"""Static configuration: which terms exist and how they are evaluated (hashable; part of the
     compiled program). Changing any of these recompiles; changing a number in a :class:`Scene`
-    never does."""
+    never does.
+
+    Transparency, absorption, transmission, shadows (MODEL.md §2, §5; all off by default, and
+    off they cost nothing):
+
+    - ``transparency``: ``"linear"`` uses each material's ``opacity``, ``"kay"`` Kay's
+      :math:`|n_z|`-dependent opacity; the ``layers`` nearest surfaces of each pixel are shaded
+      and composited front to back, :math:`I = t I_1 + (1 - t) I_2`, down to the background.
+      A pixel with more than ``layers`` surfaces loses those beyond the last layer: the light
+      left after the last layer, :math:`\prod_k (1 - t_k)`, comes from the background
+      (:func:`diffshade.truncated_pixels` counts such pixels).
+    - ``absorption``: Bouguer's :math:`e^{-\mu\ell}` between a front-facing layer (entry) and
+      the next layer (exit), :math:`\mu` of the entry's material; needs ``layers >= 2``.
+    - ``transmission``: directed transmission :math:`k_t I_p \cos^m\beta` of each light.
+    - ``shadows``: a shadow map per light (``shadow_resolution`` texels square; six for a point
+      light), compared with receiver-plane depth and ``Scene.shadow_bias``; ``shadow_pcf`` is the
+      side of the percentage-closer filter kernel (1 = none).
+    """
 
     shading: Shading = "phong"
     interpolation: Interpolation = "perspective"
@@ -166,20 +202,47 @@ class RenderOptions:
     layers: int = 1
     backend: Literal["auto", "native", "jax"] = "auto"
     clamp: bool = False
+    transparency: Transparency = "none"
+    absorption: bool = False
+    transmission: bool = False
+    shadows: bool = False
+    shadow_resolution: int = 512
+    shadow_pcf: int = 1
 
     def __post_init__(self):
         for name, allowed in _CHOICES.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"RenderOptions.{name} must be one of {allowed}, got {getattr(self, name)!r}")
-        if not (isinstance(self.layers, int) and self.layers >= 1):
-            raise ValueError(f"RenderOptions.layers must be a positive integer, got {self.layers!r}")
+        for name in ("layers", "shadow_resolution", "shadow_pcf"):
+            x = getattr(self, name)
+            if isinstance(x, bool) or not (isinstance(x, int) and x >= 1):
+                raise ValueError(f"RenderOptions.{name} must be a positive integer, got {x!r}")
+        if self.shadow_pcf % 2 == 0:
+            raise ValueError(f"RenderOptions.shadow_pcf must be odd (a kernel centred on the texel), got {self.shadow_pcf}")
+        if self.absorption and self.layers < 2:
+            raise ValueError("RenderOptions.absorption needs layers >= 2 (the exit surface is the next depth layer)")
+        if self.absorption and self.transparency == "none":
+            raise ValueError(
+                "RenderOptions.absorption needs transparency 'linear' or 'kay' (light reaches the eye through the entry surface)"
+            )
+
+    @property
+    def layered(self) -> bool:
+        """Whether more than the nearest layer is shaded (transparency or absorption)."""
+        return self.transparency != "none" or self.absorption
 
     def replace(self, **kw) -> "RenderOptions":
         return replace(self, **kw)
 
 
 class Scene(eqx.Module):
-    """Everything numeric a render needs (a pytree of arrays; all of it differentiable)."""
+    """Everything numeric a render needs (a pytree of arrays; all of it differentiable).
+
+    Several objects with their own materials are one mesh whose faces carry material ids
+    (:func:`diffshade.combine`); ``material`` is id 0 and ``materials`` the rest. Shadow maps are
+    compared with a depth bias of ``shadow_bias`` (world units) plus ``shadow_slope_bias``
+    shadow-map texels (world size at the point).
+    """
 
     mesh: Mesh
     camera: Camera
@@ -191,3 +254,11 @@ class Scene(eqx.Module):
     ambient_light: Float[Array, "3"] = eqx.field(converter=_rgb, default=(0.2, 0.2, 0.2))
     background: Float[Array, "3"] = eqx.field(converter=_rgb, default=(0.0, 0.0, 0.0))
     fog: Fog = field(default_factory=Fog)
+    materials: tuple[Material, ...] = ()
+    shadow_bias: Float[Array, ""] = eqx.field(converter=as_float_array, default=1e-3)
+    shadow_slope_bias: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.5)
+
+    def all_materials(self) -> tuple[Material, ...]:
+        """Materials by id: ``material`` is id 0, ``materials[i]`` is id ``i + 1``; each face's id
+        is ``mesh.material_ids`` (all 0 when the mesh has none)."""
+        return (self.material, *self.materials)

@@ -190,3 +190,43 @@ def apply_fog(color: V3, f, fog_color) -> V3:
 
 def distance(a: V3, b: V3):
     return norm(sub(a, b))
+
+
+def directed_transmission(n, l, v, m, ior, back: bool, fresnel: str = "none"):
+    r"""Directed transmission factor :math:`W \cos^m\beta` (MODEL.md §2), to be scaled by
+    :math:`k_t I_p`.
+
+    ``n`` is the normal on the viewer's side, ``l`` the unit vector to the light, which must be
+    on the other side (:math:`n\cdot l < 0`, else 0). The light direction :math:`-l` is
+    refracted into the viewer's side by Snell's law with relative index
+    :math:`\eta_{light}/\eta_{viewer}`: ``ior`` for a front face (the viewer outside the
+    material), ``1/ior`` for a back face (the viewer inside):
+    :math:`f = -\eta l + (\eta (n\cdot l) + \sqrt{k})\,n`, :math:`k = 1 - \eta^2(1 - (n\cdot l)^2)`;
+    :math:`k \le 0` is total internal reflection and transmits nothing. :math:`\cos\beta = f\cdot v`,
+    :math:`\cos^m\beta` for :math:`f\cdot v > 0`. ``W`` is 1, or with ``fresnel`` the transmitted
+    fraction :math:`1 - F` at the interface (dielectric, or Schlick with the cosine on the
+    denser side), which falls to 0 at the critical angle.
+    """
+    ndl = dot(n, l)
+    eta = 1.0 / ior if back else ior
+    behind = ndl < 0
+    k = 1.0 - eta * eta * (1.0 - ndl * ndl)
+    ok = behind & (k > 0)
+    sk = jnp.where(ok, jnp.sqrt(jnp.where(ok, k, 1.0)), 0.0)
+    f = add(scale(l, -eta), scale(n, eta * ndl + sk))
+    val = jnp.where(ok, safe_pow(jnp.maximum(dot(f, v), 0.0), m), 0.0)
+    if fresnel == "none":
+        return val
+    ci = jnp.maximum(-ndl, 0.0)
+    if fresnel == "dielectric":
+        refl = fresnel_dielectric(ci, 1.0 / eta)
+    else:
+        cos_dense = jnp.where(eta > 1.0, sk, ci)
+        refl = jnp.where(ok, fresnel_schlick(cos_dense, ior), 1.0)
+    return (1.0 - refl) * val
+
+
+def kay_opacity(n_z, t_min, t_max, p):
+    r"""Kay's opacity :math:`t_{min} + (t_{max} - t_{min})[1 - (1 - |n_z|)^p]` (MODEL.md §5)."""
+    a = jnp.clip(jnp.abs(n_z), 0.0, 1.0)
+    return t_min + (t_max - t_min) * (1.0 - safe_pow(1.0 - a, p))

@@ -1,0 +1,237 @@
+r"""Shadow maps (MODEL.md §2: the visibility :math:`S_i \in [0, 1]` of light :math:`i`).
+
+Each light sees the scene through one or more *views*, rasterized with the same rasterizer as the
+camera (exact visibility, ``RenderOptions.shadow_resolution`` texels square, one depth layer):
+
+- directional: one orthographic view along the light's direction, framing the bounding sphere of
+  the mesh;
+- spot: one perspective view along the axis, half-angle :math:`\min(\theta_l + 1^\circ, 80^\circ)`
+  (a cone wider than 80° is unshadowed outside 80°);
+- point: six 90° perspective views (a cube map), the face chosen by the major axis of
+  :math:`P - P_L`.
+
+A map texel stores the triangle seen through its centre; its depth :math:`s_{map}` (distance
+along the view's axis) is read off that triangle's plane along the texel-centre ray, only for
+the texels that are looked up. A shaded point :math:`P` is compared with it by *receiver-plane
+depth*: the depth :math:`s_{plane}`, along the same ray, of the plane through :math:`P` with the
+point's face normal. For a flat receiver the two are equal where nothing is in front, so a lit
+plane has no acne at any angle and needs no large bias (the classic failure of comparing
+:math:`P`'s own depth with the texel's). The point is lit where
+
+.. math:: s_{map} \ge s_{plane} - (\text{bias} + \text{slope bias} \cdot \text{texel}),
+
+the bias covering curvature and rounding. ``shadow_pcf = k`` averages this test over the
+:math:`k \times k` texels around the point's texel (percentage-closer filtering), each with its
+own receiver-plane depth. Texels with no surface, points outside a view and points behind the
+near plane count as lit; a PCF kernel that leaves a cube face is clamped to its edge.
+
+Shadows treat every surface as opaque (a transparent surface casts a full shadow).
+
+The test is discrete, like the rasterizer's visibility: :math:`S_i` carries no gradient (it is
+computed under ``stop_gradient``) and multiplies light :math:`i`'s direct terms, through which
+every parameter keeps its gradient.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _shade as S
+from ._raster import visibility
+
+_SPOT_MAX_HALF_ANGLE = 80.0
+_CUBE = np.array(  # (axis a, u, v) of the six faces: +x, -x, +y, -y, +z, -z
+    [
+        [[1, 0, 0], [0, 0, -1], [0, 1, 0]],
+        [[-1, 0, 0], [0, 0, 1], [0, 1, 0]],
+        [[0, 1, 0], [1, 0, 0], [0, 0, -1]],
+        [[0, -1, 0], [1, 0, 0], [0, 0, 1]],
+        [[0, 0, 1], [1, 0, 0], [0, 1, 0]],
+        [[0, 0, -1], [-1, 0, 0], [0, 1, 0]],
+    ],
+    dtype=np.float64,
+)
+
+
+def _frame(axis):
+    """An orthonormal frame ``(a, u, v)`` with ``a`` along ``axis`` (either handedness does: the
+    rasterizer keeps both windings)."""
+    a = axis / jnp.linalg.norm(axis)
+    helper = jnp.where(jnp.abs(a[1]) < 0.9, jnp.array([0.0, 1.0, 0.0], a.dtype), jnp.array([1.0, 0.0, 0.0], a.dtype))
+    u = jnp.cross(a, helper)
+    u = u / jnp.linalg.norm(u)
+    v = jnp.cross(u, a)
+    return a, u, v
+
+
+class _Views:
+    """``n`` views of one light: origin ``o`` [3], frames ``a, u, v`` [n, 3], the half extent
+    ``h`` (ortho: world half-width; perspective: tan of the half-angle), near and far depths."""
+
+    def __init__(self, o, a, u, v, h, near, far, ortho: bool):
+        self.o, self.a, self.u, self.v, self.h = o, a, u, v, h
+        self.near, self.far, self.ortho = near, far, ortho
+
+    @property
+    def count(self) -> int:
+        return self.a.shape[0]
+
+    def clip(self, X):
+        """Clip coordinates ``[n, V, 4]`` of world points ``X`` [V, 3]."""
+        d = X[None] - self.o[None, None]
+        xe = jnp.einsum("nvc,nc->nv", d, self.u)
+        ye = jnp.einsum("nvc,nc->nv", d, self.v)
+        s = jnp.einsum("nvc,nc->nv", d, self.a)
+        n, f = self.near, self.far
+        if self.ortho:
+            z = (2.0 * s - (f + n)) / (f - n)
+            return jnp.stack([xe / self.h, ye / self.h, z, jnp.ones_like(s)], axis=-1)
+        z = ((f + n) * s - 2.0 * f * n) / (f - n)
+        return jnp.stack([xe / self.h, ye / self.h, z, s], axis=-1)
+
+
+def _bounds(vertices):
+    lo, hi = jnp.min(vertices, axis=0), jnp.max(vertices, axis=0)
+    c = 0.5 * (lo + hi)
+    r = 0.5 * jnp.linalg.norm(hi - lo) * 1.01 + 1e-6
+    return c, r
+
+
+def light_views(scene, opts) -> list[_Views]:
+    """The shadow-map views of every light (directional, then point, then spot lights)."""
+    X = jax.lax.stop_gradient(scene.mesh.vertices)
+    c, r = _bounds(X)
+    views = []
+    d = jax.lax.stop_gradient(scene.directional.direction)
+    for i in range(scene.directional.count):
+        a, u, v = _frame(d[i])
+        o = c - 1.05 * r * a
+        views.append(_Views(o, a[None], u[None], v[None], 1.05 * r, 0.0, 2.1 * r, True))
+    for lights, spot in ((scene.point, False), (scene.spot, True)):
+        pos = jax.lax.stop_gradient(lights.position)
+        for i in range(lights.count):
+            o = pos[i]
+            far = jnp.linalg.norm(c - o) + r
+            near = far * 1e-4
+            if spot:
+                a, u, v = _frame(jax.lax.stop_gradient(lights.axis[i]))
+                half = jax.lax.stop_gradient(lights.cutoff[i]) + 1.0
+                h = jnp.tan(jnp.deg2rad(jnp.minimum(half, _SPOT_MAX_HALF_ANGLE)))
+                views.append(_Views(o, a[None], u[None], v[None], h, near, far, False))
+            else:
+                cube = jnp.asarray(_CUBE, X.dtype)
+                views.append(_Views(o, cube[:, 0], cube[:, 1], cube[:, 2], jnp.ones((), X.dtype), near, far, False))
+    return views
+
+
+def shadow_maps(scene, opts, views: list[_Views]):
+    """Per light, the triangle seen through each texel, ``[n, R, R]`` (-1 where none)."""
+    R = opts.shadow_resolution
+    X = jax.lax.stop_gradient(scene.mesh.vertices)
+    return [
+        jax.vmap(lambda c: visibility(c, scene.mesh.faces, (R, R), 1, opts.backend)[0])(vw.clip(X)) for vw in views
+    ]
+
+
+def _face_planes(mesh):
+    """Unit face normals and ``n · v0`` ([F] arrays): depth along a ray is read off the plane."""
+    X = jax.lax.stop_gradient(mesh.vertices)
+    n = S.vec(jax.lax.stop_gradient(mesh.face_normals()))
+    v0 = S.vec(X[mesh.faces[:, 0]])
+    return n, S.dot(n, v0)
+
+
+def _ray_depth(n, d, o, a, u, v, xc, yc, h, ortho: bool):
+    """Depth :math:`s` (along the view axis ``a``) at which the ray through texel centre
+    ``(xc, yc)`` meets the plane :math:`n\cdot X = d`; ``None``-safe: ``ok`` is False where the
+    ray runs along the plane."""
+    do = d - S.dot(n, o)
+    if ortho:
+        num = do - h * (xc * S.dot(n, u) + yc * S.dot(n, v))
+        den = S.dot(n, a)
+    else:
+        num = do
+        den = S.dot(n, a) + h * (xc * S.dot(n, u) + yc * S.dot(n, v))
+    ok = jnp.abs(den) > 1e-9
+    return num / jnp.where(ok, den, 1.0), ok
+
+
+def _lookup(vw: _Views, ids, planes, P, ng, bias, slope_bias, R: int, pcf: int):
+    """Fraction of the PCF kernel that is lit for points ``P`` with face normals ``ng``
+    (component tuples) in one light's views."""
+    dtype = P[0].dtype
+    o = S.vec(vw.o)
+    d = S.sub(P, o)
+    if vw.count == 1:
+        a, u, v = S.vec(vw.a[0]), S.vec(vw.u[0]), S.vec(vw.v[0])
+        face = None
+    else:  # cube: the face of the major axis
+        ad = [jnp.abs(x) for x in d]
+        axis = jnp.where((ad[0] >= ad[1]) & (ad[0] >= ad[2]), 0, jnp.where(ad[1] >= ad[2], 1, 2))
+        comp = jnp.where(axis == 0, d[0], jnp.where(axis == 1, d[1], d[2]))
+        face = 2 * axis + jnp.where(comp >= 0, 0, 1)
+        a, u, v = (tuple(tab[:, c][face] for c in range(3)) for tab in (vw.a, vw.u, vw.v))
+    s = S.dot(d, a)
+    xe, ye = S.dot(d, u), S.dot(d, v)
+    if vw.ortho:
+        x, y = xe / vw.h, ye / vw.h
+        texel = jnp.broadcast_to(2.0 * vw.h / R, s.shape)
+        inside = (s >= vw.near) & (s <= vw.far)
+    else:
+        pos = s > vw.near
+        sp = jnp.where(pos, s, 1.0)
+        x, y = xe / (sp * vw.h), ye / (sp * vw.h)
+        texel = 2.0 * sp * vw.h / R
+        inside = pos & (s <= vw.far)
+    fx = (x + 1.0) * (0.5 * R)
+    fy = (1.0 - y) * (0.5 * R)
+    inside = inside & (fx >= 0) & (fx < R) & (fy >= 0) & (fy < R)
+    ix0 = jnp.clip(jnp.floor(jnp.where(inside, fx, 0.0)), 0, R - 1).astype(jnp.int32)
+    iy0 = jnp.clip(jnp.floor(jnp.where(inside, fy, 0.0)), 0, R - 1).astype(jnp.int32)
+    base = 0 if face is None else face * (R * R)
+    flat = ids.reshape(-1)
+    pn, pd = planes
+    tol = bias + slope_bias * texel
+    d_recv = S.dot(ng, P)
+    lit = jnp.zeros(s.shape, dtype)
+    rad = pcf // 2
+    for dy in range(-rad, rad + 1):
+        for dx in range(-rad, rad + 1):
+            ix, iy = ix0 + dx, iy0 + dy
+            on_map = (ix >= 0) & (ix < R) & (iy >= 0) & (iy < R)
+            if face is not None:  # clamp to the cube face
+                ix, iy = jnp.clip(ix, 0, R - 1), jnp.clip(iy, 0, R - 1)
+                on_map = jnp.ones_like(on_map)
+            xc = (2.0 * ix.astype(dtype) + 1.0) / R - 1.0
+            yc = 1.0 - (2.0 * iy.astype(dtype) + 1.0) / R
+            # Receiver: P's own plane along the ray through the texel centre (bounded where the
+            # receiver is grazing); occluder: the plane of the triangle the map sees there.
+            s_recv, ok = _ray_depth(ng, d_recv, o, a, u, v, xc, yc, vw.h, vw.ortho)
+            reach = texel * (1.0 + max(abs(dx), abs(dy))) * 8.0
+            s_recv = jnp.where(ok, jnp.clip(s_recv, s - reach, s + reach), s)
+            tri = flat[base + jnp.clip(iy, 0, R - 1) * R + jnp.clip(ix, 0, R - 1)]
+            seen = on_map & (tri >= 0)
+            t = jnp.where(seen, tri, 0)
+            s_occ, ok_occ = _ray_depth(tuple(c[t] for c in pn), pd[t], o, a, u, v, xc, yc, vw.h, vw.ortho)
+            blocked = seen & ok_occ & (s_occ < s_recv - tol)
+            lit = lit + jnp.where(blocked, 0.0, 1.0)
+    frac = lit / float(pcf * pcf)
+    return jnp.where(inside, frac, 1.0)
+
+
+def light_visibility(scene, opts, P, ng) -> list:
+    """:math:`S_i` for every light (directional, point, spot order) at points ``P`` with face
+    normals ``ng`` (component tuples of equally shaped arrays); no gradient."""
+    P = jax.lax.stop_gradient(P)
+    ng = jax.lax.stop_gradient(ng)
+    views = light_views(scene, opts)
+    maps = shadow_maps(scene, opts, views)
+    planes = _face_planes(scene.mesh)
+    bias = jax.lax.stop_gradient(scene.shadow_bias)
+    slope = jax.lax.stop_gradient(scene.shadow_slope_bias)
+    return [
+        _lookup(vw, m, planes, P, ng, bias, slope, opts.shadow_resolution, opts.shadow_pcf)
+        for vw, m in zip(views, maps)
+    ]
