@@ -210,6 +210,8 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions) -> Float[
     if opts.shadows:
         ng = tuple(c[safe_tid] for c in S.vec(mesh.face_normals()))
         shadow = light_visibility(scene, opts, P, ng)
+    kay = [m.kay for m in mats] if multi else [scene.material.kay]
+    need_kay = opts.transparency and any(kay)
     n_px = None  # the pixel's unit normal, where Kay's opacity needs it
 
     def apply_shadow(base, directs):
@@ -244,7 +246,7 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions) -> Float[
         color = side(nrm, vmat, False)
         if opts.two_sided:
             color = _select(front, color, side(S.neg(nrm), vback, True))
-        if opts.transparency == "kay":
+        if need_kay:
             n_px = S.normalize(lerp(S.vec(vn)))
     else:  # flat: lighting once per triangle, at its centroid
         tri = mesh.vertices[mesh.faces]
@@ -264,7 +266,7 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions) -> Float[
         color = side(fn, fmat, False)
         if opts.two_sided:
             color = _select(front, color, side(S.neg(fn), fback, True))
-        if opts.transparency == "kay":
+        if need_kay:
             n_px = tuple(c[safe_tid] for c in fn)
 
     if opts.clamp:
@@ -279,11 +281,11 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions) -> Float[
 
     # Front-to-back compositing (MODEL.md §5): I = t I_1 + (1 - t) I_2, recursively, then the
     # background; absorption e^{-mu l} between an entry (front-facing) layer and the next one.
-    if opts.transparency == "kay":
+    t = jnp.broadcast_to(pmat.opacity, shape)
+    if need_kay:
         view_z = _rgb(cam.view_matrix()[2, :3])
-        t = S.kay_opacity(S.dot(n_px, view_z), pmat.kay_min, pmat.kay_max, pmat.kay_power)
-    else:
-        t = jnp.broadcast_to(pmat.opacity, shape)
+        t_kay = S.kay_opacity(S.dot(n_px, view_z), pmat.kay_min, pmat.kay_max, pmat.kay_power)
+        t = t_kay if all(kay) else jnp.where(jnp.asarray(kay)[mesh.material_ids[safe_tid]], t_kay, t)
     t = jnp.where(valid, t, 0.0)
     absorb = None
     if opts.absorption:

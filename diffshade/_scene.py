@@ -49,7 +49,8 @@ class Material(eqx.Module):
     (for the Fresnel-weighted specular and the refraction of directed transmission).
 
     Transparency and transmission (MODEL.md §2, §5; used only where :class:`RenderOptions` turns
-    them on): ``opacity`` :math:`t \in [0, 1]` (1 opaque, 0 invisible); Kay's opacity
+    them on): ``opacity`` :math:`t \in [0, 1]` (1 opaque, 0 invisible); with ``kay=True``
+    (static: part of the compiled program) the material uses Kay's opacity instead,
     :math:`t = t_{min} + (t_{max} - t_{min})[1 - (1 - |n_z|)^p]` with ``kay_min`` :math:`t_{min}`
     (the value at :math:`|n_z| = 0`, a silhouette), ``kay_max`` :math:`t_{max}` (the value at
     :math:`|n_z| = 1`, face-on) and ``kay_power`` :math:`p > 0`. The names are the seed's, not an
@@ -72,6 +73,7 @@ class Material(eqx.Module):
     kay_power: Float[Array, ""] = eqx.field(converter=as_float_array, default=2.0)
     transmission: Float[Array, "3"] = eqx.field(converter=_rgb, default=(0.0, 0.0, 0.0))
     absorption: Float[Array, "3"] = eqx.field(converter=_rgb, default=(0.0, 0.0, 0.0))
+    kay: bool = eqx.field(static=True, default=False)
 
 
 class DirectionalLights(eqx.Module):
@@ -148,7 +150,6 @@ FogMode = Literal["none", "linear", "exp", "exp2"]
 FogDistance = Literal["euclidean", "depth"]
 SpotEdge = Literal["hard", "smooth"]
 Interpolation = Literal["perspective", "affine"]
-Transparency = Literal["none", "linear", "kay"]
 
 _CHOICES = {
     "shading": ("flat", "gouraud", "phong"),
@@ -159,7 +160,6 @@ _CHOICES = {
     "spot_edge": ("hard", "smooth"),
     "interpolation": ("perspective", "affine"),
     "backend": ("auto", "native", "jax"),
-    "transparency": ("none", "linear", "kay"),
 }
 
 
@@ -172,9 +172,9 @@ class RenderOptions:
     Transparency, absorption, transmission, shadows (MODEL.md §2, §5; all off by default, and
     off they cost nothing):
 
-    - ``transparency``: ``"linear"`` uses each material's ``opacity``, ``"kay"`` Kay's
-      :math:`|n_z|`-dependent opacity; the ``layers`` nearest surfaces of each pixel are shaded
-      and composited front to back, :math:`I = t I_1 + (1 - t) I_2`, down to the background.
+    - ``transparency``: each material's opacity (its ``opacity``, or Kay's
+      :math:`|n_z|`-dependent one for a material with ``kay=True``); the ``layers`` nearest
+      surfaces of each pixel are shaded and composited front to back, :math:`I = t I_1 + (1 - t) I_2`, down to the background.
       A pixel with more than ``layers`` surfaces loses those beyond the last layer: the light
       left after the last layer, :math:`\prod_k (1 - t_k)`, comes from the background
       (:func:`diffshade.truncated_pixels` counts such pixels).
@@ -202,7 +202,7 @@ class RenderOptions:
     layers: int = 1
     backend: Literal["auto", "native", "jax"] = "auto"
     clamp: bool = False
-    transparency: Transparency = "none"
+    transparency: bool = False
     absorption: bool = False
     transmission: bool = False
     shadows: bool = False
@@ -221,15 +221,13 @@ class RenderOptions:
             raise ValueError(f"RenderOptions.shadow_pcf must be odd (a kernel centred on the texel), got {self.shadow_pcf}")
         if self.absorption and self.layers < 2:
             raise ValueError("RenderOptions.absorption needs layers >= 2 (the exit surface is the next depth layer)")
-        if self.absorption and self.transparency == "none":
-            raise ValueError(
-                "RenderOptions.absorption needs transparency 'linear' or 'kay' (light reaches the eye through the entry surface)"
-            )
+        if self.absorption and not self.transparency:
+            raise ValueError("RenderOptions.absorption needs transparency=True (light reaches the eye through the entry surface)")
 
     @property
     def layered(self) -> bool:
         """Whether more than the nearest layer is shaded (transparency or absorption)."""
-        return self.transparency != "none" or self.absorption
+        return self.transparency or self.absorption
 
     def replace(self, **kw) -> "RenderOptions":
         return replace(self, **kw)

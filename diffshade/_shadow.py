@@ -144,7 +144,7 @@ def _face_planes(mesh):
 
 
 def _ray_depth(n, d, o, a, u, v, xc, yc, h, ortho: bool):
-    """Depth :math:`s` (along the view axis ``a``) at which the ray through texel centre
+    r"""Depth :math:`s` (along the view axis ``a``) at which the ray through texel centre
     ``(xc, yc)`` meets the plane :math:`n\cdot X = d`; ``None``-safe: ``ok`` is False where the
     ray runs along the plane."""
     do = d - S.dot(n, o)
