@@ -142,7 +142,7 @@ def test_kay_opacity_on_sphere_centre_and_silhouette():
     centre = np.unravel_index(np.argmax(np.where(hitp, nz, 0)), nz.shape)
     assert abs(t[centre] - 0.2) < 1e-3  # face-on: t_max
     rim = hitp & (nz < 0.2)  # there t > 0.9 - 0.7 (1 - 0.8^2) = 0.648, rising to t_min = 0.9
-    assert rim.sum() > 20 and np.all(t[rim] > 0.64) and t[hitp].max() > 0.8
+    assert rim.sum() > 20 and np.all(t[rim] > 0.64) and t[hitp].max() > 0.7
     # The function itself at the ends of |n_z|.
     np.testing.assert_allclose(S.kay_opacity(jnp.array([0.0, 1.0, -1.0]), 0.9, 0.2, 2.0), [0.9, 0.2, 0.2], atol=1e-15)
 
