@@ -3,13 +3,16 @@
 optimistix's least-squares solvers are unconstrained, so each free parameter ``θ`` is solved for
 through an unconstrained ``u``:
 
-- ``unit`` ([0, 1], reflectances k_a, k_d, k_s, fog colour): ``θ = sigmoid(u)``;
-- ``positive`` (exponent m, attenuation a_i, fog density, light colours, emission):
+- ``unit`` ([0, 1], reflectances k_a, k_d, k_s, k_t, opacity t and Kay's t_min, t_max, fog
+  colour): ``θ = sigmoid(u)``;
+- ``positive`` (exponent m, Kay's p, absorption μ, attenuation a_i, fog density, light colours,
+  emission):
   ``θ = exp(u)``, so the solver works on a log scale (m from 1 to 10⁴ is one scale);
 - ``interval(lo, hi)`` (spot cutoff, index of refraction): ``θ = lo + (hi - lo) sigmoid(u)``.
 
-Names: ``material.<field>`` and ``back_material.<field>`` (emission, ambient, diffuse, specular,
-shininess, ior); ``ambient_light``; ``<kind>[i].<field>`` with kind ``directional``, ``point`` or
+Names: ``material.<field>``, ``material[i].<field>`` (material id ``i`` of a multi-material
+scene; ``material[0]`` is ``material``) and ``back_material.<field>`` (emission, ambient, diffuse,
+specular, shininess, ior, opacity, kay_min, kay_max, kay_power, transmission, absorption); ``ambient_light``; ``<kind>[i].<field>`` with kind ``directional``, ``point`` or
 ``spot`` and field ``color``, ``ambient``, ``a0``/``a1``/``a2`` (attenuation), ``cutoff``,
 ``exponent``, ``edge``; ``fog.<field>`` (color, start, end, density). RGB fields are per channel
 unless listed as shared (one value for the three channels).
@@ -32,15 +35,17 @@ class ParamError(ValueError):
     """An unknown parameter name, or a start value outside the parameter's domain."""
 
 
-_RGB = {"emission", "ambient", "diffuse", "specular", "color"}
+_RGB = {"emission", "ambient", "diffuse", "specular", "color", "transmission", "absorption"}
 _MATERIAL = {
     "emission": "positive", "ambient": "unit", "diffuse": "unit", "specular": "unit",
-    "shininess": "positive", "ior": (1.0, 4.0),
+    "shininess": "positive", "ior": (1.0, 4.0), "opacity": "unit", "kay_min": "unit", "kay_max": "unit",
+    "kay_power": "positive", "transmission": "unit", "absorption": "positive",
 }
 _LIGHT = {"color": "positive", "ambient": "positive", "a0": "positive", "a1": "positive", "a2": "positive",
           "cutoff": (0.0, 90.0), "exponent": "positive", "edge": (0.0, 90.0)}
 _FOG = {"color": "unit", "start": "positive", "end": "positive", "density": "positive"}
 _LIGHT_RE = re.compile(r"^(directional|point|spot)\[(\d+)\]\.(\w+)$")
+_MATERIAL_RE = re.compile(r"^material\[(\d+)\]\.(\w+)$")
 
 
 def _domain_str(domain) -> str:
@@ -49,6 +54,12 @@ def _domain_str(domain) -> str:
     if domain == "positive":
         return "(0, inf)"
     return f"({domain[0]}, {domain[1]})"
+
+
+def _follow(node, path):
+    for k in path:
+        node = node[k] if isinstance(k, int) else getattr(node, k)
+    return node
 
 
 @dataclass(frozen=True)
@@ -71,10 +82,7 @@ class Param:
             if field in ("a0", "a1", "a2"):
                 return lights.attenuation[p[1], int(field[1])]
             return getattr(lights, field)[p[1]]
-        node = scene
-        for k in p:
-            node = getattr(node, k)
-        return node
+        return _follow(scene, p)
 
     def _leaf(self, scene):
         x = jnp.asarray(self._node(scene))
@@ -94,13 +102,7 @@ class Param:
         old = self._node(scene)
         new = jnp.broadcast_to(jnp.asarray(value, old.dtype), old.shape)
 
-        def where(s):
-            node = s
-            for k in p:
-                node = getattr(node, k)
-            return node
-
-        return eqx.tree_at(where, scene, new)
+        return eqx.tree_at(lambda s: _follow(s, p), scene, new)
 
     # -- reparametrisation -----------------------------------------------------------------
     @property
@@ -152,6 +154,16 @@ def parse(name: str, scene: ds.Scene, shared: bool = False) -> Param:
             raise ParamError(f"unknown parameter {name!r}: the scene has {count} {kind} light(s)")
         size = 3 if field in _RGB and not shared else 1
         return Param(name, (kind, i, field), size, _LIGHT[field])
+    m = _MATERIAL_RE.match(name)
+    if m:
+        i, field = int(m.group(1)), m.group(2)
+        count = len(scene.all_materials())
+        if field not in _MATERIAL:
+            raise ParamError(f"unknown parameter {name!r}: a material has no field {field!r}")
+        if i >= count:
+            raise ParamError(f"unknown parameter {name!r}: the scene has {count} material(s)")
+        path = ("material", field) if i == 0 else ("materials", i - 1, field)
+        return Param(name, path, 3 if field in _RGB and not shared else 1, _MATERIAL[field])
     parts = name.split(".")
     if parts[0] in ("material", "back_material") and len(parts) == 2 and parts[1] in _MATERIAL:
         if parts[0] == "back_material" and scene.back_material is None:
@@ -164,7 +176,7 @@ def parse(name: str, scene: ds.Scene, shared: bool = False) -> Param:
     if name == "ambient_light":
         return Param(name, ("ambient_light",), 1 if shared else 3, "positive")
     raise ParamError(
-        f"unknown parameter {name!r}; known: material.<emission|ambient|diffuse|specular|shininess|ior>, "
+        f"unknown parameter {name!r}; known: material.<{'|'.join(_MATERIAL)}>, material[i].<...> (material id i), "
         "back_material.<...>, ambient_light, <directional|point|spot>[i].<color|ambient|a0|a1|a2|cutoff|exponent|edge>, "
         "fog.<color|start|end|density>"
     )

@@ -100,3 +100,36 @@ def test_unconverged_fit_is_continued_within_the_restart_budget():
     r = fit(s0, opts, target, free, max_steps=5, restarts=20)
     assert r.successful and any("continued" in n for n in r.notes), r.notes
     np.testing.assert_allclose(r.values, np.asarray(ps.theta_of(scene)), rtol=1e-4)
+
+
+def test_recovers_transparency_absorption_transmission_and_kay():
+    """k_t, μ, opacity and Kay's t_min, t_max, p from two synthetic views (issue 5)."""
+    slab = ds.box((1.2, 1.2, 0.5), (-0.7, 0.0, 0.4))
+    ball = ds.icosphere(2, 0.6)
+    ball = ds.Mesh(vertices=np.asarray(ball.vertices) + np.array([0.8, 0.0, 0.2]), faces=ball.faces)
+    plane = ds.quad((6, 6), (0, 0, -1.0), divisions=4)
+    mats = (ds.Material(ambient=0.3, diffuse=(0.8, 0.75, 0.7), specular=0.0),
+            ds.Material(ambient=0.2, diffuse=(0.2, 0.3, 0.6), specular=0.3, shininess=12.0, opacity=0.35,
+                        absorption=(0.5, 1.0, 2.0), transmission=(0.6, 0.5, 0.4), ior=1.3),
+            ds.Material(ambient=0.2, diffuse=(0.8, 0.3, 0.2), specular=0.2, kay=True, kay_min=0.85, kay_max=0.25,
+                        kay_power=2.5))
+    cam = ds.Camera(eye=[0.2, 0.3, 4.0], target=[0, 0, 0], up=[0, 1, 0], fov_y=40.0, near=0.5, far=20.0,
+                    width=32, height=32)
+    truth = ds.Scene(
+        mesh=ds.combine(plane, slab, ball), camera=cam, material=mats[0], materials=mats[1:],
+        directional=ds.DirectionalLights(color=[0.9, 0.9, 0.9], direction=[0.2, -0.3, -1.0], ambient=[0, 0, 0]),
+        point=ds.PointLights(color=[2.0, 2.0, 2.0], position=[-0.6, 0.2, -0.6], attenuation=[1, 0, 0.5],
+                             ambient=[0, 0, 0]),
+        ambient_light=0.5, background=(0.1, 0.1, 0.15))
+    opts = ds.RenderOptions(transparency=True, absorption=True, transmission=True, layers=4)
+    target = jax.jit(ds.render, static_argnames="opts")(truth, opts)
+    names = ["material[1].opacity", "material[1].absorption", "material[1].transmission",
+             "material[2].kay_min", "material[2].kay_max", "material[2].kay_power"]
+    ps = ParamSet(names, truth)
+    theta = np.asarray(ps.theta_of(truth))
+    start = ps.apply(truth, theta * np.random.default_rng(0).uniform(0.75, 1.25, theta.size))
+    r = fit(start, opts, target, names, max_steps=60)
+    assert r.successful, r.result
+    err = np.abs(np.asarray(r.values) - theta) / theta
+    assert err.max() < 1e-4, dict(zip(ps.labels, err))
+    assert not r.undetermined

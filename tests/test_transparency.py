@@ -285,8 +285,11 @@ def test_shadows_off_cost_nothing_and_bias_changes_do_not_recompile():
     assert f._cache_size() == n
     plain = jax.jit(lambda s: ds.render(s, opts.replace(shadows=False))).lower(scene).as_text()
     with_shadows = jax.jit(f).lower(scene).as_text()
-    assert "visibility" not in plain.lower() or plain.count("custom_call") < with_shadows.count("custom_call")
-    assert len(plain) < len(with_shadows)
+    # Off, the program rasterizes once (the camera); on, once more per light (the native kernel
+    # is a custom call; the portable backend would show as a loop instead).
+    if ds._raster.resolve_backend("auto") == "native":
+        assert plain.count("custom_call") == 1 and with_shadows.count("custom_call") == 2
+    assert len(plain) < 0.7 * len(with_shadows)
 
 
 def test_fragment_exactly_at_shadow_map_depth():
