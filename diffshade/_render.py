@@ -147,9 +147,46 @@ _MATERIAL_FIELDS = ("emission", "ambient", "diffuse", "specular", "shininess", "
                     "kay_max", "kay_power", "transmission", "absorption")
 
 
-def _material_at(mats, idx) -> Material:
-    """A :class:`Material` whose fields are those of ``mats[idx]``, gathered per element of ``idx``."""
-    return Material(**{f: jnp.stack([getattr(m, f) for m in mats])[idx] for f in _MATERIAL_FIELDS})
+def _used_fields(opts: RenderOptions) -> set[str]:
+    """The material fields a render with ``opts`` reads."""
+    used = set()
+    if opts.emission:
+        used.add("emission")
+    if opts.ambient or opts.per_light_ambient:
+        used.add("ambient")
+    if opts.diffuse:
+        used.add("diffuse")
+    if opts.specular != "none":
+        used |= {"specular", "shininess"} | ({"ior"} if opts.fresnel != "none" else set())
+    if opts.transmission:
+        used |= {"transmission", "shininess", "ior"}
+    if opts.transparency:
+        used |= {"opacity", "kay_min", "kay_max", "kay_power"}
+    if opts.absorption:
+        used.add("absorption")
+    return used
+
+
+def _material_at(mats, idx, opts: RenderOptions) -> Material:
+    """A :class:`Material` whose fields are those of ``mats[idx]`` per element of ``idx`` (the
+    fields ``opts`` reads; the rest are material 0's, unused). A few materials are selected with
+    ``where`` (vectorised; a gather per field costs several times more on CPU), many gathered."""
+    used = _used_fields(opts)
+
+    def pick(f):
+        vals = [getattr(m, f) for m in mats]
+        if f not in used:
+            return vals[0]
+        if len(mats) > 8:
+            return jnp.stack(vals)[idx]
+        extra = (...,) + (None,) * jnp.ndim(vals[0])
+        ix = idx[extra]
+        out = vals[-1]
+        for i in range(len(mats) - 2, -1, -1):
+            out = jnp.where(ix == i, vals[i], out)
+        return out
+
+    return Material(**{f: pick(f) for f in _MATERIAL_FIELDS})
 
 
 def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions) -> Float[Array, "H W 3"]:
@@ -199,7 +236,7 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions) -> Float[
     multi = len(mats) > 1 and mesh.material_ids is not None
     if multi and opts.back_material and scene.back_material is not None:
         raise ValueError("a back material applies to a one-material scene; give each object's material instead")
-    pmat = _material_at(mats, mesh.material_ids[safe_tid]) if multi else scene.material
+    pmat = _material_at(mats, mesh.material_ids[safe_tid], opts) if multi else scene.material
     back_mat = pmat if multi else _back_material(scene, opts)
 
     Pv = S.vec(mesh.vertices)
@@ -230,7 +267,7 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions) -> Float[
         if multi:
             corners = mesh.faces.reshape(-1)
             pts, nrm, interp = S.vec(mesh.vertices[corners]), S.vec(vn[corners]), lerp_corners
-            vmat = _material_at(mats, jnp.repeat(mesh.material_ids, 3))
+            vmat = _material_at(mats, jnp.repeat(mesh.material_ids, 3), opts)
             vback = vmat
         else:
             pts, nrm, interp = Pv, S.vec(vn), lerp
@@ -252,7 +289,7 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions) -> Float[
         tri = mesh.vertices[mesh.faces]
         centroid = S.vec(jnp.mean(tri, axis=1))
         fn = S.vec(mesh.face_normals())
-        fmat = _material_at(mats, mesh.material_ids) if multi else scene.material
+        fmat = _material_at(mats, mesh.material_ids, opts) if multi else scene.material
         fback = fmat if multi else back_mat
 
         def side(normal, mat, back):
