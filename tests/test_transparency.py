@@ -114,12 +114,14 @@ def test_slab_absorption_bouguer():
     np.testing.assert_allclose(img0[inside], np.broadcast_to(C, img0[inside].shape), rtol=1e-12)
 
 
-def test_kay_opacity_on_sphere_centre_and_silhouette():
+@pytest.mark.parametrize("shading", ["phong", "gouraud"])
+def test_kay_opacity_on_sphere_centre_and_silhouette(shading):
     # A distant camera (nearly orthographic), so that |n_z| reaches close to 0 at the silhouette.
     cam = camera([0, 0, 40], [0, 0, 0], 48, fov=3.4)
     mat = ds.Material(emission=1.0, kay=True, kay_min=0.9, kay_max=0.2, kay_power=2.0)
     scene = ds.Scene(mesh=ds.icosphere(5), camera=cam, material=mat, background=0.0)
-    opts = ds.RenderOptions(transparency=True, layers=1, ambient=False, diffuse=False, specular="none", emission=True)
+    opts = ds.RenderOptions(transparency=True, layers=1, ambient=False, diffuse=False, specular="none", emission=True,
+                            shading=shading)
     t = render(scene, opts)[..., 0]
     d = rays(cam)
     eye = np.asarray(cam.eye)
@@ -207,7 +209,7 @@ def test_transmission_back_face_uses_inverse_index():
 SPHERE_C, SPHERE_R = np.array([0.1, 0.8, 0.0]), 0.5
 
 
-def shadow_scene(kind, size=48, pcf=1):
+def shadow_scene(kind, size=48, pcf=1, shading="phong"):
     plane = ds.quad((5, 5), (0, 0, 0), (0, 1, 0))
     sph = ds.icosphere(3, SPHERE_R)
     sph = ds.Mesh(vertices=sph.vertices + SPHERE_C, faces=sph.faces)
@@ -223,7 +225,7 @@ def shadow_scene(kind, size=48, pcf=1):
                                        axis=[-0.2, -1, 0.1], cutoff=60.0, exponent=0.0, edge=0.0)
     scene = ds.Scene(mesh=ds.combine(plane, sph), camera=cam, material=mats[0], materials=mats[1:],
                      ambient_light=1.0, background=0.0, **lights)
-    opts = ds.RenderOptions(specular="none", shadows=True, shadow_pcf=pcf)
+    opts = ds.RenderOptions(specular="none", shadows=True, shadow_pcf=pcf, shading=shading)
     return scene, opts
 
 
@@ -240,10 +242,15 @@ def _to_light(kind, scene, X):
     return L / dist[..., None], dist
 
 
-@pytest.mark.parametrize("pcf", [1, 3])
-@pytest.mark.parametrize("kind", ["directional", "point", "spot"])
-def test_sphere_shadow_on_plane(kind, pcf):
-    scene, opts = shadow_scene(kind, pcf=pcf)
+@pytest.mark.parametrize(
+    "kind,pcf,shading",
+    [("directional", 1, "phong"), ("directional", 3, "phong"), ("point", 1, "phong"), ("point", 3, "phong"),
+     ("spot", 1, "phong"), ("spot", 3, "phong"), ("directional", 1, "gouraud"), ("directional", 1, "flat")],
+)
+def test_sphere_shadow_on_plane(kind, pcf, shading):
+    """Shadowed exactly where the segment to the light meets the sphere (away from the edge);
+    Gouraud and flat shading multiply each light's interpolated (per-face) terms by S per pixel."""
+    scene, opts = shadow_scene(kind, pcf=pcf, shading=shading)
     img = render(scene, opts)[..., 0]
     cam = scene.camera
     d = rays(cam)
