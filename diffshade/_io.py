@@ -16,6 +16,22 @@ A scene file::
     [fog]
     color = [0.6, 0.6, 0.7]; density = 0.15
 
+Several objects, each with its own material (material ids 0, 1, ... in order; a ``[mesh]`` with
+``[material]``, if given, is object 0)::
+
+    [[object]]
+    quad = [6, 6]; normal = [0, 1, 0]; translate = [0, -1, 0]     # or icosphere/radius, box, path
+    material = { diffuse = 0.8 }
+    [[object]]
+    box = [1, 1, 0.4]; translate = [0, 0, 0.5]; scale = 1.0
+    [object.material]
+    opacity = 0.3; absorption = [0.5, 1, 2]; transmission = 0.5; ior = 1.5   # kay = true, kay_min, kay_max, kay_power
+    [render]
+    transparency = true; absorption = true; transmission = true; layers = 4
+    shadows = true; shadow_resolution = 1024; shadow_pcf = 3
+    [shadow]
+    bias = 0.001; slope_bias = 0.5
+
 Every error names the file, the field and the allowed range.
 """
 
@@ -29,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from ._camera import Camera
-from ._mesh import MeshError, icosphere, load_mesh
+from ._mesh import Mesh, MeshError, box, combine, icosphere, load_mesh, quad
 from ._scene import (
     DirectionalLights,
     Fog,
@@ -134,10 +150,21 @@ def _options(v: _V, r: dict) -> RenderOptions:
 
 
 def _material(v: _V, m: dict, where: str) -> Material:
-    keys = ("emission", "ambient", "diffuse", "specular", "shininess", "ior")
+    keys = ("emission", "ambient", "diffuse", "specular", "shininess", "ior", "opacity", "kay", "kay_min", "kay_max",
+            "kay_power", "transmission", "absorption")
     v.unknown(m, keys, where)
     d = Material()
+    kay = m.get("kay", False)
+    if not isinstance(kay, bool):
+        v.fail(f"{where}.kay", f"must be true or false, got {kay!r}")
     return Material(
+        opacity=v.num(m, "opacity", where, default=float(d.opacity), lo=0.0, hi=1.0),
+        kay=kay,
+        kay_min=v.num(m, "kay_min", where, default=float(d.kay_min), lo=0.0, hi=1.0),
+        kay_max=v.num(m, "kay_max", where, default=float(d.kay_max), lo=0.0, hi=1.0),
+        kay_power=v.num(m, "kay_power", where, default=float(d.kay_power), lo=0.0, lo_open=True),
+        transmission=v.vec(m, "transmission", where, default=np.asarray(d.transmission), lo=0.0, hi=1.0, scalar_ok=True),
+        absorption=v.vec(m, "absorption", where, default=np.asarray(d.absorption), lo=0.0, scalar_ok=True),
         emission=v.vec(m, "emission", where, default=np.asarray(d.emission), lo=0.0, scalar_ok=True),
         ambient=v.vec(m, "ambient", where, default=np.asarray(d.ambient), lo=0.0, hi=1.0, scalar_ok=True),
         diffuse=v.vec(m, "diffuse", where, default=np.asarray(d.diffuse), lo=0.0, hi=1.0, scalar_ok=True),
@@ -199,31 +226,73 @@ def _lights(v: _V, lights: list):
     return directional, point, spot
 
 
-def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None = None) -> tuple[Scene, RenderOptions]:
-    """Build and validate a scene from a dictionary (the parsed TOML)."""
-    v = _V(source)
-    v.unknown(d, ("mesh", "camera", "render", "material", "back_material", "light", "fog", "ambient_light", "background"), "scene")
-    opts = _options(v, v.table(d, "render"))
+_MESH_KEYS = ("path", "icosphere", "radius", "box", "quad", "normal", "divisions")
 
-    m = v.table(d, "mesh", required=True)
-    v.unknown(m, ("path", "icosphere"), "mesh")
-    if ("path" in m) == ("icosphere" in m):
-        v.fail("mesh", "give exactly one of 'path' (a mesh file) or 'icosphere' (subdivisions)")
-    if "path" in m:
+
+def _mesh(v: _V, m: dict, where: str, base: Path | None) -> Mesh:
+    """One mesh: a file (``path``), or a primitive: ``icosphere`` (subdivisions, with ``radius``),
+    ``box`` (extents), ``quad`` (size, with ``normal`` and ``divisions``)."""
+    v.unknown(m, _MESH_KEYS, where)
+    kinds = [k for k in ("path", "icosphere", "box", "quad") if k in m]
+    if len(kinds) != 1:
+        v.fail(where, "give exactly one of 'path' (a mesh file), 'icosphere' (subdivisions), 'box' (extents) or "
+                      "'quad' (size)")
+    kind = kinds[0]
+    for k, owner in (("radius", "icosphere"), ("normal", "quad"), ("divisions", "quad")):
+        if k in m and kind != owner:
+            v.fail(f"{where}.{k}", f"only applies to '{owner}'")
+    if kind == "path":
         if not isinstance(m["path"], str):
-            v.fail("mesh.path", f"must be a string, got {m['path']!r}")
+            v.fail(f"{where}.path", f"must be a string, got {m['path']!r}")
         p = Path(m["path"])
         if not p.is_absolute() and base is not None:
             p = base / p
         try:
-            mesh = load_mesh(p)
+            return load_mesh(p)
         except MeshError as exc:
-            v.fail("mesh.path", str(exc))
-    else:
+            v.fail(f"{where}.path", str(exc))
+    if kind == "icosphere":
         sub = m["icosphere"]
         if isinstance(sub, bool) or not isinstance(sub, int) or not 0 <= sub <= 7:
-            v.fail("mesh.icosphere", f"must be an integer in [0, 7], got {sub!r}")
-        mesh = icosphere(sub)
+            v.fail(f"{where}.icosphere", f"must be an integer in [0, 7], got {sub!r}")
+        return icosphere(sub, v.num(m, "radius", where, default=1.0, lo=0.0, lo_open=True))
+    if kind == "box":
+        ext = v.vec(m, "box", where, scalar_ok=True)
+        if (ext <= 0).any():
+            v.fail(f"{where}.box", f"extents must be > 0, got {ext.tolist()}")
+        return box(ext)
+    size = v.vec(m, "quad", where, n=2, scalar_ok=True)
+    if (size <= 0).any():
+        v.fail(f"{where}.quad", f"sides must be > 0, got {size.tolist()}")
+    div = m.get("divisions", 1)
+    if isinstance(div, bool) or not isinstance(div, int) or not 1 <= div <= 256:
+        v.fail(f"{where}.divisions", f"must be an integer in [1, 256], got {div!r}")
+    return quad(size, normal=v.vec(m, "normal", where, default=[0.0, 0.0, 1.0], nonzero=True), divisions=div)
+
+
+def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None = None) -> tuple[Scene, RenderOptions]:
+    """Build and validate a scene from a dictionary (the parsed TOML)."""
+    v = _V(source)
+    v.unknown(d, ("mesh", "camera", "render", "material", "back_material", "light", "fog", "ambient_light", "background",
+                  "object", "shadow"), "scene")
+    opts = _options(v, v.table(d, "render"))
+
+    objects = d.get("object", [])
+    if not isinstance(objects, list) or not all(isinstance(o, dict) for o in objects):
+        v.fail("object", "must be an array of tables ([[object]])")
+    meshes = []
+    if "mesh" in d or not objects:
+        meshes.append(_mesh(v, v.table(d, "mesh", required=True), "mesh", base))
+    for i, o in enumerate(objects):
+        w = f"object[{i}]"
+        v.unknown(o, _MESH_KEYS + ("translate", "scale", "material"), w)
+        meshes.append(_mesh(v, {k: x for k, x in o.items() if k in _MESH_KEYS}, w, base))
+        shift = v.vec(o, "translate", w, default=[0.0, 0.0, 0.0])
+        scale = v.vec(o, "scale", w, default=[1.0, 1.0, 1.0], lo=0.0, scalar_ok=True)
+        if np.any(scale == 0):
+            v.fail(f"{w}.scale", "must not be 0")
+        meshes[-1] = Mesh(vertices=np.asarray(meshes[-1].vertices) * scale + shift, faces=meshes[-1].faces)
+    mesh = meshes[0] if len(meshes) == 1 else combine(*meshes)
 
     c = v.table(d, "camera", required=True)
     v.unknown(c, ("eye", "target", "up", "fov_y", "near", "far", "width", "height"), "camera")
@@ -245,8 +314,24 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
         size[k] = x
     camera = Camera(eye=eye, target=target, up=up, fov_y=fov, near=near, far=far, **size)
 
-    material = _material(v, v.table(d, "material"), "material")
+    mats = []
+    if "mesh" in d or not objects:
+        mats.append(_material(v, v.table(d, "material"), "material"))
+    elif "material" in d:
+        v.fail("material", "with [[object]] and no [mesh], give each object its own [object.material]")
+    for i, o in enumerate(objects):
+        mo = o.get("material", {})
+        if not isinstance(mo, dict):
+            v.fail(f"object[{i}].material", "must be a table")
+        mats.append(_material(v, mo, f"object[{i}].material"))
+    material, extra = mats[0], tuple(mats[1:])
     back = _material(v, d["back_material"], "back_material") if "back_material" in d else None
+    if back is not None and extra:
+        v.fail("back_material", "applies to a one-material scene; give each object its own material instead")
+    sh = v.table(d, "shadow")
+    v.unknown(sh, ("bias", "slope_bias"), "shadow")
+    if sh and not opts.shadows:
+        v.fail("render.shadows", "a [shadow] section is given but render.shadows is false")
     if back is not None and not opts.back_material:
         opts = opts.replace(back_material=True)
     directional, point, spot = _lights(v, d.get("light", []))
@@ -270,7 +355,9 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
     background = v.vec(d, "background", "scene", default=bg_default, lo=0.0, scalar_ok=True)
     scene = Scene(
         mesh=mesh, camera=camera, material=material, back_material=back, directional=directional,
-        point=point, spot=spot, ambient_light=ambient, background=background, fog=fog,
+        point=point, spot=spot, ambient_light=ambient, background=background, fog=fog, materials=extra,
+        shadow_bias=v.num(sh, "bias", "shadow", default=1e-3, lo=0.0),
+        shadow_slope_bias=v.num(sh, "slope_bias", "shadow", default=0.5, lo=0.0),
     )
     return scene, opts
 

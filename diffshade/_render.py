@@ -16,24 +16,7 @@ from . import _shade as S
 from ._raster import _pixel_vertex_ids, fragments, visibility
 from ._scene import Material, RenderOptions, Scene
 from ._shadow import light_visibility
-
-
-def _keep(*xs):
-    """Materialise ``xs`` (returned as a tuple): an XLA fusion boundary, transparent to jit, grad, jvp and vmap.
-
-    Without it XLA's CPU backend fuses shared producers (a light's specular power, the
-    barycentrics, a vertex colour) into every consumer and recomputes them there — per colour
-    channel, and per pixel inside the gathers of the interpolation, in scalar (unvectorised)
-    code: the Gouraud render took 57 ms at 256², 3.3 ms with these boundaries.
-    ``lax.optimization_barrier`` does not stop it on CPU (it is removed before fusion), and XLA
-    simplifies away other no-ops; a conditional's operands and results are always materialised.
-    The predicate ``p == p or p != p`` is true for every value, NaN included, so the identity
-    branch is always the one taken; the other exists only to make the conditional non-trivial.
-    """
-    xs = tuple(jnp.asarray(x) for x in xs)
-    p = xs[0].reshape(-1)[0] if xs[0].size else jnp.zeros((), xs[0].dtype)
-    pred = (p == p) | (p != p)
-    return jax.lax.cond(pred, lambda t: t, lambda t: tuple(jnp.zeros_like(a) for a in t), xs)
+from ._util import keep as _keep
 
 
 def _rgb(c):

@@ -40,6 +40,7 @@ import numpy as np
 
 from . import _shade as S
 from ._raster import visibility
+from ._util import keep
 
 _SPOT_MAX_HALF_ANGLE = 80.0
 _CUBE = np.array(  # (axis a, u, v) of the six faces: +x, -x, +y, -y, +z, -z
@@ -195,6 +196,15 @@ def _lookup(vw: _Views, ids, planes, P, ng, bias, slope_bias, R: int, pcf: int):
     pn, pd = planes
     tol = bias + slope_bias * texel
     d_recv = S.dot(ng, P)
+    # Materialise what every tap reads (XLA would otherwise recompute it inside each tap's fusion).
+    if face is None:
+        kept = keep(ix0, iy0, s, texel, tol, d_recv, inside, *ng)
+        ix0, iy0, s, texel, tol, d_recv, inside = kept[:7]
+        ng = kept[7:10]
+    else:
+        kept = keep(ix0, iy0, s, texel, tol, d_recv, inside, base, *ng, *a, *u, *v)
+        ix0, iy0, s, texel, tol, d_recv, inside, base = kept[:8]
+        ng, a, u, v = kept[8:11], kept[11:14], kept[14:17], kept[17:20]
     lit = jnp.zeros(s.shape, dtype)
     rad = pcf // 2
     for dy in range(-rad, rad + 1):
@@ -214,7 +224,8 @@ def _lookup(vw: _Views, ids, planes, P, ng, bias, slope_bias, R: int, pcf: int):
             tri = flat[base + jnp.clip(iy, 0, R - 1) * R + jnp.clip(ix, 0, R - 1)]
             seen = on_map & (tri >= 0)
             t = jnp.where(seen, tri, 0)
-            s_occ, ok_occ = _ray_depth(tuple(c[t] for c in pn), pd[t], o, a, u, v, xc, yc, vw.h, vw.ortho)
+            occ = keep(*(c[t] for c in pn), pd[t])
+            s_occ, ok_occ = _ray_depth(occ[:3], occ[3], o, a, u, v, xc, yc, vw.h, vw.ortho)
             blocked = seen & ok_occ & (s_occ < s_recv - tol)
             lit = lit + jnp.where(blocked, 0.0, 1.0)
     frac = lit / float(pcf * pcf)

@@ -97,11 +97,41 @@ def scene_dict(**over):
         ({"material": {"colour": 1}}, r"material: unknown field"),
         ({"render": {"shading": "toon"}}, r"render: shading must be one of"),
         ({"mesh": {"path": "missing.obj"}}, r"mesh.path: .*missing.obj: mesh file not found"),
+        ({"material": {"opacity": 1.5}}, r"material.opacity: must lie in \[0.0, 1.0\]"),
+        ({"material": {"kay": 1}}, r"material.kay: must be true or false"),
+        ({"material": {"absorption": [0, -1, 0]}}, r"material.absorption: each entry must be >= 0"),
+        ({"render": {"absorption": True, "transparency": True}}, r"render: absorption needs layers >= 2"),
+        ({"render": {"shadow_pcf": 2}}, r"render: shadow_pcf must be odd"),
+        ({"shadow": {"bias": 0.01}}, r"render.shadows: a \[shadow\] section is given but render.shadows is false"),
+        ({"object": [{"box": [1, 0, 1]}]}, r"object\[0\].box: extents must be > 0"),
+        ({"object": [{"quad": 2, "icosphere": 1}]}, r"object\[0\]: give exactly one of"),
+        ({"object": [{"icosphere": 1, "normal": [0, 0, 1]}]}, r"object\[0\].normal: only applies to 'quad'"),
+        ({"object": [{"quad": 1, "scale": 0}]}, r"object\[0\].scale: must not be 0"),
+        ({"object": [{"quad": 1, "material": {"opacity": -0.1}}]}, r"object\[0\].material.opacity: must lie in"),
+        ({"object": "box"}, r"object: must be an array of tables"),
     ],
 )
 def test_scene_validation_names_the_field(patch, msg):
     with pytest.raises(ds.SceneError, match=msg):
         ds.scene_from_dict(scene_dict(**patch), "test.toml")
+
+
+def test_objects_scene_file_example():
+    path = os.path.join(os.path.dirname(__file__), "..", "examples", "glass_and_shadows.toml")
+    scene, opts = ds.load_scene(path)
+    mats = scene.all_materials()
+    assert len(mats) == 3 and mats[2].kay and not mats[1].kay
+    ids = np.asarray(scene.mesh.material_ids)
+    assert ids.shape == (scene.mesh.faces.shape[0],) and set(ids.tolist()) == {0, 1, 2}
+    assert (ids == 1).sum() == 12 and (ids == 0).sum() == 2  # the box and the floor quad
+    assert opts.transparency and opts.absorption and opts.transmission and opts.shadows and opts.layers == 4
+    np.testing.assert_allclose(np.asarray(mats[1].absorption), [0.3, 0.7, 1.6])
+    V = np.asarray(scene.mesh.vertices)[np.unique(np.asarray(scene.mesh.faces)[ids == 2])]
+    np.testing.assert_allclose(np.linalg.norm(V - [0.4, 0.0, -0.4], axis=1), 0.7, rtol=1e-12)  # radius, translate
+    # With [mesh] + [material] and objects, the mesh is object 0.
+    d = scene_dict(object=[{"quad": [2, 2], "translate": [0, 0, -2], "material": {"diffuse": 0.3}}])
+    s2, _ = ds.scene_from_dict(d)
+    assert len(s2.all_materials()) == 2 and float(s2.materials[0].diffuse[0]) == 0.3
 
 
 def test_scene_file_roundtrip_and_fog_background(tmp_path):
