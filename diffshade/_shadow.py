@@ -144,24 +144,43 @@ def _face_planes(mesh):
     return n, S.dot(n, v0)
 
 
-def _ray_depth(n, d, o, a, u, v, xc, yc, h, ortho: bool):
-    r"""Depth :math:`s` (along the view axis ``a``) at which the ray through texel centre
-    ``(xc, yc)`` meets the plane :math:`n\cdot X = d`; ``None``-safe: ``ok`` is False where the
-    ray runs along the plane."""
-    do = d - S.dot(n, o)
+def _plane_depth(nd, na, nu, nv, xc, yc, h, ortho: bool):
+    """Depth :math:`s` (along the view axis ``a``) at which the ray through texel centre
+    ``(xc, yc)`` (NDC) meets the plane :math:`n \\cdot (X - o) = nd`, given :math:`n\\cdot a`,
+    :math:`n\\cdot u`, :math:`n\\cdot v`; ``ok`` is False where the ray runs along the plane.
+
+    Orthographic rays start at :math:`o + h(x_c u + y_c v)` along ``a``; perspective rays leave
+    ``o`` along :math:`a + h(x_c u + y_c v)` (so that the ray parameter is the depth)."""
+    lateral = h * (xc * nu + yc * nv)
     if ortho:
-        num = do - h * (xc * S.dot(n, u) + yc * S.dot(n, v))
-        den = S.dot(n, a)
+        num, den = nd - lateral, na
     else:
-        num = do
-        den = S.dot(n, a) + h * (xc * S.dot(n, u) + yc * S.dot(n, v))
+        num, den = nd, na + lateral
     ok = jnp.abs(den) > 1e-9
     return num / jnp.where(ok, den, 1.0), ok
 
 
-def _lookup(vw: _Views, ids, planes, P, ng, bias, slope_bias, R: int, pcf: int):
+def _depth_maps(vw: _Views, ids, planes, R: int, dtype):
+    """Eager depth maps ``[n * R * R]``: the depth of the triangle seen through each texel centre
+    along that texel's ray (the largest float where no triangle is seen)."""
+    pn, pd = planes
+    c = (2.0 * jnp.arange(R, dtype=dtype) + 1.0) / R - 1.0
+    xc, yc = c[None, None, :], -c[None, :, None]
+    tri = ids  # [n, R, R]
+    seen = tri >= 0
+    t = jnp.where(seen, tri, 0)
+    n = tuple(x[t] for x in pn)
+    nd = pd[t] - S.dot(n, tuple(vw.o[i] for i in range(3)))
+    ax = lambda tab: tuple(tab[:, i][:, None, None] for i in range(3))  # noqa: E731
+    s, ok = _plane_depth(nd, S.dot(n, ax(vw.a)), S.dot(n, ax(vw.u)), S.dot(n, ax(vw.v)), xc, yc, vw.h, vw.ortho)
+    return jnp.where(seen & ok, s, jnp.finfo(dtype).max).reshape(-1)
+
+
+def _lookup(vw: _Views, ids, planes, P, ng, bias, slope_bias, R: int, pcf: int, eager: bool):
     """Fraction of the PCF kernel that is lit for points ``P`` with face normals ``ng``
-    (component tuples) in one light's views."""
+    (component tuples) in one light's views. ``eager``: read depths from maps computed for
+    every texel (cheaper when there are more lookups than texels), else from the planes of the
+    triangles the looked-up texels see."""
     dtype = P[0].dtype
     o = S.vec(vw.o)
     d = S.sub(P, o)
@@ -191,20 +210,25 @@ def _lookup(vw: _Views, ids, planes, P, ng, bias, slope_bias, R: int, pcf: int):
     inside = inside & (fx >= 0) & (fx < R) & (fy >= 0) & (fy < R)
     ix0 = jnp.clip(jnp.floor(jnp.where(inside, fx, 0.0)), 0, R - 1).astype(jnp.int32)
     iy0 = jnp.clip(jnp.floor(jnp.where(inside, fy, 0.0)), 0, R - 1).astype(jnp.int32)
-    base = 0 if face is None else face * (R * R)
-    flat = ids.reshape(-1)
-    pn, pd = planes
+    base = jnp.zeros((), jnp.int32) if face is None else face * (R * R)
     tol = bias + slope_bias * texel
-    d_recv = S.dot(ng, P)
+    # The receiver's plane (through P, face normal ng) in this view's frame.
+    nd, na, nu, nv = S.dot(ng, d), S.dot(ng, a), S.dot(ng, u), S.dot(ng, v)
     # Materialise what every tap reads (XLA would otherwise recompute it inside each tap's fusion).
-    if face is None:
-        kept = keep(ix0, iy0, s, texel, tol, d_recv, inside, *ng)
-        ix0, iy0, s, texel, tol, d_recv, inside = kept[:7]
-        ng = kept[7:10]
+    ix0, iy0, base, s, texel, tol, nd, na, nu, nv, inside = keep(ix0, iy0, base, s, texel, tol, nd, na, nu, nv, inside)
+    if eager:
+        depth = _depth_maps(vw, ids, planes, R, dtype)
     else:
-        kept = keep(ix0, iy0, s, texel, tol, d_recv, inside, base, *ng, *a, *u, *v)
-        ix0, iy0, s, texel, tol, d_recv, inside, base = kept[:8]
-        ng, a, u, v = kept[8:11], kept[11:14], kept[14:17], kept[17:20]
+        flat = ids.reshape(-1)
+        pn, pd = planes
+        po = pd - S.dot(pn, o)
+        if face is None:
+            occ_tabs = (po, S.dot(pn, a), S.dot(pn, u), S.dot(pn, v))
+        else:  # per cube face: [6 * F]
+            occ_tabs = tuple(jnp.concatenate(t) for t in zip(*(
+                (po, S.dot(pn, S.vec(vw.a[f])), S.dot(pn, S.vec(vw.u[f])), S.dot(pn, S.vec(vw.v[f])))
+                for f in range(vw.count))))
+        nf = pd.shape[0]
     lit = jnp.zeros(s.shape, dtype)
     rad = pcf // 2
     for dy in range(-rad, rad + 1):
@@ -217,16 +241,23 @@ def _lookup(vw: _Views, ids, planes, P, ng, bias, slope_bias, R: int, pcf: int):
             xc = (2.0 * ix.astype(dtype) + 1.0) / R - 1.0
             yc = 1.0 - (2.0 * iy.astype(dtype) + 1.0) / R
             # Receiver: P's own plane along the ray through the texel centre (bounded where the
-            # receiver is grazing); occluder: the plane of the triangle the map sees there.
-            s_recv, ok = _ray_depth(ng, d_recv, o, a, u, v, xc, yc, vw.h, vw.ortho)
+            # receiver is grazing); occluder: what the map saw through that texel.
+            s_recv, ok = _plane_depth(nd, na, nu, nv, xc, yc, vw.h, vw.ortho)
             reach = texel * (1.0 + max(abs(dx), abs(dy))) * 8.0
             s_recv = jnp.where(ok, jnp.clip(s_recv, s - reach, s + reach), s)
-            tri = flat[base + jnp.clip(iy, 0, R - 1) * R + jnp.clip(ix, 0, R - 1)]
-            seen = on_map & (tri >= 0)
-            t = jnp.where(seen, tri, 0)
-            occ = keep(*(c[t] for c in pn), pd[t])
-            s_occ, ok_occ = _ray_depth(occ[:3], occ[3], o, a, u, v, xc, yc, vw.h, vw.ortho)
-            blocked = seen & ok_occ & (s_occ < s_recv - tol)
+            idx = base + jnp.clip(iy, 0, R - 1) * R + jnp.clip(ix, 0, R - 1)
+            if eager:
+                s_occ = depth[idx]
+                blocked = on_map & (s_occ < s_recv - tol)
+            else:
+                tri = flat[idx]
+                seen = on_map & (tri >= 0)
+                t = jnp.where(seen, tri, 0)
+                if face is not None:
+                    t = t + face * nf
+                occ = keep(*(tab[t] for tab in occ_tabs))
+                s_occ, ok_occ = _plane_depth(*occ, xc, yc, vw.h, vw.ortho)
+                blocked = seen & ok_occ & (s_occ < s_recv - tol)
             lit = lit + jnp.where(blocked, 0.0, 1.0)
     frac = lit / float(pcf * pcf)
     return jnp.where(inside, frac, 1.0)
@@ -242,7 +273,9 @@ def light_visibility(scene, opts, P, ng) -> list:
     planes = _face_planes(scene.mesh)
     bias = jax.lax.stop_gradient(scene.shadow_bias)
     slope = jax.lax.stop_gradient(scene.shadow_slope_bias)
+    R, pcf = opts.shadow_resolution, opts.shadow_pcf
+    lookups = int(np.prod(P[0].shape)) * pcf * pcf
     return [
-        _lookup(vw, m, planes, P, ng, bias, slope, opts.shadow_resolution, opts.shadow_pcf)
+        _lookup(vw, m, planes, P, ng, bias, slope, R, pcf, eager=lookups > vw.count * R * R)
         for vw, m in zip(views, maps)
     ]

@@ -70,7 +70,10 @@ def load_target(path: Path, resolution: tuple[int, int]):
 
 
 def write_mtl(scene, opts, path: Path, header: str) -> None:
-    """The scene's material (and back material) as a Wavefront MTL file."""
+    """The scene's materials (and back material) as a Wavefront MTL file.
+
+    ``d`` is the opacity (dissolve), ``Tf`` the transmission k_t; what MTL has no key for
+    (absorption μ, Kay's opacity) is written as a comment line above its material."""
     import numpy as np
 
     def rgb(x):
@@ -79,13 +82,23 @@ def write_mtl(scene, opts, path: Path, header: str) -> None:
     lines = [f"# {ln}" for ln in header.splitlines()]
     lines.append(f"# Ns is the {'Blinn-Phong' if opts.specular == 'blinn' else 'Phong'} exponent; "
                  "colours are linear; Ke = emission")
-    mats = [("material", scene.material)]
+    mats = [("material", scene.material)] + [(f"material_{i + 1}", m) for i, m in enumerate(scene.materials)]
     if scene.back_material is not None:
         mats.append(("back_material", scene.back_material))
     for name, m in mats:
-        lines += ["", f"newmtl {name}", f"Ka {rgb(m.ambient)}", f"Kd {rgb(m.diffuse)}", f"Ks {rgb(m.specular)}",
-                  f"Ns {float(m.shininess):.6g}", f"Ke {rgb(m.emission)}", f"Ni {float(m.ior):.6g}", "d 1",
-                  f"illum {1 if opts.specular == 'none' else 2}"]
+        extra = []
+        if opts.absorption:
+            extra.append(f"# absorption mu {rgb(m.absorption)} (per unit length)")
+        if opts.transparency and m.kay:
+            extra.append(f"# Kay opacity t_min {float(m.kay_min):.6g} t_max {float(m.kay_max):.6g} "
+                         f"p {float(m.kay_power):.6g}")
+        opacity = float(m.opacity) if opts.transparency and not m.kay else 1.0
+        lines += ["", *extra, f"newmtl {name}", f"Ka {rgb(m.ambient)}", f"Kd {rgb(m.diffuse)}",
+                  f"Ks {rgb(m.specular)}", f"Ns {float(m.shininess):.6g}", f"Ke {rgb(m.emission)}",
+                  f"Ni {float(m.ior):.6g}", f"d {opacity:.6g}"]
+        if opts.transmission:
+            lines.append(f"Tf {rgb(m.transmission)}")
+        lines.append(f"illum {1 if opts.specular == 'none' else (4 if opts.transparency else 2)}")
     _write_text("\n".join(lines) + "\n", path)
 
 
@@ -128,6 +141,18 @@ def _render(scene, opts, out: Path, overwrite: bool) -> None:
         f"specular={opts.specular}, fog={opts.fog}, lights: {scene.directional.count} directional, "
         f"{scene.point.count} point, {scene.spot.count} spot"
     )
+    extras = [name for name, on in (("absorption", opts.absorption), ("transmission", opts.transmission)) if on]
+    if opts.transparency:
+        extras.insert(0, f"transparency over {opts.layers} layer(s)")
+    if opts.shadows:
+        extras.append(f"shadow maps {opts.shadow_resolution}² (PCF {opts.shadow_pcf}x{opts.shadow_pcf})")
+    if extras:
+        print("with " + ", ".join(extras))
+    if opts.layered:
+        cut = ds.truncated_pixels(scene, opts)
+        if cut:
+            print(f"note: {cut} pixel(s) have more than {opts.layers} surfaces; what lies beyond the last layer "
+                  "is not composited (raise render.layers to include it)")
     print(f"first call (compile + run) {t1 - t0:.2f} s, steady state {1e3 * (t2 - t1):.1f} ms")
     print(f"wrote {out}")
 
