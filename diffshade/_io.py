@@ -151,13 +151,17 @@ def _options(v: _V, r: dict) -> RenderOptions:
 
 def _material(v: _V, m: dict, where: str) -> Material:
     keys = ("emission", "ambient", "diffuse", "specular", "shininess", "ior", "opacity", "kay", "kay_min", "kay_max",
-            "kay_power", "transmission", "absorption")
+            "kay_power", "transmission", "absorption", "casts_shadow")
     v.unknown(m, keys, where)
     d = Material()
-    kay = m.get("kay", False)
-    if not isinstance(kay, bool):
-        v.fail(f"{where}.kay", f"must be true or false, got {kay!r}")
+    flags = {}
+    for k, default in (("kay", False), ("casts_shadow", True)):
+        flags[k] = m.get(k, default)
+        if not isinstance(flags[k], bool):
+            v.fail(f"{where}.{k}", f"must be true or false, got {flags[k]!r}")
+    kay = flags["kay"]
     return Material(
+        casts_shadow=flags["casts_shadow"],
         opacity=v.num(m, "opacity", where, default=float(d.opacity), lo=0.0, hi=1.0),
         kay=kay,
         kay_min=v.num(m, "kay_min", where, default=float(d.kay_min), lo=0.0, hi=1.0),

@@ -58,7 +58,10 @@ class Material(eqx.Module):
     the transmission :math:`1 - t`, which is the same family with the two values swapped to
     :math:`1 - t`). ``transmission`` :math:`k_t` (RGB) weights the directed transmission
     :math:`k_t I_p \cos^m\beta`; ``absorption`` :math:`\mu` (RGB, per unit length) gives
-    Bouguer's :math:`e^{-\mu\ell}` inside a closed mesh.
+    Bouguer's :math:`e^{-\mu\ell}` inside a closed mesh. ``casts_shadow`` (static) leaves the
+    material's faces out of the shadow maps: shadows treat every surface they contain as opaque,
+    so a glass object that should let light through (for its transmission or for what lies
+    behind it) is given ``casts_shadow=False``.
     """
 
     emission: Float[Array, "3"] = eqx.field(converter=_rgb, default=(0.0, 0.0, 0.0))
@@ -74,6 +77,7 @@ class Material(eqx.Module):
     transmission: Float[Array, "3"] = eqx.field(converter=_rgb, default=(0.0, 0.0, 0.0))
     absorption: Float[Array, "3"] = eqx.field(converter=_rgb, default=(0.0, 0.0, 0.0))
     kay: bool = eqx.field(static=True, default=False)
+    casts_shadow: bool = eqx.field(static=True, default=True)
 
 
 class DirectionalLights(eqx.Module):

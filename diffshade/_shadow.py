@@ -25,7 +25,8 @@ the bias covering curvature and rounding. ``shadow_pcf = k`` averages this test 
 own receiver-plane depth. Texels with no surface, points outside a view and points behind the
 near plane count as lit; a PCF kernel that leaves a cube face is clamped to its edge.
 
-Shadows treat every surface as opaque (a transparent surface casts a full shadow).
+Shadows treat every surface as opaque (a transparent surface casts a full shadow); the faces of a
+material with ``casts_shadow=False`` are left out of the maps (glass that lets the light through).
 
 The test is discrete, like the rasterizer's visibility: :math:`S_i` carries no gradient (it is
 computed under ``stop_gradient``) and multiplies light :math:`i`'s direct terms, through which
@@ -127,13 +128,25 @@ def light_views(scene, opts) -> list[_Views]:
     return views
 
 
+def _casting_faces(scene):
+    """The mesh's faces, those of materials with ``casts_shadow=False`` made degenerate (a
+    zero-area triangle covers no texel)."""
+    mats = scene.all_materials()
+    faces = scene.mesh.faces
+    casts = [m.casts_shadow for m in mats]
+    if all(casts):
+        return faces
+    ids = scene.mesh.material_ids
+    keep_face = jnp.asarray(casts)[ids] if ids is not None else jnp.full(faces.shape[0], casts[0])
+    return jnp.where(keep_face[:, None], faces, 0)
+
+
 def shadow_maps(scene, opts, views: list[_Views]):
     """Per light, the triangle seen through each texel, ``[n, R, R]`` (-1 where none)."""
     R = opts.shadow_resolution
     X = jax.lax.stop_gradient(scene.mesh.vertices)
-    return [
-        jax.vmap(lambda c: visibility(c, scene.mesh.faces, (R, R), 1, opts.backend)[0])(vw.clip(X)) for vw in views
-    ]
+    faces = _casting_faces(scene)
+    return [jax.vmap(lambda c: visibility(c, faces, (R, R), 1, opts.backend)[0])(vw.clip(X)) for vw in views]
 
 
 def _face_planes(mesh):

@@ -124,7 +124,7 @@ def test_objects_scene_file_example():
     ids = np.asarray(scene.mesh.material_ids)
     assert ids.shape == (scene.mesh.faces.shape[0],) and set(ids.tolist()) == {0, 1, 2}
     assert (ids == 1).sum() == 12 and (ids == 0).sum() == 2  # the box and the floor quad
-    assert opts.transparency and opts.absorption and opts.transmission and opts.shadows and opts.layers == 4
+    assert opts.transparency and opts.absorption and opts.transmission and opts.shadows and opts.layers == 5
     np.testing.assert_allclose(np.asarray(mats[1].absorption), [0.3, 0.7, 1.6])
     V = np.asarray(scene.mesh.vertices)[np.unique(np.asarray(scene.mesh.faces)[ids == 2])]
     np.testing.assert_allclose(np.linalg.norm(V - [0.4, 0.0, -0.4], axis=1), 0.7, rtol=1e-12)  # radius, translate

@@ -281,6 +281,16 @@ def test_sphere_shadow_on_plane(kind, pcf, shading):
     np.testing.assert_allclose(img[sel_l], full[sel_l], rtol=1e-5)
 
 
+def test_material_that_casts_no_shadow():
+    scene, opts = shadow_scene("directional", size=24)
+    glass = ds.Material(ambient=0.3, diffuse=0.6, specular=0.0, casts_shadow=False)
+    lit_all = ds.Scene(**{**{k: getattr(scene, k) for k in scene.__dataclass_fields__}, "materials": (glass,)})
+    plane = np.asarray(_jit_render(opts.replace(shadows=False))(scene))
+    a, b = render(scene, opts), render(lit_all, opts)
+    assert (np.abs(a - plane).max(-1) > 0.05).sum() > 10  # the sphere's shadow
+    np.testing.assert_allclose(b, plane, atol=1e-12)  # no shadow without its faces in the map
+
+
 def test_shadows_off_cost_nothing_and_bias_changes_do_not_recompile():
     scene, opts = shadow_scene("directional", size=16)
     f = jax.jit(lambda s: ds.render(s, opts))
@@ -464,17 +474,17 @@ def grad_scene(size=12):
     plane = ds.quad((5, 5), (0, 0, -1.2))
     mats = (ds.Material(ambient=0.3, diffuse=(0.8, 0.7, 0.6), specular=0.2, shininess=10.0),
             ds.Material(ambient=0.1, diffuse=(0.2, 0.3, 0.5), specular=0.3, opacity=0.4, absorption=(0.4, 0.7, 1.1),
-                        transmission=(0.3, 0.4, 0.5), ior=1.4, shininess=8.0),
+                        transmission=(0.3, 0.4, 0.5), ior=1.4, shininess=8.0, casts_shadow=False),
             ds.Material(ambient=0.2, diffuse=(0.7, 0.2, 0.2), specular=0.1, kay=True, kay_min=0.9, kay_max=0.3,
                         kay_power=1.7))
     cam = camera([0.4, 0.5, 4], [0, 0, -0.3], size, fov=40)
     return ds.Scene(mesh=ds.combine(plane, slab, ball), camera=cam, material=mats[0], materials=mats[1:],
-                    point=ds.PointLights(color=(0.9, 0.8, 0.7), position=[0.5, 0.8, -2.5], attenuation=[1, 0.1, 0.05],
+                    point=ds.PointLights(color=(0.9, 0.8, 0.7), position=[-0.5, -0.4, -0.5], attenuation=[1, 0.1, 0.05],
                                          ambient=[0, 0, 0]),
                     directional=dlight([0.2, -0.3, -1.0], 0.5), ambient_light=0.4, background=(0.1, 0.1, 0.2))
 
 
-NEW_PARAMS = {
+NEW_PARAMS = {  # name: (where in the scene, value, size)
     "opacity": (lambda s: s.materials[0].opacity, 0.4),
     "absorption": (lambda s: s.materials[0].absorption, np.array([0.4, 0.7, 1.1])),
     "transmission": (lambda s: s.materials[0].transmission, np.array([0.3, 0.4, 0.5])),
@@ -483,61 +493,94 @@ NEW_PARAMS = {
     "kay_max": (lambda s: s.materials[1].kay_max, 0.3),
     "kay_power": (lambda s: s.materials[1].kay_power, 1.7),
     "point_color": (lambda s: s.point.color, np.array([[0.9, 0.8, 0.7]])),
-    "point_a1": (lambda s: s.point.attenuation, np.array([[1.0, 0.1, 0.05]])),
+    "point_attenuation": (lambda s: s.point.attenuation, np.array([[1.0, 0.1, 0.05]])),
 }
+_SIZES = [int(np.size(v)) for _, v in NEW_PARAMS.values()]
+_OFFSETS = np.cumsum([0] + _SIZES)
+_LABELS = [f"{n}[{i}]" for n, sz in zip(NEW_PARAMS, _SIZES) for i in range(sz)]
 
 
 @pytest.fixture(scope="module")
-def grad_base():
-    scene = grad_scene()
-    ids = ds.scene_visibility(scene, GRAD_OPTS)
-    return scene, ids
-
-
-@pytest.mark.parametrize("name", list(NEW_PARAMS))
-def test_gradients_new_parameters(grad_base, name):
+def grad_fn():
+    """The image as a function of every new parameter at once (one compile for all checks)."""
     import equinox as eqx
 
-    scene, ids = grad_base
-    where, value = NEW_PARAMS[name]
+    scene = grad_scene()
+    ids = ds.scene_visibility(scene, GRAD_OPTS)
+    x0 = jnp.concatenate([jnp.ravel(jnp.asarray(v, F64)) for _, v in NEW_PARAMS.values()])
 
     def f(x):
-        s = eqx.tree_at(where, scene, jnp.asarray(x, F64))
+        s = scene
+        for (where, value), a, b in zip(NEW_PARAMS.values(), _OFFSETS[:-1], _OFFSETS[1:]):
+            s = eqx.tree_at(where, s, x[a:b].reshape(np.shape(value)))
         return ds.shade(s, ids, GRAD_OPTS)
 
-    x = jnp.asarray(value, F64)
-    img = f(x)
+    return jax.jit(f), x0
+
+
+def test_gradients_new_parameters(grad_fn):
+    """Every column of the forward-mode Jacobian (t, μ, k_t, η, t_min, t_max, p, light colour and
+    attenuation) against central differences, and reverse mode against forward mode; then
+    ``check_grads`` (random directions, both modes) on the whole vector."""
+    f, x0 = grad_fn
+    img = f(x0)
     assert np.all(np.isfinite(np.asarray(img)))
-    check_grads(f, (x,), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-5, eps=1e-6)
+    J = np.asarray(jax.jit(jax.jacfwd(f))(x0)).reshape(-1, x0.size)
+    JT = np.asarray(jax.jit(jax.jacrev(f))(x0)).reshape(-1, x0.size)
+    np.testing.assert_allclose(JT, J, rtol=1e-9, atol=1e-12)
+    eps = 1e-6
+    for k, label in enumerate(_LABELS):
+        e = jnp.zeros_like(x0).at[k].set(eps)
+        fd = (np.asarray(f(x0 + e)) - np.asarray(f(x0 - e))).reshape(-1) / (2 * eps)
+        assert np.abs(J[:, k]).max() > 1e-4, f"{label} has no effect on the test image"
+        np.testing.assert_allclose(J[:, k], fd, rtol=1e-5, atol=1e-7, err_msg=label)
+    check_grads(f, (x0,), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-5, eps=1e-6)
+
+
+_HARD = {}
+
+
+def _hard_fn(opts):
+    """(value, forward and reverse derivative of the image sum) in the scalar/vector ``x`` placed
+    by ``where``; compiled once per options and shape."""
+    import equinox as eqx
+
+    if opts not in _HARD:
+        def run(scene, x, where_id):
+            where = _WHERES[where_id]
+            f = lambda x: ds.render(eqx.tree_at(where, scene, x), opts)  # noqa: E731
+            return f(x), jax.jacfwd(lambda x: f(x).sum())(x), jax.grad(lambda x: f(x).sum())(x)
+
+        _HARD[opts] = jax.jit(run, static_argnums=2)
+    return _HARD[opts]
+
+
+_WHERES = {
+    "opacity": lambda s: s.materials[0].opacity,
+    "absorption": lambda s: s.materials[0].absorption,
+    "ior": lambda s: s.material.ior,
+}
 
 
 @pytest.mark.parametrize("case", ["t=0", "t=1", "mu=0", "kay |n_z|=0", "tir"])
 def test_hard_cases_finite(case):
-    import equinox as eqx
-
-    if case == "tir":
-        scene, opts = transmission_scene([np.sin(1.2), 0.0, np.cos(1.2)], "dielectric", size=8)
-        where, x = (lambda s: s.material.ior), jnp.asarray(1.5, F64)
-    elif case == "kay |n_z|=0":
-        # A plane seen exactly edge-on by the view axis of each pixel is not rasterized; test the
-        # function and a tilted plane whose n_z passes through 0 under the perturbation.
-        g = jax.grad(lambda nz: S.kay_opacity(nz, 0.9, 0.2, 0.5))(0.0)
-        gp = jax.grad(lambda p: S.kay_opacity(0.0, 0.9, 0.2, p))(0.5)
-        g1 = jax.grad(lambda nz: S.kay_opacity(nz, 0.9, 0.2, 0.5))(1.0)
-        assert np.isfinite(g) and np.isfinite(gp) and np.isfinite(g1)
+    if case == "kay |n_z|=0":
+        # A face exactly edge-on to the view is not rasterized, so the end point is tested on the
+        # function: values at |n_z| = 0 and 1, and finite derivatives in n_z and p, also p < 1.
+        for nz in (0.0, 1.0):
+            assert np.isfinite(jax.grad(lambda z: S.kay_opacity(z, 0.9, 0.2, 0.5))(nz))
+            assert np.isfinite(jax.grad(lambda p: S.kay_opacity(nz, 0.9, 0.2, p))(0.5))
+            assert np.isfinite(jax.jvp(lambda z: S.kay_opacity(z, 0.9, 0.2, 0.5), (nz,), (1.0,))[1])
         return
+    if case == "tir":  # every pixel beyond the critical angle
+        scene, opts = transmission_scene([np.sin(1.2), 0.0, np.cos(1.2)], "dielectric", size=8)
+        where, x = "ior", jnp.asarray(1.5, F64)
     else:
-        scene = grad_scene(size=8)
-        opts = GRAD_OPTS
-        attr = {"t=0": ("opacity", 0.0), "t=1": ("opacity", 1.0), "mu=0": ("absorption", np.zeros(3))}[case]
-        where = lambda s, a=attr[0]: getattr(s.materials[0], a)  # noqa: E731
-        x = jnp.asarray(attr[1], F64)
-
-    def f(x):
-        return ds.render(eqx.tree_at(where, scene, x), opts)
-
-    val = f(x)
-    jf = jax.jacfwd(lambda x: f(x).sum())(x)
-    jr = jax.grad(lambda x: f(x).sum())(x)
+        scene, opts = grad_scene(size=8), GRAD_OPTS
+        where, x = {"t=0": ("opacity", jnp.asarray(0.0, F64)), "t=1": ("opacity", jnp.asarray(1.0, F64)),
+                    "mu=0": ("absorption", jnp.zeros(3, F64))}[case]
+    val, jf, jr = _hard_fn(opts)(scene, x, where)
     assert np.all(np.isfinite(np.asarray(val))) and np.all(np.isfinite(np.asarray(jf)))
     np.testing.assert_allclose(np.asarray(jf), np.asarray(jr), rtol=1e-9, atol=1e-12)
+    if case == "tir":
+        assert np.all(np.asarray(val) == 0) and np.all(np.asarray(jf) == 0)
