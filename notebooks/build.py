@@ -1,6 +1,6 @@
 """Write the notebooks from the cell sources below and execute them, saving the outputs.
 
-    python notebooks/build.py            # write and execute all three (full sizes)
+    python notebooks/build.py            # write and execute all four (full sizes)
     python notebooks/build.py --no-run   # write only
 
 The test suite executes the saved notebooks again with ``DIFFSHADE_NOTEBOOK_SMALL=1`` (small
@@ -352,7 +352,197 @@ lm = [r for r in runs if r[0] == "lm" and r[1] == 100][0]
 assert lm[4] < 1e-4"""),
 ]
 
-NOTEBOOKS = {"01_tour_of_terms.ipynb": TOUR, "02_fitting.ipynb": FITTING, "03_speed_vs_error.ipynb": SPEED}
+
+GLASS = [
+    ("md", """\
+# 4 · Transparency, absorption, transmission and shadows
+
+MODEL.md §2 and §5 and the seeds' note on transparency (`../shared/seeds/004_*.txt`), on a floor,
+a glass box and a ball with Kay's opacity (`examples/glass_and_shadows.toml`):
+
+- opacity `t`, composited front to back over the `K` nearest surfaces, `I = t I₁ + (1 − t) I₂`;
+- Kay's opacity `t = t_min + (t_max − t_min)[1 − (1 − |n_z|)^p]`;
+- Bouguer's absorption `e^{−μℓ}`, `ℓ` the thickness between the entry and exit surfaces;
+- directed transmission `k_t I_p cos^m β` with Snell refraction and total internal reflection;
+- shadow maps for directional, point (six views) and spot lights, with percentage-closer filtering.
+
+Everything numeric stays differentiable; the last section fits the glass back from an image."""),
+    ("code", SETUP + """
+from pathlib import Path
+import diffshade._shade as S
+EXAMPLE = Path(ds.__file__).resolve().parent.parent / "examples" / "glass_and_shadows.toml"
+SIZE = 64 if SMALL else 256
+scene, opts = ds.load_scene(EXAMPLE)
+scene = eqx.tree_at(lambda s: s.camera, scene, ds.Camera(
+    eye=scene.camera.eye, target=scene.camera.target, up=scene.camera.up, fov_y=scene.camera.fov_y,
+    near=scene.camera.near, far=scene.camera.far, width=SIZE, height=SIZE))
+if SMALL:
+    opts = opts.replace(shadow_resolution=128)
+print(opts)
+print(len(scene.all_materials()), "materials,", scene.mesh.faces.shape[0], "faces")"""),
+    ("md", """\
+## Depth layers
+
+With `K` layers each pixel composites its `K` nearest surfaces; what lies beyond the last one is
+replaced by the background (the light left over, `Π(1 − t_k)`, comes from it).
+`ds.truncated_pixels` counts the pixels where that happens: here the floor seen through both walls
+of the box and both sides of the ball needs `K = 5`."""),
+    ("code", """\
+images, titles = [render(scene, opts.replace(transparency=False, absorption=False, transmission=False))], ["opaque"]
+for K in (1, 2, 3, 5):
+    o = opts.replace(layers=K, absorption=K >= 2)
+    images.append(render(scene, o))
+    titles.append(f"K = {K}: {ds.truncated_pixels(scene, o)} px truncated")
+show(images, titles, cols=5)
+assert ds.truncated_pixels(scene, opts.replace(layers=5)) == 0"""),
+    ("md", """\
+## Kay's opacity
+
+`n_z` is the view-space z of the unit normal: 1 face-on, 0 at a silhouette. The seed's names
+`t_min`, `t_max` are the values at `|n_z| = 0` and `1`; Kay's look — the material appears
+thicker, more opaque, towards the silhouette — has `t_min > t_max`. The power `p` sets how close to
+the silhouette the change happens. The rendered ball below is the example's (t_min 0.95,
+t_max 0.35, p 2) against linear opacity 0.35."""),
+    ("code", """\
+nz = np.linspace(0, 1, 201)
+fig, ax = plt.subplots(1, 2, figsize=(11, 3.6))
+for p in (0.5, 1, 2, 4, 8):
+    ax[0].plot(nz, S.kay_opacity(nz, 0.95, 0.35, p), label=f"p = {p}")
+ax[0].set_xlabel("|n_z|"); ax[0].set_ylabel("opacity t"); ax[0].legend(); ax[0].set_title("t_min 0.95, t_max 0.35")
+ball = scene.materials[1]
+plain_ball = ds.Material(ambient=ball.ambient, diffuse=ball.diffuse, specular=ball.specular, opacity=ball.kay_max)
+linear = eqx.tree_at(lambda s: s.materials[1], scene, plain_ball)
+both = np.concatenate([np.clip(render(linear, opts), 0, 1), np.clip(render(scene, opts), 0, 1)], axis=1)
+ax[1].imshow(both); ax[1].axis("off"); ax[1].set_title("linear t = 0.35  |  Kay")
+plt.tight_layout(); plt.show()
+assert abs(float(S.kay_opacity(1.0, 0.95, 0.35, 2.0)) - 0.35) < 1e-7 and abs(float(S.kay_opacity(0.0, 0.95, 0.35, 2.0)) - 0.95) < 1e-7"""),
+    ("md", """\
+## Absorption through a slab
+
+A slab of thickness 0.6 with invisible surfaces (`t = 0`) in front of a lit plane: each pixel is
+the plane's colour times `e^{−μℓ}`, `ℓ = 0.6/|cos|` along its view ray. Measured on the centre
+pixel against the closed form, per channel:"""),
+    ("code", """\
+def slab(mu, size=32):
+    mats = (ds.Material(ambient=0.2, diffuse=(0.9, 0.8, 0.7), specular=0.0),
+            ds.Material(specular=0.0, opacity=0.0, absorption=mu))
+    cam = ds.Camera(eye=[0, 0, 4], target=[0, 0, 0], up=[0, 1, 0], fov_y=20.0, near=0.5, far=20.0, width=size, height=size)
+    return ds.Scene(mesh=ds.combine(ds.quad((6, 6), (0, 0, -1)), ds.box((2, 2, 0.6), (0, 0, 0.5))), camera=cam,
+                    material=mats[0], materials=mats[1:], directional=ds.DirectionalLights(
+                        color=[1.0, 1.0, 1.0], direction=[0, 0, -1], ambient=[0, 0, 0]), ambient_light=1.0)
+slab_opts = ds.RenderOptions(transparency=True, absorption=True, layers=3, specular="none")
+mus = np.linspace(0, 4, 9)
+centre = np.array([np.asarray(render(slab(np.full(3, m)), slab_opts))[16, 16] for m in mus])
+d = np.array([0.5 / 32 * np.tan(np.deg2rad(10)) * 2, 0.5 / 32 * np.tan(np.deg2rad(10)) * 2, -1.0])  # pixel (16, 16)
+ell = 0.6 / abs(d[2] / np.linalg.norm(d))
+C = 0.2 + np.array([0.9, 0.8, 0.7])
+plt.figure(figsize=(5, 3.4))
+for c, col in enumerate("rgb"):
+    plt.semilogy(mus, centre[:, c], "o", color=col)
+    plt.semilogy(mus, C[c] * np.exp(-mus * ell), "-", color=col, alpha=0.5)
+plt.xlabel("μ"); plt.ylabel("centre pixel"); plt.title("dots: render, lines: C e^{−μℓ}"); plt.show()
+err = np.abs(centre / (C * np.exp(-mus[:, None] * ell)) - 1).max()
+print(f"max relative error {err:.1e}")
+assert err < 1e-5"""),
+    ("md", """\
+## Directed transmission and the critical angle
+
+The factor `W cos^m β` for light from inside glass (η = 1.5) reaching a viewer on the normal,
+as the light's angle of incidence grows. Without Fresnel (`W = 1`) it drops to 0 at the critical
+angle `arcsin(1/η)` = 41.8° (total internal reflection; `f` turns tangent, so `cos β → 0`); with
+the Fresnel split `W = 1 − F` falls to 0 there as well. From the other side (a back face: light
+entering the denser medium) there is no critical angle."""),
+    ("code", """\
+theta = np.radians(np.linspace(0, 89.5, 400))
+n = (jnp.zeros_like(theta), jnp.zeros_like(theta), jnp.ones_like(theta))
+l = (jnp.sin(theta), jnp.zeros_like(theta), -jnp.cos(theta))
+v = (jnp.zeros_like(theta), jnp.zeros_like(theta), jnp.ones_like(theta))
+plt.figure(figsize=(6, 3.6))
+for back, fres, style in ((False, "none", "-"), (False, "dielectric", "--"), (False, "schlick", ":"), (True, "dielectric", "-.")):
+    plt.plot(np.degrees(theta), S.directed_transmission(n, l, v, 1.0, 1.5, back, fres), style,
+             label=f"{'back' if back else 'front'} face, Fresnel {fres}")
+plt.axvline(np.degrees(np.arcsin(1 / 1.5)), color="k", lw=0.5)
+plt.xlabel("angle of incidence (deg)"); plt.ylabel("W cos^m β (m = 1)"); plt.legend(fontsize=8); plt.show()
+g = jax.grad(lambda e: S.directed_transmission(n, l, v, 1.0, e, False, "dielectric").sum())(1.5)
+assert np.isfinite(g)"""),
+    ("md", """\
+## Shadows
+
+One light at a time, with and without percentage-closer filtering, and the cost of the maps
+(steady state, compile apart). A point light renders six 90° views; receiver-plane depth keeps
+the lit floor free of acne with a bias of 10⁻³."""),
+    ("code", """\
+def timed(fn, *args, repeats=3 if SMALL else 10):
+    jax.block_until_ready(fn(*args))
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter(); jax.block_until_ready(fn(*args)); ts.append(time.perf_counter() - t0)
+    return 1e3 * np.median(ts)
+
+images, titles = [], []
+plain = opts.replace(transparency=False, absorption=False, transmission=False)
+for kind in ("directional", "point", "spot"):
+    one = scene
+    for other in ("directional", "point", "spot"):
+        if other != kind:
+            one = eqx.tree_at(lambda s: getattr(s, other), one, {"directional": ds.no_directional,
+                              "point": ds.no_point, "spot": ds.no_spot}[other]())
+    for pcf in (1, 3):
+        o = plain.replace(shadow_pcf=pcf)
+        f = jax.jit(lambda s, o=o: ds.render(s, o))
+        images.append(f(one)); titles.append(f"{kind}, PCF {pcf}: {timed(f, one):.0f} ms")
+    off = jax.jit(lambda s: ds.render(s, plain.replace(shadows=False)))
+    print(f"{kind:11s} without shadows {timed(off, one):6.1f} ms")
+show(images, titles, cols=6, scale=2.4)"""),
+    ("md", """\
+## Fitting the glass
+
+Opacity, absorption and transmission of the box and Kay's three parameters of the ball, from
+the image of the scene (Levenberg–Marquardt through forward-mode Jacobians; the shadows are
+discrete, so the fit would see them as fixed: they are off here).
+
+In the example every light is on the camera's side of the glass, so no light reaches the eye
+*through* it: the image does not depend on `k_t` at all, and the fit says so — the transmission
+is reported undetermined (infinite standard error) and left at its start."""),
+    ("code", """\
+from fitting.fit import fit
+from fitting.params import ParamSet
+names = ["material[1].opacity", "material[1].absorption", "material[1].transmission",
+         "material[2].kay_min", "material[2].kay_max", "material[2].kay_power"]
+fopts = opts.replace(layers=5, shadows=False)
+
+def fit_glass(scene):
+    target = render(scene, fopts)
+    ps = ParamSet(names, scene)
+    theta = np.asarray(ps.theta_of(scene))
+    start = ps.apply(scene, theta * np.random.default_rng(1).uniform(0.75, 1.25, theta.size))
+    r = fit(start, fopts, target, names, max_steps=60)
+    rel = np.abs(np.asarray(r.values) / theta - 1)
+    for lab, t0, s0, v, e, se in zip(ps.labels, theta, np.asarray(ps.theta_of(start)), np.asarray(r.values), rel, r.stderr):
+        print(f"{lab:28s} true {t0:7.4f}  start {s0:7.4f}  fit {v:7.4f}  rel. error {e:.1e}  s.e. {se:.1e}")
+    print(f"successful {r.successful}, {r.steps} steps, solve {r.solve_s:.2f} s (compile {r.compile_s:.1f} s); "
+          f"undetermined: {r.undetermined}")
+    return r, rel, ps
+
+r, rel, ps = fit_glass(scene)
+assert r.successful and sorted(r.undetermined) == [f"material[1].transmission[{c}]" for c in "bgr"]
+known = np.array(["transmission" not in lab for lab in ps.labels])
+assert rel[known].max() < 1e-3"""),
+    ("md", "A point light behind the box makes the transmission visible; now all ten values come back:"),
+    ("code", """\
+back = ds.PointLights(color=[[1.0, 1.0, 1.0]], position=[[-0.5, -0.1, -0.2]], attenuation=[[1.0, 0.0, 0.5]],
+                      ambient=[[0.0, 0.0, 0.0]])
+lit_behind = eqx.tree_at(lambda s: s.point, scene, ds.PointLights(
+    color=jnp.concatenate([scene.point.color, back.color]), position=jnp.concatenate([scene.point.position, back.position]),
+    attenuation=jnp.concatenate([scene.point.attenuation, back.attenuation]),
+    ambient=jnp.concatenate([scene.point.ambient, back.ambient])))
+show([render(scene, fopts), render(lit_behind, fopts)], ["example", "+ a light behind the glass"], cols=2, scale=3.5)
+r2, rel2, _ = fit_glass(lit_behind)
+assert r2.successful and not r2.undetermined and rel2.max() < 1e-3"""),
+]
+
+NOTEBOOKS = {"01_tour_of_terms.ipynb": TOUR, "02_fitting.ipynb": FITTING, "03_speed_vs_error.ipynb": SPEED,
+             "04_transparency_and_shadows.ipynb": GLASS}
 
 
 def build(name: str, cells) -> nbformat.NotebookNode:

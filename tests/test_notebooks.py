@@ -1,4 +1,4 @@
-"""The three notebooks run top to bottom (small sizes) without an error or a failed assert."""
+"""The notebooks run top to bottom (small sizes) without an error or a failed assert."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 NB_DIR = Path(__file__).resolve().parent.parent / "notebooks"
-NAMES = ["01_tour_of_terms.ipynb", "02_fitting.ipynb", "03_speed_vs_error.ipynb"]
+NAMES = ["01_tour_of_terms.ipynb", "02_fitting.ipynb", "03_speed_vs_error.ipynb", "04_transparency_and_shadows.ipynb"]
 
 
 @pytest.mark.parametrize("name", NAMES)
