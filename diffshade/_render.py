@@ -3,7 +3,11 @@ r"""The render pipeline: camera → visibility → fragments → shade → fog �
 .. math:: I = I_{surf} + k_a I_a + \sum_i f_{rad,i} f_{ang,i} \big(k_a I_{a,i} + I_{p,i}(k_d (n\cdot l_i)^+ + k_s\,\mathrm{spec}_i)\big)
 
 (MODEL.md eq. 14–15; the per-light ambient :math:`k_a I_{a,i}` only with
-``per_light_ambient``), then optional clamping to [0, 1] and fog.
+``per_light_ambient``), then optional clamping to [0, 1] and fog. With ``shadows`` each light's
+direct terms (and the directed transmission, with ``transmission``) are multiplied by its shadow
+visibility :math:`S_i` (:mod:`diffshade._shadow`); with ``transparency`` the ``layers`` nearest
+surfaces are shaded and composited front to back, with Bouguer absorption between an entry layer
+and the next one (MODEL.md §2, §5).
 """
 
 from __future__ import annotations
