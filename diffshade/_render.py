@@ -97,6 +97,13 @@ def _sum(cols):
     return acc if acc is not None else [0.0, 0.0, 0.0]
 
 
+def _lit(base, directs, shadow):
+    """``base + Σ_i S_i direct_i`` (``shadow`` None: no shadows)."""
+    if shadow is not None:
+        directs = [[s * d[k] for k in range(3)] for s, d in zip(shadow, directs)]
+    return _sum([base, *directs])
+
+
 def shade_points(P, n, eye, mat: Material, scene: Scene, opts: RenderOptions, back: bool = False, shadow=None, split=False):
     """Unfogged colour (tuple of 3 arrays) of surface points ``P`` with unit normals ``n``
     (component tuples) seen from ``eye``. ``shadow`` is a list of :math:`S_i` (one per light)
@@ -117,9 +124,7 @@ def shade_points(P, n, eye, mat: Material, scene: Scene, opts: RenderOptions, ba
 
     if split:
         return full(base), [full(d) for d in direct]
-    if shadow is not None:
-        direct = [[s * d[k] for k in range(3)] for s, d in zip(shadow, direct)]
-    return full(_sum([base, *direct]))
+    return full(_lit(base, direct, shadow))
 
 
 def _back_material(scene: Scene, opts: RenderOptions) -> Material:
@@ -154,11 +159,13 @@ def _used_fields(opts: RenderOptions) -> set[str]:
     return used
 
 
-def _material_at(mats, idx, opts: RenderOptions) -> Material:
-    """A :class:`Material` whose fields are those of ``mats[idx]`` per element of ``idx`` (the
-    fields ``opts`` reads; the rest are material 0's, unused). A few materials are selected with
-    ``where`` (vectorised; a gather per field costs several times more on CPU), many gathered."""
-    used = _used_fields(opts)
+_COMPOSITING_FIELDS = {"opacity", "kay_min", "kay_max", "kay_power", "absorption"}
+
+
+def _material_at(mats, idx, used: set[str]) -> Material:
+    """A :class:`Material` whose fields in ``used`` are those of ``mats[idx]`` per element of
+    ``idx`` (the rest are material 0's, unread). A few materials are selected with ``where``
+    (vectorised; a gather per field costs several times more on CPU), many gathered."""
 
     def pick(f):
         vals = [getattr(m, f) for m in mats]
@@ -223,7 +230,10 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions) -> Float[
     multi = len(mats) > 1 and mesh.material_ids is not None
     if multi and opts.back_material and scene.back_material is not None:
         raise ValueError("a back material applies to a one-material scene; give each object's material instead")
-    pmat = _material_at(mats, mesh.material_ids[safe_tid], opts) if multi else scene.material
+    pix_mid = mesh.material_ids[safe_tid] if multi else None
+    # Per pixel, Phong shading reads every used field; Gouraud and flat only the compositing ones.
+    used = _used_fields(opts)
+    pmat = _material_at(mats, pix_mid, used if opts.shading == "phong" else used & _COMPOSITING_FIELDS) if multi else scene.material
     back_mat = pmat if multi else _back_material(scene, opts)
 
     Pv = S.vec(mesh.vertices)
@@ -238,9 +248,6 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions) -> Float[
     need_kay = opts.transparency and any(kay)
     n_px = None  # the pixel's unit normal, where Kay's opacity needs it
 
-    def apply_shadow(base, directs):
-        return _sum([base, *([s * d[k] for k in range(3)] for s, d in zip(shadow, directs))])
-
     if opts.shading == "phong":
         n = _keep(*S.normalize(lerp(S.vec(mesh.vertex_normals()))))
         n_px = n
@@ -254,7 +261,7 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions) -> Float[
         if multi:
             corners = mesh.faces.reshape(-1)
             pts, nrm, interp = S.vec(mesh.vertices[corners]), S.vec(vn[corners]), lerp_corners
-            vmat = _material_at(mats, jnp.repeat(mesh.material_ids, 3), opts)
+            vmat = _material_at(mats, jnp.repeat(mesh.material_ids, 3), used)
             vback = vmat
         else:
             pts, nrm, interp = Pv, S.vec(vn), lerp
@@ -265,7 +272,7 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions) -> Float[
             if shadow is None:
                 return interp(_keep(*shade_points(pts, normal, eye, mat, scene, opts, back)))
             base, directs = shade_points(pts, normal, eye, mat, scene, opts, back, split=True)
-            return tuple(apply_shadow(interp(_keep(*base)), [interp(_keep(*d)) for d in directs]))
+            return tuple(_lit(interp(_keep(*base)), [interp(_keep(*d)) for d in directs], shadow))
 
         color = side(nrm, vmat, False)
         if opts.two_sided:
@@ -276,7 +283,7 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions) -> Float[
         tri = mesh.vertices[mesh.faces]
         centroid = S.vec(jnp.mean(tri, axis=1))
         fn = S.vec(mesh.face_normals())
-        fmat = _material_at(mats, mesh.material_ids, opts) if multi else scene.material
+        fmat = _material_at(mats, mesh.material_ids, used) if multi else scene.material
         fback = fmat if multi else back_mat
 
         def side(normal, mat, back):
@@ -285,7 +292,7 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions) -> Float[
                 return tuple(c[safe_tid] for c in cf)
             base, directs = shade_points(centroid, normal, eye, mat, scene, opts, back, split=True)
             gather = lambda col: tuple(c[safe_tid] for c in _keep(*col))  # noqa: E731
-            return tuple(apply_shadow(gather(base), [gather(d) for d in directs]))
+            return tuple(_lit(gather(base), [gather(d) for d in directs], shadow))
 
         color = side(fn, fmat, False)
         if opts.two_sided:
@@ -309,13 +316,13 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions) -> Float[
     if need_kay:
         view_z = _rgb(cam.view_matrix()[2, :3])
         t_kay = S.kay_opacity(S.dot(n_px, view_z), pmat.kay_min, pmat.kay_max, pmat.kay_power)
-        t = t_kay if all(kay) else jnp.where(jnp.asarray(kay)[mesh.material_ids[safe_tid]], t_kay, t)
+        t = t_kay if all(kay) else jnp.where(jnp.asarray(kay)[pix_mid], t_kay, t)
     t = jnp.where(valid, t, 0.0)
     absorb = None
     if opts.absorption:
         seg = S.distance(tuple(p[1:] for p in P), tuple(p[:-1] for p in P))  # [K-1, H, W]
         entry = valid[:-1] & front[:-1] & valid[1:]
-        mu = _rgb(pmat.absorption) if multi else tuple(jnp.broadcast_to(x, shape) for x in _rgb(pmat.absorption))
+        mu = _rgb(jnp.broadcast_to(pmat.absorption, shape + (3,)))
         absorb = [jnp.where(entry, jnp.exp(-mu[c][:-1] * seg), 1.0) for c in range(3)]
     K = shape[0]
     out = [0.0, 0.0, 0.0]

@@ -4,6 +4,7 @@ buffers (the seeds' algorithm), gradients against finite differences, hard cases
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import jax
@@ -41,6 +42,11 @@ def rays(cam: ds.Camera):
 @functools.lru_cache(maxsize=None)
 def _jit_render(opts):
     return jax.jit(lambda s: ds.render(s, opts))
+
+
+def with_(scene, **kw):
+    """``scene`` with some fields replaced."""
+    return dataclasses.replace(scene, **kw)
 
 
 def render(scene, opts):
@@ -284,7 +290,7 @@ def test_sphere_shadow_on_plane(kind, pcf, shading):
 def test_material_that_casts_no_shadow():
     scene, opts = shadow_scene("directional", size=24)
     glass = ds.Material(ambient=0.3, diffuse=0.6, specular=0.0, casts_shadow=False)
-    lit_all = ds.Scene(**{**{k: getattr(scene, k) for k in scene.__dataclass_fields__}, "materials": (glass,)})
+    lit_all = with_(scene, materials=(glass,))
     plane = np.asarray(_jit_render(opts.replace(shadows=False))(scene))
     a, b = render(scene, opts), render(lit_all, opts)
     assert (np.abs(a - plane).max(-1) > 0.05).sum() > 10  # the sphere's shadow
@@ -297,7 +303,7 @@ def test_shadows_off_cost_nothing_and_bias_changes_do_not_recompile():
     f(scene)
     n = f._cache_size()
     for bias in (0.0, 0.01, 0.1):
-        s = ds.Scene(**{**{k: getattr(scene, k) for k in scene.__dataclass_fields__}, "shadow_bias": bias})
+        s = with_(scene, shadow_bias=bias)
         assert np.all(np.isfinite(np.asarray(f(s))))
     assert f._cache_size() == n
     plain = jax.jit(lambda s: ds.render(s, opts.replace(shadows=False))).lower(scene).as_text()
@@ -313,12 +319,10 @@ def test_fragment_exactly_at_shadow_map_depth():
     # Zero bias: the lit plane is its own occluder in the map (receiver depth = stored depth up to
     # rounding). Values and gradients stay finite, and it is lit nearly everywhere.
     scene, opts = shadow_scene("directional", size=24)
-    scene = ds.Scene(**{**{k: getattr(scene, k) for k in scene.__dataclass_fields__},
-                        "shadow_bias": 0.0, "shadow_slope_bias": 0.0})
+    scene = with_(scene, shadow_bias=0.0, shadow_slope_bias=0.0)
 
     def f(c):
-        s = ds.Scene(**{**{k: getattr(scene, k) for k in scene.__dataclass_fields__},
-                        "directional": dlight([0.3, -1.0, 0.2], c)})
+        s = with_(scene, directional=dlight([0.3, -1.0, 0.2], c))
         return ds.render(s, opts)
 
     img, g, gr = jax.jit(lambda c: (f(c), jax.jacfwd(lambda c: f(c).sum())(c), jax.grad(lambda c: f(c).sum())(c)))(1.0)
