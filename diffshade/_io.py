@@ -284,19 +284,28 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
     objects = d.get("object", [])
     if not isinstance(objects, list) or not all(isinstance(o, dict) for o in objects):
         v.fail("object", "must be an array of tables ([[object]])")
-    meshes = []
+    # (mesh, material) per object, material ids in order; a [mesh] with [material] is object 0.
+    parts = []
     if "mesh" in d or not objects:
-        meshes.append(_mesh(v, v.table(d, "mesh", required=True), "mesh", base))
+        parts.append((_mesh(v, v.table(d, "mesh", required=True), "mesh", base),
+                      _material(v, v.table(d, "material"), "material")))
+    elif "material" in d:
+        v.fail("material", "with [[object]] and no [mesh], give each object its own [object.material]")
     for i, o in enumerate(objects):
         w = f"object[{i}]"
         v.unknown(o, _MESH_KEYS + ("translate", "scale", "material"), w)
-        meshes.append(_mesh(v, {k: x for k, x in o.items() if k in _MESH_KEYS}, w, base))
+        m = _mesh(v, {k: x for k, x in o.items() if k in _MESH_KEYS}, w, base)
         shift = v.vec(o, "translate", w, default=[0.0, 0.0, 0.0])
         scale = v.vec(o, "scale", w, default=[1.0, 1.0, 1.0], lo=0.0, scalar_ok=True)
         if np.any(scale == 0):
             v.fail(f"{w}.scale", "must not be 0")
-        meshes[-1] = Mesh(vertices=np.asarray(meshes[-1].vertices) * scale + shift, faces=meshes[-1].faces)
-    mesh = meshes[0] if len(meshes) == 1 else combine(*meshes)
+        mo = o.get("material", {})
+        if not isinstance(mo, dict):
+            v.fail(f"{w}.material", "must be a table")
+        parts.append((Mesh(vertices=np.asarray(m.vertices) * scale + shift, faces=m.faces),
+                      _material(v, mo, f"{w}.material")))
+    mesh = parts[0][0] if len(parts) == 1 else combine(*(p[0] for p in parts))
+    material, extra = parts[0][1], tuple(p[1] for p in parts[1:])
 
     c = v.table(d, "camera", required=True)
     v.unknown(c, ("eye", "target", "up", "fov_y", "near", "far", "width", "height"), "camera")
@@ -318,17 +327,6 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
         size[k] = x
     camera = Camera(eye=eye, target=target, up=up, fov_y=fov, near=near, far=far, **size)
 
-    mats = []
-    if "mesh" in d or not objects:
-        mats.append(_material(v, v.table(d, "material"), "material"))
-    elif "material" in d:
-        v.fail("material", "with [[object]] and no [mesh], give each object its own [object.material]")
-    for i, o in enumerate(objects):
-        mo = o.get("material", {})
-        if not isinstance(mo, dict):
-            v.fail(f"object[{i}].material", "must be a table")
-        mats.append(_material(v, mo, f"object[{i}].material"))
-    material, extra = mats[0], tuple(mats[1:])
     back = _material(v, d["back_material"], "back_material") if "back_material" in d else None
     if back is not None and extra:
         v.fail("back_material", "applies to a one-material scene; give each object its own material instead")
@@ -360,8 +358,7 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
     scene = Scene(
         mesh=mesh, camera=camera, material=material, back_material=back, directional=directional,
         point=point, spot=spot, ambient_light=ambient, background=background, fog=fog, materials=extra,
-        shadow_bias=v.num(sh, "bias", "shadow", default=1e-3, lo=0.0),
-        shadow_slope_bias=v.num(sh, "slope_bias", "shadow", default=0.5, lo=0.0),
+        **{f"shadow_{k}": v.num(sh, k, "shadow", lo=0.0) for k in sh},  # absent: the Scene defaults
     )
     return scene, opts
 

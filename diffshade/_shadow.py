@@ -101,7 +101,7 @@ def _bounds(vertices):
     return c, r
 
 
-def light_views(scene, opts) -> list[_Views]:
+def light_views(scene) -> list[_Views]:
     """The shadow-map views of every light (directional, then point, then spot lights)."""
     X = jax.lax.stop_gradient(scene.mesh.vertices)
     c, r = _bounds(X)
@@ -281,7 +281,7 @@ def light_visibility(scene, opts, P, ng) -> list:
     normals ``ng`` (component tuples of equally shaped arrays); no gradient."""
     P = jax.lax.stop_gradient(P)
     ng = jax.lax.stop_gradient(ng)
-    views = light_views(scene, opts)
+    views = light_views(scene)
     maps = shadow_maps(scene, opts, views)
     planes = _face_planes(scene.mesh)
     bias = jax.lax.stop_gradient(scene.shadow_bias)
