@@ -132,6 +132,8 @@ def test_objects_scene_file_example():
     d = scene_dict(object=[{"quad": [2, 2], "translate": [0, 0, -2], "material": {"diffuse": 0.3}}])
     s2, _ = ds.scene_from_dict(d)
     assert len(s2.all_materials()) == 2 and float(s2.materials[0].diffuse[0]) == 0.3
+    s3, _ = ds.scene_from_dict(scene_dict(render={"fog": "linear", "shadows": True}, shadow={"slope_bias": 2.0}))
+    assert float(s3.shadow_slope_bias) == 2.0 and float(s3.shadow_bias) == float(ds.Scene(s3.mesh, s3.camera).shadow_bias)
 
 
 def test_scene_file_roundtrip_and_fog_background(tmp_path):
