@@ -29,3 +29,4 @@ bench: $(STAMP)
 	$(VENV)/bin/python benchmarks/bench_raster.py
 	$(VENV)/bin/python benchmarks/bench_render.py
 	$(VENV)/bin/python benchmarks/bench_fit.py
+	$(VENV)/bin/python benchmarks/bench_fit_suite.py

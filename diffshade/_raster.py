@@ -453,9 +453,13 @@ def _pixel_vertex_ids(faces, tri_id, valid):
 
 
 def fragments(
-    clip: Float[Array, "V 4"], faces: Int[Array, "F 3"], tri_id: Int[Array, "K H W"]
+    clip: Float[Array, "V 4"], faces: Int[Array, "F 3"], tri_id: Int[Array, "K H W"], pixels=None
 ) -> Fragments:
     r"""Differentiable per-pixel barycentrics and depth of the given visible triangles.
+
+    ``pixels``: optional NDC centres ``(x, y)`` of the pixels, each shaped as ``tri_id[0]``
+    (default: the full image grid, :func:`pixel_centres`). A subset of pixels — e.g. only the
+    covered ones, gathered with their ids — is shaded at the cost of that subset.
 
     With :math:`E_i` the edge functions at the pixel centre (see the module docstring),
     :math:`b_i = E_i / \sum_k E_k`, :math:`w = \sum_i b_i w_i` and depth :math:`= \sum_i b_i z_i / w`.
@@ -472,9 +476,12 @@ def fragments(
     # tx[c][k]: component c (x, y, z, w) of vertex k, per pixel
     comp = [[ct[c][vid[j]].reshape(shape) for j in range(3)] for c in range(4)]
     X, Y, Z, Wc = comp
-    xs, ys = pixel_centres(h, w, dtype)
-    x = xs[None, None, :]
-    y = ys[None, :, None]
+    if pixels is None:
+        xs, ys = pixel_centres(h, w, dtype)
+        x = xs[None, None, :]
+        y = ys[None, :, None]
+    else:
+        x, y = (jnp.asarray(c, dtype)[None] for c in pixels)
     es = []
     for i in range(3):
         a, b = (i + 1) % 3, (i + 2) % 3

@@ -183,8 +183,11 @@ def _material_at(mats, idx, used: set[str]) -> Material:
     return Material(**{f: pick(f) for f in _MATERIAL_FIELDS})
 
 
-def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions) -> Float[Array, "H W 3"]:
+def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=None) -> Float[Array, "H W 3"]:
     """Shade precomputed visibility ``ids`` (differentiable in every scene number).
+
+    ``pixels``: optional NDC pixel centres ``(x, y)`` shaped as ``ids[0]``, for ``ids`` gathered
+    at a subset of the image's pixels (see :func:`diffshade.fragments`); default the full grid.
 
     Only layer 0 is shaded unless ``opts`` asks for transparency (or absorption): then every
     layer is shaded, fogged, and composited front to back (MODEL.md §5).
@@ -193,7 +196,7 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions) -> Float[
     layered = opts.layered
     ids = ids if layered else ids[:1]
     clip = cam.world_to_clip(mesh.vertices)
-    frags = fragments(clip, mesh.faces, ids)
+    frags = fragments(clip, mesh.faces, ids, pixels)
     tid = frags.tri_id
     shape = tid.shape  # [K, H, W]
     valid = tid >= 0
@@ -337,15 +340,20 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions) -> Float[
     return jnp.stack(out, axis=-1)
 
 
-def render(scene: Scene, opts: RenderOptions = RenderOptions(), ids: Int[Array, "K H W"] | None = None) -> Float[Array, "H W 3"]:
+def render(scene: Scene, opts: RenderOptions = RenderOptions(), ids: Int[Array, "K H W"] | None = None,
+           pixels=None) -> Float[Array, "H W 3"]:
     """Render ``scene`` to a linear, unclamped (unless ``opts.clamp``) ``[H, W, 3]`` image.
 
     ``ids`` may be a precomputed :func:`diffshade.visibility` result for fixed geometry and camera
-    (material fits reuse it). Jit with ``jax.jit(render, static_argnames="opts")``.
+    (material fits reuse it). Jit with ``jax.jit(render, static_argnames="opts")``. With
+    ``pixels`` (NDC centres shaped as ``ids[0]``) only those pixels are shaded: ``ids`` must be
+    given, gathered at the same pixels.
     """
     if ids is None:
+        if pixels is not None:
+            raise ValueError("render: pixels needs the ids gathered at those pixels")
         ids = scene_visibility(scene, opts)
-    return shade(scene, ids, opts)
+    return shade(scene, ids, opts, pixels)
 
 
 def scene_visibility(scene: Scene, opts: RenderOptions = RenderOptions()) -> Int[Array, "K H W"]:

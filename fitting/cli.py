@@ -3,12 +3,15 @@
 - ``render``: a scene file to a PNG;
 - ``fit``: a scene file + target image(s) + free parameter names → fitted parameters as JSON and
   as a Wavefront MTL file, a target | fit | residual PNG and a printed report (also saved);
-- ``demo``: render the default scene from known parameters, perturb them, fit them back with
-  Levenberg–Marquardt and report true vs recovered vs error.
+- ``demo``: render the default scene from known parameters, perturb them, fit them back
+  (variable projection + Levenberg–Marquardt) and report true vs recovered vs error.
 
 Exit codes: 0 success; 2 usage; 3 bad input (missing or malformed file, image of the wrong size
 or channel count, unknown parameter, value out of its domain, output exists); 4 the fit did not
-succeed (the outputs are still written, with the solver's message)."""
+succeed (the outputs are still written, with the reason).
+
+Compiled programs are kept in a persistent cache (~/.cache/diffshade/xla, or $DIFFSHADE_CACHE;
+--no-cache turns it off), so a second fit of the same structure compiles nothing."""
 
 from __future__ import annotations
 
@@ -24,9 +27,10 @@ class InputError(ValueError):
     """A bad command-line input (the message names the file and the problem)."""
 
 
-def load_target(path: Path, resolution: tuple[int, int]):
+def load_target(path: Path, resolution: tuple[int, int], with_quantum: bool = False):
     """A target image as float64 ``[H, W, 3]`` and its saturation level (1.0 for integer files,
-    whose brightest code is a clipped value; None for ``.npy`` floats, which are not clipped)."""
+    whose brightest code is a clipped value; None for ``.npy`` floats, which are not clipped);
+    ``with_quantum``: also the code step (1/255, 1/65535; None for floats)."""
     import numpy as np
 
     if not path.exists():
@@ -36,7 +40,7 @@ def load_target(path: Path, resolution: tuple[int, int]):
             img = np.load(path, allow_pickle=False)
         except (ValueError, OSError) as exc:
             raise InputError(f"{path}: not a readable .npy array: {exc}") from exc
-        sat = None
+        sat, q = None, None
         if not np.issubdtype(img.dtype, np.floating):
             raise InputError(f"{path}: a .npy target must hold floats (linear radiance), got {img.dtype}")
     else:
@@ -47,11 +51,11 @@ def load_target(path: Path, resolution: tuple[int, int]):
         except Exception as exc:  # noqa: BLE001 - imageio raises many types; name the file
             raise InputError(f"{path}: cannot read as an image: {exc}") from exc
         if img.dtype == np.uint8:
-            img, sat = img / 255.0, 1.0
+            img, sat, q = img / 255.0, 1.0, 1 / 255
         elif img.dtype == np.uint16:
-            img, sat = img / 65535.0, 1.0
+            img, sat, q = img / 65535.0, 1.0, 1 / 65535
         elif np.issubdtype(img.dtype, np.floating):
-            sat = None
+            sat, q = None, None
         else:
             raise InputError(f"{path}: unsupported pixel type {img.dtype} (8- or 16-bit or float images)")
     img = np.asarray(img, np.float64)
@@ -66,7 +70,7 @@ def load_target(path: Path, resolution: tuple[int, int]):
         raise InputError(f"{path}: image is {img.shape[1]}x{img.shape[0]} but the scene's camera renders {w}x{h}")
     if not np.isfinite(img).all():
         raise InputError(f"{path}: contains NaN or inf")
-    return img, sat
+    return (img, sat, q) if with_quantum else (img, sat)
 
 
 def write_mtl(scene, opts, path: Path, header: str) -> None:
@@ -204,8 +208,9 @@ def cmd_demo(args) -> int:
           f"max rel. error {err.max():.2e}; RMS residual {r.rms:.2e}; PSNR {r.psnr:.1f} dB; SSIM {r.ssim:.6f}")
     if r.undetermined or r.gauges:
         print(f"not determined by the image: {r.undetermined}; {r.gauges}")
+    print(f"method: {r.method}")
     for n in r.notes:
-        print("trap detected, " + n)
+        print("  " + n)
     fitted = render(pset.apply(scene, jnp.asarray(r.values, jnp.float32)), opts)
     start_img = render(s0, opts)
     resid = jnp.clip(0.5 + 10.0 * (fitted - target), 0.0, 1.0)
@@ -225,8 +230,13 @@ def _report_table(r) -> list[str]:
         lines.append(f"{n:26s} {s_:11.5g} {v:11.5g} {se:11.3g} {rel:10.2e}")
     lines.append(f"result: {r.result or 'successful'}; {r.steps} steps; compile {r.compile_s:.2f} s, solve {r.solve_s:.2f} s; "
                  f"RMS residual {r.rms:.3e}; PSNR {r.psnr:.2f} dB; SSIM {r.ssim:.5f}")
+    lines.append(f"method: {r.method}")
+    lines.append(f"noise: σ = {r.noise:.3g} ({r.noise_source}); residual {r.noise_ratio:.3g}× the noise"
+                 + ("" if r.stderr_meaningful else " — the standard errors are NOT meaningful"))
+    for b in r.on_bound:
+        lines.append("on a bound: " + b)
     for n in r.notes:
-        lines.append("trap detected, " + n)
+        lines.append("  " + n)
     if r.undetermined:
         lines.append("NOT DETERMINED by the images (values are the starts, not estimates): " + ", ".join(r.undetermined))
     for g in r.gauges:
@@ -251,10 +261,12 @@ def cmd_fit(args) -> int:
         raise InputError(f"{len(args.targets)} target(s) but {len(view_paths)} --views scene file(s); give one per target")
     views = [ds.load_scene(v)[0] for v in view_paths] if view_paths else [scene] * len(args.targets)
     target_paths = [Path(t) for t in args.targets]
-    loaded = [load_target(t, v.camera.resolution) for t, v in zip(target_paths, views)]
-    targets = [img for img, _ in loaded]
-    sats = {sat for _, sat in loaded}
+    loaded = [load_target(t, v.camera.resolution, with_quantum=True) for t, v in zip(target_paths, views)]
+    targets = [img for img, _, _ in loaded]
+    sats = {sat for _, sat, _ in loaded}
     saturation = 1.0 if sats == {1.0} and not args.no_censor else None
+    quanta = [q for _, _, q in loaded if q is not None]
+    quantum = max(quanta) if len(quanta) == len(loaded) else None
     masks = None
     mask_paths = [Path(m) for m in args.mask] if args.mask else []
     if mask_paths:
@@ -286,7 +298,7 @@ def cmd_fit(args) -> int:
     print(f"fitting {', '.join(args.free)} to {len(targets)} image(s) of {views[0].camera.width}x"
           f"{views[0].camera.height} with {args.solver}" + (" (clipped pixels censored)" if saturation else ""))
     kw = dict(views=views, masks=masks, shared=args.shared or (), solver=args.solver, max_steps=args.max_steps,
-              saturation=saturation)
+              saturation=saturation, quantum=quantum, noise=args.noise)
     r = fit(scene, opts, targets, args.free, verbose=args.verbose, **kw)
     report = [f"diffshade fit: scene {scene_path}, target(s) {', '.join(map(str, target_paths))}", *_report_table(r)]
     comparison = []
@@ -327,8 +339,27 @@ def cmd_fit(args) -> int:
     return EXIT_OK if r.successful else EXIT_FIT
 
 
+def enable_compilation_cache(path: str | None = None) -> str:
+    """Turn on JAX's persistent compilation cache (default ``~/.cache/diffshade/xla``, or
+    ``$DIFFSHADE_CACHE``): a second run of a fit of the same structure loads its programs
+    instead of compiling them."""
+    import os
+
+    import jax
+
+    path = path or os.environ.get("DIFFSHADE_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "diffshade", "xla")
+    os.makedirs(path, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", path)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return path
+
+
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="diffshade", description=__doc__)
+    parser = argparse.ArgumentParser(prog="diffshade", description=__doc__.replace("``", ""),
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--no-cache", action="store_true",
+                        help="do not use the persistent compilation cache (~/.cache/diffshade/xla)")
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("render", help="render a TOML scene file to a PNG")
     p.add_argument("scene", help="scene file (.toml)")
@@ -346,7 +377,11 @@ def main(argv=None) -> int:
     p.add_argument("--shared", nargs="+", metavar="NAME", help="RGB parameters fitted as one value for all channels")
     p.add_argument("--views", nargs="+", metavar="SCENE", help="one scene file per target (other cameras/lights)")
     p.add_argument("--mask", nargs="+", metavar="IMAGE", help="one weight image per target (0 = ignore)")
-    p.add_argument("--solver", default="lm", choices=["lm", "dogleg", "gauss-newton", "bfgs"])
+    p.add_argument("--solver", default="lm", choices=["lm", "dogleg", "gauss-newton"],
+                   help="optimistix solver for the nonlinear parameters (default lm)")
+    p.add_argument("--noise", type=float, default=None, metavar="SIGMA",
+                   help="the targets' noise level (linear units), for the chi-square verdict; default: "
+                   "estimated from the residual (its pixel-to-pixel white part) and the quantisation")
     p.add_argument("--max-steps", type=int, default=200)
     p.add_argument("--compare", action="store_true",
                    help="also fit the nested term sets (no specular, Phong<->Blinn, no fog) and rank by BIC")
@@ -362,6 +397,8 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0, help="seed of the perturbed start (default 0)")
     p.set_defaults(func=cmd_demo)
     args = parser.parse_args(argv)
+    if not args.no_cache:
+        enable_compilation_cache()
     import diffshade as ds
 
     from .fit import FitError

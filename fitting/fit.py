@@ -1,109 +1,44 @@
-"""Recover scene parameters from images with optimistix (Levenberg–Marquardt by default).
+"""Recover scene parameters from images: the problem, the strategy, the report.
 
-The visibility of the fixed geometry and camera is computed once per view; the residual
-``(render(θ(u)) − target) · √mask`` is a smooth function of the unconstrained ``u`` (see
-:mod:`fitting.params`), and its Jacobian is built in forward mode. After the solve, the
-Gauss–Newton covariance ``s² (JᵀJ)⁻¹`` in the natural parameters gives standard errors, and the
-singular values of the column-scaled Jacobian say which parameters the images do not determine.
+``fit`` reads as its three parts:
+
+1. the **problem** (:mod:`fitting.problem`): views, targets, weights and censoring, compacted to
+   the covered pixels, giving residuals and the Jacobian;
+2. the **strategy** (:mod:`fitting.strategy`): variable projection of the parameters the image is
+   linear in, a global start for the nonlinear few, optimistix's Levenberg–Marquardt, restarts
+   from the next start when the verdict rejects a result, and a polish on the full problem;
+3. the **report** (:mod:`fitting.report`): the verdict (converged *and* explained by the noise),
+   standard errors, identifiability, parameters on a bound, image quality.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 import diffshade as ds
 
-from .params import ParamSet
+from .problem import FitError, Problem, ViewData, as_list
+from .report import FitResult, noise_ratio_limit, image_quality, noise_level, uncertainty, verdict
+from .strategy import SOLVERS, Reduced, candidates, compiled, lm_solve, result_message
 
-SOLVERS = {
-    "lm": optx.LevenbergMarquardt,
-    "dogleg": optx.Dogleg,
-    "gauss-newton": optx.GaussNewton,
-    "bfgs": optx.BFGS,
-}
+__all__ = ["FitError", "FitResult", "fit", "compare_models", "model_variants", "ModelScore"]
 
-
-_RECORDER: list | None = None  # where the per-step history of the running fit goes (host side)
+SEARCH_PIXELS = 2048  # covered pixels per view used to rank the global starts and for the first LM
 
 
-def _record(loss, u):
-    if _RECORDER is not None:
-        _RECORDER.append((float(loss), np.asarray(u, np.float64)))
-
-
-def _make_verbose(show: bool, history: bool):
-    """optimistix's ``verbose`` hook: a progress line per step (``show``) and/or the loss and
-    point of every trial step sent to the host (``history``; for convergence plots)."""
-
-    def hook(**kw):
-        if show:
-            names = ("num_steps", "loss_this_step", "loss_last_accepted_step", "step_size")
-            got = [kw[n] for n in names if n in kw]
-            jax.debug.print("  " + ", ".join(f"{label.lower()} {{}}" for label, _ in got), *[v for _, v in got])
-        if history and "loss_this_step" in kw and "y" in kw:
-            jax.debug.callback(_record, kw["loss_this_step"][1], kw["y"][1], ordered=True)
-
-    return hook if (show or history) else False
-
-
-class FitError(ValueError):
-    """Observations that do not match the scene (size, channels, count)."""
-
-
-def _as_list(targets) -> list:
-    """One image or a list of images, as a list."""
-    return [targets] if hasattr(targets, "shape") else list(targets)
-
-
-@dataclass
-class FitResult:
-    names: list[str]  # one label per scalar (RGB fields as name[r], name[g], name[b])
-    values: np.ndarray  # fitted θ
-    start: np.ndarray
-    stderr: np.ndarray  # Gauss–Newton standard errors (inf where not determined)
-    result: str  # optimistix result message ("" = successful)
-    successful: bool
-    steps: int
-    compile_s: float
-    solve_s: float
-    rms: float  # final root-mean-square residual
-    psnr: float
-    ssim: float
-    rss: float = 0.0  # final residual sum of squares
-    n_residuals: int = 0  # pixels × channels with non-zero weight
-    undetermined: list[str] = field(default_factory=list)  # labels the images do not determine
-    gauges: list[str] = field(default_factory=list)  # near-degenerate combinations, described
-    history: list = field(default_factory=list)  # (loss, θ) of every trial step, with ``history=True``
-    notes: list[str] = field(default_factory=list)  # traps detected and restarts made
-
-    def as_dict(self) -> dict:
-        return {
-            "parameters": {n: {"value": float(v), "stderr": float(e), "start": float(s)}
-                           for n, v, e, s in zip(self.names, self.values, self.stderr, self.start)},
-            "result": self.result or "successful", "successful": self.successful, "steps": self.steps,
-            "compile_s": self.compile_s, "solve_s": self.solve_s, "rms": self.rms, "rss": self.rss,
-            "n_residuals": self.n_residuals, "psnr": self.psnr,
-            "ssim": self.ssim, "undetermined": self.undetermined, "gauges": self.gauges, "notes": self.notes,
-        }
-
-
-def _check_target(t, scene, k):
-    t = np.asarray(t)
-    h, w = scene.camera.resolution
-    if t.ndim != 3 or t.shape[2] != 3:
-        raise FitError(f"target {k}: expected an RGB image of shape ({h}, {w}, 3), got shape {t.shape}")
-    if t.shape[:2] != (h, w):
-        raise FitError(f"target {k}: image is {t.shape[1]}x{t.shape[0]} but the camera renders {w}x{h}")
-    if not np.isfinite(t).all():
-        raise FitError(f"target {k}: contains NaN or inf")
-    return t
+def _subset(vd: ViewData, count: int) -> ViewData:
+    """Every k-th compacted pixel, about ``count`` of them (the ranking of starts needs few)."""
+    n = vd.target.shape[0]
+    step = max(1, n // count)
+    take = lambda a, ax: jax.lax.slice_in_dim(a, 0, n, step, axis=ax)  # noqa: E731
+    return ViewData(scene=vd.scene, ids=take(vd.ids, 2), px=take(vd.px, 1), py=take(vd.py, 1),
+                    target=take(vd.target, 0), weight=take(vd.weight, 0), hi=take(vd.hi, 0), lo=take(vd.lo, 0))
 
 
 def fit(
@@ -120,250 +55,231 @@ def fit(
     rtol: float | None = None,
     atol: float | None = None,
     saturation: float | None = None,
+    quantum: float | None = None,
+    noise: float | None = None,
+    starts: int = 64,
+    restarts: int = 3,
+    polish_steps: int = 10,
+    method: str = "auto",
     verbose: bool = False,
     history: bool = False,
-    restarts: int = 2,
 ) -> FitResult:
-    """Fit the ``free`` parameters of ``scene`` (start values = the scene's) to ``targets``.
+    """Fit the ``free`` parameters of ``scene`` to ``targets``.
 
     ``targets``: one image or a list, one per view; ``views``: the scenes of the views (same
     structure; they differ in camera, lights, ...), default ``scene`` for every target. The free
     parameters are shared by all views. ``masks``: optional per-view ``[H, W]`` weights.
-    ``rtol``/``atol``: the solver's step tolerances, by default 1e-6 in float32 and 1e-10 in
-    float64 (tighter than float32 can resolve only adds steps: measured 33 instead of 17 steps
-    for the demo, same 7e-7 parameter error).
-    ``saturation``: the level at which the camera clipped (1.0 for images read from 8- or
-    16-bit files). A target channel at or above it is *censored*: it says only "at least this
-    bright", so its residual is ``min(render, saturation) − target`` (zero once the model is
-    bright enough too) instead of pulling the model down to the clipped value.
-    ``verbose``: print the loss and step size at every solver step (optimistix's own report).
-    ``history``: keep every trial step's loss and parameters in ``FitResult.history`` (a host
-    callback per step; for convergence plots).
-    ``restarts``: how often a fit that ended in a trap is restarted (see :func:`_trapped`), or
-    one that used up ``max_steps`` still making progress is continued; a fit still trapped or
-    unconverged after them is reported unsuccessful, with the reason in ``result``.
+
+    The scene's values are the start of the nonlinear parameters (one of the ``starts`` ranked
+    by the global search); the linear ones need none. ``restarts``: how many further starts are
+    tried when the verdict rejects a result. ``method``: ``"auto"`` (variable projection where
+    the image is linear) or ``"full"`` (Levenberg–Marquardt on every parameter).
+
+    ``saturation``: the level at which the camera clipped (1.0 for images read from 8- or 16-bit
+    files): a target channel at or above it is censored (one-sided residual), and so is one at 0.
+    ``quantum``: the code step of an integer target (1/255, 1/65535), for the noise floor;
+    ``noise``: the noise level σ if known (else estimated from the residual, see
+    :mod:`fitting.report`). ``rtol``/``atol``: the solver's tolerances, by default 1e-6 in
+    float32 and 1e-10 in float64. ``verbose``: print every solver step. ``history``: keep the
+    loss and parameters of every accepted step in ``FitResult.history``.
     """
-    targets = _as_list(targets)
-    views = list(views) if views is not None else [scene] * len(targets)
-    if len(views) != len(targets):
-        raise FitError(f"{len(targets)} targets but {len(views)} views")
+    if method not in ("auto", "full"):
+        raise FitError(f"unknown method {method!r}; 'auto' or 'full'")
     if solver not in SOLVERS:
         raise FitError(f"unknown solver {solver!r}; one of {sorted(SOLVERS)}")
-    dtype = scene.mesh.vertices.dtype
-    targets = [jnp.asarray(_check_target(t, v, k), dtype) for k, (t, v) in enumerate(zip(targets, views))]
-    if masks is None:
-        masks = [None] * len(targets)
-    weights = []
-    for k, (m, v) in enumerate(zip(masks, views)):
-        if m is None:
-            weights.append(jnp.ones(v.camera.resolution + (1,), dtype))
-        else:
-            m = np.asarray(m, np.float64)
-            if m.shape != v.camera.resolution:
-                raise FitError(f"mask {k}: shape {m.shape}, expected {v.camera.resolution}")
-            weights.append(jnp.asarray(np.sqrt(np.clip(m, 0, None)), dtype)[..., None])
-
+    prob = Problem.build(scene, opts, as_list(targets), free, views=views, masks=masks, shared=shared,
+                         saturation=saturation, quantum=quantum)
+    pset, dtype = prob.pset, prob.dtype
+    theta0 = pset.theta_of(scene)
+    pset.check(theta0)
     tol = 1e-6 if dtype == jnp.float32 else 1e-10
     rtol = tol if rtol is None else rtol
     atol = tol if atol is None else atol
-    pset = ParamSet(list(free), scene, shared)
-    theta0 = pset.theta_of(scene)
-    pset.check(theta0)
-    ids = [jax.jit(ds.scene_visibility, static_argnums=1)(v, opts) for v in views]
+    red = Reduced(prob, linear=method == "auto")
+    theta_ref = jnp.asarray(theta0, dtype)
+    notes, compile_s = [], 0.0
 
-    sat = jnp.asarray(np.inf if saturation is None else saturation, dtype)
-    data = (views, ids, targets, weights, sat)
-    # The solver works in JAX's default float type: optimistix builds its damping terms in that
-    # type, and float32 vectors in a float64 session fail inside lineax. The render itself runs
-    # in the scene's dtype; only the parameters and residuals are converted.
-    u0 = pset.u_from_theta(theta0).astype(jnp.result_type(float))
-    solve_fn, jac_fn = _compiled(pset, opts, solver, rtol, atol, max_steps, u0, data, verbose, history)
-    compile_s = solve_fn.compile_s + jac_fn.compile_s
-    global _RECORDER
-    _RECORDER = trace = []
-    notes, steps_total, u_start, theta_ref = [], 0, u0, np.asarray(theta0, np.float64)
-    try:
-        t0 = time.perf_counter()
-        for attempt in range(restarts + 1):
-            u_hat, result, steps = solve_fn(u_start, data)
-            jax.block_until_ready(u_hat)
-            steps_total += int(steps)
-            theta_try = np.asarray(pset.theta_from_u(u_hat), np.float64)
-            trapped = _trapped(pset, theta_try, theta_ref)
-            if not trapped and result == optx.RESULTS.nonlinear_max_steps_reached and attempt < restarts:
-                # Still creeping along a curved valley (e.g. the attenuation scale): go on from
-                # here with the solver's damping reset, within the restart budget.
-                notes.append(f"attempt {attempt + 1}: {int(steps)} steps without converging; continued from there")
-                u_start, theta_ref = u_hat, theta_try
-                continue
-            if not trapped:
-                break
-            notes.append(f"attempt {attempt + 1}: " + "; ".join(msg for _, _, msg in trapped))
-            if attempt == restarts:
-                break
-            # Restart: the runaway parameters go back to a neutral value, the rest keep theirs.
-            theta_new = theta_try.copy()
-            for i, p, _ in trapped:
-                theta_new[i] = _neutral(p, float(theta0[i]))
-            u_start = pset.u_from_theta(jnp.asarray(theta_new, dtype)).astype(u0.dtype)
-            theta_ref = theta_new
-        jax.effects_barrier()
-        solve_s = time.perf_counter() - t0
-    finally:
-        _RECORDER = None
-    hist = [(loss, np.asarray(pset.theta_from_u(jnp.asarray(u)), np.float64)) for loss, u in trace]
-    if notes and not trapped and result == optx.RESULTS.successful:
-        notes.append(f"recovered by restart {len(notes)}")
+    # -- global start and Levenberg–Marquardt on a pixel subset ---------------------------------
+    # The starts are ranked by the reduced cost on about SEARCH_PIXELS covered pixels per view, and
+    # LM runs from the best `LM_STARTS` of them there (vmapped); on a noise-free target the subset
+    # has the same optimum as the whole image, on a noisy one a nearby one, which the polish moves
+    # to the whole image's.
+    U = candidates(red, np.asarray(theta0), starts if len(red.idx_n) else 1)
+    sub = ([_subset(vd, SEARCH_PIXELS) for vd in prob.data], theta_ref)
+    u_dtype = jnp.result_type(float)
 
-    theta = pset.theta_from_u(u_hat)
-    # Gauss–Newton uncertainty in the natural parameters.
-    r_dev, J_dev, fitted0 = jac_fn(theta, data)
-    r, J = np.asarray(r_dev, np.float64), np.asarray(J_dev, np.float64)
-    n, p = J.shape
-    s2 = float(r @ r) / max(n - p, 1)
-    col = np.linalg.norm(J, axis=0)
-    undetermined_mask = col <= 1e-10 * max(col.max(), 1e-300)
+    def coarse(Us, exclude, a):
+        costs = jax.vmap(lambda u: red.cost(u, a))(Us)
+        costs = jnp.where(jnp.isfinite(costs) & ~exclude, costs, jnp.inf)
+        top = jnp.argmin(costs)
+        u, x, res, k, h, loss = lm_solve(red.residual, Us[top], a, rtol=rtol, atol=atol, max_steps=max_steps,
+                                         history=history, verbose=verbose, solver=solver)
+        return costs, top, u, x, res, k, h, loss
+
+    coarse_fn, c = (None, 0.0) if not len(red.idx_n) else compiled(prob, "coarse", coarse, jnp.asarray(U, u_dtype), jnp.zeros(len(U), bool), sub,
+                            extra=(rtol, atol, max_steps, history, verbose, solver, red.idx_n.tobytes()))
+    compile_s += c
+
+    def jac(th, data):
+        f = lambda t: prob.residual(t, data)  # noqa: E731
+        return f(th), jax.jacfwd(f)(th)
+
+    jac_fn, c = compiled(prob, "jac", jac, theta_ref, prob.data)
+    compile_s += c
+    t_run = time.perf_counter()
+
+    n2, n_cens = prob.counts()
+    exclude = np.zeros(len(U), bool)
+    best, steps_total, hist, attempts = None, 0, [], 0
+    while True:
+        if coarse_fn is None:  # every parameter linear: the polish is the bounded linear solve
+            theta, res, k = np.asarray(theta0, np.float64), 0, 0
+            notes.append("every free parameter is linear: projected Gauss–Newton on the whole image")
+            hist.append(theta)
+            theta, r, J, fixed, p_steps, p_conv = _polish(jac_fn, prob, red, theta, max(polish_steps, 20), rtol)
+            steps_total = p_steps
+            best = _candidate(prob, theta, r, J, fixed, res, p_conv, p_steps, n2, noise)
+            notes.append(f"  {p_steps} evaluation(s) of the whole residual; residual {best['ratio']:.3g}× the noise")
+            break
+        costs, top, u, x, res, k, h, loss = coarse_fn(jnp.asarray(U, u_dtype), jnp.asarray(exclude), sub)
+        costs, top, res, loss = np.asarray(costs), int(top), int(res), float(loss)
+        steps_total += int(k)
+        exclude[top] = True
+        # starts in the basin just explored are not tried again
+        exclude |= np.max(np.abs(U - np.asarray(u, np.float64)[None]), axis=1) < 0.25
+        theta = np.asarray(red.theta(u, x, theta_ref), np.float64)
+        if attempts == 0 and len(U) > 1:
+            notes.append(f"global start: {len(U)} starts ranked on {SEARCH_PIXELS} pixels per view "
+                         f"(the given start ranked {int(np.flatnonzero(np.argsort(costs) == 0)[0]) + 1})")
+        notes.append(f"attempt {attempts + 1}: {solver} from start {top + 1}: {int(k)} steps, "
+                     f"{result_message(res).splitlines()[0] if res else 'converged'}, subset cost {2 * loss:.3g}")
+        if history and h is not None:
+            cnt = int(h[3])
+            for uu, xx in zip(np.asarray(h[1])[:cnt], np.asarray(h[2])[:cnt]):
+                hist.append(np.asarray(red.theta(jnp.asarray(uu), jnp.asarray(xx), theta_ref), np.float64))
+        # Convergence is judged on the whole problem: the polish ends converged only where even
+        # an undamped Gauss–Newton step gains nothing (a subset LM that ran out of steps in a
+        # slow valley but ended near the optimum is then finished by the polish).
+
+        # -- polish on the whole image, and the Jacobian for the report ----------------------------
+        theta, r, J, fixed, p_steps, p_conv = _polish(jac_fn, prob, red, theta, polish_steps, rtol)
+        steps_total += p_steps
+        cand = _candidate(prob, theta, r, J, fixed, res, p_conv, p_steps, n2, noise)
+        converged, ratio = cand["converged"], cand["ratio"]
+        notes.append(f"  polish: {p_steps} evaluation(s) of the whole residual"
+                     + (f" ({n_cens} censored entries)" if n_cens else "") + f"; residual {ratio:.3g}× the noise")
+        if best is None or cand["rss"] < best["rss"]:
+            best = cand
+        attempts += 1
+        if (converged and ratio <= noise_ratio_limit(n2)) or attempts > restarts or exclude.all() or len(U) == 1:
+            break
+    solve_s = time.perf_counter() - t_run
+    if history:
+        ev = [jac_fn(jnp.asarray(t, dtype), prob.data)[0] for t in hist]
+        hist = [(0.5 * float(jnp.sum(e.astype(jnp.float64) ** 2)), t) for e, t in zip(ev, hist)]
+        hist.append((0.5 * best["rss"], best["theta"]))
+
+    # -- report ---------------------------------------------------------------------------------------
+    theta, r, J, fixed = best["theta"], best["r"], best["J"], best["fixed"]
+    sigma, source, ratio, converged = best["sigma"], best["source"], best["ratio"], best["converged"]
+    rss = float(r @ r)  # covered pixels (the uncovered ones do not depend on the parameters)
     labels = pset.labels
-    stderr = np.full(p, np.inf)
-    gauges = []
-    keep = ~undetermined_mask
-    if keep.any():
-        Js = J[:, keep] / col[keep]
-        _, sv, vt = np.linalg.svd(Js, full_matrices=False)
-        cond = sv[0] / max(sv[-1], 1e-300)
-        if cond > 1e6:
-            # Report the weakest direction: the combination the images barely constrain.
-            v = vt[-1]
-            lab = [labels[i] for i in np.flatnonzero(keep)]
-            big = np.argsort(-np.abs(v))[:4]
-            gauges.append("condition number %.1e; weakest combination: %s" % (
-                cond, " ".join(f"{v[i]:+.2f}·{lab[i]}" for i in big if abs(v[i]) > 0.1)))
-        cov = np.linalg.pinv(Js.T @ Js) * s2
-        stderr[keep] = np.sqrt(np.clip(np.diag(cov), 0, None)) / col[keep]
-    undetermined = [labels[i] for i in np.flatnonzero(undetermined_mask)]
-
-    # Image quality of the fit (first view; scikit-image metrics).
-    from skimage.metrics import peak_signal_noise_ratio, structural_similarity
-
-    fitted = np.asarray(fitted0, np.float64)
-    tgt = np.asarray(targets[0], np.float64)
-    rng = max(float(tgt.max() - tgt.min()), 1e-12)
-    mse = float(np.mean((fitted - tgt) ** 2))
-    psnr = float("inf") if mse == 0 else float(peak_signal_noise_ratio(tgt, fitted, data_range=rng))
-    ssim = float(structural_similarity(tgt, fitted, channel_axis=-1, data_range=rng))
-    n_used = sum(int(np.count_nonzero(np.broadcast_to(np.asarray(w), t.shape))) for w, t in zip(weights, targets))
-    msg = optx.RESULTS[result]
-    if trapped:
-        msg = (msg + "; " if msg else "") + "ended in a trap: " + "; ".join(m for _, _, m in trapped)
+    stderr, undetermined, gauges, s2 = uncertainty(J, r, n2, labels, fixed)
+    msg_solver = "" if converged else (result_message(best["res"]).splitlines()[0] if best["res"] else "the polish did not converge")
+    successful, msg = verdict(converged, msg_solver, ratio, sigma, source, n2)
+    on_bound = [f"{labels[i]} = {theta[i]:.6g} ({'lower' if theta[i] <= lo else 'upper'} bound)"
+                for i, lo in _bounded_fixed(prob, theta, fixed)]
+    psnr, ssim = image_quality(_full_image(prob, theta), prob.targets[0])
     return FitResult(
-        names=labels, values=np.asarray(theta, np.float64), start=np.asarray(theta0, np.float64), stderr=stderr,
-        result=msg, successful=bool(result == optx.RESULTS.successful) and not trapped, steps=steps_total,
-        compile_s=compile_s, solve_s=solve_s, rms=float(np.sqrt(np.mean(r**2))), psnr=psnr, ssim=ssim,
-        rss=float(r @ r), n_residuals=n_used,
-        undetermined=undetermined, gauges=gauges, history=hist, notes=notes,
+        names=labels, values=theta, start=np.asarray(theta0, np.float64), stderr=stderr, result=msg,
+        successful=successful, steps=steps_total, compile_s=compile_s, solve_s=solve_s,
+        rms=float(np.sqrt(float(r @ r) / max(n2, 1))), psnr=psnr, ssim=ssim, rss=rss, n_residuals=n2,
+        undetermined=undetermined, gauges=gauges, history=hist, notes=notes, method=red.method, noise=sigma,
+        noise_source=source, noise_ratio=ratio, converged=converged, stderr_meaningful=successful,
+        on_bound=on_bound, censored=n_cens,
     )
 
 
-SHININESS_MAX = 1e4  # (cos θ)^m = ½ at θ ≈ 0.7° for m = 10⁴: beyond it no image resolves the highlight
-_NEUTRAL_SHININESS = 10.0
+def _candidate(prob, theta, r, J, fixed, res, converged, p_steps, n2, noise) -> dict:
+    """A polished result with its noise level and residual-to-noise ratio."""
+    sigma, source = noise_level(prob, prob.residual_images(r), noise)
+    s2 = float(r @ r) / max(n2 - len(theta), 1)
+    return dict(theta=theta, r=r, J=J, fixed=fixed, res=res, converged=bool(converged),
+                ratio=float(np.sqrt(s2) / max(sigma, 1e-300)), sigma=sigma, source=source, rss=float(r @ r),
+                polish=p_steps)
 
 
-def _trapped(pset: ParamSet, theta, theta0):
-    """Parameters that ran off to where the images cannot pull them back: ``[(index, param, reason)]``.
-
-    - a [0, 1] or interval parameter pinned at its rail (the logistic map is flat there, so the
-      gradient vanishes) when it did not start there;
-    - a positive parameter that moved by more than 10³× from its start (walked down a valley,
-      e.g. the common scale of k_d, k_s against a1, a2 once a1·d + a2·d² ≫ a0);
-    - an exponent above 10⁴ (also when it started there): the highlight is switched off and
-      m's gradient is zero.
-    """
+def _bounded_fixed(prob, theta, fixed):
     out = []
-    for p, off in zip(pset.params, pset.offsets[:-1]):
-        for i in range(off, off + p.size):
-            x, x0, label = float(theta[i]), float(theta0[i]), pset.labels[i]
-            if p.bounds is None:
-                if p.path[-1] == "shininess" and x > SHININESS_MAX:
-                    out.append((i, p, f"{label} = {x:.3g} > {SHININESS_MAX:.0e} (highlight switched off)"))
-                elif x > 1e3 * x0 or x < 1e-3 * x0:
-                    out.append((i, p, f"{label} ran from {x0:.3g} to {x:.3g}"))
-            else:
-                lo, hi = p.bounds
-                t, t0 = (x - lo) / (hi - lo), (x0 - lo) / (hi - lo)
-                if min(t, 1 - t) < 1e-4 and min(t0, 1 - t0) >= 1e-4:
-                    out.append((i, p, f"{label} = {x:.6g} pinned at the edge of [{lo}, {hi}]"))
+    for i in np.flatnonzero(fixed):
+        p = prob.pset.params[np.searchsorted(prob.pset.offsets, i, side="right") - 1]
+        lo = p.bounds[0] if p.bounds else 0.0
+        out.append((i, lo))
     return out
 
 
-def _neutral(p, start: float) -> float:
-    """Where a runaway parameter restarts: its start (an exponent at most 10), mid-range if bounded."""
-    if p.bounds is None:
-        return min(start, _NEUTRAL_SHININESS) if p.path[-1] == "shininess" else start
-    lo, hi = p.bounds
-    return 0.5 * (lo + hi)
+def _full_image(prob, theta):
+    v = prob.data[0].scene
+    return np.asarray(jax.jit(ds.render, static_argnames="opts")(prob.pset.apply(v, jnp.asarray(theta, prob.dtype)), prob.opts))
 
 
-class _Timed:
-    def __init__(self, compiled, compile_s):
-        self.compiled, self.compile_s = compiled, compile_s
+def _polish(jac_fn, prob, red, theta, steps, rtol):
+    """Projected Levenberg–Marquardt on all parameters in natural units with the full (censored)
+    residual. Scalars on a bound whose gradient points outside stay there. Returns
+    ``(θ, r, J, fixed, evaluations, converged)``."""
+    pset, dt = prob.pset, prob.dtype
+    lo = np.concatenate([np.full(p.size, p.bounds[0] if p.bounds else 0.0) for p in pset.params])
+    hi = np.concatenate([np.full(p.size, p.bounds[1] if p.bounds else np.inf) for p in pset.params])
+    pos = np.concatenate([np.full(p.size, p.bounds is None and p.path[-1] not in
+                                  ("color", "ambient", "emission")) for p in pset.params])
+    lin = np.zeros(len(theta), bool)
+    lin[red.idx_l] = True
+    floor = np.where(pos, np.maximum(np.abs(theta) * 1e-6, 1e-12), lo)  # a nonlinear positive stays > 0
 
-    def __call__(self, *args):
-        return self.compiled(*args)
+    def ev(th):
+        r, J = jac_fn(jnp.asarray(th, dt), prob.data)
+        return np.asarray(r, np.float64), np.asarray(J, np.float64)
 
-
-_CACHE: dict = {}
-
-
-def _compiled(pset, opts, solver, rtol, atol, max_steps, u0, data, verbose=False, history=False):
-    """The compiled solve and Jacobian for this problem structure (cached: a second fit with the
-    same free parameters, options and image sizes compiles nothing; ``compile_s`` is then 0)."""
-    leaves, treedef = jax.tree.flatten((u0, data))
-    key = (tuple(pset.labels), tuple(p.size for p in pset.params), tuple(p.path for p in pset.params), opts, solver,
-           rtol, atol, max_steps, verbose, history, treedef, tuple((x.shape, x.dtype) for x in leaves))
-    if key in _CACHE:
-        solve_fn, jac_fn = _CACHE[key]
-        return _Timed(solve_fn.compiled, 0.0), _Timed(jac_fn.compiled, 0.0)
-
-    def residual(u, data):
-        r = _residual_theta(pset, *data, opts, pset.theta_from_u(u).astype(data[2][0].dtype))
-        return r.astype(u.dtype)
-
-    solver_obj = SOLVERS[solver](rtol=rtol, atol=atol, verbose=_make_verbose(verbose, history))
-
-    def solve(u0, data):
-        if solver == "bfgs":
-            sol = optx.minimise(lambda u, d: 0.5 * jnp.sum(residual(u, d) ** 2), solver_obj, u0, args=data,
-                                max_steps=max_steps, throw=False)
+    r, J = ev(theta)
+    cost, lam, n_ev, conv = float(r @ r), 1e-3, 1, False
+    n_res = max(int(np.count_nonzero(r)) - len(theta), 1)
+    tol = max(rtol, 10 * float(np.finfo(dt).eps))
+    for _ in range(steps):
+        g = J.T @ r
+        at_lo, at_hi = theta <= floor, theta >= hi
+        free = ~(at_lo & (g > 0)) & ~(at_hi & (g < 0))
+        H = J.T @ J
+        d = np.diag(H).copy()
+        free &= d > 0
+        if not free.any():
+            conv = True
+            break
+        # Converged when even the undamped Gauss–Newton step would lower the cost by less than a
+        # thousandth of the residual variance (noise) or float rounding of the cost (noise-free).
+        gn = np.linalg.lstsq(H[np.ix_(free, free)], -g[free], rcond=None)[0]
+        gain = -float(g[free] @ gn)
+        if gain <= max(1e-3 * cost / n_res, 100 * float(np.finfo(dt).eps) * cost):
+            conv = True
+            break
+        Hf = H[np.ix_(free, free)] + lam * np.diag(d[free])
+        step = np.zeros_like(theta)
+        step[free] = np.linalg.solve(Hf, -g[free])
+        new = np.clip(theta + step, floor, hi)
+        r2, J2 = ev(new)
+        n_ev += 1
+        c2 = float(r2 @ r2)
+        if np.isfinite(c2) and c2 <= cost:
+            moved = np.max(np.abs(new - theta) / np.maximum(np.abs(theta), 1e-3))
+            theta, r, J, cost, lam = new, r2, J2, c2, max(lam / 10, 1e-9)
+            if moved <= tol:
+                conv = True
+                break
         else:
-            sol = optx.least_squares(residual, solver_obj, u0, args=data, max_steps=max_steps, throw=False)
-        return sol.value, sol.result, sol.stats["num_steps"]
-
-    def jac(theta, data):
-        # Residual, Jacobian in the natural parameters, and the first view's fitted image.
-        f = lambda th: _residual_theta(pset, *data, opts, th)  # noqa: E731
-        views, ids = data[0], data[1]
-        return f(theta), jax.jacfwd(f)(theta), ds.render(pset.apply(views[0], theta), opts, ids=ids[0])
-
-    out = []
-    for fn, arg in ((solve, u0), (jac, pset.theta_from_u(u0))):
-        t0 = time.perf_counter()
-        compiled = jax.jit(fn).lower(arg, data).compile()
-        out.append(_Timed(compiled, time.perf_counter() - t0))
-    _CACHE[key] = tuple(out)
-    return tuple(out)
-
-
-def _residual_theta(pset, views, ids, targets, weights, sat, opts, theta):
-    out = []
-    for v, i, t, wgt in zip(views, ids, targets, weights):
-        img = ds.render(pset.apply(v, theta), opts, ids=i)
-        # Censored (clipped) target channels compare against the model clipped the same way.
-        img = jnp.where(t >= sat, jnp.minimum(img, sat), img)
-        out.append(((img - t) * wgt).reshape(-1))
-    return jnp.concatenate(out)
-
-
-# ------------------------------------------------------------------------------------------
+            lam *= 10
+    g = J.T @ r
+    fixed = ((theta <= lo) & (g >= 0) & ~pos) | (theta >= hi)
+    fixed &= lin | np.isfinite(hi)
+    return theta, r, J, fixed, n_ev, conv
 # Nested models: which terms do the images support?
 # ------------------------------------------------------------------------------------------
 
@@ -415,7 +331,7 @@ def compare_models(scene, opts, targets, free, *, variants=None, given: FitResul
     the one with fewer parameters wins instead of a comparison of rounding noise.
     ``given``: an existing fit of the model as given (not repeated).
     """
-    targets = _as_list(targets)
+    targets = as_list(targets)
     variants = model_variants(scene, opts, free) if variants is None else variants
     dtype = scene.mesh.vertices.dtype
     eps = float(jnp.finfo(dtype).eps)

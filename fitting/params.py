@@ -53,7 +53,7 @@ def _domain_str(domain) -> str:
         return "[0, 1]"
     if domain == "positive":
         return "(0, inf)"
-    return f"({domain[0]}, {domain[1]})"
+    return f"[{domain[0]}, {domain[1]}]"
 
 
 def _follow(node, path):
@@ -134,7 +134,7 @@ class Param:
         elif self.domain == "positive":
             ok = ok and (v > 0).all()
         else:
-            ok = ok and (v > self.domain[0]).all() and (v < self.domain[1]).all()
+            ok = ok and (v >= self.domain[0]).all() and (v <= self.domain[1]).all()  # a start on a bound is moved inside
         if not ok:
             raise ParamError(f"{self.name}: {what} {np.round(v, 6).tolist()} is outside its domain {_domain_str(self.domain)}")
 

@@ -1,0 +1,196 @@
+"""Randomised fitting suite: does a fit find the truth from any start on any scene, or say it did not?
+
+Each case draws (from its own seed) a mesh (icosphere, torus, or the scanned bunny when
+``--bunny PATH`` is given), shading (flat / Gouraud / Phong / Blinn), 1–3 lights of mixed kinds,
+fog (none / linear / exp / exp²), a material, and a start: every free parameter anywhere in its
+search domain, a quarter of them exactly on a bound. Free: k_a and k_d (RGB), k_s, m, the
+attenuation a1, a2 of every point and spot light, and the fog's density (exp, exp²) or end
+(linear). Targets: float (noise-free) and 8-bit with Gaussian noise σ = 2/255 before
+quantisation (clipped channels censored).
+
+Scoring:
+- noise-free: success = the fit says successful and every determined parameter is within
+  relative error 1e-4; a *false success* says successful with a parameter further off.
+- noisy: success = successful and every determined parameter within 3 reported standard errors;
+  1-σ coverage = the fraction of determined parameters within 1 s.e. (expected 68 %).
+  A fit that says successful with a parameter beyond 3 s.e. is counted as a false success,
+  though Gaussian noise alone puts one of ~10 parameters there in 2.7 % of fits.
+
+    python benchmarks/bench_fit_suite.py [--cases 20] [--size 64] [--seed0 0] [--bunny PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+import diffshade as ds  # noqa: E402
+from fitting.fit import fit  # noqa: E402
+from fitting.params import ParamSet  # noqa: E402
+
+
+def make_case(seed: int, size: int, bunny: str | None):
+    rng = np.random.default_rng(seed)
+    kinds = ["icosphere", "torus"] + (["bunny"] if bunny else [])
+    mesh_kind = kinds[seed % len(kinds)]
+    if mesh_kind == "icosphere":
+        mesh = ds.icosphere(3)
+    elif mesh_kind == "torus":
+        import trimesh
+
+        t = trimesh.creation.torus(1.0, 0.4, major_sections=48, minor_sections=24)
+        R = trimesh.transformations.rotation_matrix(0.9, [1, 0.3, 0])
+        t.apply_transform(R)
+        mesh = ds.mesh_from_arrays(np.asarray(t.vertices), np.asarray(t.faces))
+    else:
+        m = ds.load_mesh(bunny)
+        v = np.asarray(m.vertices)
+        v = (v - v.mean(0)) / np.abs(v - v.mean(0)).max() * 1.1
+        mesh = ds.mesh_from_arrays(v, np.asarray(m.faces))
+    shading, specular = [("flat", "phong"), ("gouraud", "phong"), ("phong", "phong"), ("phong", "blinn")][rng.integers(4)]
+    fog = ["none", "linear", "exp", "exp2"][rng.integers(4)]
+    n_lights = int(rng.integers(1, 4))
+    lk = ["point"] + [str(rng.choice(["point", "directional", "spot"])) for _ in range(n_lights - 1)]
+    pts = [k for k in lk if k == "point"]
+    dirs = [k for k in lk if k == "directional"]
+    spots = [k for k in lk if k == "spot"]
+
+    def pos():
+        d = rng.normal(size=3)
+        d[2] = abs(d[2]) + 0.5
+        return 2.5 * d / np.linalg.norm(d)
+
+    def att():
+        return [1.0, float(rng.uniform(0.02, 0.3)), float(rng.uniform(0.01, 0.2))]
+
+    point = ds.PointLights(color=[[float(c) for c in rng.uniform(0.6, 1.4, 3)] for _ in pts],
+                           position=[pos() for _ in pts], attenuation=[att() for _ in pts],
+                           ambient=[[0, 0, 0] for _ in pts])
+    directional = (ds.DirectionalLights(color=[rng.uniform(0.2, 0.5, 3) for _ in dirs],
+                                        direction=[-pos() for _ in dirs], ambient=[[0, 0, 0] for _ in dirs])
+                   if dirs else ds.no_directional())
+    spot = ds.no_spot()
+    if spots:
+        ps = [pos() for _ in spots]
+        spot = ds.SpotLights(color=[[1.0, 1.0, 1.0] for _ in spots], position=ps, attenuation=[att() for _ in spots],
+                             ambient=[[0, 0, 0] for _ in spots], axis=[-p for p in ps], cutoff=[40.0] * len(spots),
+                             exponent=[4.0] * len(spots), edge=[0.0] * len(spots))
+    m = float(np.exp(rng.uniform(np.log(5), np.log(200))))
+    if specular == "blinn":
+        m = ds.phong_to_blinn(m)
+    mat = ds.Material(ambient=rng.uniform(0.05, 0.5, 3), diffuse=rng.uniform(0.1, 0.9, 3),
+                      specular=float(rng.uniform(0.1, 0.8)), shininess=m)
+    cam = ds.Camera(eye=[0.0, 0.0, 3.5], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.5, far=10.0,
+                    width=size, height=size)
+    fogp = ds.Fog(color=rng.uniform(0.3, 0.8, 3), start=0.0, end=float(rng.uniform(5.0, 8.0)),
+                  density=float(rng.uniform(0.05, 0.3)))
+    scene = ds.Scene(mesh=mesh, camera=cam, material=mat, point=point, directional=directional, spot=spot,
+                     ambient_light=0.3, fog=fogp, background=(0.0, 0.0, 0.0))
+    opts = ds.RenderOptions(shading=shading, specular=specular, fog=fog)
+    free = ["material.ambient", "material.diffuse", "material.specular", "material.shininess"]
+    free += [f"point[{i}].{a}" for i in range(len(pts)) for a in ("a1", "a2")]
+    free += [f"spot[{i}].{a}" for i in range(len(spots)) for a in ("a1", "a2")]
+    if fog in ("exp", "exp2"):
+        free.append("fog.density")
+    elif fog == "linear":
+        free.append("fog.end")
+    name = f"{mesh_kind}/{shading}/{specular}/{'+'.join(lk)}/fog {fog}"
+    return scene, opts, free, name, rng
+
+
+def random_start(pset, true, rng):
+    """Each scalar anywhere in its domain (positive ones log-uniform within 30x of the truth),
+    a quarter exactly on a bound."""
+    th = np.array(true, np.float64)
+    k = 0
+    for p in pset.params:
+        for _ in range(p.size):
+            if p.bounds is not None:
+                lo, hi = p.bounds
+                u = rng.uniform()
+                th[k] = lo if u < 0.125 else hi if u < 0.25 else rng.uniform(lo, hi)
+            else:
+                th[k] = true[k] * np.exp(rng.uniform(-np.log(30), np.log(30)))
+            k += 1
+    return th
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--cases", type=int, default=20)
+    ap.add_argument("--size", type=int, default=64)
+    ap.add_argument("--seed0", type=int, default=0)
+    ap.add_argument("--bunny", default=None, help="path of a scanned mesh (e.g. the Stanford bunny PLY)")
+    ap.add_argument("--noisy-only", action="store_true")
+    ap.add_argument("--clean-only", action="store_true")
+    args = ap.parse_args()
+    render = jax.jit(ds.render, static_argnames="opts")
+    rows = []
+    for case in range(args.seed0, args.seed0 + args.cases):
+        scene, opts, free, name, rng = make_case(case, args.size, args.bunny)
+        pset = ParamSet(free, scene)
+        true = np.asarray(pset.theta_of(scene), np.float64)
+        clean = np.asarray(render(scene, opts))
+        start = random_start(pset, true, rng)
+        s0 = pset.apply(scene, jnp.asarray(start, scene.mesh.vertices.dtype))
+        for noisy in (False, True):
+            if (noisy and args.clean_only) or (not noisy and args.noisy_only):
+                continue
+            if noisy:
+                tgt = np.round(np.clip(clean + rng.normal(0, 2 / 255, clean.shape), 0, 1) * 255) / 255
+                kw = dict(saturation=1.0, quantum=1 / 255)
+            else:
+                tgt, kw = clean, {}
+            t0 = time.perf_counter()
+            r = fit(s0, opts, tgt, free, **kw)
+            wall = time.perf_counter() - t0
+            det = np.array([n not in r.undetermined for n in r.names])
+            if noisy:
+                z = np.abs(r.values - true) / np.where(r.stderr > 0, r.stderr, np.inf)
+                right = bool(np.all(z[det] <= 3))
+                within1 = int(np.sum(z[det] <= 1))
+                err_s = f"max |z| {np.max(z[det]):6.2f}"
+            else:
+                err = np.abs(r.values - true) / np.maximum(np.abs(true), 1e-12)
+                right = bool(np.all(err[det] <= 1e-4))
+                within1 = 0
+                err_s = f"max err {np.max(err[det]):.1e}"
+            verdict = "ok" if (r.successful and right) else ("FALSE SUCCESS" if r.successful else
+                                                             ("honest fail" if not right else "fail (right)"))
+            rows.append(dict(case=case, noisy=noisy, ok=r.successful and right, false=r.successful and not right,
+                             solve=r.solve_s, compile=r.compile_s, steps=r.steps, within1=within1,
+                             ndet=int(det.sum()), wall=wall))
+            print(f"{case:3d} {'8-bit' if noisy else 'float'} {name:48s} {verdict:13s} {err_s} ratio {r.noise_ratio:7.3g} "
+                  f"steps {r.steps:3d} solve {r.solve_s:6.3f} s compile {r.compile_s:5.1f} s"
+                  + ("" if r.successful else f"  [{r.result[:70]}]"), flush=True)
+    for noisy in (False, True):
+        sel = [r for r in rows if r["noisy"] == noisy]
+        if not sel:
+            continue
+        ok = sum(r["ok"] for r in sel)
+        false = sum(r["false"] for r in sel)
+        times = [r["solve"] for r in sel]
+        steps = [r["steps"] for r in sel]
+        line = (f"{'8-bit + noise' if noisy else 'float, noise-free'}: success {ok}/{len(sel)}, false successes {false}, "
+                f"solve median {statistics.median(times):.3f} s (worst {max(times):.3f}), steps median "
+                f"{statistics.median(steps)} (worst {max(steps)})")
+        if noisy:
+            w1 = sum(r["within1"] for r in sel) / max(sum(r["ndet"] for r in sel), 1)
+            line += f", 1-σ coverage {100 * w1:.1f} %"
+        print(line)
+    comp = [r["compile"] for r in rows if r["compile"] > 0]
+    if comp:
+        print(f"compile (first fit of each structure): median {statistics.median(comp):.1f} s, max {max(comp):.1f} s")
+
+
+if __name__ == "__main__":
+    main()

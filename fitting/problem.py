@@ -1,0 +1,199 @@
+r"""The fitting problem: views, targets, weights and censoring → residuals, term images, Jacobian.
+
+Only the pixels some surface covers depend on the parameters; a background pixel's residual
+``(background − target)·w`` is a constant. Each view is therefore *compacted*: the covered pixels'
+visibility ids and NDC centres are gathered once (:func:`diffshade.render` with ``pixels``), padded
+to a multiple of :data:`PAD` pixels (so a new camera recompiles only when the covered area changes
+by more than that), and the residual is evaluated on them alone; the constant part is kept for
+the statistics.
+
+Censoring: an integer target's brightest code (``saturation``) says only "at least this bright",
+and its darkest (0) "at most this dark". Their residuals are one-sided,
+``min(I − t, 0)`` and ``max(I − t, 0)``, zero once the model agrees with the clipping.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import diffshade as ds
+
+from .params import ParamSet
+
+PAD = 1024  # covered-pixel counts are padded up to a multiple of this
+
+
+class FitError(ValueError):
+    """Observations that do not match the scene (size, channels, count)."""
+
+
+def as_list(targets) -> list:
+    """One image or a list of images, as a list."""
+    return [targets] if hasattr(targets, "shape") else list(targets)
+
+
+def check_target(t, scene, k):
+    t = np.asarray(t)
+    h, w = scene.camera.resolution
+    if t.ndim != 3 or t.shape[2] != 3:
+        raise FitError(f"target {k}: expected an RGB image of shape ({h}, {w}, 3), got shape {t.shape}")
+    if t.shape[:2] != (h, w):
+        raise FitError(f"target {k}: image is {t.shape[1]}x{t.shape[0]} but the camera renders {w}x{h}")
+    if not np.isfinite(t).all():
+        raise FitError(f"target {k}: contains NaN or inf")
+    return t
+
+
+class ViewData(eqx.Module):
+    """One view's compacted data (every leaf an array: passed to compiled functions as data)."""
+
+    scene: ds.Scene
+    ids: jax.Array  # [K, 1, N] visibility ids of the covered pixels (-1 in padding)
+    px: jax.Array  # [1, N] NDC x of their centres
+    py: jax.Array  # [1, N] NDC y
+    target: jax.Array  # [N, 3]
+    weight: jax.Array  # [N, 1] √mask (0 in padding)
+    hi: jax.Array  # [N, 3] bool: censored from above (target at saturation)
+    lo: jax.Array  # [N, 3] bool: censored from below (target at 0 of an integer image)
+
+
+@dataclass
+class View:
+    """Host-side bookkeeping of one view: where its compacted pixels lie, and its constant part."""
+
+    rows: np.ndarray  # [n] flat indices of the covered pixels in the H×W image
+    shape: tuple  # (H, W)
+    const: np.ndarray  # [H, W, 3] weighted residual of the uncovered pixels (0 on covered ones)
+
+
+def censored_residual(img, t, hi, lo):
+    """``I − t``, one-sided where the target is censored."""
+    d = img - t
+    return jnp.where(hi, jnp.minimum(d, 0.0), jnp.where(lo, jnp.maximum(d, 0.0), d))
+
+
+@dataclass
+class Problem:
+    """Views, targets, weights and censoring; the free parameters; the residual functions."""
+
+    pset: ParamSet
+    opts: ds.RenderOptions
+    data: list  # [ViewData]
+    views: list  # [View]
+    dtype: object
+    saturation: float | None
+    quantum: float | None  # the target's code step (1/255, 1/65535) if it was an integer image
+    targets: list  # the full target images (host, float64), for reports
+
+    @classmethod
+    def build(cls, scene, opts, targets, free, *, views=None, masks=None, shared=(), saturation=None,
+              quantum=None, lower_censor=None):
+        targets = as_list(targets)
+        views = list(views) if views is not None else [scene] * len(targets)
+        if len(views) != len(targets):
+            raise FitError(f"{len(targets)} targets but {len(views)} views")
+        if masks is None:
+            masks = [None] * len(targets)
+        if len(masks) != len(targets):
+            raise FitError(f"{len(targets)} targets but {len(masks)} masks")
+        dtype = scene.mesh.vertices.dtype
+        pset = ParamSet(list(free), scene, shared)
+        lower = (saturation is not None) if lower_censor is None else lower_censor
+        vis = jax.jit(ds.scene_visibility, static_argnums=1)
+        data, books, full = [], [], []
+        for k, (t, v, m) in enumerate(zip(targets, views, masks)):
+            t = np.asarray(check_target(t, v, k), np.float64)
+            full.append(t)
+            h, w = v.camera.resolution
+            if m is None:
+                m = np.ones((h, w))
+            else:
+                m = np.asarray(m, np.float64)
+                if m.shape != (h, w):
+                    raise FitError(f"mask {k}: shape {m.shape}, expected {(h, w)}")
+                m = np.clip(m, 0, None)
+            wgt = np.sqrt(m)
+            ids = np.asarray(vis(v, opts))
+            covered = (ids[0] >= 0) & (wgt > 0)
+            rows = np.flatnonzero(covered.reshape(-1))
+            n = max(PAD, -(-len(rows) // PAD) * PAD)
+            pad = n - len(rows)
+            hi = (t >= saturation) if saturation is not None else np.zeros(t.shape, bool)
+            lo = (t <= 0.0) if lower else np.zeros(t.shape, bool)
+            xs, ys = (np.asarray(c, np.float64) for c in ds.pixel_centres(h, w, np.float64))
+            r_idx, c_idx = rows // w, rows % w
+            flat = lambda a: a.reshape(h * w, *a.shape[2:])[rows]  # noqa: E731
+            padn = lambda a, val: np.concatenate([a, np.full((pad, *a.shape[1:]), val, a.dtype)])  # noqa: E731
+            kids = ids.reshape(ids.shape[0], h * w)[:, rows]
+            kids = np.concatenate([kids, np.full((ids.shape[0], pad), -1, kids.dtype)], axis=1)[:, None, :]
+            data.append(ViewData(
+                scene=v, ids=jnp.asarray(kids),
+                px=jnp.asarray(padn(xs[c_idx], 0.0)[None], dtype), py=jnp.asarray(padn(ys[r_idx], 0.0)[None], dtype),
+                target=jnp.asarray(padn(flat(t), 0.0), dtype), weight=jnp.asarray(padn(flat(wgt)[:, None], 0.0), dtype),
+                hi=jnp.asarray(padn(flat(hi), False)), lo=jnp.asarray(padn(flat(lo), False))))
+            bg = np.broadcast_to(np.asarray(v.background, np.float64), t.shape)
+            d = bg - t
+            d = np.where(hi, np.minimum(d, 0), np.where(lo, np.maximum(d, 0), d)) * wgt[..., None]
+            unc = ~covered
+            const = np.where(unc[..., None], d, 0.0)
+            books.append(View(rows=rows, shape=(h, w), const=const))
+        return cls(pset, opts, data, books, dtype, saturation, quantum, full)
+
+    # -- evaluation ----------------------------------------------------------------------------
+    def image(self, vd: ViewData, theta):
+        """The model at a view's compacted pixels, ``[N, 3]``."""
+        img = ds.render(self.pset.apply(vd.scene, theta), self.opts, ids=vd.ids, pixels=(vd.px, vd.py))
+        return img[0]
+
+    def residual(self, theta, data):
+        """Weighted, censored residual of every view's compacted pixels, flat."""
+        out = []
+        for vd in data:
+            r = censored_residual(self.image(vd, theta), vd.target, vd.hi, vd.lo) * vd.weight
+            out.append(r.reshape(-1))
+        return jnp.concatenate(out)
+
+    def uncensored_weight(self, data):
+        """``w`` where the residual is two-sided, 0 on censored and padded entries (flat)."""
+        return jnp.concatenate([(vd.weight * ~(vd.hi | vd.lo)).reshape(-1) for vd in data])
+
+    # -- host-side summaries --------------------------------------------------------------------
+    def counts(self):
+        """``(n_two_sided, n_censored)``: residual entries with non-zero weight on covered pixels
+        (the uncovered ones do not depend on the parameters and are left out of the statistics)."""
+        n, c = 0, 0
+        for vd in self.data:
+            w = np.asarray(vd.weight)[:, 0] > 0
+            cens = np.asarray(vd.hi | vd.lo)
+            n += int((w[:, None] & ~cens).sum())
+            c += int((w[:, None] & cens).sum())
+        return n, c
+
+    def residual_images(self, r_flat) -> list[np.ndarray]:
+        """The flat compacted residual scattered back into ``[H, W, 3]`` images (with the constant
+        part of the uncovered pixels)."""
+        out, off = [], 0
+        for vd, b in zip(self.data, self.views):
+            n = vd.target.shape[0]
+            r = np.asarray(r_flat[off * 3:(off + n) * 3], np.float64).reshape(n, 3)[:len(b.rows)]
+            off += n
+            img = b.const.copy().reshape(-1, 3)
+            img[b.rows] = r
+            out.append(img.reshape(*b.shape, 3))
+        return out
+
+    def used_masks(self) -> list[np.ndarray]:
+        """Per view ``[H, W, 3]`` bool: the residuals of covered pixels that are two-sided and weighted."""
+        out = []
+        for vd, b in zip(self.data, self.views):
+            m = np.zeros((b.shape[0] * b.shape[1], 3), bool)
+            w = np.asarray(vd.weight)[:len(b.rows), 0] > 0
+            cens = np.asarray(vd.hi | vd.lo)[:len(b.rows)]
+            m[b.rows] = w[:, None] & ~cens
+            out.append(m.reshape(*b.shape, 3))
+        return out

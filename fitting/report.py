@@ -1,0 +1,154 @@
+r"""What a fit reports: the verdict, standard errors, identifiability, image quality.
+
+**Verdict.** A fit is *successful* when the solver converged **and** the residual is what the
+noise explains. The noise level :math:`\sigma` is, in this order: the user's (``noise``); else
+the larger of the quantisation floor of an integer target (:math:`q/\sqrt{12}` for a code step
+:math:`q`), the float floor of a float target (:math:`10\,\varepsilon \max|y|`) and the *white*
+part of the residual, estimated from differences of neighbouring pixels,
+:math:`\hat\sigma_w^2 = \overline{(r_i - r_j)^2}/2` (pixel noise is independent from pixel to
+pixel; a model that misses — a wrong highlight, a wrong falloff — leaves a residual that is smooth
+over neighbours and adds to the variance, not to the differences). With
+:math:`s^2 = \mathrm{RSS}/(n - p)` over the two-sided residuals, the fit is rejected when
+:math:`s/\sigma > 1 + 3\sqrt{2/n} + 0.01` (:func:`noise_ratio_limit`: three standard deviations
+of the ratio of two variance estimates; "converged, but the residual is 40× the noise"); its
+standard errors are then marked as not meaningful.
+
+**Standard errors** are Gauss–Newton's, :math:`s^2 (J^T J)^{-1}` in the natural parameters with
+the full (censored) residual at the solution; a parameter whose column is zero is *undetermined*
+(s.e. inf) and a near-singular scaled Jacobian is reported as a gauge (its weakest combination).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+def noise_ratio_limit(n: int) -> float:
+    """The largest ``s/σ`` a fit with ``n`` two-sided residuals may have: 1 + three standard
+    deviations of the ratio of two variance estimates (:math:`\approx 3\sqrt{2/n}`) + 1 %."""
+    return 1.0 + 3.0 * float(np.sqrt(2.0 / max(n, 1))) + 0.01
+
+
+@dataclass
+class FitResult:
+    names: list[str]  # one label per scalar (RGB fields as name[r], name[g], name[b])
+    values: np.ndarray  # fitted θ
+    start: np.ndarray
+    stderr: np.ndarray  # Gauss–Newton standard errors (inf where not determined)
+    result: str  # "" = successful, else why not
+    successful: bool
+    steps: int
+    compile_s: float
+    solve_s: float
+    rms: float  # root-mean-square of the two-sided residuals
+    psnr: float
+    ssim: float
+    rss: float = 0.0  # residual sum of squares
+    n_residuals: int = 0  # two-sided residual entries with non-zero weight
+    undetermined: list[str] = field(default_factory=list)  # labels the images do not determine
+    gauges: list[str] = field(default_factory=list)  # near-degenerate combinations, described
+    history: list = field(default_factory=list)  # (loss, θ) of every accepted step, with ``history=True``
+    notes: list[str] = field(default_factory=list)  # the strategy's steps: starts, restarts, polish
+    method: str = ""  # which method ran, and why
+    noise: float = 0.0  # σ the verdict compared the residual with
+    noise_source: str = ""  # where σ came from
+    noise_ratio: float = 0.0  # s / σ
+    converged: bool = False  # the solver's own criterion
+    stderr_meaningful: bool = True  # False when the data reject the fitted model
+    on_bound: list[str] = field(default_factory=list)  # labels fitted exactly on a bound
+    censored: int = 0  # censored residual entries (clipped target channels)
+
+    def as_dict(self) -> dict:
+        return {
+            "parameters": {n: {"value": float(v), "stderr": float(e), "start": float(s)}
+                           for n, v, e, s in zip(self.names, self.values, self.stderr, self.start)},
+            "result": self.result or "successful", "successful": self.successful, "converged": self.converged,
+            "method": self.method, "steps": self.steps, "compile_s": self.compile_s, "solve_s": self.solve_s,
+            "rms": self.rms, "rss": self.rss, "n_residuals": self.n_residuals, "censored": self.censored,
+            "noise": self.noise, "noise_source": self.noise_source, "noise_ratio": self.noise_ratio,
+            "stderr_meaningful": self.stderr_meaningful, "on_bound": self.on_bound, "psnr": self.psnr,
+            "ssim": self.ssim, "undetermined": self.undetermined, "gauges": self.gauges, "notes": self.notes,
+        }
+
+
+def white_noise(res_images, used_masks) -> tuple[float, int]:
+    """``(σ̂_w, pairs)``: the white part of the residual from horizontal and vertical neighbour
+    differences where both residuals are two-sided and weighted."""
+    s, n = 0.0, 0
+    for r, m in zip(res_images, used_masks):
+        for ax in (0, 1):
+            a = np.take(r, range(1, r.shape[ax]), axis=ax) - np.take(r, range(r.shape[ax] - 1), axis=ax)
+            ok = np.take(m, range(1, m.shape[ax]), axis=ax) & np.take(m, range(m.shape[ax] - 1), axis=ax)
+            s += float(np.sum(a[ok] ** 2))
+            n += int(ok.sum())
+    return (np.sqrt(s / (2 * n)) if n else 0.0), n
+
+
+def noise_level(prob, res_images, noise=None) -> tuple[float, str]:
+    """σ for the verdict and a phrase saying where it came from."""
+    if noise is not None:
+        return float(noise), "given"
+    sw, _ = white_noise(res_images, prob.used_masks())
+    cands = [(sw, "white part of the residual")]
+    if prob.quantum:
+        cands.append((prob.quantum / np.sqrt(12.0), f"quantisation of {round(1 / prob.quantum) + 1}-level codes"))
+    else:
+        tmax = max(float(np.max(np.abs(np.asarray(vd.target)))) for vd in prob.data)
+        cands.append((10 * float(np.finfo(prob.dtype).eps) * max(tmax, 1e-30), "float rounding of the target"))
+    return max(cands)
+
+
+def verdict(converged: bool, solver_msg: str, ratio: float, sigma: float, source: str, n: int) -> tuple[bool, str]:
+    limit = noise_ratio_limit(n)
+    if not converged:
+        msg = solver_msg or "did not converge"
+        if ratio > limit:
+            msg += f"; the residual is {ratio:.3g}× the noise (σ = {sigma:.3g}, {source})"
+        return False, msg
+    if ratio > limit:
+        return False, (f"converged, but the residual is {ratio:.3g}× the noise (σ = {sigma:.3g}, {source}): "
+                       "a local minimum or a model that cannot explain the image")
+    return True, ""
+
+
+def uncertainty(J, r, n_two_sided, labels, fixed=None):
+    """Standard errors, undetermined labels and gauge descriptions from the Jacobian ``J`` (natural
+    parameters) and residual ``r`` at the solution. ``fixed`` scalars (on a bound) are left out of
+    the covariance (their s.e. is 0: the bound, not the data, holds them)."""
+    n, p = J.shape
+    fixed = np.zeros(p, bool) if fixed is None else fixed
+    s2 = float(r @ r) / max(n_two_sided - p, 1)
+    col = np.linalg.norm(J, axis=0)
+    undetermined_mask = col <= 1e-10 * max(col.max(), 1e-300)
+    stderr = np.full(p, np.inf)
+    stderr[fixed & ~undetermined_mask] = 0.0
+    gauges = []
+    keep = ~undetermined_mask & ~fixed
+    if keep.any():
+        Js = J[:, keep] / col[keep]
+        _, sv, vt = np.linalg.svd(Js, full_matrices=False)
+        cond = sv[0] / max(sv[-1], 1e-300)
+        if cond > 1e6:
+            v = vt[-1]
+            lab = [labels[i] for i in np.flatnonzero(keep)]
+            big = np.argsort(-np.abs(v))[:4]
+            gauges.append("condition number %.1e; weakest combination: %s" % (
+                cond, " ".join(f"{v[i]:+.2f}·{lab[i]}" for i in big if abs(v[i]) > 0.1)))
+        cov = np.linalg.pinv(Js.T @ Js) * s2
+        stderr[keep] = np.sqrt(np.clip(np.diag(cov), 0, None)) / col[keep]
+    undetermined = [labels[i] for i in np.flatnonzero(undetermined_mask)]
+    return stderr, undetermined, gauges, s2
+
+
+def image_quality(fitted, target) -> tuple[float, float]:
+    """PSNR and SSIM of the first view (scikit-image)."""
+    from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+    fitted = np.asarray(fitted, np.float64)
+    tgt = np.asarray(target, np.float64)
+    rng = max(float(tgt.max() - tgt.min()), 1e-12)
+    mse = float(np.mean((fitted - tgt) ** 2))
+    psnr = float("inf") if mse == 0 else float(peak_signal_noise_ratio(tgt, fitted, data_range=rng))
+    ssim = float(structural_similarity(tgt, fitted, channel_axis=-1, data_range=rng))
+    return psnr, ssim

@@ -1,0 +1,442 @@
+r"""How a fit is solved: variable projection, a global start, Levenberg–Marquardt, a polish.
+
+**Variable projection** (Golub & Pereyra 1973; Kaufman's Jacobian). The image is affine in the
+*linear* parameters :math:`x` (reflectances :math:`k_a, k_d, k_s, k_t`, emission, fog colour, and
+light colours when no :math:`k` they multiply is free): for fixed nonlinear parameters
+:math:`\theta` (exponent, attenuation, fog density, spot, :math:`\eta`, opacity, …)
+:math:`r(x, \theta) = A(\theta)\,x + b(\theta) - y`. One forward-mode pass gives :math:`b` and the
+columns of :math:`A` (a tangent per linear *field*: every term is per colour channel, so the
+tangent with ones in a field's three channels gives its three columns at once). The linear block
+is then solved exactly under its bounds (:func:`bounded_lsq`; :math:`k \in [0, 1]`, colours
+:math:`\ge 0`), so it needs no start and reaches or leaves a bound exactly, and optimistix's
+Levenberg–Marquardt moves only :math:`\theta` on the reduced residual
+:math:`r(x^*(\theta), \theta)` with Kaufman's Jacobian :math:`P^\perp_{A_f} \partial_\theta r`
+(:math:`A_f` the columns of the variables not on a bound).
+
+**Global start.** With :math:`x` projected out, each evaluation of the reduced cost is one render
+with a few tangents; on a subset of the covered pixels a quasi-random (Halton) set of starts over
+each nonlinear parameter's plausible range (log scale for positive ones) plus the user's start is
+ranked, and LM runs from the best; if its result is rejected by the verdict (residual above the
+noise), from the next distinct one.
+
+**Polish.** Censored (clipped) pixels make the image non-linear in :math:`x` (the VarPro stage
+leaves them out), so the last stage is a projected Gauss–Newton on all parameters in their natural
+units with the full, censored residual; it also produces the Jacobian for the standard errors.
+
+With ``clamp`` on, nothing is linear: the same machinery runs with every parameter nonlinear
+(plain LM from the global start); the result says so.
+"""
+
+from __future__ import annotations
+
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from diffshade._util import keep
+
+from .params import Param
+from .problem import Problem
+
+_LINEAR_MATERIAL = {"emission", "ambient", "diffuse", "specular", "transmission"}
+# which material fields a light field multiplies (both free: the light's side is nonlinear)
+_PRODUCT = {"color": {"diffuse", "specular", "transmission"}, "ambient": {"ambient"}}
+
+
+def split_linear(pset, opts) -> tuple[list[int], dict[str, str]]:
+    """Indices (into ``pset.params``) of the parameters the image is linear in, and for each other
+    parameter why it is not."""
+    names = [p.path for p in pset.params]
+    free_mat_fields = {p.path[-1] for p in pset.params if p.path[0] in ("material", "materials", "back_material")}
+    linear, why = [], {}
+    for i, p in enumerate(pset.params):
+        kind, field = p.path[0], p.path[-1]
+        if opts.clamp:
+            why[p.name] = "clamp = true: the image is not linear in any parameter"
+            continue
+        if kind in ("material", "materials", "back_material"):
+            ok = field in _LINEAR_MATERIAL
+        elif kind in ("directional", "point", "spot"):
+            ok = field in _PRODUCT and not (_PRODUCT[field] & free_mat_fields)
+            if field in _PRODUCT and not ok:
+                why[p.name] = f"multiplies a free material {'/'.join(sorted(_PRODUCT[field] & free_mat_fields))}"
+                continue
+        elif p.path == ("ambient_light",):
+            ok = "ambient" not in free_mat_fields
+            if not ok:
+                why[p.name] = "multiplies a free material ambient"
+                continue
+        else:
+            ok = p.path == ("fog", "color")
+        if ok:
+            linear.append(i)
+        else:
+            why[p.name] = "nonlinear"
+    del names
+    return linear, why
+
+
+# --------------------------------------------------------------------------------------------
+# Bounded linear least squares
+# --------------------------------------------------------------------------------------------
+
+
+def _masked_solve(G, rhs, free, rcond):
+    """``d`` with ``G_ff d_f = rhs_f`` (pseudo-inverse), ``d = 0`` off the free set."""
+    f = free.astype(G.dtype)
+    M = G * f[:, None] * f[None, :] + jnp.diag(1.0 - f)
+    w, V = jnp.linalg.eigh(M)
+    inv = jnp.where(w > rcond * jnp.max(w), 1.0 / jnp.where(w > 0, w, 1.0), 0.0)
+    return (V @ (inv * (V.T @ (rhs * f)))) * f
+
+
+def bounded_lsq(A, r0, lo, hi, x0, iters: int | None = None):
+    r"""``argmin ‖A x + r0‖²`` subject to ``lo ≤ x ≤ hi`` (``hi`` may be inf), for a few columns.
+
+    The primal active-set method (Nocedal & Wright, Alg. 16.3) on the column-scaled normal
+    equations, with the working set carried from step to step: a Newton step on the free
+    variables; if it leaves the box, it is cut where it meets the first bound, which joins the
+    working set; if not, the variable of the working set with the most negative multiplier leaves
+    it. It ends at the optimum in at most a few times ``n`` steps (``iters``, static). Two last
+    steps use the gradient :math:`A^T(Ax + r_0)` recomputed from the residual (iterative
+    refinement: float32 normal equations lose :math:`\mathrm{cond}^2` digits). Columns that are
+    zero (a term the image does not show) keep ``x0``.
+    Returns ``(x, free)``: ``free`` marks variables strictly inside their bounds.
+    """
+    n = A.shape[1]
+    iters = 4 * n + 4 if iters is None else iters
+    dt = A.dtype
+    eps = float(jnp.finfo(dt).eps)
+    s = jnp.sqrt(jnp.sum(A * A, axis=0))
+    det = s > 1e3 * eps * jnp.max(s)
+    inv_s = jnp.where(det, 1.0 / jnp.where(det, s, 1.0), 0.0)
+    As = A * inv_s
+    G = As.T @ As
+    c = As.T @ r0
+    # scaled variables y = s x; undetermined ones fixed at s x0 (their column is ~0 anyway)
+    ylo, yhi = lo * s, jnp.where(jnp.isinf(hi), jnp.inf, hi * s)
+    y0 = x0 * s
+    rcond = 1e2 * eps
+    big = jnp.asarray(jnp.inf, dt)
+
+    def step(state, grad_fn):
+        y, w_lo, w_hi = state
+        free = det & ~w_lo & ~w_hi
+        d = -_masked_solve(G, grad_fn(y), free, rcond)
+        room = jnp.where(d < 0, (ylo - y) / jnp.where(d < 0, d, -1.0),
+                         jnp.where(d > 0, (yhi - y) / jnp.where(d > 0, d, 1.0), big))
+        room = jnp.where(free, jnp.maximum(room, 0.0), big)
+        alpha = jnp.minimum(jnp.min(room), 1.0)
+        blocked = alpha < 1.0
+        y_new = jnp.clip(jnp.where(free, y + alpha * d, y), ylo, yhi)
+        hit = jnp.argmin(room)
+        w_lo = w_lo | (blocked & (jnp.arange(n) == hit) & (d < 0))
+        w_hi = w_hi | (blocked & (jnp.arange(n) == hit) & (d > 0))
+        # at the subspace optimum: release the working-set variable with the most negative multiplier
+        g = grad_fn(y_new)
+        lam = jnp.where(w_lo, g, jnp.where(w_hi, -g, big))
+        worst = jnp.argmin(lam)
+        release = ~blocked & (lam[worst] < -1e2 * eps * (1.0 + jnp.max(jnp.abs(g))))
+        sel = release & (jnp.arange(n) == worst)
+        return y_new, w_lo & ~sel, w_hi & ~sel
+
+    y = jnp.where(det, -_masked_solve(G, c, det, rcond), y0)
+    w_lo, w_hi = det & (y <= ylo), det & (y >= yhi)
+    y = jnp.clip(y, ylo, yhi)
+    state = jax.lax.fori_loop(0, iters, lambda _, st: step(st, lambda v: G @ v + c), (y, w_lo, w_hi))
+    for _ in range(2):
+        state = step(state, lambda v: As.T @ (As @ v + r0))
+    y = state[0]
+    x = jnp.where(det, y * inv_s, x0)
+    free = det & (x > lo) & (x < hi)
+    return x, free
+
+
+# --------------------------------------------------------------------------------------------
+# The reduced problem
+# --------------------------------------------------------------------------------------------
+
+
+class Reduced:
+    """The variable-projection view of a :class:`Problem`: static index sets and the reduced
+    residual of the nonlinear parameters (in the solver's unconstrained ``u``)."""
+
+    def __init__(self, prob: Problem, linear: bool = True):
+        self.prob = prob
+        pset = prob.pset
+        self.linear_params, self.why = split_linear(pset, prob.opts)
+        if not linear:
+            self.why.update({pset.params[i].name: "method = 'full' asked for" for i in self.linear_params})
+            self.linear_params = []
+        lin = set(self.linear_params)
+        idx_l, idx_n, group, chan, lo, hi = [], [], [], [], [], []
+        for i, (p, off) in enumerate(zip(pset.params, pset.offsets[:-1])):
+            sc = list(range(off, off + p.size))
+            if i in lin:
+                g = self.linear_params.index(i)
+                for c, j in enumerate(sc):
+                    idx_l.append(j)
+                    group.append(g)
+                    chan.append(np.eye(3)[c] if p.size == 3 else np.ones(3))
+                    lo.append(p.bounds[0] if p.bounds else 0.0)
+                    hi.append(p.bounds[1] if p.bounds else np.inf)
+            else:
+                idx_n.extend(sc)
+        self.idx_l, self.idx_n = np.asarray(idx_l, int), np.asarray(idx_n, int)
+        self.group = np.asarray(group, int)
+        self.chan = np.asarray(chan).reshape(-1, 3)
+        self.lo, self.hi = np.asarray(lo), np.asarray(hi)
+        self.n_groups = len(self.linear_params)
+        self.param_of = np.repeat(np.arange(len(pset.params)), pset.sizes)
+
+    @property
+    def method(self) -> str:
+        if not len(self.idx_l):
+            reason = "; ".join(sorted(set(self.why.values())))
+            return f"Levenberg–Marquardt on all parameters ({reason})"
+        if not len(self.idx_n):
+            return "bounded linear least squares (every free parameter enters the image linearly)"
+        return (f"variable projection: {len(self.idx_l)} linear scalars solved exactly under their bounds, "
+                f"Levenberg–Marquardt on {len(self.idx_n)} nonlinear")
+
+    # -- pieces -------------------------------------------------------------------------------
+    def theta(self, u_n, x, theta_ref):
+        """Full natural θ from the nonlinear ``u`` and the linear ``x`` (``theta_ref`` fills nothing
+        else: every scalar is one or the other)."""
+        pset = self.prob.pset
+        u = jnp.zeros(theta_ref.shape, u_n.dtype).at[self.idx_n].set(u_n)
+        th = pset.theta_from_u(u).astype(theta_ref.dtype)
+        return th.at[self.idx_l].set(x.astype(th.dtype))
+
+    def design(self, vd, theta):
+        """``(A, b)`` of one view at its compacted pixels: ``b`` the image with the linear scalars
+        at 0, ``A`` ``[N·3, n_lin]`` their columns (weighted by the two-sided weight)."""
+        th0 = theta.at[self.idx_l].set(0.0)
+        f = lambda xl: self.prob.image(vd, th0.at[self.idx_l].set(xl))  # noqa: E731
+        E = np.zeros((self.n_groups, len(self.idx_l)))
+        E[self.group, np.arange(len(self.idx_l))] = 1.0
+        z = jnp.zeros(len(self.idx_l), theta.dtype)
+        # vmap of jvp: the primal once, the tangents batched (10x faster than vmap of linearize's
+        # linear function on XLA's CPU backend)
+        b, T = jax.vmap(lambda e: jax.jvp(f, (z,), (e,)), out_axes=(None, 0))(jnp.asarray(E, theta.dtype))
+        T, b = keep(T, b)  # materialised: XLA would otherwise recompute the render inside the gather below
+        w = vd.weight * ~(vd.hi | vd.lo)
+        cols = T[self.group] * jnp.asarray(self.chan, T.dtype)[:, None, :] * w  # [n_lin, N, 3]
+        return cols.reshape(len(self.idx_l), -1).T, b
+
+    def solve_linear(self, theta, data):
+        """The bounded linear optimum ``x*`` at ``theta``'s nonlinear values (no gradient), with
+        its free mask and the stacked design matrix."""
+        As, r0s = [], []
+        for vd in data:
+            A, b = self.design(vd, theta)
+            w = vd.weight * ~(vd.hi | vd.lo)
+            As.append(A)
+            r0s.append(((b - vd.target) * w).reshape(-1))
+        A, r0 = jax.lax.stop_gradient((jnp.concatenate(As), jnp.concatenate(r0s)))
+        x0 = jax.lax.stop_gradient(theta[self.idx_l])
+        x, free = bounded_lsq(A, r0, jnp.asarray(self.lo, A.dtype), jnp.asarray(self.hi, A.dtype), x0)
+        return x, free, A, r0
+
+    def residual(self, u_n, args):
+        """Reduced residual ``r(x*(θ), θ)`` (two-sided entries) with Kaufman's tangent; aux ``x*``."""
+        data, theta_ref = args
+        theta = self.theta(u_n, theta_ref[self.idx_l], theta_ref)
+        if not len(self.idx_l):
+            r = jnp.concatenate([((self.prob.image(vd, theta) - vd.target) * vd.weight
+                                  * ~(vd.hi | vd.lo)).reshape(-1) for vd in data])
+            return r.astype(u_n.dtype), jnp.zeros((0,), theta.dtype)
+        x, free, A, _ = self.solve_linear(theta, data)
+        theta = theta.at[self.idx_l].set(x)
+        r = jnp.concatenate([((self.prob.image(vd, theta) - vd.target) * vd.weight
+                              * ~(vd.hi | vd.lo)).reshape(-1) for vd in data])
+        # Kaufman: the tangent is projected off the span of the free linear columns
+        Af = A * free.astype(A.dtype)
+        G = Af.T @ Af
+        Pr = Af @ _masked_solve(G, Af.T @ r, free, 1e2 * float(jnp.finfo(A.dtype).eps))
+        r = r - Pr + jax.lax.stop_gradient(Pr)
+        return r.astype(u_n.dtype), x
+
+    def cost(self, u_n, args):
+        """Reduced cost ``‖A x* + r0‖²`` (no extra render: the model is affine in ``x``)."""
+        data, theta_ref = args
+        theta = self.theta(u_n, theta_ref[self.idx_l], theta_ref)
+        if not len(self.idx_l):
+            return jnp.sum(self.residual(u_n, args)[0] ** 2)
+        x, _, A, r0 = self.solve_linear(theta, data)
+        return jnp.sum((A @ x + r0) ** 2)
+
+
+# --------------------------------------------------------------------------------------------
+# Global start
+# --------------------------------------------------------------------------------------------
+
+_RANGES = {  # plausible ranges (natural units) searched on a log scale for positive parameters
+    "shininess": (1.0, 1000.0), "a0": (1e-3, 10.0), "a1": (1e-3, 10.0), "a2": (1e-3, 10.0),
+    "density": (1e-3, 3.0), "exponent": (0.1, 100.0), "absorption": (1e-3, 10.0), "kay_power": (0.1, 10.0),
+}
+
+
+def _halton(n: int, d: int, skip: int = 1) -> np.ndarray:
+    primes = [2, 3, 5, 7, 11, 13, 17, 19, 23, 29, 31, 37, 41, 43, 47, 53, 59, 61, 67, 71, 73, 79, 83, 89]
+    out = np.zeros((n, d))
+    for j in range(d):
+        b = primes[j % len(primes)]
+        for i in range(n):
+            k, f, x = i + skip, 1.0, 0.0
+            while k > 0:
+                f /= b
+                x += f * (k % b)
+                k //= b
+            out[i, j] = x
+    return out
+
+
+def search_ranges(red: Reduced, theta0) -> list[tuple[str, float, float]]:
+    """``(scale, lo, hi)`` per nonlinear scalar: ``log`` for positive parameters, else ``lin``."""
+    out = []
+    for j in red.idx_n:
+        p: Param = red.prob.pset.params[red.param_of[j]]
+        field, x0 = p.path[-1], float(theta0[j])
+        if p.bounds is None:
+            lo, hi = _RANGES.get(field, (x0 / 30.0, x0 * 30.0))
+            if field == "shininess" and red.prob.opts.specular == "blinn":
+                lo, hi = 4 * lo, 4 * hi
+            out.append(("log", lo, hi))
+        else:
+            lo, hi = p.bounds
+            m = 0.02 * (hi - lo)
+            out.append(("lin", lo + m, hi - m))
+    return out
+
+
+def inside(pset, theta) -> np.ndarray:
+    """``theta`` with every bounded scalar moved at least 1 % of its range inside its bounds and
+    every positive one above 1e-6: a start on a bound, where the logistic or log map has no
+    gradient, moves."""
+    th = np.asarray(theta, np.float64).copy()
+    for p, off in zip(pset.params, pset.offsets[:-1]):
+        sl = slice(off, off + p.size)
+        if p.bounds is None:
+            th[sl] = np.maximum(th[sl], 1e-6)
+        else:
+            lo, hi = p.bounds
+            m = 0.01 * (hi - lo)
+            th[sl] = np.clip(th[sl], lo + m, hi - m)
+    return th
+
+
+def candidates(red: Reduced, theta0, count: int) -> np.ndarray:
+    """``[count, n_nonlinear]`` starts in ``u``: the user's (moved inside), then Halton points."""
+    pset = red.prob.pset
+    u_start = np.asarray(pset.u_from_theta(jnp.asarray(inside(pset, theta0))), np.float64)[red.idx_n]
+    if count <= 1 or not len(red.idx_n):
+        return u_start[None]
+    h = _halton(count - 1, len(red.idx_n))
+    th = np.empty_like(h)
+    for k, (scale, lo, hi) in enumerate(search_ranges(red, theta0)):
+        th[:, k] = np.exp(np.log(lo) + h[:, k] * np.log(hi / lo)) if scale == "log" else lo + h[:, k] * (hi - lo)
+    full = np.tile(inside(pset, theta0), (count - 1, 1))
+    full[:, red.idx_n] = th
+    u = np.stack([np.asarray(pset.u_from_theta(jnp.asarray(t)), np.float64)[red.idx_n] for t in full])
+    return np.concatenate([u_start[None], u])
+
+
+# --------------------------------------------------------------------------------------------
+# Levenberg–Marquardt with the history carried through the loop
+# --------------------------------------------------------------------------------------------
+
+
+SOLVERS = {"lm": optx.LevenbergMarquardt, "dogleg": optx.Dogleg, "gauss-newton": optx.GaussNewton}
+
+
+def lm_solve(fn, u0, args, *, rtol, atol, max_steps: int, history: bool, verbose: bool = False, solver: str = "lm"):
+    """optimistix's Levenberg–Marquardt (or Dogleg, Gauss–Newton: ``solver``) on
+    ``fn(u, args) -> (residual, aux)``, iterated here so
+    that each accepted step's loss, ``u`` and aux are carried out of the loop (``history``).
+
+    Returns ``(u, aux, result code, steps, hist, loss)`` (code 0 = successful); ``hist`` is ``(loss [S], u [S, n], aux [S, m],
+    count)`` with ``S = max_steps + 1``, or None."""
+    def show(**kw):
+        got = [kw[n] for n in ("num_steps", "loss_this_step", "step_size") if n in kw]
+        jax.debug.print("  " + ", ".join(f"{label.lower()} {{}}" for label, _ in got), *[v for _, v in got])
+
+    verbose_fn = show if verbose else False
+    solver = SOLVERS[solver](rtol=rtol, atol=atol, verbose=verbose_fn)
+    f_struct, aux_struct = jax.eval_shape(lambda: fn(u0, args))
+    tags = frozenset()
+    state = solver.init(fn, u0, args, {}, f_struct, aux_struct, tags)
+    dyn0, static = eqx.partition(state, eqx.is_array)
+    S = max_steps + 1
+    aux0 = jnp.zeros(aux_struct.shape, aux_struct.dtype)
+
+    def record(h, k, y, st):
+        if h is None:
+            return None
+        loss = 0.5 * jnp.sum(st.f_info.residual ** 2)
+        return (h[0].at[k].set(loss), h[1].at[k].set(y), h[2].at[k].set(st.aux), k + 1)
+
+    def cond(c):
+        y, k, dyn, aux, term, res, h = c
+        return ~term & (res == optx.RESULTS.successful) & (k < max_steps)
+
+    def body(c):
+        y, k, dyn, aux, _, _, h = c
+        st = eqx.combine(static, dyn)
+        y2, st2, aux2 = solver.step(fn, y, args, {}, st, tags)
+        term, res = solver.terminate(fn, y2, args, {}, st2, tags)
+        dyn2 = eqx.partition(st2, eqx.is_array)[0]
+        h = record(h, h[3], y2, st2) if h is not None else None
+        return (y2, k + 1, dyn2, aux2, term, res, h)
+
+    term0, res0 = solver.terminate(fn, u0, args, {}, state, tags)
+    h0 = None
+    if history:
+        h0 = (jnp.full((S,), jnp.nan, u0.dtype), jnp.zeros((S, u0.shape[0]), u0.dtype),
+              jnp.zeros((S,) + aux_struct.shape, aux_struct.dtype), jnp.array(0))
+    c = jax.lax.while_loop(cond, body, (u0, jnp.array(0), dyn0, aux0, term0, res0, h0))
+    y, k, dyn, aux, term, res, h = c
+    loss = 0.5 * jnp.sum(eqx.combine(static, dyn).f_info.residual ** 2)
+    res = optx.RESULTS.where((res == optx.RESULTS.successful) & ~term, optx.RESULTS.nonlinear_max_steps_reached, res)
+    return y, aux, res._value, k, h, loss
+
+
+def result_message(code) -> str:
+    """optimistix's message for a result code returned by :func:`lm_solve` ("" = successful)."""
+    return optx.RESULTS._index_to_message[int(code)]
+
+
+# --------------------------------------------------------------------------------------------
+# Compiled pieces, cached per problem structure
+# --------------------------------------------------------------------------------------------
+
+_CACHE: dict = {}
+
+
+def _key(prob: Problem, what, *extra, args=()):
+    leaves, treedef = jax.tree.flatten(args)
+    pset = prob.pset
+    return (what, tuple(pset.labels), tuple(p.path for p in pset.params), tuple(pset.sizes), prob.opts, treedef,
+            tuple((x.shape, x.dtype) for x in leaves), *extra)
+
+
+def compiled(prob: Problem, what: str, fn, *args, extra=()):
+    """``jax.jit(fn).lower(*args).compile()``, cached on the problem's structure; returns
+    ``(compiled, compile_seconds)`` (0 when cached)."""
+    key = _key(prob, what, *extra, args=args)
+    if key in _CACHE:
+        return _CACHE[key], 0.0
+    t0 = time.perf_counter()
+    c = jax.jit(fn).lower(*args).compile()
+    _CACHE[key] = c
+    dt = time.perf_counter() - t0
+    if _VERBOSE_COMPILE:
+        print(f"compiled {what} in {dt:.2f} s")
+    return c, dt
+
+
+_VERBOSE_COMPILE = False

@@ -1,0 +1,113 @@
+"""Variable projection machinery: term images against the full Jacobian, the bounded linear solve
+against brute force, pixel subsets against the full render."""
+
+from __future__ import annotations
+
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import diffshade as ds
+from fitting.problem import Problem
+from fitting.strategy import Reduced, bounded_lsq, split_linear
+from fitting.params import ParamSet
+
+
+def small(**render):
+    d = {k: v for k, v in ds.DEFAULT_SCENE.items()}
+    d["camera"] = dict(d["camera"], width=24, height=20)
+    d["mesh"] = {"icosphere": 2}
+    d["render"] = dict(d["render"], **render)
+    return ds.scene_from_dict(d)
+
+
+def test_render_at_a_pixel_subset_equals_the_full_render_there():
+    scene, opts = small()
+    full = np.asarray(ds.render(scene, opts))
+    ids = ds.scene_visibility(scene, opts)
+    h, w = scene.camera.resolution
+    rows = np.array([0, 17, 150, 233, 300, h * w - 1])
+    xs, ys = ds.pixel_centres(h, w, np.float64)
+    px, py = np.asarray(xs)[rows % w][None], np.asarray(ys)[rows // w][None]
+    sub_ids = np.asarray(ids).reshape(ids.shape[0], -1)[:, rows][:, None, :]
+    sub = np.asarray(ds.render(scene, opts, ids=jnp.asarray(sub_ids), pixels=(px, py)))[0]
+    np.testing.assert_allclose(sub, full.reshape(-1, 3)[rows], rtol=1e-12, atol=1e-12)
+
+
+def test_term_images_are_the_jacobian_columns_of_the_linear_parameters():
+    """Every term is per colour channel: one tangent per RGB field gives its three columns."""
+    scene, opts = small(fog="exp")
+    free = ["material.ambient", "material.diffuse", "material.specular", "material.shininess", "fog.color",
+            "point[0].a1"]
+    target = np.zeros(scene.camera.resolution + (3,))
+    prob = Problem.build(scene, opts, target, free, shared=["material.specular"])
+    red = Reduced(prob)
+    assert [prob.pset.params[i].name for i in red.linear_params] == ["material.ambient", "material.diffuse",
+                                                                      "material.specular", "fog.color"]
+    theta = prob.pset.theta_of(scene)
+    vd = prob.data[0]
+    A, b = red.design(vd, theta)
+    J = jax.jacfwd(lambda t: prob.image(vd, t).reshape(-1))(theta)
+    np.testing.assert_allclose(np.asarray(A), np.asarray(J)[:, red.idx_l], rtol=1e-10, atol=1e-12)
+    # affine: b + A x reproduces the image at any x
+    x = theta[red.idx_l]
+    np.testing.assert_allclose(np.asarray(b).reshape(-1) + np.asarray(A @ x), np.asarray(prob.image(vd, theta)).reshape(-1),
+                               rtol=1e-10, atol=1e-12)
+
+
+def test_bilinear_pairs_and_clamp_are_not_linear():
+    scene, opts = small()
+    ps = ParamSet(["material.diffuse", "point[0].color", "ambient_light", "fog.density"], scene)
+    lin, why = split_linear(ps, opts)
+    assert [ps.params[i].name for i in lin] == ["material.diffuse", "ambient_light"]
+    assert "multiplies a free material diffuse" in why["point[0].color"]
+    lin, why = split_linear(ps, opts.replace(clamp=True))
+    assert lin == [] and "clamp" in why["material.diffuse"]
+
+
+def _brute_force(A, r0, lo, hi):
+    """Every assignment of (free, at lower, at upper) to the variables; the best feasible one."""
+    n = A.shape[1]
+    best, bx = np.inf, None
+    for states in itertools.product(range(3), repeat=n):
+        x = np.where(np.array(states) == 1, lo, np.where(np.array(states) == 2, hi, 0.0))
+        if np.any(np.isinf(x)):
+            continue
+        f = np.array(states) == 0
+        if f.any():
+            rhs = -(r0 + A[:, ~f] @ x[~f])
+            x[f] = np.linalg.lstsq(A[:, f], rhs, rcond=None)[0]
+        if np.all(x >= lo - 1e-12) and np.all(x <= hi + 1e-12):
+            c = np.sum((A @ x + r0) ** 2)
+            if c < best - 1e-14:
+                best, bx = c, x
+    return bx, best
+
+
+def test_bounded_lsq_matches_brute_force():
+    rng = np.random.default_rng(0)
+    for trial in range(30):
+        n = int(rng.integers(1, 5))
+        A = rng.normal(size=(40, n)) * rng.uniform(0.01, 10, n)
+        A[:, 0] += 0.9 * A[:, -1]  # correlated columns
+        x_true = rng.uniform(-0.5, 1.5, n)
+        r0 = -(A @ x_true) + 0.05 * rng.normal(size=40)
+        lo = np.zeros(n)
+        hi = np.where(rng.uniform(size=n) < 0.7, 1.0, np.inf)
+        x, free = bounded_lsq(jnp.asarray(A), jnp.asarray(r0), jnp.asarray(lo), jnp.asarray(hi), jnp.zeros(n))
+        xb, cb = _brute_force(A, r0, lo, hi)
+        c = np.sum((A @ np.asarray(x) + r0) ** 2)
+        assert c <= cb * (1 + 1e-9) + 1e-12, (trial, np.asarray(x), xb)
+        np.testing.assert_allclose(np.asarray(x), xb, atol=1e-7)
+        clear = (np.abs(xb - lo) > 1e-6) & (np.abs(xb - hi) > 1e-6)  # degenerate ties aside
+        np.testing.assert_array_equal(np.asarray(free)[clear], ((xb > lo) & (xb < hi))[clear])
+
+
+def test_bounded_lsq_keeps_the_start_of_a_column_the_image_does_not_show():
+    A = np.array([[1.0, 0.0], [2.0, 0.0], [0.5, 0.0]])
+    x, free = bounded_lsq(jnp.asarray(A), jnp.asarray([-0.5, -1.0, -0.25]), jnp.zeros(2), jnp.ones(2),
+                          jnp.asarray([0.2, 0.7]))
+    np.testing.assert_allclose(np.asarray(x), [0.5, 0.7], atol=1e-12)
+    assert list(np.asarray(free)) == [True, False]
