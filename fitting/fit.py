@@ -25,11 +25,12 @@ import diffshade as ds
 
 from .problem import FitError, Problem, ViewData, as_list
 from .report import FitResult, noise_ratio_limit, image_quality, noise_level, uncertainty, verdict
+from .program import make_program
 from .strategy import SOLVERS, Reduced, candidates, compiled, lm_solve, result_message
 
 __all__ = ["FitError", "FitResult", "fit", "compare_models", "model_variants", "ModelScore"]
 
-SEARCH_PIXELS = 2048  # covered pixels per view used to rank the global starts and for the first LM
+SEARCH_PIXELS = 512  # covered pixels per view used to rank the global starts
 
 
 def _subset(vd: ViewData, count: int) -> ViewData:
@@ -50,7 +51,7 @@ def fit(
     views=None,
     masks=None,
     shared=(),
-    solver: str = "lm",
+    solver: str = "varpro",
     max_steps: int = 100,
     rtol: float | None = None,
     atol: float | None = None,
@@ -85,8 +86,8 @@ def fit(
     """
     if method not in ("auto", "full"):
         raise FitError(f"unknown method {method!r}; 'auto' or 'full'")
-    if solver not in SOLVERS:
-        raise FitError(f"unknown solver {solver!r}; one of {sorted(SOLVERS)}")
+    if solver != "varpro" and solver not in SOLVERS:
+        raise FitError(f"unknown solver {solver!r}; 'varpro' or one of {sorted(SOLVERS)}")
     prob = Problem.build(scene, opts, as_list(targets), free, views=views, masks=masks, shared=shared,
                          saturation=saturation, quantum=quantum)
     pset, dtype = prob.pset, prob.dtype
@@ -98,8 +99,11 @@ def fit(
     red = Reduced(prob, linear=method == "auto")
     theta_ref = jnp.asarray(theta0, dtype)
     notes, compile_s = [], 0.0
+    if solver == "varpro":
+        return _fit_program(prob, red, theta0, starts=starts, restarts=restarts, max_steps=max_steps,
+                            polish_steps=polish_steps, rtol=rtol, noise=noise, history=history)
 
-    # -- global start and Levenberg–Marquardt on a pixel subset ---------------------------------
+    # -- optimistix on the reduced problem: global start and LM on a pixel subset ------------------
     # The starts are ranked by the reduced cost on about SEARCH_PIXELS covered pixels per view, and
     # LM runs from the best `LM_STARTS` of them there (vmapped); on a noise-free target the subset
     # has the same optimum as the whole image, on a noisy one a nearby one, which the polish moves
@@ -197,6 +201,100 @@ def fit(
         undetermined=undetermined, gauges=gauges, history=hist, notes=notes, method=red.method, noise=sigma,
         noise_source=source, noise_ratio=ratio, converged=converged, stderr_meaningful=successful,
         on_bound=on_bound, censored=n_cens,
+    )
+
+
+def _fit_program(prob, red, theta0, *, starts, restarts, max_steps, polish_steps, rtol, noise, history):
+    """The default path: the whole solve as one compiled program (:mod:`fitting.program`),
+    called again from the next start while the verdict rejects the result."""
+    pset, dtype = prob.pset, prob.dtype
+    theta_ref = jnp.asarray(theta0, dtype)
+    U = candidates(red, np.asarray(theta0), starts if len(red.idx_n) else 1)
+    sub = [_subset(vd, SEARCH_PIXELS) for vd in prob.data]
+    n2, n_cens = prob.counts()
+    prog = make_program(red, max_steps=max_steps, polish_steps=polish_steps, rtol=rtol, history=history)
+    args = (jnp.asarray(U, dtype), jnp.zeros(len(U), bool), sub, prob.data, theta_ref, jnp.asarray(n2, dtype))
+    fn, compile_s = compiled(prob, "program", prog, *args, extra=(max_steps, polish_steps, rtol, history,
+                                                                 red.idx_n.tobytes()))
+    order = np.concatenate([red.idx_l, red.idx_n])
+    notes, hist = [], []
+    exclude = np.zeros(len(U), bool)
+    best, steps = None, 0
+    t0 = time.perf_counter()
+    for attempt in range(restarts + 1):
+        out = fn(jnp.asarray(U, dtype), jnp.asarray(exclude), sub, prob.data, theta_ref, jnp.asarray(n2, dtype))
+        z = np.asarray(out["z"], np.float64)
+        b = int(out["best"])
+        k0, k1 = int(out["k0"]), int(out["k1"])
+        steps += k0 + k1
+        u, x = z[len(red.idx_l):], z[:len(red.idx_l)]
+        theta = np.asarray(red.theta(jnp.asarray(u), jnp.asarray(x), theta_ref), np.float64)
+        r = np.asarray(out["rc"], np.float64)
+        Jz = np.asarray(out["Jc"], np.float64).T  # [M, p], columns in z order (x, then u)
+        J = np.zeros_like(Jz)
+        J[:, order] = Jz
+        J[:, red.idx_n] /= _dtheta_du(pset, theta)[red.idx_n]
+        g = Jz.T @ r
+        fixed = np.zeros(len(theta), bool)
+        xl = theta[red.idx_l]
+        fixed[red.idx_l] = ((xl <= red.lo) & (g[:len(xl)] >= 0)) | ((xl >= red.hi) & (g[:len(xl)] <= 0))
+        converged = bool(out["conv1"])
+        why = ("" if converged else
+               f"variable-projection LM reached its step limit (max_steps={max_steps}) and the polish did not converge"
+               if k0 >= max_steps else f"the polish did not converge in {polish_steps} steps")
+        cand = _candidate(prob, theta, r, J, fixed, why, converged, k1, n2, noise)
+        if attempt == 0 and len(U) > 1:
+            rank = int(np.flatnonzero(np.argsort(np.asarray(out["costs"]), kind="stable") == 0)[0]) + 1
+            notes.append(f"global start: {len(U)} starts ranked on {SEARCH_PIXELS} pixels per view "
+                         f"(the given start ranked {rank})")
+        notes.append(f"attempt {attempt + 1}: from start {b + 1}: {k0} variable-projection LM evaluations"
+                     f"{'' if bool(out['conv0']) else ' (step limit)'}, {k1} of the polish on the whole image"
+                     f"{' (converged)' if converged else ' (not converged)'}; residual {cand['ratio']:.3g}× the noise")
+        if history:
+            for zz, cc in zip(np.asarray(out["hz"])[:int(out["nh"])], np.asarray(out["hc"])[:int(out["nh"])]):
+                th = np.asarray(red.theta(jnp.asarray(zz[len(red.idx_l):]), jnp.asarray(zz[:len(red.idx_l)]), theta_ref))
+                hist.append((0.5 * float(cc), np.asarray(th, np.float64)))
+        if best is None or cand["rss"] < best["rss"]:
+            best = cand
+        exclude[b] = True
+        if U.shape[1]:
+            exclude |= np.max(np.abs(U - u[None]), axis=1) < 0.25  # the basin just explored
+        if (converged and cand["ratio"] <= noise_ratio_limit(n2)) or exclude.all() or len(U) == 1:
+            break
+    solve_s = time.perf_counter() - t0
+    msg_solver = best["res"]
+    return _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2, n_cens, msg_solver)
+
+
+def _dtheta_du(pset, theta):
+    """dθ/du of each scalar's reparametrisation (log: θ; logistic: (θ − lo)(hi − θ)/(hi − lo))."""
+    out = np.empty(len(theta))
+    for prm, off in zip(pset.params, pset.offsets[:-1]):
+        sl = slice(off, off + prm.size)
+        if prm.bounds is None:
+            out[sl] = theta[sl]
+        else:
+            lo, hi = prm.bounds
+            out[sl] = (theta[sl] - lo) * (hi - theta[sl]) / (hi - lo)
+    return np.where(np.abs(out) > 1e-300, out, 1e-300)
+
+
+def _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2, n_cens, msg_solver) -> FitResult:
+    pset = prob.pset
+    theta, r, J, fixed = best["theta"], best["r"], best["J"], best["fixed"]
+    labels = pset.labels
+    stderr, undetermined, gauges, _ = uncertainty(J, r, n2, labels, fixed)
+    successful, msg = verdict(best["converged"], msg_solver, best["ratio"], best["sigma"], best["source"], n2)
+    on_bound = [f"{labels[i]} = {theta[i]:.6g} ({'lower' if theta[i] <= lo else 'upper'} bound)"
+                for i, lo in _bounded_fixed(prob, theta, fixed)]
+    psnr, ssim = image_quality(_full_image(prob, theta), prob.targets[0])
+    return FitResult(
+        names=labels, values=theta, start=np.asarray(theta0, np.float64), stderr=stderr, result=msg,
+        successful=successful, steps=steps, compile_s=compile_s, solve_s=solve_s,
+        rms=float(np.sqrt(best["rss"] / max(n2, 1))), psnr=psnr, ssim=ssim, rss=best["rss"], n_residuals=n2,
+        undetermined=undetermined, gauges=gauges, history=hist, notes=notes, method=red.method, noise=best["sigma"],
+        noise_source=best["source"], noise_ratio=best["ratio"], converged=best["converged"],
+        stderr_meaningful=successful, on_bound=on_bound, censored=n_cens,
     )
 
 

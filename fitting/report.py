@@ -3,7 +3,7 @@ r"""What a fit reports: the verdict, standard errors, identifiability, image qua
 **Verdict.** A fit is *successful* when the solver converged **and** the residual is what the
 noise explains. The noise level :math:`\sigma` is, in this order: the user's (``noise``); else
 the larger of the quantisation floor of an integer target (:math:`q/\sqrt{12}` for a code step
-:math:`q`), the float floor of a float target (:math:`10\,\varepsilon \max|y|`) and the *white*
+:math:`q`), the float floor of a float target (:math:`30\,\varepsilon \max|y|`: the render's own rounding) and the *white*
 part of the residual, estimated from differences of neighbouring pixels,
 :math:`\hat\sigma_w^2 = \overline{(r_i - r_j)^2}/2` (pixel noise is independent from pixel to
 pixel; a model that misses — a wrong highlight, a wrong falloff — leaves a residual that is smooth
@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 def noise_ratio_limit(n: int) -> float:
-    """The largest ``s/σ`` a fit with ``n`` two-sided residuals may have: 1 + three standard
+    r"""The largest ``s/σ`` a fit with ``n`` two-sided residuals may have: 1 + three standard
     deviations of the ratio of two variance estimates (:math:`\approx 3\sqrt{2/n}`) + 1 %."""
     return 1.0 + 3.0 * float(np.sqrt(2.0 / max(n, 1))) + 0.01
 
@@ -95,7 +95,7 @@ def noise_level(prob, res_images, noise=None) -> tuple[float, str]:
         cands.append((prob.quantum / np.sqrt(12.0), f"quantisation of {round(1 / prob.quantum) + 1}-level codes"))
     else:
         tmax = max(float(np.max(np.abs(np.asarray(vd.target)))) for vd in prob.data)
-        cands.append((10 * float(np.finfo(prob.dtype).eps) * max(tmax, 1e-30), "float rounding of the target"))
+        cands.append((30 * float(np.finfo(prob.dtype).eps) * max(tmax, 1e-30), "float rounding of the target"))
     return max(cands)
 
 

@@ -86,12 +86,15 @@ def split_linear(pset, opts) -> tuple[list[int], dict[str, str]]:
 
 
 def _masked_solve(G, rhs, free, rcond):
-    """``d`` with ``G_ff d_f = rhs_f`` (pseudo-inverse), ``d = 0`` off the free set."""
+    """``d`` with ``G_ff d_f = rhs_f`` (pseudo-inverse), ``d = 0`` off the free set; ``rhs`` a
+    vector or a matrix (columns)."""
     f = free.astype(G.dtype)
     M = G * f[:, None] * f[None, :] + jnp.diag(1.0 - f)
     w, V = jnp.linalg.eigh(M)
     inv = jnp.where(w > rcond * jnp.max(w), 1.0 / jnp.where(w > 0, w, 1.0), 0.0)
-    return (V @ (inv * (V.T @ (rhs * f)))) * f
+    fr = f.reshape(f.shape + (1,) * (rhs.ndim - 1))
+    inv = inv.reshape(inv.shape + (1,) * (rhs.ndim - 1))
+    return (V @ (inv * (V.T @ (rhs * fr)))) * fr
 
 
 def bounded_lsq(A, r0, lo, hi, x0, iters: int | None = None):
@@ -147,7 +150,15 @@ def bounded_lsq(A, r0, lo, hi, x0, iters: int | None = None):
     y = jnp.where(det, -_masked_solve(G, c, det, rcond), y0)
     w_lo, w_hi = det & (y <= ylo), det & (y >= yhi)
     y = jnp.clip(y, ylo, yhi)
-    state = jax.lax.fori_loop(0, iters, lambda _, st: step(st, lambda v: G @ v + c), (y, w_lo, w_hi))
+
+    def body(carry):
+        k, st, _ = carry
+        new = step(st, lambda v: G @ v + c)
+        same = jnp.all(new[0] == st[0]) & jnp.all(new[1] == st[1]) & jnp.all(new[2] == st[2])
+        return k + 1, new, same
+
+    _, state, _ = jax.lax.while_loop(lambda cr: (cr[0] < iters) & ~cr[2], body,
+                                     (jnp.asarray(0), (y, w_lo, w_hi), jnp.asarray(False)))
     for _ in range(2):
         state = step(state, lambda v: As.T @ (As @ v + r0))
     y = state[0]

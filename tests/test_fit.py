@@ -96,7 +96,7 @@ def test_step_limit_is_reported_and_the_default_fit_converges():
     ps = ParamSet(free, scene)
     s0 = ps.apply(scene, ps.theta_of(scene) * jax.numpy.asarray([0.5, 1.5, 2.0, 3.0, 0.2, 4.0]))
     capped = fit(s0, opts, target, free, max_steps=1, starts=1, restarts=0, polish_steps=0)
-    assert not capped.successful and not capped.converged and "maximum number of steps" in capped.result
+    assert not capped.successful and not capped.converged and "step limit" in capped.result
     r = fit(s0, opts, target, free)
     assert r.successful, (r.result, r.notes)
     assert "variable projection" in r.method
