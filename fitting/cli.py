@@ -377,12 +377,13 @@ def main(argv=None) -> int:
     p.add_argument("--shared", nargs="+", metavar="NAME", help="RGB parameters fitted as one value for all channels")
     p.add_argument("--views", nargs="+", metavar="SCENE", help="one scene file per target (other cameras/lights)")
     p.add_argument("--mask", nargs="+", metavar="IMAGE", help="one weight image per target (0 = ignore)")
-    p.add_argument("--solver", default="lm", choices=["lm", "dogleg", "gauss-newton"],
-                   help="optimistix solver for the nonlinear parameters (default lm)")
+    p.add_argument("--solver", default="varpro", choices=["varpro", "lm", "dogleg", "gauss-newton"],
+                   help="varpro (default): the compiled variable-projection LM; lm, dogleg, gauss-newton: "
+                   "optimistix's solver on the same reduced problem")
     p.add_argument("--noise", type=float, default=None, metavar="SIGMA",
                    help="the targets' noise level (linear units), for the chi-square verdict; default: "
                    "estimated from the residual (its pixel-to-pixel white part) and the quantisation")
-    p.add_argument("--max-steps", type=int, default=200)
+    p.add_argument("--max-steps", type=int, default=100)
     p.add_argument("--compare", action="store_true",
                    help="also fit the nested term sets (no specular, Phong<->Blinn, no fog) and rank by BIC")
     p.add_argument("--no-censor", action="store_true",

@@ -101,7 +101,7 @@ def fit(
     notes, compile_s = [], 0.0
     if solver == "varpro":
         return _fit_program(prob, red, theta0, starts=starts, restarts=restarts, max_steps=max_steps,
-                            polish_steps=polish_steps, rtol=rtol, noise=noise, history=history)
+                            polish_steps=polish_steps, rtol=rtol, noise=noise, history=history, verbose=verbose)
 
     # -- optimistix on the reduced problem: global start and LM on a pixel subset ------------------
     # The starts are ranked by the reduced cost on about SEARCH_PIXELS covered pixels per view, and
@@ -204,19 +204,30 @@ def fit(
     )
 
 
-def _fit_program(prob, red, theta0, *, starts, restarts, max_steps, polish_steps, rtol, noise, history):
-    """The default path: the whole solve as one compiled program (:mod:`fitting.program`),
-    called again from the next start while the verdict rejects the result."""
-    pset, dtype = prob.pset, prob.dtype
+def _fit_program(prob, red, theta0, *, starts, restarts, max_steps, polish_steps, rtol, noise, history, verbose):
+    """The default path: the global start and variable projection as one compiled program
+    (:mod:`fitting.program`), then the polish; again from the next start while the verdict
+    rejects the result."""
+    dtype = prob.dtype
     theta_ref = jnp.asarray(theta0, dtype)
     U = candidates(red, np.asarray(theta0), starts if len(red.idx_n) else 1)
     sub = [_subset(vd, SEARCH_PIXELS) for vd in prob.data]
     n2, n_cens = prob.counts()
-    prog = make_program(red, max_steps=max_steps, polish_steps=polish_steps, rtol=rtol, history=history)
+    # The program runs the global start and the variable-projection LM; the polish runs on the
+    # host in float64 on the compiled residual and Jacobian (float32 normal equations cannot
+    # resolve the weakly determined directions the polish must still move: measured, noisy fits
+    # stopped short with |z| up to 70).
+    prog = make_program(red, max_steps=max_steps, polish_steps=0, rtol=rtol, history=history, verbose=verbose)
     args = (jnp.asarray(U, dtype), jnp.zeros(len(U), bool), sub, prob.data, theta_ref, jnp.asarray(n2, dtype))
-    fn, compile_s = compiled(prob, "program", prog, *args, extra=(max_steps, polish_steps, rtol, history,
+    fn, compile_s = compiled(prob, "program", prog, *args, extra=(max_steps, rtol, history, verbose,
                                                                  red.idx_n.tobytes()))
-    order = np.concatenate([red.idx_l, red.idx_n])
+
+    def jac(th, data):
+        f = lambda t: prob.residual(t, data)  # noqa: E731
+        return f(th), jax.jacfwd(f)(th)
+
+    jac_fn, c = compiled(prob, "jac", jac, theta_ref, prob.data)
+    compile_s += c
     notes, hist = [], []
     exclude = np.zeros(len(U), bool)
     best, steps = None, 0
@@ -225,30 +236,21 @@ def _fit_program(prob, red, theta0, *, starts, restarts, max_steps, polish_steps
         out = fn(jnp.asarray(U, dtype), jnp.asarray(exclude), sub, prob.data, theta_ref, jnp.asarray(n2, dtype))
         z = np.asarray(out["z"], np.float64)
         b = int(out["best"])
-        k0, k1 = int(out["k0"]), int(out["k1"])
-        steps += k0 + k1
+        k0 = int(out["k0"])
         u, x = z[len(red.idx_l):], z[:len(red.idx_l)]
         theta = np.asarray(red.theta(jnp.asarray(u), jnp.asarray(x), theta_ref), np.float64)
-        r = np.asarray(out["rc"], np.float64)
-        Jz = np.asarray(out["Jc"], np.float64).T  # [M, p], columns in z order (x, then u)
-        J = np.zeros_like(Jz)
-        J[:, order] = Jz
-        J[:, red.idx_n] /= _dtheta_du(pset, theta)[red.idx_n]
-        g = Jz.T @ r
-        fixed = np.zeros(len(theta), bool)
-        xl = theta[red.idx_l]
-        fixed[red.idx_l] = ((xl <= red.lo) & (g[:len(xl)] >= 0)) | ((xl >= red.hi) & (g[:len(xl)] <= 0))
-        converged = bool(out["conv1"])
+        theta, r, J, fixed, k1, converged = _polish(jac_fn, prob, red, theta, polish_steps, rtol)
+        steps += k0 + k1
         why = ("" if converged else
-               f"variable-projection LM reached its step limit (max_steps={max_steps}) and the polish did not converge"
-               if k0 >= max_steps else f"the polish did not converge in {polish_steps} steps")
+               f"the polish did not converge in {polish_steps} steps"
+               + (f" (variable-projection LM reached its step limit, max_steps={max_steps})" if k0 >= max_steps else ""))
         cand = _candidate(prob, theta, r, J, fixed, why, converged, k1, n2, noise)
         if attempt == 0 and len(U) > 1:
             rank = int(np.flatnonzero(np.argsort(np.asarray(out["costs"]), kind="stable") == 0)[0]) + 1
             notes.append(f"global start: {len(U)} starts ranked on {SEARCH_PIXELS} pixels per view "
                          f"(the given start ranked {rank})")
         notes.append(f"attempt {attempt + 1}: from start {b + 1}: {k0} variable-projection LM evaluations"
-                     f"{'' if bool(out['conv0']) else ' (step limit)'}, {k1} of the polish on the whole image"
+                     f"{'' if bool(out['conv0']) else ' (not converged)'}, {k1} of the polish on the whole image"
                      f"{' (converged)' if converged else ' (not converged)'}; residual {cand['ratio']:.3g}× the noise")
         if history:
             for zz, cc in zip(np.asarray(out["hz"])[:int(out["nh"])], np.asarray(out["hc"])[:int(out["nh"])]):
@@ -264,19 +266,6 @@ def _fit_program(prob, red, theta0, *, starts, restarts, max_steps, polish_steps
     solve_s = time.perf_counter() - t0
     msg_solver = best["res"]
     return _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2, n_cens, msg_solver)
-
-
-def _dtheta_du(pset, theta):
-    """dθ/du of each scalar's reparametrisation (log: θ; logistic: (θ − lo)(hi − θ)/(hi − lo))."""
-    out = np.empty(len(theta))
-    for prm, off in zip(pset.params, pset.offsets[:-1]):
-        sl = slice(off, off + prm.size)
-        if prm.bounds is None:
-            out[sl] = theta[sl]
-        else:
-            lo, hi = prm.bounds
-            out[sl] = (theta[sl] - lo) * (hi - theta[sl]) / (hi - lo)
-    return np.where(np.abs(out) > 1e-300, out, 1e-300)
 
 
 def _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2, n_cens, msg_solver) -> FitResult:
@@ -356,7 +345,8 @@ def _polish(jac_fn, prob, red, theta, steps, rtol):
         # thousandth of the residual variance (noise) or float rounding of the cost (noise-free).
         gn = np.linalg.lstsq(H[np.ix_(free, free)], -g[free], rcond=None)[0]
         gain = -float(g[free] @ gn)
-        if gain <= max(1e-3 * cost / n_res, 100 * float(np.finfo(dt).eps) * cost):
+        float_var = (float(np.finfo(dt).eps) * max(float(np.max(np.abs(prob.targets[0]))), 1e-30)) ** 2
+        if gain <= 1e-3 * cost / n_res + 10 * len(theta) * float_var:
             conv = True
             break
         Hf = H[np.ix_(free, free)] + lam * np.diag(d[free])

@@ -88,11 +88,15 @@ def split_linear(pset, opts) -> tuple[list[int], dict[str, str]]:
 def _masked_solve(G, rhs, free, rcond):
     """``d`` with ``G_ff d_f = rhs_f`` (pseudo-inverse), ``d = 0`` off the free set; ``rhs`` a
     vector or a matrix (columns)."""
-    f = free.astype(G.dtype)
-    M = G * f[:, None] * f[None, :] + jnp.diag(1.0 - f)
+    # Jacobi scaling first: the pseudo-inverse's cut is then relative to correlations, not to
+    # the parameters' units (unscaled, a weakly-scaled parameter's step would be cut to 0).
+    dg = jnp.diag(G)
+    f = (free & (dg > 0)).astype(G.dtype)
+    dsc = jnp.where(f > 0, 1.0 / jnp.sqrt(jnp.where(f > 0, dg, 1.0)), 0.0)
+    M = G * (dsc * f)[:, None] * (dsc * f)[None, :] + jnp.diag(1.0 - f)
     w, V = jnp.linalg.eigh(M)
     inv = jnp.where(w > rcond * jnp.max(w), 1.0 / jnp.where(w > 0, w, 1.0), 0.0)
-    fr = f.reshape(f.shape + (1,) * (rhs.ndim - 1))
+    fr = (dsc * f).reshape(f.shape + (1,) * (rhs.ndim - 1))
     inv = inv.reshape(inv.shape + (1,) * (rhs.ndim - 1))
     return (V @ (inv * (V.T @ (rhs * fr)))) * fr
 

@@ -73,9 +73,10 @@ def test_float32_scene_fits_in_a_float64_session():
     np.testing.assert_allclose(r.values, np.asarray(ps.theta_of(scene)), rtol=1e-5)
 
 
-def test_highlight_switched_off_is_found_by_the_global_start_and_honestly_reported_without_it():
-    # A start with m = 1e6: (v.r)^m underflows everywhere, so m has a zero gradient there. From
-    # that start alone the fit cannot move m and must say it failed; the global start finds m.
+def test_highlight_switched_off_is_found_or_honestly_reported():
+    # A start with m = 1e6: (v.r)^m underflows almost everywhere, so m has (nearly) a zero
+    # gradient there. From that start alone the fit either finds m or says it failed — never a
+    # wrong answer called a success; with the global start it finds m.
     scene, opts = small_scene()
     target = jax.jit(ds.render, static_argnames="opts")(scene, opts)
     free = ["material.specular", "material.shininess"]
@@ -83,7 +84,10 @@ def test_highlight_switched_off_is_found_by_the_global_start_and_honestly_report
     true = np.asarray(ps.theta_of(scene))
     s0 = ps.apply(scene, jax.numpy.asarray([0.3, 0.3, 0.3, 1e6]))
     alone = fit(s0, opts, target, free, starts=1, restarts=0)
-    assert not alone.successful and "× the noise" in alone.result and not alone.stderr_meaningful
+    if alone.successful:
+        np.testing.assert_allclose(alone.values, true, rtol=1e-4)
+    else:
+        assert not alone.stderr_meaningful and alone.result
     r = fit(s0, opts, target, free)
     assert r.successful and r.converged and r.noise_ratio <= 1.02, (r.result, r.notes)
     np.testing.assert_allclose(r.values, true, rtol=1e-4)
