@@ -188,7 +188,7 @@ def fit(
     sigma, source, ratio, converged = best["sigma"], best["source"], best["ratio"], best["converged"]
     rss = float(r @ r)  # covered pixels (the uncovered ones do not depend on the parameters)
     labels = pset.labels
-    stderr, undetermined, gauges, s2 = uncertainty(J, r, n2, labels, fixed)
+    stderr, undetermined, gauges, s2 = uncertainty(J, r, n2, labels)
     msg_solver = "" if converged else (result_message(best["res"]).splitlines()[0] if best["res"] else "the polish did not converge")
     successful, msg = verdict(converged, msg_solver, ratio, sigma, source, n2)
     on_bound = [f"{labels[i]} = {theta[i]:.6g} ({'lower' if theta[i] <= lo else 'upper'} bound)"
@@ -272,7 +272,7 @@ def _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2,
     pset = prob.pset
     theta, r, J, fixed = best["theta"], best["r"], best["J"], best["fixed"]
     labels = pset.labels
-    stderr, undetermined, gauges, _ = uncertainty(J, r, n2, labels, fixed)
+    stderr, undetermined, gauges, _ = uncertainty(J, r, n2, labels)
     successful, msg = verdict(best["converged"], msg_solver, best["ratio"], best["sigma"], best["source"], n2)
     on_bound = [f"{labels[i]} = {theta[i]:.6g} ({'lower' if theta[i] <= lo else 'upper'} bound)"
                 for i, lo in _bounded_fixed(prob, theta, fixed)]
