@@ -60,7 +60,7 @@ def fit(
     noise: float | None = None,
     starts: int = 64,
     restarts: int = 3,
-    polish_steps: int = 10,
+    polish_steps: int = 20,
     method: str = "auto",
     verbose: bool = False,
     history: bool = False,
@@ -342,11 +342,11 @@ def _polish(jac_fn, prob, red, theta, steps, rtol):
             conv = True
             break
         # Converged when even the undamped Gauss–Newton step would lower the cost by less than a
-        # thousandth of the residual variance (noise) or float rounding of the cost (noise-free).
+        # hundredth of the residual variance (Δχ² = 0.01) or float rounding of the residual.
         gn = np.linalg.lstsq(H[np.ix_(free, free)], -g[free], rcond=None)[0]
         gain = -float(g[free] @ gn)
         float_var = (float(np.finfo(dt).eps) * max(float(np.max(np.abs(prob.targets[0]))), 1e-30)) ** 2
-        if gain <= 1e-3 * cost / n_res + 10 * len(theta) * float_var:
+        if gain <= 1e-2 * cost / n_res + 10 * len(theta) * float_var:
             conv = True
             break
         Hf = H[np.ix_(free, free)] + lam * np.diag(d[free])
