@@ -183,25 +183,10 @@ def fit(
         hist = [(0.5 * float(jnp.sum(e.astype(jnp.float64) ** 2)), t) for e, t in zip(ev, hist)]
         hist.append((0.5 * best["rss"], best["theta"]))
 
-    # -- report ---------------------------------------------------------------------------------------
-    theta, r, J, fixed = best["theta"], best["r"], best["J"], best["fixed"]
-    sigma, source, ratio, converged = best["sigma"], best["source"], best["ratio"], best["converged"]
-    rss = float(r @ r)  # covered pixels (the uncovered ones do not depend on the parameters)
-    labels = pset.labels
-    stderr, undetermined, gauges, s2 = uncertainty(J, r, n2, labels)
-    msg_solver = "" if converged else (result_message(best["res"]).splitlines()[0] if best["res"] else "the polish did not converge")
-    successful, msg = verdict(converged, msg_solver, ratio, sigma, source, n2)
-    on_bound = [f"{labels[i]} = {theta[i]:.6g} ({'lower' if theta[i] <= lo else 'upper'} bound)"
-                for i, lo in _bounded_fixed(prob, theta, fixed)]
-    psnr, ssim = image_quality(_full_image(prob, theta), prob.targets[0])
-    return FitResult(
-        names=labels, values=theta, start=np.asarray(theta0, np.float64), stderr=stderr, result=msg,
-        successful=successful, steps=steps_total, compile_s=compile_s, solve_s=solve_s,
-        rms=float(np.sqrt(float(r @ r) / max(n2, 1))), psnr=psnr, ssim=ssim, rss=rss, n_residuals=n2,
-        undetermined=undetermined, gauges=gauges, history=hist, notes=notes, method=red.method, noise=sigma,
-        noise_source=source, noise_ratio=ratio, converged=converged, stderr_meaningful=successful,
-        on_bound=on_bound, censored=n_cens,
-    )
+    converged = best["converged"]
+    msg_solver = "" if converged else (result_message(best["res"]).splitlines()[0] if best["res"]
+                                       else "the polish did not converge")
+    return _report(prob, red, best, theta0, notes, hist, steps_total, compile_s, solve_s, n2, n_cens, msg_solver)
 
 
 def _fit_program(prob, red, theta0, *, starts, restarts, max_steps, polish_steps, rtol, noise, history, verbose):
