@@ -158,10 +158,6 @@ class Problem:
             out.append(r.reshape(-1))
         return jnp.concatenate(out)
 
-    def uncensored_weight(self, data):
-        """``w`` where the residual is two-sided, 0 on censored and padded entries (flat)."""
-        return jnp.concatenate([(vd.weight * ~(vd.hi | vd.lo)).reshape(-1) for vd in data])
-
     # -- host-side summaries --------------------------------------------------------------------
     def counts(self):
         """``(n_two_sided, n_censored)``: residual entries with non-zero weight on covered pixels

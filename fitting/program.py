@@ -34,18 +34,14 @@ from diffshade._util import keep
 from .strategy import Reduced, _masked_solve, bounded_lsq
 
 
-class Layout:
-    """Flat per-residual constants of the views (host numpy, made once)."""
-
-    def __init__(self, red: Reduced, data):
-        self.red = red
-        n_l = len(red.idx_l)
-        self.n_l, self.n_n, self.G = n_l, len(red.idx_n), red.n_groups
-        E = np.zeros((self.G + self.n_n, n_l + self.n_n))
-        E[red.group, np.arange(n_l)] = 1.0
-        E[self.G + np.arange(self.n_n), n_l + np.arange(self.n_n)] = 1.0
-        self.E = E
-        self.E_lin = E[:self.G]
+def _tangents(red: Reduced):
+    """``(E, E_lin)``: one tangent per linear field (ones over its scalars) and one per nonlinear
+    scalar, over ``z = (x, u)``; ``E_lin`` the linear ones alone."""
+    n_l, n_n, G = len(red.idx_l), len(red.idx_n), red.n_groups
+    E = np.zeros((G + n_n, n_l + n_n))
+    E[red.group, np.arange(n_l)] = 1.0
+    E[G + np.arange(n_n), n_l + np.arange(n_n)] = 1.0
+    return E, E[:G]
 
 
 def _flat(data):
@@ -60,8 +56,8 @@ def make_program(red: Reduced, *, max_steps: int, polish_steps: int, rtol: float
                  verbose: bool = False):
     """``program(U, exclude, sub, data, theta_ref, n_res) -> dict`` (see the module docstring)."""
     prob = red.prob
-    lay = Layout(red, None)
-    n_l, n_n, G = lay.n_l, lay.n_n, lay.G
+    E_all, E_lin = _tangents(red)
+    n_l, n_n, G = len(red.idx_l), len(red.idx_n), red.n_groups
     p = n_l + n_n
     idx_l = red.idx_l
     lo_np, hi_np = red.lo, red.hi
@@ -125,7 +121,7 @@ def make_program(red: Reduced, *, max_steps: int, polish_steps: int, rtol: float
                 # ranking only: the unconstrained linear optimum clipped into the bounds (an upper
                 # bound of the bounded one; a batched active-set solve costs 2x the compile)
                 z = jnp.concatenate([x_start, u.astype(dt)])
-                img, T = images(z, sub, theta_ref, lay.E_lin)
+                img, T = images(z, sub, theta_ref, E_lin)
                 r_x = (img - ts) * wus
                 if not n_l:
                     return jnp.sum(r_x * r_x)
@@ -150,7 +146,7 @@ def make_program(red: Reduced, *, max_steps: int, polish_steps: int, rtol: float
 
         # -- evaluation at a trial point, for either stage ------------------------------------------
         def evaluate(z, stage):
-            img, T = images(z, data, theta_ref, lay.E)
+            img, T = images(z, data, theta_ref, E_all)
             A = columns(T, M, dt)
             Ju = T[G:]
             d = img - t
