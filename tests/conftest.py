@@ -18,6 +18,17 @@ def shared_mesh_dir():
     return path
 
 
+def small_default_scene(width=32, height=32, **render):
+    """The default scene on a 320-face icosphere at a small image size, render options overridden."""
+    import diffshade as ds
+
+    d = dict(ds.DEFAULT_SCENE)
+    d["camera"] = dict(d["camera"], width=width, height=height)
+    d["mesh"] = {"icosphere": 2}
+    d["render"] = dict(d["render"], **render)
+    return ds.scene_from_dict(d)
+
+
 @pytest.fixture(scope="session")
 def meshes_dir():
     return shared_mesh_dir()

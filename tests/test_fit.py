@@ -10,13 +10,11 @@ import diffshade as ds
 from fitting.fit import FitError, fit
 from fitting.params import ParamError, ParamSet
 
+from conftest import small_default_scene
+
 
 def small_scene(**render):
-    d = {k: v for k, v in ds.DEFAULT_SCENE.items()}
-    d["camera"] = dict(d["camera"], width=32, height=32)
-    d["mesh"] = {"icosphere": 2}
-    d["render"] = dict(d["render"], **render)
-    return ds.scene_from_dict(d)
+    return small_default_scene(32, 32, **render)
 
 
 def test_parameter_names_and_domains():

@@ -14,13 +14,11 @@ from fitting.problem import Problem
 from fitting.strategy import Reduced, bounded_lsq, split_linear
 from fitting.params import ParamSet
 
+from conftest import small_default_scene
+
 
 def small(**render):
-    d = {k: v for k, v in ds.DEFAULT_SCENE.items()}
-    d["camera"] = dict(d["camera"], width=24, height=20)
-    d["mesh"] = {"icosphere": 2}
-    d["render"] = dict(d["render"], **render)
-    return ds.scene_from_dict(d)
+    return small_default_scene(24, 20, **render)
 
 
 def test_render_at_a_pixel_subset_equals_the_full_render_there():
