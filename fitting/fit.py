@@ -105,7 +105,7 @@ def fit(
 
     # -- optimistix on the reduced problem: global start and LM on a pixel subset ------------------
     # The starts are ranked by the reduced cost on about SEARCH_PIXELS covered pixels per view, and
-    # LM runs from the best `LM_STARTS` of them there (vmapped); on a noise-free target the subset
+    # LM runs from the best of them on the same subset; on a noise-free target the subset
     # has the same optimum as the whole image, on a noisy one a nearby one, which the polish moves
     # to the whole image's.
     U = candidates(red, np.asarray(theta0), starts if len(red.idx_n) else 1)
