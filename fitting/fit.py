@@ -25,8 +25,8 @@ import diffshade as ds
 
 from .problem import FitError, Problem, ViewData, as_list
 from .report import FitResult, noise_ratio_limit, image_quality, noise_level, uncertainty, verdict
-from .program import make_program
-from .strategy import SOLVERS, Reduced, candidates, compiled, lm_solve, result_message
+from .program import flat_data, make_program, make_search
+from .strategy import SOLVERS, Reduced, candidates, compiled, compiled_all, lm_solve, result_message
 
 __all__ = ["FitError", "FitResult", "fit", "compare_models", "model_variants", "ModelScore"]
 
@@ -124,11 +124,7 @@ def fit(
                             extra=(rtol, atol, max_steps, history, verbose, solver, red.idx_n.tobytes()))
     compile_s += c
 
-    def jac(th, data):
-        f = lambda t: prob.residual(t, data)  # noqa: E731
-        return f(th), jax.jacfwd(f)(th)
-
-    jac_fn, c = compiled(prob, "jac", jac, theta_ref, prob.data)
+    ev, c = _evaluator(prob, red, theta_ref, max_steps, rtol)
     compile_s += c
     t_run = time.perf_counter()
 
@@ -140,9 +136,9 @@ def fit(
             theta, res, k = np.asarray(theta0, np.float64), 0, 0
             notes.append("every free parameter is linear: projected Gauss–Newton on the whole image")
             hist.append(theta)
-            theta, r, J, fixed, p_steps, p_conv = _polish(jac_fn, prob, red, theta, max(polish_steps, 20), rtol)
+            theta, r, J, img, fixed, p_steps, p_conv = _polish(ev, prob, red, theta, max(polish_steps, 20), rtol)
             steps_total = p_steps
-            best = _candidate(prob, theta, r, J, fixed, res, p_conv, p_steps, n2, noise)
+            best = _candidate(prob, theta, r, J, img, fixed, res, p_conv, p_steps, n2, noise)
             notes.append(f"  {p_steps} evaluation(s) of the whole residual; residual {best['ratio']:.3g}× the noise")
             break
         costs, top, u, x, res, k, h, loss = coarse_fn(jnp.asarray(U, u_dtype), jnp.asarray(exclude), sub)
@@ -166,9 +162,9 @@ def fit(
         # slow valley but ended near the optimum is then finished by the polish).
 
         # -- polish on the whole image, and the Jacobian for the report ----------------------------
-        theta, r, J, fixed, p_steps, p_conv = _polish(jac_fn, prob, red, theta, polish_steps, rtol)
+        theta, r, J, img, fixed, p_steps, p_conv = _polish(ev, prob, red, theta, polish_steps, rtol)
         steps_total += p_steps
-        cand = _candidate(prob, theta, r, J, fixed, res, p_conv, p_steps, n2, noise)
+        cand = _candidate(prob, theta, r, J, img, fixed, res, p_conv, p_steps, n2, noise)
         converged, ratio = cand["converged"], cand["ratio"]
         notes.append(f"  polish: {p_steps} evaluation(s) of the whole residual"
                      + (f" ({n_cens} censored entries)" if n_cens else "") + f"; residual {ratio:.3g}× the noise")
@@ -179,14 +175,68 @@ def fit(
             break
     solve_s = time.perf_counter() - t_run
     if history:
-        ev = [jac_fn(jnp.asarray(t, dtype), prob.data)[0] for t in hist]
-        hist = [(0.5 * float(jnp.sum(e.astype(jnp.float64) ** 2)), t) for e, t in zip(ev, hist)]
+        hist = [(0.5 * float(np.sum(ev(t)[0] ** 2)), t) for t in hist]
         hist.append((0.5 * best["rss"], best["theta"]))
 
     converged = best["converged"]
     msg_solver = "" if converged else (result_message(best["res"]).splitlines()[0] if best["res"]
                                        else "the polish did not converge")
     return _report(prob, red, best, theta0, notes, hist, steps_total, compile_s, solve_s, n2, n_cens, msg_solver)
+
+
+def _programs(prob, red, U, sub, theta_ref, max_steps, rtol, history=False, verbose=False, search=True):
+    """The compiled search and solve programs (:mod:`fitting.program`) for these shapes (the
+    search ``None`` when there is nothing to rank), and the seconds their compile took (0 when
+    cached)."""
+    dtype = prob.dtype
+    n2, _ = prob.counts()
+    z = jnp.zeros(len(red.idx_l) + len(red.idx_n), dtype)
+    items = [("program", make_program(red, max_steps=max_steps, rtol=rtol, history=history, verbose=verbose),
+              (z, prob.data, theta_ref, jnp.asarray(n2, dtype), jnp.asarray(0)),
+              (max_steps, rtol, history, verbose, red.idx_n.tobytes()))]
+    search = search and len(red.idx_n) and len(U) > 1
+    if search:
+        items.append(("search", make_search(red), (jnp.asarray(U, dtype), sub, theta_ref), (red.idx_n.tobytes(),)))
+    fns, c = compiled_all(prob, items)
+    return fns[0], (fns[1] if search else None), c
+
+
+class _Evaluator:
+    """The program in evaluation mode: ``ev(θ) -> (r, J, img)`` in float64, with ``r`` the
+    weighted, censored residual of the compacted pixels, ``J`` its Jacobian in the natural
+    parameters (censored entries that agree with the clipping have zero rows) and ``img`` the
+    model there."""
+
+    def __init__(self, fn, prob, red, theta_ref):
+        self.fn, self.red, self.prob, self.theta_ref = fn, red, prob, theta_ref
+        self.n2 = jnp.asarray(prob.counts()[0], prob.dtype)
+        t, w, hi, lo = (np.asarray(a) for a in flat_data(prob.data))
+        self.t, self.w, self.hi, self.lo = t.astype(np.float64), w.astype(np.float64), hi, lo
+        M = len(t)
+        self.lin_cols = (red.chan[:, np.arange(M) % 3] > 0) if len(red.idx_l) else None
+        self.dtype = prob.dtype
+
+    def __call__(self, theta):
+        red = self.red
+        theta = np.asarray(theta, np.float64)
+        z = np.concatenate([theta[red.idx_l], theta[red.idx_n]])
+        out = self.fn(jnp.asarray(z, self.dtype), self.prob.data, self.theta_ref, self.n2, jnp.asarray(1))
+        img = np.asarray(out["img"], np.float64)
+        T = np.asarray(out["T"], np.float64)
+        d = img - self.t
+        r = np.where(self.hi, np.minimum(d, 0), np.where(self.lo, np.maximum(d, 0), d)) * self.w
+        act = ~((self.hi & (d > 0)) | (self.lo & (d < 0)))
+        J = np.empty((len(d), len(theta)))
+        if len(red.idx_l):
+            J[:, red.idx_l] = (T[red.group] * self.lin_cols).T
+        J[:, red.idx_n] = T[red.n_groups:].T
+        J *= (self.w * act)[:, None]
+        return r, J, img
+
+
+def _evaluator(prob, red, theta_ref, max_steps, rtol):
+    fn, _, c = _programs(prob, red, None, None, theta_ref, max_steps, rtol, search=False)
+    return _Evaluator(fn, prob, red, theta_ref), c
 
 
 def _fit_program(prob, red, theta0, *, starts, restarts, max_steps, polish_steps, rtol, noise, history, verbose):
@@ -199,47 +249,41 @@ def _fit_program(prob, red, theta0, *, starts, restarts, max_steps, polish_steps
     sub = [_subset(vd, SEARCH_PIXELS) for vd in prob.data]
     n2, n_cens = prob.counts()
     # The program runs the global start and the variable-projection LM; the polish runs on the
-    # host in float64 on the compiled residual and Jacobian (float32 normal equations cannot
-    # resolve the weakly determined directions the polish must still move: measured, noisy fits
-    # stopped short with |z| up to 70).
-    prog = make_program(red, max_steps=max_steps, polish_steps=0, rtol=rtol, history=history, verbose=verbose)
-    args = (jnp.asarray(U, dtype), jnp.zeros(len(U), bool), sub, prob.data, theta_ref, jnp.asarray(n2, dtype))
-    fn, compile_s = compiled(prob, "program", prog, *args, extra=(max_steps, rtol, history, verbose,
-                                                                 red.idx_n.tobytes()))
-
-    def jac(th, data):
-        f = lambda t: prob.residual(t, data)  # noqa: E731
-        return f(th), jax.jacfwd(f)(th)
-
-    jac_fn, c = compiled(prob, "jac", jac, theta_ref, prob.data)
-    compile_s += c
+    # host in float64 on the program's evaluation (float32 normal equations cannot resolve the
+    # weakly determined directions the polish must still move: measured, noisy fits stopped
+    # short with |z| up to 70).
+    fn, search, compile_s = _programs(prob, red, U, sub, theta_ref, max_steps, rtol, history, verbose)
+    ev = _Evaluator(fn, prob, red, theta_ref)
+    n2_arr = jnp.asarray(n2, dtype)
     notes, hist = [], []
     exclude = np.zeros(len(U), bool)
     best, steps = None, 0
     t0 = time.perf_counter()
+    costs = np.asarray(search(jnp.asarray(U, dtype), sub, theta_ref), np.float64) if search else np.zeros(len(U))
+    x_start = np.asarray(theta0, np.float64)[red.idx_l]
     for attempt in range(restarts + 1):
-        out = fn(jnp.asarray(U, dtype), jnp.asarray(exclude), sub, prob.data, theta_ref, jnp.asarray(n2, dtype))
+        b = int(np.argmin(np.where(exclude, np.inf, costs)))
+        z0 = np.concatenate([x_start, U[b]])
+        out = fn(jnp.asarray(z0, dtype), prob.data, theta_ref, n2_arr, jnp.asarray(0))
         z = np.asarray(out["z"], np.float64)
-        b = int(out["best"])
-        k0 = int(out["k0"])
-        u, x = z[len(red.idx_l):], z[:len(red.idx_l)]
-        theta = np.asarray(red.theta(jnp.asarray(u), jnp.asarray(x), theta_ref), np.float64)
-        theta, r, J, fixed, k1, converged = _polish(jac_fn, prob, red, theta, polish_steps, rtol)
+        k0 = int(out["k"])
+        u = z[len(red.idx_l):]
+        theta = np.asarray(out["theta"], np.float64)
+        theta, r, J, img, fixed, k1, converged = _polish(ev, prob, red, theta, polish_steps, rtol)
         steps += k0 + k1
         why = ("" if converged else
                f"the polish did not converge in {polish_steps} steps"
                + (f" (variable-projection LM reached its step limit, max_steps={max_steps})" if k0 >= max_steps else ""))
-        cand = _candidate(prob, theta, r, J, fixed, why, converged, k1, n2, noise)
+        cand = _candidate(prob, theta, r, J, img, fixed, why, converged, k1, n2, noise)
         if attempt == 0 and len(U) > 1:
-            rank = int(np.flatnonzero(np.argsort(np.asarray(out["costs"]), kind="stable") == 0)[0]) + 1
+            rank = int(np.flatnonzero(np.argsort(costs, kind="stable") == 0)[0]) + 1
             notes.append(f"global start: {len(U)} starts ranked on {SEARCH_PIXELS} pixels per view "
                          f"(the given start ranked {rank})")
         notes.append(f"attempt {attempt + 1}: from start {b + 1}: {k0} variable-projection LM evaluations"
-                     f"{'' if bool(out['conv0']) else ' (not converged)'}, {k1} of the polish on the whole image"
+                     f"{'' if bool(out['conv']) else ' (not converged)'}, {k1} of the polish on the whole image"
                      f"{' (converged)' if converged else ' (not converged)'}; residual {cand['ratio']:.3g}× the noise")
         if history:
-            for zz, cc in zip(np.asarray(out["hz"])[:int(out["nh"])], np.asarray(out["hc"])[:int(out["nh"])]):
-                th = np.asarray(red.theta(jnp.asarray(zz[len(red.idx_l):]), jnp.asarray(zz[:len(red.idx_l)]), theta_ref))
+            for th, cc in zip(np.asarray(out["hz"])[:int(out["nh"])], np.asarray(out["hc"])[:int(out["nh"])]):
                 hist.append((0.5 * float(cc), np.asarray(th, np.float64)))
         if best is None or cand["rss"] < best["rss"]:
             best = cand
@@ -261,7 +305,7 @@ def _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2,
     successful, msg = verdict(best["converged"], msg_solver, best["ratio"], best["sigma"], best["source"], n2)
     on_bound = [f"{labels[i]} = {theta[i]:.6g} ({'lower' if theta[i] <= lo else 'upper'} bound)"
                 for i, lo in _bounded_fixed(prob, theta, fixed)]
-    psnr, ssim = image_quality(_full_image(prob, theta), prob.targets[0])
+    psnr, ssim = image_quality(prob.full_images(best["img"])[0], prob.targets[0])
     return FitResult(
         names=labels, values=theta, start=np.asarray(theta0, np.float64), stderr=stderr, result=msg,
         successful=successful, steps=steps, compile_s=compile_s, solve_s=solve_s,
@@ -272,11 +316,11 @@ def _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2,
     )
 
 
-def _candidate(prob, theta, r, J, fixed, res, converged, p_steps, n2, noise) -> dict:
+def _candidate(prob, theta, r, J, img, fixed, res, converged, p_steps, n2, noise) -> dict:
     """A polished result with its noise level and residual-to-noise ratio."""
     sigma, source = noise_level(prob, prob.residual_images(r), noise)
     s2 = float(r @ r) / max(n2 - len(theta), 1)
-    return dict(theta=theta, r=r, J=J, fixed=fixed, res=res, converged=bool(converged),
+    return dict(theta=theta, r=r, J=J, img=img, fixed=fixed, res=res, converged=bool(converged),
                 ratio=float(np.sqrt(s2) / max(sigma, 1e-300)), sigma=sigma, source=source, rss=float(r @ r),
                 polish=p_steps)
 
@@ -290,15 +334,10 @@ def _bounded_fixed(prob, theta, fixed):
     return out
 
 
-def _full_image(prob, theta):
-    v = prob.data[0].scene
-    return np.asarray(jax.jit(ds.render, static_argnames="opts")(prob.pset.apply(v, jnp.asarray(theta, prob.dtype)), prob.opts))
-
-
-def _polish(jac_fn, prob, red, theta, steps, rtol):
+def _polish(ev, prob, red, theta, steps, rtol):
     """Projected Levenberg–Marquardt on all parameters in natural units with the full (censored)
-    residual. Scalars on a bound whose gradient points outside stay there. Returns
-    ``(θ, r, J, fixed, evaluations, converged)``."""
+    residual, in float64 on the program's evaluation ``ev``. Scalars on a bound whose gradient
+    points outside stay there. Returns ``(θ, r, J, img, fixed, evaluations, converged)``."""
     pset, dt = prob.pset, prob.dtype
     lo = np.concatenate([np.full(p.size, p.bounds[0] if p.bounds else 0.0) for p in pset.params])
     hi = np.concatenate([np.full(p.size, p.bounds[1] if p.bounds else np.inf) for p in pset.params])
@@ -308,14 +347,11 @@ def _polish(jac_fn, prob, red, theta, steps, rtol):
     lin[red.idx_l] = True
     floor = np.where(pos, np.maximum(np.abs(theta) * 1e-6, 1e-12), lo)  # a nonlinear positive stays > 0
 
-    def ev(th):
-        r, J = jac_fn(jnp.asarray(th, dt), prob.data)
-        return np.asarray(r, np.float64), np.asarray(J, np.float64)
-
-    r, J = ev(theta)
+    r, J, img = ev(theta)
     cost, lam, n_ev, conv = float(r @ r), 1e-3, 1, False
     n_res = max(int(np.count_nonzero(r)) - len(theta), 1)
     tol = max(rtol, 10 * float(np.finfo(dt).eps))
+    float_var = (float(np.finfo(dt).eps) * max(float(np.max(np.abs(prob.targets[0]))), 1e-30)) ** 2
     for _ in range(steps):
         g = J.T @ r
         at_lo, at_hi = theta <= floor, theta >= hi
@@ -330,7 +366,6 @@ def _polish(jac_fn, prob, red, theta, steps, rtol):
         # hundredth of the residual variance (Δχ² = 0.01) or float rounding of the residual.
         gn = np.linalg.lstsq(H[np.ix_(free, free)], -g[free], rcond=None)[0]
         gain = -float(g[free] @ gn)
-        float_var = (float(np.finfo(dt).eps) * max(float(np.max(np.abs(prob.targets[0]))), 1e-30)) ** 2
         if gain <= 1e-2 * cost / n_res + 10 * len(theta) * float_var:
             conv = True
             break
@@ -338,12 +373,12 @@ def _polish(jac_fn, prob, red, theta, steps, rtol):
         step = np.zeros_like(theta)
         step[free] = np.linalg.solve(Hf, -g[free])
         new = np.clip(theta + step, floor, hi)
-        r2, J2 = ev(new)
+        r2, J2, img2 = ev(new)
         n_ev += 1
         c2 = float(r2 @ r2)
         if np.isfinite(c2) and c2 <= cost:
             moved = np.max(np.abs(new - theta) / np.maximum(np.abs(theta), 1e-3))
-            theta, r, J, cost, lam = new, r2, J2, c2, max(lam / 10, 1e-9)
+            theta, r, J, img, cost, lam = new, r2, J2, img2, c2, max(lam / 10, 1e-9)
             if moved <= tol:
                 conv = True
                 break
@@ -352,7 +387,10 @@ def _polish(jac_fn, prob, red, theta, steps, rtol):
     g = J.T @ r
     fixed = ((theta <= lo) & (g >= 0) & ~pos) | (theta >= hi)
     fixed &= lin | np.isfinite(hi)
-    return theta, r, J, fixed, n_ev, conv
+    return theta, r, J, img, fixed, n_ev, conv
+
+
+# ------------------------------------------------------------------------------------------
 # Nested models: which terms do the images support?
 # ------------------------------------------------------------------------------------------
 

@@ -183,6 +183,19 @@ class Problem:
             out.append(img.reshape(*b.shape, 3))
         return out
 
+    def full_images(self, img_flat) -> list[np.ndarray]:
+        """The model at the compacted pixels (flat, as :meth:`residual` orders them) placed into
+        ``[H, W, 3]`` images, the background elsewhere (what :func:`diffshade.render` gives)."""
+        out, off = [], 0
+        for vd, b in zip(self.data, self.views):
+            n = vd.target.shape[0]
+            m = np.asarray(img_flat[off * 3:(off + n) * 3], np.float64).reshape(n, 3)[:len(b.rows)]
+            off += n
+            img = np.broadcast_to(np.asarray(vd.scene.background, np.float64), (b.shape[0] * b.shape[1], 3)).copy()
+            img[b.rows] = m
+            out.append(img.reshape(*b.shape, 3))
+        return out
+
     def used_masks(self) -> list[np.ndarray]:
         """Per view ``[H, W, 3]`` bool: the residuals of covered pixels that are two-sided and weighted."""
         out = []

@@ -30,6 +30,7 @@ With ``clamp`` on, nothing is linear: the same machinery runs with every paramet
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import equinox as eqx
 import jax
@@ -151,20 +152,20 @@ def bounded_lsq(A, r0, lo, hi, x0, iters: int | None = None):
         sel = release & (jnp.arange(n) == worst)
         return y_new, w_lo & ~sel, w_hi & ~sel
 
-    y = jnp.where(det, -_masked_solve(G, c, det, rcond), y0)
-    w_lo, w_hi = det & (y <= ylo), det & (y >= yhi)
-    y = jnp.clip(y, ylo, yhi)
-
     def body(carry):
-        k, st, _ = carry
-        new = step(st, lambda v: G @ v + c)
+        # active-set steps until the working set repeats, then two refinement steps: one copy
+        # of the step in the program (each copy of an eigendecomposition costs compile time)
+        k, st, done, n_ref = carry
+        grad = lambda v: jax.lax.cond(done, lambda: As.T @ (As @ v + r0), lambda: G @ v + c)  # noqa: E731
+        new = step(st, grad)
         same = jnp.all(new[0] == st[0]) & jnp.all(new[1] == st[1]) & jnp.all(new[2] == st[2])
-        return k + 1, new, same
+        return k + 1, new, done | same | (k + 1 >= iters), n_ref + done
 
-    _, state, _ = jax.lax.while_loop(lambda cr: (cr[0] < iters) & ~cr[2], body,
-                                     (jnp.asarray(0), (y, w_lo, w_hi), jnp.asarray(False)))
-    for _ in range(2):
-        state = step(state, lambda v: As.T @ (As @ v + r0))
+    # from the start clipped into the box with an empty working set
+    y = jnp.where(det, jnp.clip(y0, ylo, yhi), y0)
+    none = jnp.zeros(n, bool)
+    _, state, _, _ = jax.lax.while_loop(lambda cr: cr[3] < 2, body,
+                                        (jnp.asarray(0), (y, none, none), jnp.asarray(False), jnp.asarray(0)))
     y = state[0]
     x = jnp.where(det, y * inv_s, x0)
     free = det & (x > lo) & (x < hi)
@@ -442,16 +443,30 @@ def _key(prob: Problem, what, *extra, args=()):
 def compiled(prob: Problem, what: str, fn, *args, extra=()):
     """``jax.jit(fn).lower(*args).compile()``, cached on the problem's structure; returns
     ``(compiled, compile_seconds)`` (0 when cached)."""
-    key = _key(prob, what, *extra, args=args)
-    if key in _CACHE:
-        return _CACHE[key], 0.0
-    t0 = time.perf_counter()
-    c = jax.jit(fn).lower(*args).compile()
-    _CACHE[key] = c
-    dt = time.perf_counter() - t0
-    if _VERBOSE_COMPILE:
-        print(f"compiled {what} in {dt:.2f} s")
+    (c,), dt = compiled_all(prob, [(what, fn, args, extra)])
     return c, dt
+
+
+def compiled_all(prob: Problem, items):
+    """:func:`compiled` of several ``(what, fn, args, extra)`` at once: traced one after the
+    other, compiled concurrently (XLA compiles without the GIL; two programs on two cores take
+    the time of the longer). Returns ``([compiled, ...], wall seconds)``."""
+    t0 = time.perf_counter()
+    keys = [_key(prob, what, *extra, args=args) for what, _, args, extra in items]
+    todo = {}
+    for key, (what, fn, args, extra) in zip(keys, items):
+        if key not in _CACHE and key not in todo:
+            todo[key] = jax.jit(fn).lower(*args)
+    if len(todo) > 1:
+        with ThreadPoolExecutor(len(todo)) as pool:
+            done = dict(zip(todo, pool.map(lambda low: low.compile(), todo.values())))
+    else:
+        done = {k: low.compile() for k, low in todo.items()}
+    _CACHE.update(done)
+    dt = time.perf_counter() - t0 if todo else 0.0
+    if _VERBOSE_COMPILE and todo:
+        print(f"compiled {', '.join(w for w, *_ in items)} in {dt:.2f} s")
+    return [_CACHE[k] for k in keys], dt
 
 
 _VERBOSE_COMPILE = False
