@@ -24,7 +24,7 @@ import numpy as np
 import diffshade as ds
 
 from .problem import FitError, Problem, ViewData, as_list
-from .report import FitResult, noise_ratio_limit, image_quality, noise_level, uncertainty, verdict
+from .report import FitResult, float_floor, noise_ratio_limit, image_quality, noise_level, uncertainty, verdict
 from .program import flat_data, make_program, make_search
 from .strategy import SOLVERS, Reduced, candidates, compiled, compiled_all, lm_solve, result_message
 
@@ -351,7 +351,13 @@ def _polish(ev, prob, red, theta, steps, rtol):
     cost, lam, n_ev, conv = float(r @ r), 1e-3, 1, False
     n_res = max(int(np.count_nonzero(r)) - len(theta), 1)
     tol = max(rtol, 10 * float(np.finfo(dt).eps))
-    float_var = (float(np.finfo(dt).eps) * max(float(np.max(np.abs(prob.targets[0]))), 1e-30)) ** 2
+    # float rounding of one residual entry, squared: ε while steps succeed (the polish must still
+    # move along valleys the verdict cannot see), the verdict's float floor once a step failed
+    # (the cost no longer decreases: what is left is the render's own rounding)
+    tmax = max(float(np.max(np.abs(t))) for t in prob.targets)
+    float_var = (float(np.finfo(dt).eps) * tmax) ** 2
+    floor_var = float_floor(dt, tmax) ** 2
+    rejected = False
     for _ in range(steps):
         g = J.T @ r
         at_lo, at_hi = theta <= floor, theta >= hi
@@ -366,7 +372,7 @@ def _polish(ev, prob, red, theta, steps, rtol):
         # hundredth of the residual variance (Δχ² = 0.01) or float rounding of the residual.
         gn = np.linalg.lstsq(H[np.ix_(free, free)], -g[free], rcond=None)[0]
         gain = -float(g[free] @ gn)
-        if gain <= 1e-2 * cost / n_res + 10 * len(theta) * float_var:
+        if gain <= 1e-2 * cost / n_res + 10 * len(theta) * (floor_var if rejected else float_var):
             conv = True
             break
         Hf = H[np.ix_(free, free)] + lam * np.diag(d[free])
@@ -379,11 +385,13 @@ def _polish(ev, prob, red, theta, steps, rtol):
         if np.isfinite(c2) and c2 <= cost:
             moved = np.max(np.abs(new - theta) / np.maximum(np.abs(theta), 1e-3))
             theta, r, J, img, cost, lam = new, r2, J2, img2, c2, max(lam / 10, 1e-9)
+            rejected = False
             if moved <= tol:
                 conv = True
                 break
         else:
             lam *= 10
+            rejected = True
     g = J.T @ r
     fixed = ((theta <= lo) & (g >= 0) & ~pos) | (theta >= hi)
     fixed &= lin | np.isfinite(hi)

@@ -24,6 +24,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+FLOAT_ROUNDING = 30  # the render's own rounding, in units of ε·max|y| (measured)
+
+
+def float_floor(dtype, tmax: float) -> float:
+    """The noise level float rounding alone gives a render of peak value ``tmax``."""
+    return FLOAT_ROUNDING * float(np.finfo(dtype).eps) * max(float(tmax), 1e-30)
+
+
 def noise_ratio_limit(n: int) -> float:
     r"""The largest ``s/σ`` a fit with ``n`` two-sided residuals may have: 1 + three standard
     deviations of the ratio of two variance estimates (:math:`\approx 3\sqrt{2/n}`) + 1 %."""
@@ -95,7 +103,7 @@ def noise_level(prob, res_images, noise=None) -> tuple[float, str]:
         cands.append((prob.quantum / np.sqrt(12.0), f"quantisation of {round(1 / prob.quantum) + 1}-level codes"))
     else:
         tmax = max(float(np.max(np.abs(np.asarray(vd.target)))) for vd in prob.data)
-        cands.append((30 * float(np.finfo(prob.dtype).eps) * max(tmax, 1e-30), "float rounding of the target"))
+        cands.append((float_floor(prob.dtype, tmax), "float rounding of the target"))
     return max(cands)
 
 
