@@ -5,7 +5,7 @@ Pipeline (each stage a function of its own)::
     clip = camera.world_to_clip(mesh.vertices)
     ids = visibility(clip, mesh.faces, camera.resolution, layers)   # discrete, cached for fixed geometry
     frags = fragments(clip, mesh.faces, ids)                         # differentiable barycentrics/depth
-    image = shade(scene, ids, options)                               # terms of MODEL.md, fog
+    image = shade(scene, ids, options)                               # terms of docs/model.md, fog
 """
 
 from ._camera import Camera

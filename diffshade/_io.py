@@ -352,7 +352,7 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
     if f and opts.fog == "none":
         v.fail("render.fog", "a [fog] section is given but render.fog is 'none'; set it to 'linear', 'exp' or 'exp2'")
     ambient = v.vec(d, "ambient_light", "scene", default=[0.2, 0.2, 0.2], lo=0.0, scalar_ok=True)
-    # A fogged scene shows the fog colour where nothing is drawn, unless told otherwise (MODEL.md §3).
+    # A fogged scene shows the fog colour where nothing is drawn, unless told otherwise (docs/model.md §3).
     bg_default = np.asarray(fog.color) if opts.fog != "none" else [0.0, 0.0, 0.0]
     background = v.vec(d, "background", "scene", default=bg_default, lo=0.0, scalar_ok=True)
     scene = Scene(

@@ -46,7 +46,7 @@ class Mesh(eqx.Module):
     def vertex_normals(self) -> Float[Array, "V 3"]:
         r"""Area-weighted vertex normals: :math:`\mathrm{normalize}(\sum_{f \ni v} (v_1 - v_0)\times(v_2 - v_0))`.
 
-        MODEL.md §4. A vertex with no (non-degenerate) adjacent face gets the zero vector.
+        docs/model.md §4. A vertex with no (non-degenerate) adjacent face gets the zero vector.
         """
         n = self.face_normals(normalize=False)
         acc = jnp.zeros_like(self.vertices)

@@ -2,12 +2,12 @@ r"""The render pipeline: camera → visibility → fragments → shade → fog �
 
 .. math:: I = I_{surf} + k_a I_a + \sum_i f_{rad,i} f_{ang,i} \big(k_a I_{a,i} + I_{p,i}(k_d (n\cdot l_i)^+ + k_s\,\mathrm{spec}_i)\big)
 
-(MODEL.md eq. 14–15; the per-light ambient :math:`k_a I_{a,i}` only with
+(docs/model.md eq. 14–15; the per-light ambient :math:`k_a I_{a,i}` only with
 ``per_light_ambient``), then optional clamping to [0, 1] and fog. With ``shadows`` each light's
 direct terms (and the directed transmission, with ``transmission``) are multiplied by its shadow
 visibility :math:`S_i` (:mod:`diffshade._shadow`); with ``transparency`` the ``layers`` nearest
 surfaces are shaded and composited front to back, with Bouguer absorption between an entry layer
-and the next one (MODEL.md §2, §5).
+and the next one (docs/model.md §2, §5).
 """
 
 from __future__ import annotations
@@ -190,7 +190,7 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=No
     at a subset of the image's pixels (see :func:`diffshade.fragments`); default the full grid.
 
     Only layer 0 is shaded unless ``opts`` asks for transparency (or absorption): then every
-    layer is shaded, fogged, and composited front to back (MODEL.md §5).
+    layer is shaded, fogged, and composited front to back (docs/model.md §5).
     """
     mesh, cam = scene.mesh, scene.camera
     layered = opts.layered
@@ -313,7 +313,7 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=No
         out = [jnp.where(valid[0], color[c][0], scene.background[c]) for c in range(3)]
         return jnp.stack(out, axis=-1)
 
-    # Front-to-back compositing (MODEL.md §5): I = t I_1 + (1 - t) I_2, recursively, then the
+    # Front-to-back compositing (docs/model.md §5): I = t I_1 + (1 - t) I_2, recursively, then the
     # background; absorption e^{-mu l} between an entry (front-facing) layer and the next one.
     t = jnp.broadcast_to(pmat.opacity, shape)
     if need_kay:

@@ -1,4 +1,4 @@
-"""Scene data model (MODEL.md §1–3): material, lights (structure of arrays), fog, render options.
+"""Scene data model (docs/model.md §1–3): material, lights (structure of arrays), fog, render options.
 
 Every number is a traced array (differentiable; changing it never recompiles). What must be
 static — image size (on the camera), shading mode, which terms and light kinds exist, the number
@@ -41,14 +41,14 @@ def _vec(x):
 
 
 class Material(eqx.Module):
-    r"""Surface material (MODEL.md §2). RGB coefficients, applied per channel.
+    r"""Surface material (docs/model.md §2). RGB coefficients, applied per channel.
 
     ``emission`` :math:`I_{surf}`, ``ambient`` :math:`k_a`, ``diffuse`` :math:`k_d`,
     ``specular`` :math:`k_s`, ``shininess`` :math:`m > 0` (Phong exponent; Blinn–Phong uses
     it as :math:`m'` directly, see :func:`diffshade.phong_to_blinn`), ``ior`` :math:`\eta`
     (for the Fresnel-weighted specular and the refraction of directed transmission).
 
-    Transparency and transmission (MODEL.md §2, §5; used only where :class:`RenderOptions` turns
+    Transparency and transmission (docs/model.md §2, §5; used only where :class:`RenderOptions` turns
     them on): ``opacity`` :math:`t \in [0, 1]` (1 opaque, 0 invisible); with ``kay=True``
     (static: part of the compiled program) the material uses Kay's opacity instead,
     :math:`t = t_{min} + (t_{max} - t_{min})[1 - (1 - |n_z|)^p]` with ``kay_min`` :math:`t_{min}`
@@ -139,7 +139,7 @@ def no_spot() -> SpotLights:
 
 
 class Fog(eqx.Module):
-    r"""Fog (MODEL.md §3): colour, linear range [start, end], density :math:`\rho` (exp and exp²)."""
+    r"""Fog (docs/model.md §3): colour, linear range [start, end], density :math:`\rho` (exp and exp²)."""
 
     color: Float[Array, "3"] = eqx.field(converter=_rgb, default=(0.5, 0.5, 0.5))
     start: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.0)
@@ -173,7 +173,7 @@ class RenderOptions:
     compiled program). Changing any of these recompiles; changing a number in a :class:`Scene`
     never does.
 
-    Transparency, absorption, transmission, shadows (MODEL.md §2, §5; all off by default, and
+    Transparency, absorption, transmission, shadows (docs/model.md §2, §5; all off by default, and
     off they cost nothing):
 
     - ``transparency``: each material's opacity (its ``opacity``, or Kay's

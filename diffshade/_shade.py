@@ -1,4 +1,4 @@
-r"""Illumination terms of the classic local model (MODEL.md §1–3), one function per term.
+r"""Illumination terms of the classic local model (docs/model.md §1–3), one function per term.
 
 Vectors are tuples of three arrays (``(x, y, z)``, structure of arrays): XLA's CPU backend
 vectorises plain elementwise arithmetic on ``[H, W]`` arrays several times better than reductions
@@ -74,7 +74,7 @@ def safe_pow(x, m):
 
 
 def phong_to_blinn(m):
-    r"""Blinn–Phong exponent :math:`m' = 4m` matching Phong's :math:`(v\cdot r)^m` (MODEL.md §2).
+    r"""Blinn–Phong exponent :math:`m' = 4m` matching Phong's :math:`(v\cdot r)^m` (docs/model.md §2).
 
     Near the highlight :math:`\angle(n, h) \approx \tfrac12 \angle(v, r)`, so
     :math:`(n\cdot h)^{4m} \approx (v\cdot r)^m`.
@@ -193,7 +193,7 @@ def distance(a: V3, b: V3):
 
 
 def directed_transmission(n, l, v, m, ior, back: bool, fresnel: str = "none"):
-    r"""Directed transmission factor :math:`W \cos^m\beta` (MODEL.md §2), to be scaled by
+    r"""Directed transmission factor :math:`W \cos^m\beta` (docs/model.md §2), to be scaled by
     :math:`k_t I_p`.
 
     ``n`` is the normal on the viewer's side, ``l`` the unit vector to the light, which must be
@@ -227,6 +227,6 @@ def directed_transmission(n, l, v, m, ior, back: bool, fresnel: str = "none"):
 
 
 def kay_opacity(n_z, t_min, t_max, p):
-    r"""Kay's opacity :math:`t_{min} + (t_{max} - t_{min})[1 - (1 - |n_z|)^p]` (MODEL.md §5)."""
+    r"""Kay's opacity :math:`t_{min} + (t_{max} - t_{min})[1 - (1 - |n_z|)^p]` (docs/model.md §5)."""
     a = jnp.clip(jnp.abs(n_z), 0.0, 1.0)
     return t_min + (t_max - t_min) * (1.0 - safe_pow(1.0 - a, p))

@@ -1,4 +1,4 @@
-r"""Shadow maps (MODEL.md §2: the visibility :math:`S_i \in [0, 1]` of light :math:`i`).
+r"""Shadow maps (docs/model.md §2: the visibility :math:`S_i \in [0, 1]` of light :math:`i`).
 
 Each light sees the scene through one or more *views*, rasterized with the same rasterizer as the
 camera (exact visibility, ``RenderOptions.shadow_resolution`` texels square, one depth layer):

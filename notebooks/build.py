@@ -58,7 +58,7 @@ TOUR = [
     ("md", """\
 # 1 · A tour of every illumination term
 
-The classic local model of `../shared/MODEL.md` (eq. 14–15):
+The classic local model of `docs/model.md` (eq. 14–15):
 
 $$I = I_{emit} + k_a I_a + \\sum_i f_{rad,i}\\, f_{ang,i} \\big(k_a I_{a,i} + I_{p,i}(k_d (n\\cdot l_i)^+ + k_s\\,\\mathrm{spec}_i)\\big),$$
 
@@ -360,7 +360,7 @@ GLASS = [
     ("md", """\
 # 4 · Transparency, absorption, transmission and shadows
 
-MODEL.md §2 and §5 and the seeds' note on transparency (`../shared/seeds/004_*.txt`), on a floor,
+docs/model.md §2 and §5 and the lecture notes' part on transparency (docs/model.md §5), on a floor,
 a glass box and a ball with Kay's opacity (`examples/glass_and_shadows.toml`):
 
 - opacity `t`, composited front to back over the `K` nearest surfaces, `I = t I₁ + (1 − t) I₂`;

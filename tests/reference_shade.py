@@ -1,7 +1,7 @@
 """Independent reference for the shading pipeline: plain numpy, float64, one ray per pixel.
 
-Written from MODEL.md, not from diffshade's code: a ray through the pixel centre is intersected
-with every triangle (Möller–Trumbore), the nearest hit is shaded with the formulas of MODEL.md
+Written from docs/model.md, not from diffshade's code: a ray through the pixel centre is intersected
+with every triangle (Möller–Trumbore), the nearest hit is shaded with the formulas of docs/model.md
 §1–4 (flat / Gouraud / Phong, perspective-correct or affine weights), clamped if asked, fogged,
 and misses get the background. Returns the image and, per pixel, how far the evaluation is from
 a discontinuity (triangle edge, n·l = 0, spot cutoff, fog range ends), so that tests compare
@@ -38,7 +38,7 @@ class Ref:
     def __init__(self, s, opts):
         self.s, self.o = s, opts
 
-    # -- MODEL.md §1–2 at one point ------------------------------------------------------------
+    # -- docs/model.md §1–2 at one point ------------------------------------------------------------
     def point_color(self, P, n, mat, margin):
         s, o = self.s, self.o
         v = _n(s["eye"] - P)

@@ -1,4 +1,4 @@
-"""Hard cases (MODEL.md §1–3 at the edges of their domains): values and gradients finite, limits
+"""Hard cases (docs/model.md §1–3 at the edges of their domains): values and gradients finite, limits
 as documented; gradients of every scene parameter against central finite differences in float64,
 forward and reverse mode; the compiled program contains only the terms a scene uses."""
 

@@ -11,6 +11,7 @@ from jax.test_util import check_grads
 
 import diffshade as ds
 from diffshade import _native
+from conftest import shared_mesh_dir
 from reference import brute_force
 
 BACKENDS = ["jax", pytest.param("native", marks=pytest.mark.skipif(not _native.available(), reason="no C++ compiler"))]
@@ -100,12 +101,7 @@ def test_native_and_jax_agree_pixel_for_pixel(rng):
     # Bit-for-bit agreement, ties included: the bunny (which has duplicate faces, so exact depth
     # ties), a random soup, and a pixel-aligned grid whose edges and vertices pass through pixel
     # centres, in all 4 layers, square and non-square.
-    bunny = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "meshes", "bunny.ply")
-    # Without ../shared beside the checkout, an icosphere with a duplicated cap stands in.
-    mesh = trimesh.load(bunny) if os.path.exists(bunny) else trimesh.creation.icosphere(3)
-    v, f = _unit(mesh)
-    if not os.path.exists(bunny):
-        f = np.concatenate([f, f[:200]])  # duplicate faces: exact depth ties
+    v, f = _unit(trimesh.load(os.path.join(shared_mesh_dir(), "bunny.ply")))
     v2, f2 = random_soup(np.random.default_rng(7), 300)
     cases = []
     for res in ((96, 96), (61, 131)):

@@ -1,5 +1,5 @@
 """Every illumination term, light kind and shading mode against the independent float64 ray
-caster in reference_shade.py (MODEL.md evaluated by hand, per pixel), on a scene with a sphere in
+caster in reference_shade.py (docs/model.md evaluated by hand, per pixel), on a scene with a sphere in
 front of a back-facing tilted plane; closed forms on an analytic configuration; properties."""
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """Transparency, Kay's opacity, Bouguer absorption, directed transmission and shadow maps
-(MODEL.md §2, §5; issue 5): closed forms, an independent numpy z-buffer with transparency
+(docs/model.md §2, §5; issue 5): closed forms, an independent numpy z-buffer with transparency
 buffers (the seeds' algorithm), gradients against finite differences, hard cases."""
 
 from __future__ import annotations
@@ -138,7 +138,7 @@ def test_kay_opacity_on_sphere_centre_and_silhouette(shading):
     nz = np.abs(X[..., 2])  # the view axis is world z here
     want = 0.9 + (0.2 - 0.9) * (1 - (1 - nz) ** 2)
     # Vertex normals of a 10,242-vertex icosphere, interpolated: within 2e-3 of the sphere's.
-    # The mesh is a 20,480-face icosphere. Its area-weighted vertex normals (MODEL.md §4) are up
+    # The mesh is a 20,480-face icosphere. Its area-weighted vertex normals (docs/model.md §4) are up
     # to 2.8e-3 off the radial direction (measured below), which moves t by |dt/dn_z| = 1.4 (1 - n_z)
     # times that; and near the silhouette the ray meets the faceted surface up to
     # sagitta/|n_z| (1.5e-4 / |n_z|) away from the sphere's point.
