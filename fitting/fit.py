@@ -222,16 +222,16 @@ class _Evaluator:
         z = np.concatenate([theta[red.idx_l], theta[red.idx_n]])
         out = self.fn(jnp.asarray(z, self.dtype), self.prob.data, self.theta_ref, self.n2, jnp.asarray(1))
         img = np.asarray(out["img"], np.float64)
-        T = np.asarray(out["T"], np.float64)
+        T = np.asarray(out["T"])
         d = img - self.t
         r = np.where(self.hi, np.minimum(d, 0), np.where(self.lo, np.maximum(d, 0), d)) * self.w
         act = ~((self.hi & (d > 0)) | (self.lo & (d < 0)))
-        J = np.empty((len(d), len(theta)))
+        JT = np.empty((len(theta), len(d)))  # rows contiguous: the Jacobian's transpose
         if len(red.idx_l):
-            J[:, red.idx_l] = (T[red.group] * self.lin_cols).T
-        J[:, red.idx_n] = T[red.n_groups:].T
-        J *= (self.w * act)[:, None]
-        return r, J, img
+            JT[red.idx_l] = T[red.group] * self.lin_cols
+        JT[red.idx_n] = T[red.n_groups:]
+        JT *= self.w * act
+        return r, JT.T, img
 
 
 def _evaluator(prob, red, theta_ref, max_steps, rtol):

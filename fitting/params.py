@@ -217,6 +217,20 @@ class ParamSet:
     def u_from_theta(self, theta):
         return jnp.concatenate([jnp.atleast_1d(p.to_u(v)) for p, v in zip(self.params, self.split(theta))])
 
+    def u_from_theta_np(self, theta) -> np.ndarray:
+        """:meth:`u_from_theta` in NumPy float64 on ``[..., n]`` arrays (host work, no dispatch)."""
+        th = np.asarray(theta, np.float64)
+        u = np.empty_like(th)
+        for p, a, b in zip(self.params, self.offsets[:-1], self.offsets[1:]):
+            v = th[..., a:b]
+            if p.bounds is None:
+                u[..., a:b] = np.log(np.maximum(v, 1e-30))
+            else:
+                lo, hi = p.bounds
+                t = np.clip((v - lo) / (hi - lo), 1e-6, 1 - 1e-6)
+                u[..., a:b] = np.log(t) - np.log1p(-t)
+        return u
+
     def check(self, theta, what="start value"):
         for p, v in zip(self.params, self.split(np.asarray(theta))):
             p.check(v, what)

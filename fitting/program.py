@@ -169,13 +169,17 @@ def make_program(red: Reduced, *, max_steps: int, rtol: float, history: bool, ve
             Juw = T[red.n_groups:] * wu
             d = (img - t) * wu
             if n_l:
-                Aw = A * wu
-                r0 = d - Aw.T @ z[:n_l]
-                x_new, free = bounded_lsq(Aw.T, r0, lo_x, hi_x, z[:n_l])
-                r_red = r0 + Aw.T @ x_new
-                Af = Aw * free[:, None].astype(dt)
-                coef = _masked_solve(Af @ Af.T, Af @ Juw.T, free, rcond)  # [n_l, n_n]
-                Jred = Juw - coef.T @ Af
+                def project(_):
+                    Aw = A * wu
+                    r0 = d - Aw.T @ z[:n_l]
+                    x_new, free = bounded_lsq(Aw.T, r0, lo_x, hi_x, z[:n_l])
+                    r_red = r0 + Aw.T @ x_new
+                    Af = Aw * free[:, None].astype(dt)
+                    coef = _masked_solve(Af @ Af.T, Af @ Juw.T, free, rcond)  # [n_l, n_n]
+                    return x_new, r_red, Juw - coef.T @ Af
+
+                # evaluation mode wants the image and tangents only
+                x_new, r_red, Jred = jax.lax.cond(solve, project, lambda _: (z[:n_l], d, Juw), None)
             else:
                 x_new, r_red, Jred = z[:0], d, Juw
             z_new = jnp.concatenate([x_new, z[n_l:]])

@@ -349,7 +349,7 @@ def inside(pset, theta) -> np.ndarray:
 def candidates(red: Reduced, theta0, count: int) -> np.ndarray:
     """``[count, n_nonlinear]`` starts in ``u``: the user's (moved inside), then Halton points."""
     pset = red.prob.pset
-    u_start = np.asarray(pset.u_from_theta(jnp.asarray(inside(pset, theta0))), np.float64)[red.idx_n]
+    u_start = pset.u_from_theta_np(inside(pset, theta0))[red.idx_n]
     if count <= 1 or not len(red.idx_n):
         return u_start[None]
     h = _halton(count - 1, len(red.idx_n))
@@ -358,7 +358,7 @@ def candidates(red: Reduced, theta0, count: int) -> np.ndarray:
         th[:, k] = np.exp(np.log(lo) + h[:, k] * np.log(hi / lo)) if scale == "log" else lo + h[:, k] * (hi - lo)
     full = np.tile(inside(pset, theta0), (count - 1, 1))
     full[:, red.idx_n] = th
-    u = np.stack([np.asarray(pset.u_from_theta(jnp.asarray(t)), np.float64)[red.idx_n] for t in full])
+    u = pset.u_from_theta_np(full)[:, red.idx_n]
     return np.concatenate([u_start[None], u])
 
 
