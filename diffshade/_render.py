@@ -28,11 +28,12 @@ def _rgb(c):
     return (c[..., 0], c[..., 1], c[..., 2])
 
 
-def _light_sum(P, n, v, mat: Material, scene: Scene, opts: RenderOptions, back: bool = False):
+def _light_sum(P, n, v, mat: Material, scene: Scene, opts: RenderOptions, back: bool = False, per_light: bool = True):
     """Per light (directional, point, spot order) the attenuated direct terms (diffuse,
     specular, transmission) and the per-light ambient term at points ``P`` with unit normals
     ``n`` (component tuples), as two lists of colour tuples (the ambient one holds None where
-    ``per_light_ambient`` is off)."""
+    ``per_light_ambient`` is off). Without ``per_light`` (no shadows to apply light by light),
+    a kind with more than :data:`LIGHTS_UNROLLED` lights contributes one summed entry."""
     smooth = opts.spot_edge == "smooth"
     kd, ks, ka, kt = _rgb(mat.diffuse), _rgb(mat.specular), _rgb(mat.ambient), _rgb(mat.transmission)
 
@@ -70,22 +71,53 @@ def _light_sum(P, n, v, mat: Material, scene: Scene, opts: RenderOptions, back: 
         ambient = [att * (ka[c] * amb[c]) for c in range(3)] if opts.per_light_ambient else None
         return direct, ambient
 
+    def directional(li):
+        l = S.neg(S.normalize(_rgb(li.direction)))
+        return terms(l, 1.0, _rgb(li.color), _rgb(li.ambient))
+
+    def positional(li, is_spot):
+        L = S.sub(_rgb(li.position), P)
+        l = S.normalize(L)
+        att = S.radial_attenuation(S.norm(L), _rgb(li.attenuation))
+        if is_spot:
+            att = att * S.spot_factor(l, _rgb(li.axis), li.cutoff, li.exponent, li.edge, smooth)
+        return terms(l, att, _rgb(li.color), _rgb(li.ambient))
+
     out = []
-    d = scene.directional
-    for i in range(d.count):
-        l = S.neg(S.normalize(_rgb(d.direction[i])))
-        out.append(terms(l, 1.0, _rgb(d.color[i]), _rgb(d.ambient[i])))
-    for lights, is_spot in ((scene.point, False), (scene.spot, True)):
-        for i in range(lights.count):
-            L = S.sub(_rgb(lights.position[i]), P)
-            l = S.normalize(L)
-            att = S.radial_attenuation(S.norm(L), _rgb(lights.attenuation[i]))
-            if is_spot:
-                att = att * S.spot_factor(
-                    l, _rgb(lights.axis[i]), lights.cutoff[i], lights.exponent[i], lights.edge[i], smooth
-                )
-            out.append(terms(l, att, _rgb(lights.color[i]), _rgb(lights.ambient[i])))
+    for lights, fn in ((scene.directional, directional), (scene.point, lambda li: positional(li, False)),
+                       (scene.spot, lambda li: positional(li, True))):
+        if lights.count > LIGHTS_UNROLLED and not per_light:
+            out.append(_scan_lights(fn, lights, P))
+        else:
+            out += [fn(jax.tree.map(lambda a: a[i], lights)) for i in range(lights.count)]
     return [t[0] for t in out], [t[1] for t in out]
+
+
+# Up to this many lights of a kind are unrolled into the program; more are evaluated by a scan over
+# the light axis, so that compile time does not grow with their number (benchmarks/bench_lights.py
+# measures the crossover).
+LIGHTS_UNROLLED = 4
+
+
+def _scan_lights(fn, lights, P):
+    """``Σ_i fn(light_i)`` (direct and per-light ambient colour tuples) by ``lax.scan`` over the
+    lights' leading axis: one copy of a light's terms in the program, whatever their number."""
+    shape = jnp.shape(P[0])
+    dt = jnp.result_type(lights.color)
+
+    def body(acc, li):
+        d, a = fn(li)
+        d = [acc[0][k] + d[k] for k in range(3)]
+        a = [acc[1][k] + a[k] for k in range(3)] if a is not None else acc[1]
+        return (d, a), None
+
+    # the carry starts as the first light's terms (broadcast to the points: a fixed shape)
+    first = fn(jax.tree.map(lambda x: x[0], lights))
+    full = lambda c: [jnp.broadcast_to(jnp.asarray(c[k], dt), shape) for k in range(3)]  # noqa: E731
+    init = (full(first[0]), full(first[1]) if first[1] is not None else None)
+    rest = jax.tree.map(lambda x: x[1:], lights)
+    (d, a), _ = jax.lax.scan(body, init, rest)
+    return d, a
 
 
 def _sum(cols):
@@ -111,7 +143,7 @@ def shade_points(P, n, eye, mat: Material, scene: Scene, opts: RenderOptions, ba
     the unshadowed part and each light's direct terms, for shadows applied after interpolation.
     ``back`` marks back-facing fragments (the viewer inside the material, for refraction)."""
     v = S.normalize(S.sub(_rgb(eye), P))
-    direct, ambient = _light_sum(P, n, v, mat, scene, opts, back)
+    direct, ambient = _light_sum(P, n, v, mat, scene, opts, back, per_light=shadow is not None or split)
     base = _sum(ambient)
     if opts.ambient:
         base = [base[k] + mat.ambient[..., k] * scene.ambient_light[k] for k in range(3)]

@@ -1,0 +1,111 @@
+"""Many lights: compile time and steady cost against the number of point lights.
+
+The default scene's icosphere (Phong, point lights with attenuation, no fog) with N point lights
+at random positions, shading only (visibility cached, as in a fit): the render and a 12-tangent
+jvp (one Levenberg–Marquardt Jacobian of 12 material and light scalars), each compiled once
+(compile time reported apart) and then timed (median of 7). ``--mode unrolled`` puts every light
+into the program (what diffshade did before the light axis), ``scan`` evaluates more than
+``LIGHTS_UNROLLED`` lights of a kind by a scan over the light axis (the default), ``both`` runs
+the two for the crossover.
+
+    python benchmarks/bench_lights.py [--sizes 256 512] [--counts 1 2 4 8 64 256] [--mode both]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+import diffshade as ds  # noqa: E402
+import diffshade._render as R  # noqa: E402
+
+
+def scene_with(n, size):
+    rng = np.random.default_rng(0)
+    d = dict(ds.DEFAULT_SCENE)
+    d["camera"] = dict(d["camera"], width=size, height=size)
+    d["render"] = {"shading": "phong", "specular": "phong", "fog": "none"}
+    d.pop("fog", None)
+    lights = []
+    for _ in range(n):
+        p = rng.normal(size=3)
+        p[2] = abs(p[2]) + 0.5
+        lights.append({"type": "point", "color": list(rng.uniform(0.5, 1.0, 3) * 2 / n), "position": list(3 * p / np.linalg.norm(p)),
+                       "attenuation": [1.0, 0.05, 0.02]})
+    d["light"] = lights
+    return ds.scene_from_dict(d)
+
+
+def timed(fn, *args, repeats=7):
+    jax.block_until_ready(fn(*args))
+    ts = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        ts.append(time.perf_counter() - t)
+    return 1e3 * float(np.median(ts))
+
+
+def measure(n, size):
+    scene, opts = scene_with(n, size)
+    ids = ds.scene_visibility(scene, opts)
+    mat = scene.material
+    x0 = jnp.concatenate([mat.ambient, mat.diffuse, mat.specular, scene.point.attenuation[0, 1:], mat.shininess[None]])
+
+    def img(x):
+        m = mat.__class__(ambient=x[0:3], diffuse=x[3:6], specular=x[6:9], shininess=x[11])
+        import equinox as eqx
+        sc = eqx.tree_at(lambda s: (s.material, s.point.attenuation), scene,
+                         (m, scene.point.attenuation.at[0, 1:].set(x[9:11])))
+        return ds.render(sc, opts, ids)
+
+    E = jnp.eye(12, dtype=x0.dtype)
+    jvp12 = lambda x: jax.vmap(lambda e: jax.jvp(img, (x,), (e,)), out_axes=(None, 0))(E)  # noqa: E731
+    out = {}
+    for name, f in (("render", img), ("jvp12", jvp12)):
+        t = time.perf_counter()
+        c = jax.jit(lambda x, f=f: f(x)).lower(x0).compile()  # a fresh function: nothing from the trace cache
+        out[name + "_compile"] = time.perf_counter() - t
+        out[name] = timed(c, x0)
+    return out
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[256, 512])
+    ap.add_argument("--counts", type=int, nargs="+", default=[1, 2, 4, 8, 64, 256])
+    ap.add_argument("--mode", choices=["scan", "unrolled", "both"], default="both")
+    args = ap.parse_args()
+    modes = ["unrolled", "scan"] if args.mode == "both" else [args.mode]
+    default = R.LIGHTS_UNROLLED
+    rows = []
+    for size in args.sizes:
+        for mode in modes:
+            R.LIGHTS_UNROLLED = 10 ** 9 if mode == "unrolled" else default
+            for n in args.counts:
+                if mode == "unrolled" and n > 64:
+                    continue  # minutes of compile
+                m = measure(n, size)
+                rows.append((size, mode, n, m))
+                print(f"{size}² {mode:8s} {n:4d} lights: render {m['render']:8.2f} ms (compile {m['render_compile']:5.2f} s), "
+                      f"12-tangent jvp {m['jvp12']:8.2f} ms (compile {m['jvp12_compile']:5.2f} s)", flush=True)
+    R.LIGHTS_UNROLLED = default
+    print("\n| size | mode | lights | render ms | per light ms | render compile s | jvp12 ms | jvp12 compile s |")
+    print("|---|---|---|---|---|---|---|---|")
+    for size, mode, n, m in rows:
+        base = next((mm for s, md, k, mm in rows if s == size and md == mode and k == 1), None)
+        per = (m["render"] - base["render"]) / (n - 1) if base and n > 1 else float("nan")
+        print(f"| {size}² | {mode} | {n} | {m['render']:.2f} | {per:.3f} | {m['render_compile']:.2f} | {m['jvp12']:.2f} | "
+              f"{m['jvp12_compile']:.2f} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,102 @@
+"""Many lights: evaluated over the light axis (a scan) past a few of a kind, equal to the unrolled
+sum, differentiable, and compiled to a program whose size does not grow with their number."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import diffshade as ds
+import diffshade._render as R
+
+
+def many_lights_scene(n_point, n_spot, n_dir, size=12, shading="phong", seed=0, **render):
+    rng = np.random.default_rng(seed)
+    d = dict(ds.DEFAULT_SCENE)
+    d["mesh"] = {"icosphere": 1}
+    d["camera"] = dict(d["camera"], width=size, height=size)
+    d["render"] = {"shading": shading, "specular": "blinn", "fog": "none", "per_light_ambient": True,
+                   "spot_edge": "smooth", **render}
+    d.pop("fog", None)
+
+    def pos():
+        p = rng.normal(size=3)
+        p[2] = abs(p[2]) + 0.5
+        return list(2.5 * p / np.linalg.norm(p))
+
+    def col():
+        return list(rng.uniform(0.1, 0.4, 3))
+
+    lights = []
+    for _ in range(n_point):
+        lights.append({"type": "point", "color": col(), "position": pos(), "ambient": col(),
+                       "attenuation": [1.0, float(rng.uniform(0, 0.2)), float(rng.uniform(0, 0.1))]})
+    for _ in range(n_spot):
+        p = pos()
+        lights.append({"type": "spot", "color": col(), "position": p, "axis": [-c for c in p], "ambient": col(),
+                       "cutoff": float(rng.uniform(20, 60)), "exponent": float(rng.uniform(0, 8)), "edge": 5.0,
+                       "attenuation": [1.0, 0.1, 0.05]})
+    for _ in range(n_dir):
+        lights.append({"type": "directional", "color": col(), "direction": [-c for c in pos()], "ambient": col()})
+    d["light"] = lights
+    scene, opts = ds.scene_from_dict(d)
+    return jax.tree.map(lambda a: a.astype(jnp.float64) if jnp.issubdtype(a.dtype, jnp.floating) else a, scene), opts
+
+
+def _with_unroll(k, fn, *args):
+    old = R.LIGHTS_UNROLLED
+    R.LIGHTS_UNROLLED = k
+    try:
+        return fn(*args)
+    finally:
+        R.LIGHTS_UNROLLED = old
+
+
+@pytest.mark.parametrize("shading", ["phong", "gouraud", "flat"])
+def test_scan_over_lights_equals_the_unrolled_sum_values_and_tangents(shading):
+    scene, opts = many_lights_scene(7, 6, 6, shading=shading)
+    ids = ds.scene_visibility(scene, opts)
+
+    params, rest = eqx.partition(scene, eqx.is_inexact_array)
+
+    def f(p):
+        return ds.render(eqx.combine(p, rest), opts, ids)
+
+    rng = np.random.default_rng(1)
+    tangent = jax.tree.map(lambda a: jnp.asarray(rng.normal(size=a.shape) * 0.01, a.dtype), params)
+    scanned = _with_unroll(2, lambda: jax.jvp(f, (params,), (tangent,)))
+    unrolled = _with_unroll(10 ** 6, lambda: jax.jvp(f, (params,), (tangent,)))
+    assert float(jnp.max(scanned[0])) > 0.05  # the lights do light the sphere
+    np.testing.assert_allclose(scanned[0], unrolled[0], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(scanned[1], unrolled[1], rtol=1e-10, atol=1e-12)
+
+
+def test_scanned_lights_gradients_match_finite_differences():
+    from jax.test_util import check_grads
+
+    scene, opts = many_lights_scene(6, 0, 0, size=8)
+    ids = ds.scene_visibility(scene, opts)
+
+    def f(pos, att):
+        sc = eqx.tree_at(lambda s: (s.point.position, s.point.attenuation), scene, (pos, att))
+        return jnp.sum(ds.render(sc, opts, ids) ** 2)
+
+    _with_unroll(2, lambda: check_grads(f, (scene.point.position, scene.point.attenuation), order=1,
+                                         modes=("fwd", "rev"), atol=1e-6, rtol=1e-5))
+
+
+def _program_size(scene, opts, ids):
+    # a fresh function each time: the trace is not taken from JAX's cache
+    return len(jax.jit(lambda s, i: ds.render(s, opts, i)).lower(scene, ids).as_text())
+
+
+def test_program_size_does_not_grow_with_the_number_of_lights():
+    sizes = []
+    for n in (8, 32):
+        scene, opts = many_lights_scene(n, n, n, size=8)
+        sizes.append(_program_size(scene, opts, ds.scene_visibility(scene, opts)))
+    assert sizes[1] <= sizes[0] * 1.02, sizes
+    scene, opts = many_lights_scene(8, 8, 8, size=8)
+    unrolled = _with_unroll(10 ** 6, lambda: _program_size(scene, opts, ds.scene_visibility(scene, opts)))
+    assert unrolled > 2 * sizes[0], (unrolled, sizes)  # unrolled, it does grow
