@@ -8,7 +8,7 @@ into the program (what diffshade did before the light axis), ``scan`` evaluates 
 ``LIGHTS_UNROLLED`` lights of a kind by a scan over the light axis (the default), ``both`` runs
 the two for the crossover.
 
-    python benchmarks/bench_lights.py [--sizes 256 512] [--counts 1 2 4 8 64 256] [--mode both]
+    python benchmarks/bench_lights.py [--sizes 256 512] [--counts 1 2 4 8 16 64 256] [--mode both] [--max-unrolled 16]
 """
 
 from __future__ import annotations
@@ -81,8 +81,9 @@ def measure(n, size):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[256, 512])
-    ap.add_argument("--counts", type=int, nargs="+", default=[1, 2, 4, 8, 64, 256])
+    ap.add_argument("--counts", type=int, nargs="+", default=[1, 2, 4, 8, 16, 64, 256])
     ap.add_argument("--mode", choices=["scan", "unrolled", "both"], default="both")
+    ap.add_argument("--max-unrolled", type=int, default=16)
     args = ap.parse_args()
     modes = ["unrolled", "scan"] if args.mode == "both" else [args.mode]
     default = R.LIGHTS_UNROLLED
@@ -91,8 +92,8 @@ def main():
         for mode in modes:
             R.LIGHTS_UNROLLED = 10 ** 9 if mode == "unrolled" else default
             for n in args.counts:
-                if mode == "unrolled" and n > 64:
-                    continue  # minutes of compile
+                if mode == "unrolled" and n > args.max_unrolled:
+                    continue  # the unrolled 64-light Jacobian compiles for minutes
                 m = measure(n, size)
                 rows.append((size, mode, n, m))
                 print(f"{size}² {mode:8s} {n:4d} lights: render {m['render']:8.2f} ms (compile {m['render_compile']:5.2f} s), "

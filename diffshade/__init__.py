@@ -22,6 +22,7 @@ from ._raster import (
 )
 from ._render import render, scene_visibility, shade, to_uint8, truncated_pixels
 from ._scene import (
+    AreaLights,
     DirectionalLights,
     Fog,
     Material,
@@ -29,6 +30,7 @@ from ._scene import (
     RenderOptions,
     Scene,
     SpotLights,
+    no_area,
     no_directional,
     no_point,
     no_spot,
@@ -36,7 +38,7 @@ from ._scene import (
 from ._shade import blinn_to_phong, phong_to_blinn
 
 __all__ = [
-    "Camera", "DEFAULT_SCENE", "DirectionalLights", "Fog", "Fragments", "Material", "Mesh", "MeshError",
+    "AreaLights", "no_area", "Camera", "DEFAULT_SCENE", "DirectionalLights", "Fog", "Fragments", "Material", "Mesh", "MeshError",
     "PointLights", "RenderOptions", "Scene", "SceneError", "SpotLights", "blinn_to_phong", "default_scene",
     "fragments", "icosphere", "interpolate", "load_mesh", "load_scene", "mesh_from_arrays", "no_directional",
     "no_point", "no_spot", "phong_to_blinn", "pixel_centres", "rasterize", "render", "scene_from_dict",

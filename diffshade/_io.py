@@ -32,6 +32,15 @@ Several objects, each with its own material (material ids 0, 1, ... in order; a 
     [shadow]
     bias = 0.001; slope_bias = 0.5
 
+An area light (a rectangle of ``size = [w, h]`` facing ``normal``, its height along ``up``),
+sampled as ``render.area_grid = [n, m]`` directed point emitters (default 4 × 4; attenuation
+default ``[0, 0, 1]``, inverse-square; ``color = L w h`` is a Lambertian emitter of radiance L)::
+
+    [[light]]
+    type = "area"; color = [4, 4, 4]; position = [0, 2, 0]; normal = [0, -1, 0]; up = [0, 0, 1]; size = [1, 0.5]
+    [render]
+    area_grid = [8, 8]
+
 Every error names the file, the field and the allowed range.
 """
 
@@ -47,6 +56,7 @@ import numpy as np
 from ._camera import Camera
 from ._mesh import Mesh, MeshError, box, combine, icosphere, load_mesh, quad
 from ._scene import (
+    AreaLights,
     DirectionalLights,
     Fog,
     Material,
@@ -54,6 +64,7 @@ from ._scene import (
     RenderOptions,
     Scene,
     SpotLights,
+    no_area,
     no_directional,
     no_point,
     no_spot,
@@ -139,6 +150,10 @@ def _options(v: _V, r: dict) -> RenderOptions:
         if isinstance(default, bool):
             if not isinstance(x, bool):
                 v.fail(f"render.{k}", f"must be true or false, got {x!r}")
+        elif isinstance(default, tuple):
+            if not isinstance(x, list) or len(x) != len(default):
+                v.fail(f"render.{k}", f"must be a list of {len(default)} positive integers, got {x!r}")
+            x = tuple(x)
         elif isinstance(default, int):
             if isinstance(x, bool) or not isinstance(x, int) or x < 1:
                 v.fail(f"render.{k}", f"must be a positive integer, got {x!r}")
@@ -181,14 +196,14 @@ def _material(v: _V, m: dict, where: str) -> Material:
 def _lights(v: _V, lights: list):
     if not isinstance(lights, list):
         v.fail("light", "must be an array of tables ([[light]])")
-    groups: dict[str, list] = {"directional": [], "point": [], "spot": []}
+    groups: dict[str, list] = {"directional": [], "point": [], "spot": [], "area": []}
     for i, l in enumerate(lights):
         w = f"light[{i}]"
         if not isinstance(l, dict):
             v.fail(w, "must be a table")
         kind = l.get("type")
         if kind not in groups:
-            v.fail(f"{w}.type", f"must be one of 'directional', 'point', 'spot', got {kind!r}")
+            v.fail(f"{w}.type", f"must be one of 'directional', 'point', 'spot', 'area', got {kind!r}")
         common = ("type", "color", "ambient")
         color = v.vec(l, "color", w, default=[1.0, 1.0, 1.0], lo=0.0, scalar_ok=True)
         amb = v.vec(l, "ambient", w, default=[0.0, 0.0, 0.0], lo=0.0, scalar_ok=True)
@@ -197,12 +212,24 @@ def _lights(v: _V, lights: list):
             groups[kind].append((color, v.vec(l, "direction", w, nonzero=True), amb))
             continue
         pos = v.vec(l, "position", w)
-        att = v.vec(l, "attenuation", w, default=[1.0, 0.0, 0.0], lo=0.0)
+        # an area light is physical by default: inverse-square falloff from each emitter
+        att = v.vec(l, "attenuation", w, default=[0.0, 0.0, 1.0] if kind == "area" else [1.0, 0.0, 0.0], lo=0.0)
         if not np.any(att):
             v.fail(f"{w}.attenuation", "a0, a1, a2 must not all be 0")
         if kind == "point":
             v.unknown(l, common + ("position", "attenuation"), w)
             groups[kind].append((color, pos, att, amb))
+        elif kind == "area":
+            v.unknown(l, common + ("position", "attenuation", "normal", "up", "size"), w)
+            normal = v.vec(l, "normal", w, nonzero=True)
+            up = v.vec(l, "up", w, default=[0.0, 1.0, 0.0], nonzero=True)
+            cr = np.cross(normal / np.linalg.norm(normal), up / np.linalg.norm(up))
+            if np.linalg.norm(cr) < 1e-6:
+                v.fail(f"{w}.up", "must not be parallel to the normal (it orients the rectangle's height)")
+            size = v.vec(l, "size", w, n=2, lo=0.0)
+            if not np.all(size > 0):
+                v.fail(f"{w}.size", f"width and height must be > 0, got {size.tolist()}")
+            groups[kind].append((color, pos, att, amb, normal, up, size))
         else:
             v.unknown(l, common + ("position", "attenuation", "axis", "cutoff", "exponent", "edge"), w)
             axis = v.vec(l, "axis", w, nonzero=True)
@@ -227,7 +254,10 @@ def _lights(v: _V, lights: list):
         if g
         else no_spot()
     )
-    return directional, point, spot
+    g = groups["area"]
+    area = (AreaLights(color=stack(g, 0), position=stack(g, 1), attenuation=stack(g, 2), ambient=stack(g, 3),
+                       normal=stack(g, 4), up=stack(g, 5), size=np.stack([r[6] for r in g])) if g else no_area())
+    return directional, point, spot, area
 
 
 _MESH_KEYS = ("path", "icosphere", "radius", "box", "quad", "normal", "divisions")
@@ -336,7 +366,7 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
         v.fail("render.shadows", "a [shadow] section is given but render.shadows is false")
     if back is not None and not opts.back_material:
         opts = opts.replace(back_material=True)
-    directional, point, spot = _lights(v, d.get("light", []))
+    directional, point, spot, area = _lights(v, d.get("light", []))
 
     f = v.table(d, "fog")
     v.unknown(f, ("color", "start", "end", "density"), "fog")
@@ -357,7 +387,7 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
     background = v.vec(d, "background", "scene", default=bg_default, lo=0.0, scalar_ok=True)
     scene = Scene(
         mesh=mesh, camera=camera, material=material, back_material=back, directional=directional,
-        point=point, spot=spot, ambient_light=ambient, background=background, fog=fog, materials=extra,
+        point=point, spot=spot, area=area, ambient_light=ambient, background=background, fog=fog, materials=extra,
         **{f"shadow_{k}": v.num(sh, k, "shadow", lo=0.0) for k in sh},  # absent: the Scene defaults
     )
     return scene, opts

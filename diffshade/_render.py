@@ -12,6 +12,7 @@ and the next one (docs/model.md §2, §5).
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
@@ -83,14 +84,58 @@ def _light_sum(P, n, v, mat: Material, scene: Scene, opts: RenderOptions, back: 
             att = att * S.spot_factor(l, _rgb(li.axis), li.cutoff, li.exponent, li.edge, smooth)
         return terms(l, att, _rgb(li.color), _rgb(li.ambient))
 
+    def emitter(li):
+        # a directed point emitter of an area light: no light behind it (docs/model.md §1)
+        L = S.sub(_rgb(li.position), P)
+        l = S.normalize(L)
+        att = S.radial_attenuation(S.norm(L), _rgb(li.attenuation))
+        att = att * jnp.maximum(-S.dot(l, _rgb(li.normal)), 0.0)
+        return terms(l, att, _rgb(li.color), _rgb(li.ambient))
+
+    kinds = [(scene.directional, directional), (scene.point, lambda li: positional(li, False)),
+             (scene.spot, lambda li: positional(li, True))]
+    if scene.area.count:
+        kinds.append((area_emitters(scene.area, opts.area_grid), emitter))
     out = []
-    for lights, fn in ((scene.directional, directional), (scene.point, lambda li: positional(li, False)),
-                       (scene.spot, lambda li: positional(li, True))):
+    for lights, fn in kinds:
         if lights.count > LIGHTS_UNROLLED and not per_light:
             out.append(_scan_lights(fn, lights, P))
         else:
             out += [fn(jax.tree.map(lambda a: a[i], lights)) for i in range(lights.count)]
     return [t[0] for t in out], [t[1] for t in out]
+
+
+class _Emitters(eqx.Module):
+    """Point emitters of area lights (structure of arrays, one row per emitter)."""
+
+    color: jax.Array
+    position: jax.Array
+    normal: jax.Array
+    attenuation: jax.Array
+    ambient: jax.Array
+
+    @property
+    def count(self) -> int:
+        return self.color.shape[0]
+
+
+def area_emitters(area, grid) -> _Emitters:
+    """The ``n × m`` grid of directed point emitters of every area light (differentiable in the
+    light's colour, position, orientation and size): cell centres of the rectangle, each with
+    ``1 / (n m)`` of the colour and ambient."""
+    n, m = grid
+    nrm = area.normal / jnp.linalg.norm(area.normal, axis=-1, keepdims=True)
+    up = area.up - jnp.sum(area.up * nrm, axis=-1, keepdims=True) * nrm
+    v_ax = up / jnp.linalg.norm(up, axis=-1, keepdims=True)  # height direction
+    u_ax = jnp.cross(v_ax, nrm)  # width direction
+    su = (jnp.arange(n, dtype=area.size.dtype) + 0.5) / n - 0.5
+    sv = (jnp.arange(m, dtype=area.size.dtype) + 0.5) / m - 0.5
+    off_u = su[None, :, None, None] * (area.size[:, 0, None] * u_ax)[:, None, None, :]
+    off_v = sv[None, None, :, None] * (area.size[:, 1, None] * v_ax)[:, None, None, :]
+    pos = (area.position[:, None, None, :] + off_u + off_v).reshape(-1, 3)
+    rep = lambda a: jnp.repeat(a, n * m, axis=0)  # noqa: E731
+    return _Emitters(color=rep(area.color) / (n * m), position=pos, normal=rep(nrm),
+                     attenuation=rep(area.attenuation), ambient=rep(area.ambient) / (n * m))
 
 
 # Up to this many lights of a kind are unrolled into the program; more are evaluated by a scan over
@@ -276,6 +321,8 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=No
     if opts.shading == "phong" or opts.shadows or opts.absorption or (opts.fog != "none" and opts.fog_distance == "euclidean"):
         P = lerp(Pv)
     shadow = None
+    if opts.shadows and scene.area.count:
+        raise ValueError("shadow maps do not cover area lights: render a scene with area lights without shadows")
     if opts.shadows:
         ng = tuple(c[safe_tid] for c in S.vec(mesh.face_normals()))
         shadow = light_visibility(scene, opts, P, ng)

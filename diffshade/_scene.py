@@ -123,6 +123,35 @@ class SpotLights(eqx.Module):
         return self.color.shape[0]
 
 
+class AreaLights(eqx.Module):
+    r"""``N`` rectangular area lights (docs/model.md §1), each sampled as an ``n × m`` grid of
+    directed point emitters (``RenderOptions.area_grid``, static) over a ``size = (w, h)``
+    rectangle centred at ``position``, facing ``normal``, its height along ``up`` (projected
+    onto the rectangle's plane). Each emitter carries ``color / (n m)`` (and ``ambient / (n m)``),
+    the light's radial ``attenuation``, and the directed factor :math:`(\hat n_e\cdot(-l))^+`:
+    emission proportional to the cosine of the angle to the emitter's normal, none behind it. The
+    total is independent of the grid, so refining it converges to the area light; with
+    ``attenuation = (0, 0, 1)`` and ``color = L w h`` it is a Lambertian emitter of radiance
+    :math:`L`. Gauge: for a distant receiver only ``color`` (power) is seen, not ``size``."""
+
+    color: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
+    position: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
+    normal: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
+    up: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
+    size: Float[Array, "N 2"] = eqx.field(converter=_rows(2))
+    attenuation: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
+    ambient: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
+
+    @property
+    def count(self) -> int:
+        return self.color.shape[0]
+
+
+def no_area() -> AreaLights:
+    z = np.zeros((0, 3))
+    return AreaLights(color=z, position=z, normal=z, up=z, size=np.zeros((0, 2)), attenuation=z, ambient=z)
+
+
 def no_directional() -> DirectionalLights:
     z = np.zeros((0, 3))
     return DirectionalLights(color=z, direction=z, ambient=z)
@@ -212,6 +241,7 @@ class RenderOptions:
     shadows: bool = False
     shadow_resolution: int = 512
     shadow_pcf: int = 1
+    area_grid: tuple[int, int] = (4, 4)
 
     def __post_init__(self):
         for name, allowed in _CHOICES.items():
@@ -221,6 +251,9 @@ class RenderOptions:
             x = getattr(self, name)
             if isinstance(x, bool) or not (isinstance(x, int) and x >= 1):
                 raise ValueError(f"RenderOptions.{name} must be a positive integer, got {x!r}")
+        g = self.area_grid
+        if not (isinstance(g, tuple) and len(g) == 2 and all(isinstance(x, int) and not isinstance(x, bool) and x >= 1 for x in g)):
+            raise ValueError(f"RenderOptions.area_grid must be two positive integers (n, m), got {g!r}")
         if self.shadow_pcf % 2 == 0:
             raise ValueError(f"RenderOptions.shadow_pcf must be odd (a kernel centred on the texel), got {self.shadow_pcf}")
         if self.absorption and self.layers < 2:
@@ -259,6 +292,7 @@ class Scene(eqx.Module):
     materials: tuple[Material, ...] = ()
     shadow_bias: Float[Array, ""] = eqx.field(converter=as_float_array, default=1e-3)
     shadow_slope_bias: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.5)
+    area: AreaLights = field(default_factory=no_area)
 
     def all_materials(self) -> tuple[Material, ...]:
         """Materials by id: ``material`` is id 0, ``materials[i]`` is id ``i + 1``; each face's id

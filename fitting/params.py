@@ -12,9 +12,10 @@ through an unconstrained ``u``:
 
 Names: ``material.<field>``, ``material[i].<field>`` (material id ``i`` of a multi-material
 scene; ``material[0]`` is ``material``) and ``back_material.<field>`` (emission, ambient, diffuse,
-specular, shininess, ior, opacity, kay_min, kay_max, kay_power, transmission, absorption); ``ambient_light``; ``<kind>[i].<field>`` with kind ``directional``, ``point`` or
-``spot`` and field ``color``, ``ambient``, ``a0``/``a1``/``a2`` (attenuation), ``cutoff``,
-``exponent``, ``edge``; ``fog.<field>`` (color, start, end, density). RGB fields are per channel
+specular, shininess, ior, opacity, kay_min, kay_max, kay_power, transmission, absorption); ``ambient_light``; ``<kind>[i].<field>`` with kind ``directional``, ``point``,
+``spot`` or ``area`` and field ``color``, ``ambient``, ``a0``/``a1``/``a2`` (attenuation), ``cutoff``,
+``exponent``, ``edge`` (spot), ``width``, ``height`` (area: with the colour, a gauge for a distant
+receiver, which sees only the power); ``fog.<field>`` (color, start, end, density). RGB fields are per channel
 unless listed as shared (one value for the three channels).
 """
 
@@ -42,9 +43,11 @@ _MATERIAL = {
     "kay_power": "positive", "transmission": "unit", "absorption": "positive",
 }
 _LIGHT = {"color": "positive", "ambient": "positive", "a0": "positive", "a1": "positive", "a2": "positive",
-          "cutoff": (0.0, 90.0), "exponent": "positive", "edge": (0.0, 90.0)}
+          "cutoff": (0.0, 90.0), "exponent": "positive", "edge": (0.0, 90.0), "width": "positive", "height": "positive"}
+_SIZE = {"width": 0, "height": 1}  # an area light's size[i, k]
+_KINDS = ("directional", "point", "spot", "area")
 _FOG = {"color": "unit", "start": "positive", "end": "positive", "density": "positive"}
-_LIGHT_RE = re.compile(r"^(directional|point|spot)\[(\d+)\]\.(\w+)$")
+_LIGHT_RE = re.compile(r"^(directional|point|spot|area)\[(\d+)\]\.(\w+)$")
 _MATERIAL_RE = re.compile(r"^material\[(\d+)\]\.(\w+)$")
 
 
@@ -76,11 +79,13 @@ class Param:
 
     def _node(self, scene):
         p = self.path
-        if p[0] in ("directional", "point", "spot"):
+        if p[0] in _KINDS:
             lights = getattr(scene, p[0])
             field = p[2]
             if field in ("a0", "a1", "a2"):
                 return lights.attenuation[p[1], int(field[1])]
+            if field in _SIZE:
+                return lights.size[p[1], _SIZE[field]]
             return getattr(lights, field)[p[1]]
         return _follow(scene, p)
 
@@ -90,12 +95,16 @@ class Param:
 
     def set(self, scene: ds.Scene, value) -> ds.Scene:
         p = self.path
-        if p[0] in ("directional", "point", "spot"):
+        if p[0] in _KINDS:
             kind, i, field = p
             if field in ("a0", "a1", "a2"):
                 att = getattr(scene, kind).attenuation
                 new = att.at[i, int(field[1])].set(jnp.asarray(value, att.dtype))
                 return eqx.tree_at(lambda s: getattr(s, kind).attenuation, scene, new)
+            if field in _SIZE:
+                size = getattr(scene, kind).size
+                new = size.at[i, _SIZE[field]].set(jnp.asarray(value, size.dtype))
+                return eqx.tree_at(lambda s: getattr(s, kind).size, scene, new)
             arr = getattr(getattr(scene, kind), field)
             new = arr.at[i].set(jnp.broadcast_to(value, arr[i].shape).astype(arr.dtype))
             return eqx.tree_at(lambda s: getattr(getattr(s, kind), field), scene, new)
@@ -148,7 +157,8 @@ def parse(name: str, scene: ds.Scene, shared: bool = False) -> Param:
     if m:
         kind, i, field = m.group(1), int(m.group(2)), m.group(3)
         count = getattr(scene, kind).count
-        if field not in _LIGHT or (kind != "spot" and field in ("cutoff", "exponent", "edge")) or (kind == "directional" and field[0] == "a" and field != "ambient"):
+        if (field not in _LIGHT or (kind != "spot" and field in ("cutoff", "exponent", "edge"))
+                or (kind == "directional" and field[0] == "a" and field != "ambient") or (kind != "area" and field in _SIZE)):
             raise ParamError(f"unknown parameter {name!r}: a {kind} light has no field {field!r}")
         if i >= count:
             raise ParamError(f"unknown parameter {name!r}: the scene has {count} {kind} light(s)")
@@ -177,7 +187,8 @@ def parse(name: str, scene: ds.Scene, shared: bool = False) -> Param:
         return Param(name, ("ambient_light",), 1 if shared else 3, "positive")
     raise ParamError(
         f"unknown parameter {name!r}; known: material.<{'|'.join(_MATERIAL)}>, material[i].<...> (material id i), "
-        "back_material.<...>, ambient_light, <directional|point|spot>[i].<color|ambient|a0|a1|a2|cutoff|exponent|edge>, "
+        "back_material.<...>, ambient_light, <directional|point|spot|area>[i].<color|ambient|a0|a1|a2|cutoff|exponent|edge"
+        "|width|height>, "
         "fog.<color|start|end|density>"
     )
 
