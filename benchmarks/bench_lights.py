@@ -34,6 +34,12 @@ def scene_with(n, size):
     d["camera"] = dict(d["camera"], width=size, height=size)
     d["render"] = {"shading": "phong", "specular": "phong", "fog": "none"}
     d.pop("fog", None)
+    if n == "area":  # one 8 x 8 area light, and the point light whose attenuation the Jacobian moves
+        d["render"]["area_grid"] = [8, 8]
+        d["light"] = [{"type": "point", "color": [0.3, 0.3, 0.3], "position": [2.0, 2.0, 3.0], "attenuation": [1.0, 0.05, 0.02]},
+                      {"type": "area", "color": [6.0, 6.0, 6.0], "position": [0.0, 1.5, 2.0], "normal": [0.0, -1.0, -1.0],
+                       "size": [1.5, 1.0]}]
+        return ds.scene_from_dict(d)
     lights = []
     for _ in range(n):
         p = rng.normal(size=3)
@@ -84,7 +90,11 @@ def main():
     ap.add_argument("--counts", type=int, nargs="+", default=[1, 2, 4, 8, 16, 64, 256])
     ap.add_argument("--mode", choices=["scan", "unrolled", "both"], default="both")
     ap.add_argument("--max-unrolled", type=int, default=16)
+    ap.add_argument("--no-area", action="store_true")
+    ap.add_argument("--unroll", type=int, default=None, help="LIGHTS_UNROLLED for the scan mode (default: the library's)")
     args = ap.parse_args()
+    if args.unroll is not None:
+        R.LIGHTS_UNROLLED = args.unroll
     modes = ["unrolled", "scan"] if args.mode == "both" else [args.mode]
     default = R.LIGHTS_UNROLLED
     rows = []
@@ -98,11 +108,17 @@ def main():
                 rows.append((size, mode, n, m))
                 print(f"{size}² {mode:8s} {n:4d} lights: render {m['render']:8.2f} ms (compile {m['render_compile']:5.2f} s), "
                       f"12-tangent jvp {m['jvp12']:8.2f} ms (compile {m['jvp12_compile']:5.2f} s)", flush=True)
+        R.LIGHTS_UNROLLED = default
+        if not args.no_area:
+            m = measure("area", size)
+            rows.append((size, "area 8x8", 64, m))
+            print(f"{size}² one 8 x 8 area light (+1 point): render {m['render']:8.2f} ms (compile {m['render_compile']:5.2f} s), "
+                  f"12-tangent jvp {m['jvp12']:8.2f} ms (compile {m['jvp12_compile']:5.2f} s)", flush=True)
     R.LIGHTS_UNROLLED = default
     print("\n| size | mode | lights | render ms | per light ms | render compile s | jvp12 ms | jvp12 compile s |")
     print("|---|---|---|---|---|---|---|---|")
     for size, mode, n, m in rows:
-        base = next((mm for s, md, k, mm in rows if s == size and md == mode and k == 1), None)
+        base = next((mm for s, md, k, mm in rows if s == size and md in (mode, "scan") and k == 1), None)
         per = (m["render"] - base["render"]) / (n - 1) if base and n > 1 else float("nan")
         print(f"| {size}² | {mode} | {n} | {m['render']:.2f} | {per:.3f} | {m['render_compile']:.2f} | {m['jvp12']:.2f} | "
               f"{m['jvp12_compile']:.2f} |")
