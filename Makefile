@@ -31,3 +31,4 @@ bench: $(STAMP)
 	$(VENV)/bin/python benchmarks/bench_fit.py
 	$(VENV)/bin/python benchmarks/bench_fit_suite.py
 	$(VENV)/bin/python benchmarks/bench_deodr.py
+	$(VENV)/bin/python benchmarks/bench_lights.py
