@@ -20,7 +20,7 @@ one tangent per linear field and one per nonlinear scalar. It gives the image, t
    ``z0`` given in natural units (:math:`\theta` for every scalar, so a bound is no
    singularity), which is everything the float64 polish and the report need
    (:mod:`fitting.fit`): the render is compiled once more for the search, not once more for a
-   Jacobian. The two programs are independent, so they compile concurrently.
+   Jacobian.
 """
 
 from __future__ import annotations

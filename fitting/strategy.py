@@ -30,7 +30,6 @@ With ``clamp`` on, nothing is linear: the same machinery runs with every paramet
 from __future__ import annotations
 
 import time
-from concurrent.futures import ThreadPoolExecutor
 
 import equinox as eqx
 import jax
@@ -448,23 +447,18 @@ def compiled(prob: Problem, what: str, fn, *args, extra=()):
 
 
 def compiled_all(prob: Problem, items):
-    """:func:`compiled` of several ``(what, fn, args, extra)`` at once: traced one after the
-    other, compiled concurrently (XLA compiles without the GIL; two programs on two cores take
-    the time of the longer). Returns ``([compiled, ...], wall seconds)``."""
+    """:func:`compiled` of several ``(what, fn, args, extra)``; returns ``([compiled, ...],
+    seconds)``. (Compiling them in threads gained nothing on two cores: XLA's CPU compiler
+    already uses both.)"""
     t0 = time.perf_counter()
     keys = [_key(prob, what, *extra, args=args) for what, _, args, extra in items]
-    todo = {}
+    new = False
     for key, (what, fn, args, extra) in zip(keys, items):
-        if key not in _CACHE and key not in todo:
-            todo[key] = jax.jit(fn).lower(*args)
-    if len(todo) > 1:
-        with ThreadPoolExecutor(len(todo)) as pool:
-            done = dict(zip(todo, pool.map(lambda low: low.compile(), todo.values())))
-    else:
-        done = {k: low.compile() for k, low in todo.items()}
-    _CACHE.update(done)
-    dt = time.perf_counter() - t0 if todo else 0.0
-    if _VERBOSE_COMPILE and todo:
+        if key not in _CACHE:
+            _CACHE[key] = jax.jit(fn).lower(*args).compile()
+            new = True
+    dt = time.perf_counter() - t0 if new else 0.0
+    if _VERBOSE_COMPILE and new:
         print(f"compiled {', '.join(w for w, *_ in items)} in {dt:.2f} s")
     return [_CACHE[k] for k in keys], dt
 
