@@ -168,7 +168,7 @@ def fit(
         converged, ratio = cand["converged"], cand["ratio"]
         notes.append(f"  polish: {p_steps} evaluation(s) of the whole residual"
                      + (f" ({n_cens} censored entries)" if n_cens else "") + f"; residual {ratio:.3g}× the noise")
-        if best is None or cand["rss"] < best["rss"]:
+        if _better(cand, best, n2):
             best = cand
         attempts += 1
         if (converged and ratio <= noise_ratio_limit(n2)) or attempts > restarts or exclude.all() or len(U) == 1:
@@ -285,7 +285,7 @@ def _fit_program(prob, red, theta0, *, starts, restarts, max_steps, polish_steps
         if history:
             for th, cc in zip(np.asarray(out["hz"])[:int(out["nh"])], np.asarray(out["hc"])[:int(out["nh"])]):
                 hist.append((0.5 * float(cc), np.asarray(th, np.float64)))
-        if best is None or cand["rss"] < best["rss"]:
+        if _better(cand, best, n2):
             best = cand
         exclude[b] = True
         if U.shape[1]:
@@ -314,6 +314,18 @@ def _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2,
         noise_source=best["source"], noise_ratio=best["ratio"], converged=best["converged"],
         stderr_meaningful=successful, on_bound=on_bound, censored=n_cens,
     )
+
+
+def _better(cand, best, n2) -> bool:
+    """Whether ``cand`` replaces ``best``: a lower residual, or one the verdict accepts (converged,
+    explained by the noise) against one it does not whose residual is lower by less than one
+    unit of χ² (no evidence that its extra descent means anything)."""
+    if best is None:
+        return True
+    ok = lambda c: c["converged"] and c["ratio"] <= noise_ratio_limit(n2)  # noqa: E731
+    if ok(cand) and not ok(best):
+        return cand["rss"] <= best["rss"] * (1.0 + 1.0 / max(n2 - len(best["theta"]), 1))
+    return cand["rss"] < best["rss"]
 
 
 def _candidate(prob, theta, r, J, img, fixed, res, converged, p_steps, n2, noise) -> dict:
@@ -354,12 +366,12 @@ def _polish(ev, prob, red, theta, steps, rtol):
     # Float rounding of one residual entry, squared: at most ε·max|y| and at most the residual's own
     # variance while steps succeed (the polish must still move along valleys the verdict cannot
     # see: a noise-free fit stopped with a1 3e-4 off, 25 s.e.); the verdict's float floor once
-    # three steps in a row failed (even a 1000x more damped step does not lower the cost: what
-    # is left is the render's own rounding).
+    # three steps in a row failed or gained less than that floor (the cost no longer decreases
+    # beyond rounding: what is left is the render's own rounding).
     tmax = max(float(np.max(np.abs(t))) for t in prob.targets)
     float_var = (float(np.finfo(dt).eps) * tmax) ** 2
     floor_var = float_floor(dt, tmax) ** 2
-    rejected = 0
+    stalled = 0
     for _ in range(steps):
         g = J.T @ r
         at_lo, at_hi = theta <= floor, theta >= hi
@@ -375,7 +387,7 @@ def _polish(ev, prob, red, theta, steps, rtol):
         gn = np.linalg.lstsq(H[np.ix_(free, free)], -g[free], rcond=None)[0]
         gain = -float(g[free] @ gn)
         s2 = cost / n_res
-        if gain <= 1e-2 * s2 + len(theta) * (10 * floor_var if rejected >= 3 else min(s2, float_var)):
+        if gain <= 1e-2 * s2 + len(theta) * (10 * floor_var if stalled >= 3 else min(s2, float_var)):
             conv = True
             break
         Hf = H[np.ix_(free, free)] + lam * np.diag(d[free])
@@ -387,14 +399,14 @@ def _polish(ev, prob, red, theta, steps, rtol):
         c2 = float(r2 @ r2)
         if np.isfinite(c2) and c2 <= cost:
             moved = np.max(np.abs(new - theta) / np.maximum(np.abs(theta), 1e-3))
+            stalled = stalled + 1 if cost - c2 <= len(theta) * floor_var else 0
             theta, r, J, img, cost, lam = new, r2, J2, img2, c2, max(lam / 10, 1e-9)
-            rejected = 0
             if moved <= tol:
                 conv = True
                 break
         else:
             lam *= 10
-            rejected += 1
+            stalled += 1
     g = J.T @ r
     fixed = ((theta <= lo) & (g >= 0) & ~pos) | (theta >= hi)
     fixed &= lin | np.isfinite(hi)
