@@ -19,7 +19,7 @@ from jaxtyping import Array, Float, Int
 
 from . import _shade as S
 from ._raster import _pixel_vertex_ids, fragments, visibility
-from ._scene import Material, RenderOptions, Scene
+from ._scene import Lights, Material, RenderOptions, Scene
 from ._shadow import light_visibility
 from ._util import keep as _keep
 
@@ -105,7 +105,7 @@ def _light_sum(P, n, v, mat: Material, scene: Scene, opts: RenderOptions, back: 
     return [t[0] for t in out], [t[1] for t in out]
 
 
-class _Emitters(eqx.Module):
+class _Emitters(Lights):
     """Point emitters of area lights (structure of arrays, one row per emitter)."""
 
     color: jax.Array
@@ -113,10 +113,6 @@ class _Emitters(eqx.Module):
     normal: jax.Array
     attenuation: jax.Array
     ambient: jax.Array
-
-    @property
-    def count(self) -> int:
-        return self.color.shape[0]
 
 
 def area_emitters(area, grid) -> _Emitters:

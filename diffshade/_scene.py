@@ -80,19 +80,25 @@ class Material(eqx.Module):
     casts_shadow: bool = eqx.field(static=True, default=True)
 
 
-class DirectionalLights(eqx.Module):
-    """``N`` lights at infinity: colour :math:`I_p`, propagation direction :math:`D` (``l = -D``)."""
+class Lights(eqx.Module):
+    """A structure of arrays of lights of one kind: one row per light in every field."""
 
-    color: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
-    direction: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
-    ambient: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
+    color: eqx.AbstractVar[Float[Array, "N 3"]]
 
     @property
     def count(self) -> int:
         return self.color.shape[0]
 
 
-class PointLights(eqx.Module):
+class DirectionalLights(Lights):
+    """``N`` lights at infinity: colour :math:`I_p`, propagation direction :math:`D` (``l = -D``)."""
+
+    color: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
+    direction: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
+    ambient: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
+
+
+class PointLights(Lights):
     r"""``N`` point lights; radial attenuation :math:`1/(a_0 + a_1 d + a_2 d^2)`."""
 
     color: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
@@ -100,12 +106,8 @@ class PointLights(eqx.Module):
     attenuation: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
     ambient: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
 
-    @property
-    def count(self) -> int:
-        return self.color.shape[0]
 
-
-class SpotLights(eqx.Module):
+class SpotLights(Lights):
     r"""``N`` spot lights: point data plus axis :math:`V_{light}`, cutoff :math:`\theta_l` (degrees,
     in (0, 90]), exponent :math:`a_l \ge 0` and the width of the optional smooth edge (degrees)."""
 
@@ -118,12 +120,8 @@ class SpotLights(eqx.Module):
     exponent: Float[Array, " N"] = eqx.field(converter=_vec)
     edge: Float[Array, " N"] = eqx.field(converter=_vec)
 
-    @property
-    def count(self) -> int:
-        return self.color.shape[0]
 
-
-class AreaLights(eqx.Module):
+class AreaLights(Lights):
     r"""``N`` rectangular area lights (docs/model.md §1), each sampled as an ``n × m`` grid of
     directed point emitters (``RenderOptions.area_grid``, static) over a ``size = (w, h)``
     rectangle centred at ``position``, facing ``normal``, its height along ``up`` (projected
@@ -141,10 +139,6 @@ class AreaLights(eqx.Module):
     size: Float[Array, "N 2"] = eqx.field(converter=_rows(2))
     attenuation: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
     ambient: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
-
-    @property
-    def count(self) -> int:
-        return self.color.shape[0]
 
 
 def no_area() -> AreaLights:
