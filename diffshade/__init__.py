@@ -26,19 +26,21 @@ from ._scene import (
     DirectionalLights,
     Fog,
     Material,
+    MultiLobeLights,
     PointLights,
     RenderOptions,
     Scene,
     SpotLights,
     no_area,
     no_directional,
+    no_multi_lobe,
     no_point,
     no_spot,
 )
 from ._shade import blinn_to_phong, phong_to_blinn
 
 __all__ = [
-    "AreaLights", "no_area", "Camera", "DEFAULT_SCENE", "DirectionalLights", "Fog", "Fragments", "Material", "Mesh", "MeshError",
+    "AreaLights", "no_area", "Camera", "DEFAULT_SCENE", "DirectionalLights", "Fog", "Fragments", "Material", "Mesh", "MeshError", "MultiLobeLights", "no_multi_lobe",
     "PointLights", "RenderOptions", "Scene", "SceneError", "SpotLights", "blinn_to_phong", "default_scene",
     "fragments", "icosphere", "interpolate", "load_mesh", "load_scene", "mesh_from_arrays", "no_directional",
     "no_point", "no_spot", "phong_to_blinn", "pixel_centres", "rasterize", "render", "scene_from_dict",

@@ -41,6 +41,14 @@ default ``[0, 0, 1]``, inverse-square; ``color = L w h`` is a Lambertian emitter
     [render]
     area_grid = [8, 8]
 
+A multi-lobe light: several spot lobes sharing one position and attenuation, one light (each
+lobe as a spot light's keys, with its own colour and per-light ambient)::
+
+    [[light]]
+    type = "multi_lobe"; position = [0, 2, 2]; attenuation = [1, 0, 0.05]
+    lobes = [{ axis = [0, -1, -1], cutoff = 30, exponent = 4, color = [1, 0.2, 0.2] },
+             { axis = [1, -1, -1], cutoff = 20, edge = 5, color = [0.2, 0.2, 1] }]
+
 Every error names the file, the field and the allowed range.
 """
 
@@ -60,12 +68,14 @@ from ._scene import (
     DirectionalLights,
     Fog,
     Material,
+    MultiLobeLights,
     PointLights,
     RenderOptions,
     Scene,
     SpotLights,
     no_area,
     no_directional,
+    no_multi_lobe,
     no_point,
     no_spot,
 )
@@ -196,15 +206,26 @@ def _material(v: _V, m: dict, where: str) -> Material:
 def _lights(v: _V, lights: list):
     if not isinstance(lights, list):
         v.fail("light", "must be an array of tables ([[light]])")
-    groups: dict[str, list] = {"directional": [], "point": [], "spot": [], "area": []}
+    groups: dict[str, list] = {"directional": [], "point": [], "spot": [], "area": [], "multi_lobe": []}
     for i, l in enumerate(lights):
         w = f"light[{i}]"
         if not isinstance(l, dict):
             v.fail(w, "must be a table")
         kind = l.get("type")
         if kind not in groups:
-            v.fail(f"{w}.type", f"must be one of 'directional', 'point', 'spot', 'area', got {kind!r}")
+            v.fail(f"{w}.type", f"must be one of 'directional', 'point', 'spot', 'area', 'multi_lobe', got {kind!r}")
         common = ("type", "color", "ambient")
+        if kind == "multi_lobe":
+            v.unknown(l, ("type", "position", "attenuation", "lobes"), w)
+            pos = v.vec(l, "position", w)
+            att = v.vec(l, "attenuation", w, default=[1.0, 0.0, 0.0], lo=0.0)
+            if not np.any(att):
+                v.fail(f"{w}.attenuation", "a0, a1, a2 must not all be 0")
+            lobes = l.get("lobes")
+            if not isinstance(lobes, list) or not lobes or not all(isinstance(b, dict) for b in lobes):
+                v.fail(f"{w}.lobes", "must be a non-empty array of tables (axis, cutoff, exponent, edge, color, ambient)")
+            groups[kind].append((pos, att, [_spot_lobe(v, b, f"{w}.lobes[{j}]", lobe=True) for j, b in enumerate(lobes)]))
+            continue
         color = v.vec(l, "color", w, default=[1.0, 1.0, 1.0], lo=0.0, scalar_ok=True)
         amb = v.vec(l, "ambient", w, default=[0.0, 0.0, 0.0], lo=0.0, scalar_ok=True)
         if kind == "directional":
@@ -232,11 +253,7 @@ def _lights(v: _V, lights: list):
             groups[kind].append((color, pos, att, amb, normal, up, size))
         else:
             v.unknown(l, common + ("position", "attenuation", "axis", "cutoff", "exponent", "edge"), w)
-            axis = v.vec(l, "axis", w, nonzero=True)
-            cutoff = v.num(l, "cutoff", w, lo=0.0, hi=90.0, lo_open=True)
-            exponent = v.num(l, "exponent", w, default=0.0, lo=0.0)
-            edge = v.num(l, "edge", w, default=0.0, lo=0.0, hi=cutoff)
-            groups[kind].append((color, pos, att, amb, axis, cutoff, exponent, edge))
+            groups[kind].append((color, pos, att, amb, *_spot_lobe(v, l, w)[2:]))
 
     def stack(rows, k):
         return np.stack([r[k] for r in rows]) if rows else np.zeros((0, 3))
@@ -257,7 +274,30 @@ def _lights(v: _V, lights: list):
     g = groups["area"]
     area = (AreaLights(color=stack(g, 0), position=stack(g, 1), attenuation=stack(g, 2), ambient=stack(g, 3),
                        normal=stack(g, 4), up=stack(g, 5), size=np.stack([r[6] for r in g])) if g else no_area())
-    return directional, point, spot, area
+    g = groups["multi_lobe"]
+    if g:
+        L = max(len(r[2]) for r in g)
+        dark = (np.zeros(3), np.zeros(3), np.array([0.0, 0.0, -1.0]), 90.0, 0.0, 0.0)  # padding: emits nothing
+        lob = [r[2] + [dark] * (L - len(r[2])) for r in g]
+        field = lambda k: np.array([[b[k] for b in row] for row in lob])  # noqa: E731
+        multi = MultiLobeLights(position=stack(g, 0), attenuation=stack(g, 1), color=field(0), ambient=field(1),
+                                axis=field(2), cutoff=field(3), exponent=field(4), edge=field(5))
+    else:
+        multi = no_multi_lobe()
+    return directional, point, spot, area, multi
+
+
+def _spot_lobe(v: "_V", b: dict, w: str, lobe: bool = False):
+    """``(color, ambient, axis, cutoff, exponent, edge)`` of a spot light or (``lobe``) a lobe table."""
+    if lobe:
+        v.unknown(b, ("color", "ambient", "axis", "cutoff", "exponent", "edge"), w)
+    color = v.vec(b, "color", w, default=[1.0, 1.0, 1.0], lo=0.0, scalar_ok=True)
+    amb = v.vec(b, "ambient", w, default=[0.0, 0.0, 0.0], lo=0.0, scalar_ok=True)
+    axis = v.vec(b, "axis", w, nonzero=True)
+    cutoff = v.num(b, "cutoff", w, lo=0.0, hi=90.0, lo_open=True)
+    exponent = v.num(b, "exponent", w, default=0.0, lo=0.0)
+    edge = v.num(b, "edge", w, default=0.0, lo=0.0, hi=cutoff)
+    return color, amb, axis, cutoff, exponent, edge
 
 
 _MESH_KEYS = ("path", "icosphere", "radius", "box", "quad", "normal", "divisions")
@@ -366,7 +406,7 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
         v.fail("render.shadows", "a [shadow] section is given but render.shadows is false")
     if back is not None and not opts.back_material:
         opts = opts.replace(back_material=True)
-    directional, point, spot, area = _lights(v, d.get("light", []))
+    directional, point, spot, area, multi = _lights(v, d.get("light", []))
 
     f = v.table(d, "fog")
     v.unknown(f, ("color", "start", "end", "density"), "fog")
@@ -387,7 +427,7 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
     background = v.vec(d, "background", "scene", default=bg_default, lo=0.0, scalar_ok=True)
     scene = Scene(
         mesh=mesh, camera=camera, material=material, back_material=back, directional=directional,
-        point=point, spot=spot, area=area, ambient_light=ambient, background=background, fog=fog, materials=extra,
+        point=point, spot=spot, area=area, multi_lobe=multi, ambient_light=ambient, background=background, fog=fog, materials=extra,
         **{f"shadow_{k}": v.num(sh, k, "shadow", lo=0.0) for k in sh},  # absent: the Scene defaults
     )
     return scene, opts

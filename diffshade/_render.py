@@ -29,12 +29,16 @@ def _rgb(c):
     return (c[..., 0], c[..., 1], c[..., 2])
 
 
-def _light_sum(P, n, v, mat: Material, scene: Scene, opts: RenderOptions, back: bool = False, per_light: bool = True):
-    """Per light (directional, point, spot order) the attenuated direct terms (diffuse,
-    specular, transmission) and the per-light ambient term at points ``P`` with unit normals
-    ``n`` (component tuples), as two lists of colour tuples (the ambient one holds None where
-    ``per_light_ambient`` is off). Without ``per_light`` (no shadows to apply light by light),
-    a kind with more than :data:`LIGHTS_UNROLLED` lights contributes one summed entry."""
+def _light_sum(P, n, v, mat: Material, scene: Scene, opts: RenderOptions, back: bool = False, shadow=None, post=None):
+    """Over every light (directional, point, spot, multi-lobe, area emitters), the sum of the
+    attenuated direct terms (diffuse, specular, transmission) and the sum of the per-light ambient
+    terms at points ``P`` with unit normals ``n`` (component tuples), as two colour tuples (the
+    ambient one None where ``per_light_ambient`` is off).
+
+    ``post`` maps one light's direct terms at the points to other points (Gouraud and flat
+    interpolate them to the pixels) before ``shadow`` (per kind, ``[N, ...]`` visibilities at
+    those points) multiplies them: the sum is then at ``post``'s points. A kind with more than
+    :data:`LIGHTS_UNROLLED` lights is summed by a scan over its light axis."""
     smooth = opts.spot_edge == "smooth"
     kd, ks, ka, kt = _rgb(mat.diffuse), _rgb(mat.specular), _rgb(mat.ambient), _rgb(mat.transmission)
 
@@ -92,17 +96,48 @@ def _light_sum(P, n, v, mat: Material, scene: Scene, opts: RenderOptions, back: 
         att = att * jnp.maximum(-S.dot(l, _rgb(li.normal)), 0.0)
         return terms(l, att, _rgb(li.color), _rgb(li.ambient))
 
-    kinds = [(scene.directional, directional), (scene.point, lambda li: positional(li, False)),
-             (scene.spot, lambda li: positional(li, True))]
+    def multi_lobe(li):
+        # one position, several spot lobes: the colour depends on the direction (docs/model.md §1)
+        L = S.sub(_rgb(li.position), P)
+        l = S.normalize(L)
+        att = S.radial_attenuation(S.norm(L), _rgb(li.attenuation))
+        color, amb = [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
+        for j in range(li.color.shape[0]):
+            f = S.spot_factor(l, _rgb(li.axis[j]), li.cutoff[j], li.exponent[j], li.edge[j], smooth)
+            color = [color[c] + f * li.color[j, c] for c in range(3)]
+            if opts.per_light_ambient:
+                amb = [amb[c] + f * li.ambient[j, c] for c in range(3)]
+        return terms(l, att, color, amb)
+
+    kinds = [("directional", scene.directional, directional), ("point", scene.point, lambda li: positional(li, False)),
+             ("spot", scene.spot, lambda li: positional(li, True)), ("multi_lobe", scene.multi_lobe, multi_lobe)]
     if scene.area.count:
-        kinds.append((area_emitters(scene.area, opts.area_grid), emitter))
-    out = []
-    for lights, fn in kinds:
-        if lights.count > LIGHTS_UNROLLED and not per_light:
-            out.append(_scan_lights(fn, lights, P))
+        kinds.append(("area", area_emitters(scene.area, opts.area_grid), emitter))
+    direct, ambient = [], []
+    for name, lights, fn in kinds:
+        if not lights.count:
+            continue
+        vis = shadow.get(name) if shadow is not None else None
+
+        def one(li, s_i, fn=fn):
+            d, a = fn(li)
+            if post is not None:
+                d = post(d)
+            if s_i is not None:
+                d = [s_i * d[k] for k in range(3)]
+            return d, a
+
+        if lights.count > LIGHTS_UNROLLED:
+            d, a = _scan_lights(one, lights, vis)
+            direct.append(d)
+            ambient.append(a)
         else:
-            out += [fn(jax.tree.map(lambda a: a[i], lights)) for i in range(lights.count)]
-    return [t[0] for t in out], [t[1] for t in out]
+            for i in range(lights.count):
+                d, a = one(jax.tree.map(lambda x: x[i], lights), None if vis is None else vis[i])
+                direct.append(d)
+                ambient.append(a)
+    amb = _sum(ambient) if opts.per_light_ambient and ambient else None
+    return _sum(direct), amb
 
 
 class _Emitters(Lights):
@@ -140,24 +175,19 @@ def area_emitters(area, grid) -> _Emitters:
 LIGHTS_UNROLLED = 4
 
 
-def _scan_lights(fn, lights, P):
-    """``Σ_i fn(light_i)`` (direct and per-light ambient colour tuples) by ``lax.scan`` over the
-    lights' leading axis: one copy of a light's terms in the program, whatever their number."""
-    shape = jnp.shape(P[0])
-    dt = jnp.result_type(lights.color)
+def _scan_lights(one, lights, vis):
+    """``Σ_i one(light_i, vis_i)`` (direct and per-light ambient colour tuples) by ``lax.scan``
+    over the lights' leading axis (and ``vis``'s, when given): one copy of a light's terms in the
+    program, whatever their number."""
+    row = lambda t: jax.tree.map(lambda x: x[0], t)  # noqa: E731
+    shapes = jax.eval_shape(one, row(lights), None if vis is None else vis[0])
+    init = jax.tree.map(lambda sd: jnp.zeros(sd.shape, sd.dtype), shapes)
 
-    def body(acc, li):
-        d, a = fn(li)
-        d = [acc[0][k] + d[k] for k in range(3)]
-        a = [acc[1][k] + a[k] for k in range(3)] if a is not None else acc[1]
-        return (d, a), None
+    def body(acc, x):
+        out = one(*x)
+        return jax.tree.map(lambda s, t: (s + t).astype(s.dtype), acc, out), None
 
-    # the carry starts as the first light's terms (broadcast to the points: a fixed shape)
-    first = fn(jax.tree.map(lambda x: x[0], lights))
-    full = lambda c: [jnp.broadcast_to(jnp.asarray(c[k], dt), shape) for k in range(3)]  # noqa: E731
-    init = (full(first[0]), full(first[1]) if first[1] is not None else None)
-    rest = jax.tree.map(lambda x: x[1:], lights)
-    (d, a), _ = jax.lax.scan(body, init, rest)
+    (d, a), _ = jax.lax.scan(body, init, (lights, vis))
     return d, a
 
 
@@ -170,22 +200,16 @@ def _sum(cols):
     return acc if acc is not None else [0.0, 0.0, 0.0]
 
 
-def _lit(base, directs, shadow):
-    """``base + Σ_i S_i direct_i`` (``shadow`` None: no shadows)."""
-    if shadow is not None:
-        directs = [[s * d[k] for k in range(3)] for s, d in zip(shadow, directs)]
-    return _sum([base, *directs])
-
-
-def shade_points(P, n, eye, mat: Material, scene: Scene, opts: RenderOptions, back: bool = False, shadow=None, split=False):
+def shade_points(P, n, eye, mat: Material, scene: Scene, opts: RenderOptions, back: bool = False, shadow=None, post=None):
     """Unfogged colour (tuple of 3 arrays) of surface points ``P`` with unit normals ``n``
-    (component tuples) seen from ``eye``. ``shadow`` is a list of :math:`S_i` (one per light)
-    multiplying each light's direct terms. With ``split`` the result is ``(base, directs)``:
-    the unshadowed part and each light's direct terms, for shadows applied after interpolation.
+    (component tuples) seen from ``eye``. ``shadow`` (per light kind, ``[N, ...]`` visibilities
+    :math:`S_i`) multiplies each light's direct terms. With ``post`` (a map of one light's direct
+    terms to other points, applied before ``shadow``) the result is ``(base, direct)``: the
+    unshadowed part at ``P`` and the lights' shadowed direct terms at ``post``'s points.
     ``back`` marks back-facing fragments (the viewer inside the material, for refraction)."""
     v = S.normalize(S.sub(_rgb(eye), P))
-    direct, ambient = _light_sum(P, n, v, mat, scene, opts, back, per_light=shadow is not None or split)
-    base = _sum(ambient)
+    direct, ambient = _light_sum(P, n, v, mat, scene, opts, back, shadow, post)
+    base = ambient if ambient is not None else [0.0, 0.0, 0.0]
     if opts.ambient:
         base = [base[k] + mat.ambient[..., k] * scene.ambient_light[k] for k in range(3)]
     if opts.emission:
@@ -195,9 +219,9 @@ def shade_points(P, n, eye, mat: Material, scene: Scene, opts: RenderOptions, ba
     def full(c):
         return tuple(jnp.broadcast_to(c[k], shape) for k in range(3))
 
-    if split:
-        return full(base), [full(d) for d in direct]
-    return full(_lit(base, direct, shadow))
+    if post is not None:
+        return full(base), direct
+    return full([base[k] + direct[k] for k in range(3)])
 
 
 def _back_material(scene: Scene, opts: RenderOptions) -> Material:
@@ -321,7 +345,7 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=No
         raise ValueError("shadow maps do not cover area lights: render a scene with area lights without shadows")
     if opts.shadows:
         ng = tuple(c[safe_tid] for c in S.vec(mesh.face_normals()))
-        shadow = light_visibility(scene, opts, P, ng)
+        shadow = light_visibility(scene, opts, P, ng, LIGHTS_UNROLLED)
     kay = [m.kay for m in mats] if multi else [scene.material.kay]
     need_kay = opts.transparency and any(kay)
     n_px = None  # the pixel's unit normal, where Kay's opacity needs it
@@ -349,8 +373,9 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=No
         def side(normal, mat, back):
             if shadow is None:
                 return interp(_keep(*shade_points(pts, normal, eye, mat, scene, opts, back)))
-            base, directs = shade_points(pts, normal, eye, mat, scene, opts, back, split=True)
-            return tuple(_lit(interp(_keep(*base)), [interp(_keep(*d)) for d in directs], shadow))
+            post = lambda d: interp(_keep(*d))  # noqa: E731
+            base, direct = shade_points(pts, normal, eye, mat, scene, opts, back, shadow, post)
+            return tuple(b + d for b, d in zip(interp(_keep(*base)), direct))
 
         color = side(nrm, vmat, False)
         if opts.two_sided:
@@ -368,9 +393,9 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=No
             if shadow is None:
                 cf = _keep(*shade_points(centroid, normal, eye, mat, scene, opts, back))
                 return tuple(c[safe_tid] for c in cf)
-            base, directs = shade_points(centroid, normal, eye, mat, scene, opts, back, split=True)
             gather = lambda col: tuple(c[safe_tid] for c in _keep(*col))  # noqa: E731
-            return tuple(_lit(gather(base), [gather(d) for d in directs], shadow))
+            base, direct = shade_points(centroid, normal, eye, mat, scene, opts, back, shadow, gather)
+            return tuple(b + d for b, d in zip(gather(base), direct))
 
         color = side(fn, fmat, False)
         if opts.two_sided:

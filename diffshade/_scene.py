@@ -141,6 +141,44 @@ class AreaLights(Lights):
     ambient: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
 
 
+class MultiLobeLights(Lights):
+    r"""``N`` lights that emit different colours in different directions: ``L`` spot lobes (axis,
+    cutoff, exponent, edge, colour and ambient each; ``[N, L, ...]``) sharing one ``position``
+    and radial ``attenuation`` (docs/model.md §1). Light ``i`` is the sum of its lobes as spot
+    lights at that position, evaluated as one light: the direction, distance, attenuation and
+    the surface's diffuse and specular factors are computed once, the colour is
+    :math:`\sum_j f_{ang,j}(l) I_{p,j}` (and the per-light ambient :math:`\sum_j f_{ang,j}(l) I_{a,j}`).
+    Lights with fewer lobes than ``L`` are padded with dark lobes (colour and ambient 0)."""
+
+    color: Float[Array, "N L 3"] = eqx.field(converter=as_float_array)
+    position: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
+    attenuation: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
+    ambient: Float[Array, "N L 3"] = eqx.field(converter=as_float_array)
+    axis: Float[Array, "N L 3"] = eqx.field(converter=as_float_array)
+    cutoff: Float[Array, "N L"] = eqx.field(converter=as_float_array)
+    exponent: Float[Array, "N L"] = eqx.field(converter=as_float_array)
+    edge: Float[Array, "N L"] = eqx.field(converter=as_float_array)
+
+    def __check_init__(self):
+        n = self.position.shape[0]
+        lobes = self.color.shape[1] if self.color.ndim == 3 else -1
+        for f, tail in (("color", (3,)), ("ambient", (3,)), ("axis", (3,)), ("cutoff", ()), ("exponent", ()), ("edge", ())):
+            if getattr(self, f).shape != (n, lobes) + tail:
+                raise ValueError(f"MultiLobeLights.{f} must be shaped {(n, 'L') + tail} (N lights, L lobes each), "
+                                 f"got {getattr(self, f).shape}")
+
+    @property
+    def lobes(self) -> int:
+        """``L``, the number of lobe slots per light."""
+        return self.color.shape[1]
+
+
+def no_multi_lobe() -> MultiLobeLights:
+    z, e = np.zeros((0, 1, 3)), np.zeros((0, 1))
+    return MultiLobeLights(color=z, position=np.zeros((0, 3)), attenuation=np.zeros((0, 3)), ambient=z, axis=z,
+                           cutoff=e, exponent=e, edge=e)
+
+
 def no_area() -> AreaLights:
     z = np.zeros((0, 3))
     return AreaLights(color=z, position=z, normal=z, up=z, size=np.zeros((0, 2)), attenuation=z, ambient=z)
@@ -287,6 +325,7 @@ class Scene(eqx.Module):
     shadow_bias: Float[Array, ""] = eqx.field(converter=as_float_array, default=1e-3)
     shadow_slope_bias: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.5)
     area: AreaLights = field(default_factory=no_area)
+    multi_lobe: MultiLobeLights = field(default_factory=no_multi_lobe)
 
     def all_materials(self) -> tuple[Material, ...]:
         """Materials by id: ``material`` is id 0, ``materials[i]`` is id ``i + 1``; each face's id

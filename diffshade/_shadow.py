@@ -7,8 +7,11 @@ camera (exact visibility, ``RenderOptions.shadow_resolution`` texels square, one
   the mesh;
 - spot: one perspective view along the axis, half-angle :math:`\min(\theta_l + 1^\circ, 80^\circ)`
   (a cone wider than 80° is unshadowed outside 80°);
-- point: six 90° perspective views (a cube map), the face chosen by the major axis of
-  :math:`P - P_L`.
+- point and multi-lobe: six 90° perspective views (a cube map), the face chosen by the major
+  axis of :math:`P - P_L`.
+
+Past a few lights of a kind the maps and lookups are mapped over the light axis (one copy in the
+compiled program, as for the lighting itself).
 
 A map texel stores the triangle seen through its centre; its depth :math:`s_{map}` (distance
 along the view's axis) is read off that triangle's plane along the texel-centre ray, only for
@@ -101,31 +104,27 @@ def _bounds(vertices):
     return c, r
 
 
-def light_views(scene) -> list[_Views]:
-    """The shadow-map views of every light (directional, then point, then spot lights)."""
-    X = jax.lax.stop_gradient(scene.mesh.vertices)
-    c, r = _bounds(X)
-    views = []
-    d = jax.lax.stop_gradient(scene.directional.direction)
-    for i in range(scene.directional.count):
-        a, u, v = _frame(d[i])
+# The light kinds shadow maps cover, in the order of their lights in a render (area lights have none).
+SHADOW_KINDS = ("directional", "point", "spot", "multi_lobe")
+
+
+def _views(kind: str, li, c, r) -> _Views:
+    """The shadow-map views of one light of ``kind`` (``li`` one row of its structure of arrays,
+    no gradient), for a mesh in the sphere of centre ``c`` and radius ``r``."""
+    if kind == "directional":
+        a, u, v = _frame(li.direction)
         o = c - 1.05 * r * a
-        views.append(_Views(o, a[None], u[None], v[None], 1.05 * r, 0.0, 2.1 * r, True))
-    for lights, spot in ((scene.point, False), (scene.spot, True)):
-        pos = jax.lax.stop_gradient(lights.position)
-        for i in range(lights.count):
-            o = pos[i]
-            far = jnp.linalg.norm(c - o) + r
-            near = far * 1e-4
-            if spot:
-                a, u, v = _frame(jax.lax.stop_gradient(lights.axis[i]))
-                half = jax.lax.stop_gradient(lights.cutoff[i]) + 1.0
-                h = jnp.tan(jnp.deg2rad(jnp.minimum(half, _SPOT_MAX_HALF_ANGLE)))
-                views.append(_Views(o, a[None], u[None], v[None], h, near, far, False))
-            else:
-                cube = jnp.asarray(_CUBE, X.dtype)
-                views.append(_Views(o, cube[:, 0], cube[:, 1], cube[:, 2], jnp.ones((), X.dtype), near, far, False))
-    return views
+        return _Views(o, a[None], u[None], v[None], 1.05 * r, 0.0, 2.1 * r, True)
+    o = li.position
+    far = jnp.linalg.norm(c - o) + r
+    near = far * 1e-4
+    if kind == "spot":
+        a, u, v = _frame(li.axis)
+        h = jnp.tan(jnp.deg2rad(jnp.minimum(li.cutoff + 1.0, _SPOT_MAX_HALF_ANGLE)))
+        return _Views(o, a[None], u[None], v[None], h, near, far, False)
+    # point, multi-lobe (lobes may point anywhere): a cube map
+    cube = jnp.asarray(_CUBE, o.dtype)
+    return _Views(o, cube[:, 0], cube[:, 1], cube[:, 2], jnp.ones((), o.dtype), near, far, False)
 
 
 def _casting_faces(scene):
@@ -139,14 +138,6 @@ def _casting_faces(scene):
     ids = scene.mesh.material_ids
     keep_face = jnp.asarray(casts)[ids] if ids is not None else jnp.full(faces.shape[0], casts[0])
     return jnp.where(keep_face[:, None], faces, 0)
-
-
-def shadow_maps(scene, opts, views: list[_Views]):
-    """Per light, the triangle seen through each texel, ``[n, R, R]`` (-1 where none)."""
-    R = opts.shadow_resolution
-    X = jax.lax.stop_gradient(scene.mesh.vertices)
-    faces = _casting_faces(scene)
-    return [jax.vmap(lambda c: visibility(c, faces, (R, R), 1, opts.backend)[0])(vw.clip(X)) for vw in views]
 
 
 def _face_planes(mesh):
@@ -276,19 +267,34 @@ def _lookup(vw: _Views, ids, planes, P, ng, bias, slope_bias, R: int, pcf: int, 
     return jnp.where(inside, frac, 1.0)
 
 
-def light_visibility(scene, opts, P, ng) -> list:
-    """:math:`S_i` for every light (directional, point, spot order) at points ``P`` with face
-    normals ``ng`` (component tuples of equally shaped arrays); no gradient."""
+def light_visibility(scene, opts, P, ng, unrolled: int) -> dict:
+    """:math:`S_i` of every light at points ``P`` with face normals ``ng`` (component tuples of
+    equally shaped arrays), no gradient: per kind of :data:`SHADOW_KINDS` that the scene has, an
+    array ``[N, *P[0].shape]``. A kind with more than ``unrolled`` lights is mapped over its
+    light axis (``lax.map``: one copy of the map and lookup in the program, whatever the count)."""
     P = jax.lax.stop_gradient(P)
     ng = jax.lax.stop_gradient(ng)
-    views = light_views(scene)
-    maps = shadow_maps(scene, opts, views)
+    X = jax.lax.stop_gradient(scene.mesh.vertices)
+    c, r = _bounds(X)
+    faces = _casting_faces(scene)
     planes = _face_planes(scene.mesh)
     bias = jax.lax.stop_gradient(scene.shadow_bias)
     slope = jax.lax.stop_gradient(scene.shadow_slope_bias)
     R, pcf = opts.shadow_resolution, opts.shadow_pcf
     lookups = int(np.prod(P[0].shape)) * pcf * pcf
-    return [
-        _lookup(vw, m, planes, P, ng, bias, slope, R, pcf, eager=lookups > vw.count * R * R)
-        for vw, m in zip(views, maps)
-    ]
+    out = {}
+    for kind in SHADOW_KINDS:
+        lights = jax.lax.stop_gradient(getattr(scene, kind))
+        if not lights.count:
+            continue
+
+        def one(li, kind=kind):
+            vw = _views(kind, li, c, r)
+            ids = jax.vmap(lambda cl: visibility(cl, faces, (R, R), 1, opts.backend)[0])(vw.clip(X))
+            return _lookup(vw, ids, planes, P, ng, bias, slope, R, pcf, eager=lookups > vw.count * R * R)
+
+        if lights.count > unrolled:
+            out[kind] = jax.lax.map(one, lights)
+        else:
+            out[kind] = jnp.stack([one(jax.tree.map(lambda x: x[i], lights)) for i in range(lights.count)])
+    return out

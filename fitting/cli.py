@@ -143,7 +143,7 @@ def _render(scene, opts, out: Path, overwrite: bool) -> None:
     print(
         f"rendered {w}x{h}, {scene.mesh.faces.shape[0]} faces, shading={opts.shading}, "
         f"specular={opts.specular}, fog={opts.fog}, lights: {scene.directional.count} directional, "
-        f"{scene.point.count} point, {scene.spot.count} spot"
+        f"{scene.point.count} point, {scene.spot.count} spot, {scene.area.count} area, {scene.multi_lobe.count} multi-lobe"
     )
     extras = [name for name, on in (("absorption", opts.absorption), ("transmission", opts.transmission)) if on]
     if opts.transparency:

@@ -15,7 +15,8 @@ scene; ``material[0]`` is ``material``) and ``back_material.<field>`` (emission,
 specular, shininess, ior, opacity, kay_min, kay_max, kay_power, transmission, absorption); ``ambient_light``; ``<kind>[i].<field>`` with kind ``directional``, ``point``,
 ``spot`` or ``area`` and field ``color``, ``ambient``, ``a0``/``a1``/``a2`` (attenuation), ``cutoff``,
 ``exponent``, ``edge`` (spot), ``width``, ``height`` (area: with the colour, a gauge for a distant
-receiver, which sees only the power); ``fog.<field>`` (color, start, end, density). RGB fields are per channel
+receiver, which sees only the power); ``multi_lobe[i].<a0|a1|a2>`` (shared by the lobes) and
+``multi_lobe[i].lobe[j].<color|ambient|cutoff|exponent|edge>``; ``fog.<field>`` (color, start, end, density). RGB fields are per channel
 unless listed as shared (one value for the three channels).
 """
 
@@ -45,9 +46,12 @@ _MATERIAL = {
 _LIGHT = {"color": "positive", "ambient": "positive", "a0": "positive", "a1": "positive", "a2": "positive",
           "cutoff": (0.0, 90.0), "exponent": "positive", "edge": (0.0, 90.0), "width": "positive", "height": "positive"}
 _SIZE = {"width": 0, "height": 1}  # an area light's size[i, k]
-_KINDS = ("directional", "point", "spot", "area")
+_KINDS = ("directional", "point", "spot", "area", "multi_lobe")
+_LOBE = {"color", "ambient", "cutoff", "exponent", "edge"}
 _FOG = {"color": "unit", "start": "positive", "end": "positive", "density": "positive"}
 _LIGHT_RE = re.compile(r"^(directional|point|spot|area)\[(\d+)\]\.(\w+)$")
+_LOBE_RE = re.compile(r"^multi_lobe\[(\d+)\]\.lobe\[(\d+)\]\.(\w+)$")
+_MULTI_RE = re.compile(r"^multi_lobe\[(\d+)\]\.(\w+)$")
 _MATERIAL_RE = re.compile(r"^material\[(\d+)\]\.(\w+)$")
 
 
@@ -70,7 +74,7 @@ class Param:
     """One free parameter: where it lives in a Scene, its size and its domain."""
 
     name: str
-    path: tuple  # ("material", "diffuse") / ("point", 0, "a1") / ("fog", "density") / ("ambient_light",)
+    path: tuple  # ("material", "diffuse") / ("point", 0, "a1") / ("multi_lobe", 0, 1, "color") / ("fog", "density")
     size: int  # 3 for a per-channel RGB field, else 1
     domain: object  # "unit" | "positive" | (lo, hi)
 
@@ -81,7 +85,9 @@ class Param:
         p = self.path
         if p[0] in _KINDS:
             lights = getattr(scene, p[0])
-            field = p[2]
+            field = p[-1]
+            if len(p) == 4:  # a lobe of a multi-lobe light
+                return getattr(lights, field)[p[1], p[2]]
             if field in ("a0", "a1", "a2"):
                 return lights.attenuation[p[1], int(field[1])]
             if field in _SIZE:
@@ -95,6 +101,11 @@ class Param:
 
     def set(self, scene: ds.Scene, value) -> ds.Scene:
         p = self.path
+        if p[0] in _KINDS and len(p) == 4:
+            kind, i, j, field = p
+            arr = getattr(scene.multi_lobe, field)
+            new = arr.at[i, j].set(jnp.broadcast_to(value, arr[i, j].shape).astype(arr.dtype))
+            return eqx.tree_at(lambda s: getattr(s.multi_lobe, field), scene, new)
         if p[0] in _KINDS:
             kind, i, field = p
             if field in ("a0", "a1", "a2"):
@@ -153,6 +164,27 @@ class Param:
 
 def parse(name: str, scene: ds.Scene, shared: bool = False) -> Param:
     """The :class:`Param` called ``name`` in ``scene`` (raises :class:`ParamError`)."""
+    m = _LOBE_RE.match(name)
+    if m:
+        i, j, field = int(m.group(1)), int(m.group(2)), m.group(3)
+        lights = scene.multi_lobe
+        if field not in _LOBE:
+            raise ParamError(f"unknown parameter {name!r}: a lobe has the fields {sorted(_LOBE)}")
+        if i >= lights.count:
+            raise ParamError(f"unknown parameter {name!r}: the scene has {lights.count} multi-lobe light(s)")
+        if j >= lights.lobes:
+            raise ParamError(f"unknown parameter {name!r}: multi-lobe light {i} has {lights.lobes} lobe slot(s)")
+        size = 3 if field in _RGB and not shared else 1
+        return Param(name, ("multi_lobe", i, j, field), size, _LIGHT[field])
+    m = _MULTI_RE.match(name)
+    if m:
+        i, field = int(m.group(1)), m.group(2)
+        if field not in ("a0", "a1", "a2"):
+            raise ParamError(f"unknown parameter {name!r}: a multi-lobe light has a0, a1, a2; its lobes have "
+                             f"multi_lobe[{i}].lobe[j].<{'|'.join(sorted(_LOBE))}>")
+        if i >= scene.multi_lobe.count:
+            raise ParamError(f"unknown parameter {name!r}: the scene has {scene.multi_lobe.count} multi-lobe light(s)")
+        return Param(name, ("multi_lobe", i, field), 1, _LIGHT[field])
     m = _LIGHT_RE.match(name)
     if m:
         kind, i, field = m.group(1), int(m.group(2)), m.group(3)
@@ -188,7 +220,7 @@ def parse(name: str, scene: ds.Scene, shared: bool = False) -> Param:
     raise ParamError(
         f"unknown parameter {name!r}; known: material.<{'|'.join(_MATERIAL)}>, material[i].<...> (material id i), "
         "back_material.<...>, ambient_light, <directional|point|spot|area>[i].<color|ambient|a0|a1|a2|cutoff|exponent|edge"
-        "|width|height>, "
+        "|width|height>, multi_lobe[i].<a0|a1|a2>, multi_lobe[i].lobe[j].<color|ambient|cutoff|exponent|edge>, "
         "fog.<color|start|end|density>"
     )
 

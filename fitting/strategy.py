@@ -60,7 +60,7 @@ def split_linear(pset, opts) -> tuple[list[int], dict[str, str]]:
             continue
         if kind in ("material", "materials", "back_material"):
             ok = field in _LINEAR_MATERIAL
-        elif kind in ("directional", "point", "spot", "area"):
+        elif kind in ("directional", "point", "spot", "area", "multi_lobe"):
             ok = field in _PRODUCT and not (_PRODUCT[field] & free_mat_fields)
             if field in _PRODUCT and not ok:
                 why[p.name] = f"multiplies a free material {'/'.join(sorted(_PRODUCT[field] & free_mat_fields))}"

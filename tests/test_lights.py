@@ -11,10 +11,15 @@ import diffshade as ds
 import diffshade._render as R
 
 
-def many_lights_scene(n_point, n_spot, n_dir, size=12, shading="phong", seed=0, **render):
+def many_lights_scene(n_point, n_spot, n_dir, size=12, shading="phong", seed=0, wall=False, **render):
     rng = np.random.default_rng(seed)
     d = dict(ds.DEFAULT_SCENE)
     d["mesh"] = {"icosphere": 1}
+    if wall:  # a wall behind the sphere receives its shadows
+        mat = d.pop("material")
+        d.pop("mesh")
+        d["object"] = [{"icosphere": 1, "material": mat},
+                       {"quad": [8, 8], "normal": [0, 0, 1], "translate": [0, 0, -1.5], "material": mat}]
     d["camera"] = dict(d["camera"], width=size, height=size)
     d["render"] = {"shading": shading, "specular": "blinn", "fog": "none", "per_light_ambient": True,
                    "spot_edge": "smooth", **render}
@@ -86,6 +91,26 @@ def test_scanned_lights_gradients_match_finite_differences():
                                          modes=("fwd", "rev"), atol=1e-6, rtol=1e-5))
 
 
+@pytest.mark.parametrize("shading", ["phong", "gouraud"])
+def test_shadows_over_the_light_axis_equal_the_unrolled_ones(shading):
+    scene, opts = many_lights_scene(6, 5, 5, size=12, shading=shading, wall=True, shadows=True,
+                                    shadow_resolution=24, shadow_pcf=3)
+    ids = ds.scene_visibility(scene, opts)
+    params, rest = eqx.partition(scene, eqx.is_inexact_array)
+
+    def f(p):
+        return ds.render(eqx.combine(p, rest), opts, ids)
+
+    rng = np.random.default_rng(2)
+    tangent = jax.tree.map(lambda a: jnp.asarray(rng.normal(size=a.shape) * 0.01, a.dtype), params)
+    scanned = _with_unroll(2, lambda: jax.jvp(f, (params,), (tangent,)))
+    unrolled = _with_unroll(10 ** 6, lambda: jax.jvp(f, (params,), (tangent,)))
+    lit = ds.render(scene, opts.replace(shadows=False), ids)
+    assert float(jnp.sum(scanned[0] < lit - 1e-3)) > 5  # the shadows darken pixels
+    np.testing.assert_allclose(scanned[0], unrolled[0], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(scanned[1], unrolled[1], rtol=1e-10, atol=1e-12)
+
+
 def _program_size(scene, opts, ids):
     # a fresh function each time: the trace is not taken from JAX's cache
     return len(jax.jit(lambda s, i: ds.render(s, opts, i)).lower(scene, ids).as_text())
@@ -100,3 +125,11 @@ def test_program_size_does_not_grow_with_the_number_of_lights():
     scene, opts = many_lights_scene(8, 8, 8, size=8)
     unrolled = _with_unroll(10 ** 6, lambda: _program_size(scene, opts, ds.scene_visibility(scene, opts)))
     assert unrolled > 2 * sizes[0], (unrolled, sizes)  # unrolled, it does grow
+
+
+def test_program_size_with_shadows_does_not_grow_with_the_number_of_lights():
+    sizes = []
+    for n in (6, 24):
+        scene, opts = many_lights_scene(n, n, n, size=8, wall=True, shadows=True, shadow_resolution=16)
+        sizes.append(_program_size(scene, opts, ds.scene_visibility(scene, opts)))
+    assert sizes[1] <= sizes[0] * 1.02, sizes
