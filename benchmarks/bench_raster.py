@@ -56,7 +56,6 @@ def scenes(quick):
 
 def deodr_time(v, f, res, repeats):
     try:
-        import deodr
         from deodr import differentiable_renderer as dr
     except ImportError:
         return None

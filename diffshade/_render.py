@@ -12,7 +12,6 @@ and the next one (docs/model.md §2, §5).
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
