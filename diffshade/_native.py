@@ -74,7 +74,10 @@ def ensure_registered() -> str:
 
 
 def available() -> bool:
-    """Whether the native kernel can be used on this machine."""
+    """Whether the native kernel can be used here: it builds, and JAX's default device is the CPU
+    (it is a CPU kernel)."""
+    if jax.default_backend() != "cpu":
+        return False
     try:
         ensure_registered()
     except NativeUnavailable:

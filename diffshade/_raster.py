@@ -382,6 +382,9 @@ def resolve_backend(backend: Backend) -> str:
         return "jax"
     if backend not in ("native", "jax"):
         raise ValueError(f"backend must be 'auto', 'native' or 'jax', got {backend!r}")
+    if backend == "native" and jax.default_backend() != "cpu":
+        raise ValueError(f"backend='native' is a CPU kernel and JAX's default device is {jax.default_backend()!r}: "
+                         "use backend='auto' or 'jax' (the same visibility), or run JAX on the CPU (JAX_PLATFORMS=cpu)")
     return backend
 
 

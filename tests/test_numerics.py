@@ -202,7 +202,10 @@ def test_jvp_and_vmap_through_full_render():
 
 
 def _program(opts, scene):
-    return jax.jit(lambda s: ds.render(s, opts)).lower(scene).compile().as_text()
+    # shading only (visibility given): the rasterizer's program, the same for every option set
+    # (one custom call on CPU, a large pure-JAX program on a GPU), is not what is compared
+    ids = ds.scene_visibility(scene, opts)
+    return jax.jit(lambda s, i: ds.render(s, opts, i)).lower(scene, ids).compile().as_text()
 
 
 def test_only_the_terms_a_scene_uses_are_compiled():

@@ -14,7 +14,7 @@ from diffshade import _native
 from conftest import shared_mesh_dir
 from reference import brute_force
 
-BACKENDS = ["jax", pytest.param("native", marks=pytest.mark.skipif(not _native.available(), reason="no C++ compiler"))]
+BACKENDS = ["jax", pytest.param("native", marks=pytest.mark.skipif(not _native.available(), reason="native kernel unavailable: no C++ compiler, or JAX's default device is not the CPU"))]
 TIE = dict(tie_eps=1e-5, depth_eps=1e-5)
 
 
@@ -96,7 +96,7 @@ def test_shared_meshes_match_brute_force(name, meshes_dir):
         assert_matches_reference(ids, clip, f, 40, 2, min_checked=0.75)
 
 
-@pytest.mark.skipif(not _native.available(), reason="no C++ compiler")
+@pytest.mark.skipif(not _native.available(), reason="native kernel unavailable: no C++ compiler, or JAX's default device is not the CPU")
 def test_native_and_jax_agree_pixel_for_pixel(rng):
     # Bit-for-bit agreement, ties included: the bunny (which has duplicate faces, so exact depth
     # ties), a random soup, and a pixel-aligned grid whose edges and vertices pass through pixel
@@ -290,3 +290,15 @@ def test_bad_arguments_raise_clear_errors():
         ds.visibility(jnp.zeros((3, 4)), jnp.zeros((1, 3), int), (8, 8), layers=0)
     with pytest.raises(ValueError, match="backend"):
         ds.visibility(jnp.zeros((3, 4)), jnp.zeros((1, 3), int), (8, 8), backend="gpu")
+
+
+def test_native_backend_off_the_cpu_is_a_clear_error(monkeypatch):
+    # the native kernel is registered for the CPU only: with a GPU as JAX's default device, asking
+    # for it names the problem (not XLA's "no FFI handler registered"), and "auto" picks JAX
+    from diffshade import _raster
+
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    with pytest.raises(ValueError, match="CPU kernel.*'gpu'"):
+        _raster.resolve_backend("native")
+    assert _raster.resolve_backend("auto") == "jax"
+    assert not _native.available()
