@@ -4,6 +4,7 @@ A scene file::
 
     [mesh]
     path = "bunny.ply"          # relative to the scene file; or: icosphere = 3 (subdivisions)
+    vertices = "authored"       # the file's vertices and normals (default); "merged": merged by position
     [camera]
     eye = [0, 0, 3]; target = [0, 0, 0]; up = [0, 1, 0]
     fov_y = 45.0; near = 0.1; far = 100.0; width = 256; height = 256
@@ -49,6 +50,12 @@ lobe as a spot light's keys, with its own colour and per-light ambient)::
     lobes = [{ axis = [0, -1, -1], cutoff = 30, exponent = 4, color = [1, 0.2, 0.2] },
              { axis = [1, -1, -1], cutoff = 20, edge = 5, color = [0.2, 0.2, 1] }]
 
+A light's ``color`` is its diffuse and specular colour; ``specular = [r, g, b]`` gives it a
+separate specular colour (OpenGL's ``GL_DIFFUSE`` / ``GL_SPECULAR``), and ``ambient`` its
+per-light ambient colour (used with ``render.per_light_ambient``). ``render.compat = "opengl"``
+starts from OpenGL's fixed-function choices (:meth:`RenderOptions.opengl`); other ``[render]``
+keys override them.
+
 Every error names the file, the field and the allowed range.
 """
 
@@ -62,7 +69,7 @@ from typing import Any
 import numpy as np
 
 from ._camera import Camera
-from ._mesh import Mesh, MeshError, box, combine, icosphere, load_mesh, quad
+from ._mesh import VERTEX_MODES, Mesh, MeshError, box, combine, icosphere, load_mesh, quad
 from ._scene import (
     AreaLights,
     DirectionalLights,
@@ -153,9 +160,14 @@ def _options(v: _V, r: dict) -> RenderOptions:
     import dataclasses
 
     fields = {f.name: f for f in dataclasses.fields(RenderOptions)}
-    v.unknown(r, fields, "render")
+    v.unknown(r, (*fields, "compat"), "render")
+    compat = r.get("compat", "diffshade")
+    if compat not in ("diffshade", "opengl"):
+        v.fail("render.compat", f"must be 'diffshade' (the defaults) or 'opengl' (OpenGL's fixed-function choices), got {compat!r}")
     kw = {}
     for k, x in r.items():
+        if k == "compat":
+            continue
         default = fields[k].default
         if isinstance(default, bool):
             if not isinstance(x, bool):
@@ -169,7 +181,7 @@ def _options(v: _V, r: dict) -> RenderOptions:
                 v.fail(f"render.{k}", f"must be a positive integer, got {x!r}")
         kw[k] = x
     try:
-        return RenderOptions(**kw)
+        return RenderOptions.opengl(**kw) if compat == "opengl" else RenderOptions(**kw)
     except ValueError as exc:
         v.fail("render", str(exc).replace("RenderOptions.", ""))
 
@@ -207,6 +219,8 @@ def _lights(v: _V, lights: list):
     if not isinstance(lights, list):
         v.fail("light", "must be an array of tables ([[light]])")
     groups: dict[str, list] = {"directional": [], "point": [], "spot": [], "area": [], "multi_lobe": []}
+    # separate specular colours (OpenGL's GL_SPECULAR) by kind and row; ``color`` sets both otherwise
+    specular: dict[str, dict[int, np.ndarray]] = {"directional": {}, "point": {}, "spot": {}}
     for i, l in enumerate(lights):
         w = f"light[{i}]"
         if not isinstance(l, dict):
@@ -214,7 +228,7 @@ def _lights(v: _V, lights: list):
         kind = l.get("type")
         if kind not in groups:
             v.fail(f"{w}.type", f"must be one of 'directional', 'point', 'spot', 'area', 'multi_lobe', got {kind!r}")
-        common = ("type", "color", "ambient")
+        common = ("type", "color", "ambient") + (("specular",) if kind in ("directional", "point", "spot") else ())
         if kind == "multi_lobe":
             v.unknown(l, ("type", "position", "attenuation", "lobes"), w)
             pos = v.vec(l, "position", w)
@@ -228,6 +242,8 @@ def _lights(v: _V, lights: list):
             continue
         color = v.vec(l, "color", w, default=[1.0, 1.0, 1.0], lo=0.0, scalar_ok=True)
         amb = v.vec(l, "ambient", w, default=[0.0, 0.0, 0.0], lo=0.0, scalar_ok=True)
+        if "specular" in l and kind in ("directional", "point", "spot"):
+            specular[kind][len(groups[kind])] = v.vec(l, "specular", w, lo=0.0, scalar_ok=True)
         if kind == "directional":
             v.unknown(l, common + ("direction",), w)
             groups[kind].append((color, v.vec(l, "direction", w, nonzero=True), amb))
@@ -258,15 +274,23 @@ def _lights(v: _V, lights: list):
     def stack(rows, k):
         return np.stack([r[k] for r in rows]) if rows else np.zeros((0, 3))
 
+    def spec(kind):
+        """The kind's specular colours (a light without its own takes its colour), or None."""
+        given = specular[kind]
+        return np.stack([given.get(i, r[0]) for i, r in enumerate(groups[kind])]) if given else None
+
     g = groups["directional"]
-    directional = DirectionalLights(color=stack(g, 0), direction=stack(g, 1), ambient=stack(g, 2)) if g else no_directional()
+    directional = (DirectionalLights(color=stack(g, 0), direction=stack(g, 1), ambient=stack(g, 2), specular=spec("directional"))
+                   if g else no_directional())
     g = groups["point"]
-    point = PointLights(color=stack(g, 0), position=stack(g, 1), attenuation=stack(g, 2), ambient=stack(g, 3)) if g else no_point()
+    point = (PointLights(color=stack(g, 0), position=stack(g, 1), attenuation=stack(g, 2), ambient=stack(g, 3), specular=spec("point"))
+             if g else no_point())
     g = groups["spot"]
     spot = (
         SpotLights(
             color=stack(g, 0), position=stack(g, 1), attenuation=stack(g, 2), ambient=stack(g, 3), axis=stack(g, 4),
             cutoff=np.array([r[5] for r in g]), exponent=np.array([r[6] for r in g]), edge=np.array([r[7] for r in g]),
+            specular=spec("spot"),
         )
         if g
         else no_spot()
@@ -300,7 +324,7 @@ def _spot_lobe(v: "_V", b: dict, w: str, lobe: bool = False):
     return color, amb, axis, cutoff, exponent, edge
 
 
-_MESH_KEYS = ("path", "icosphere", "radius", "box", "quad", "normal", "divisions")
+_MESH_KEYS = ("path", "vertices", "icosphere", "radius", "box", "quad", "normal", "divisions")
 
 
 def _mesh(v: _V, m: dict, where: str, base: Path | None) -> Mesh:
@@ -312,7 +336,7 @@ def _mesh(v: _V, m: dict, where: str, base: Path | None) -> Mesh:
         v.fail(where, "give exactly one of 'path' (a mesh file), 'icosphere' (subdivisions), 'box' (extents) or "
                       "'quad' (size)")
     kind = kinds[0]
-    for k, owner in (("radius", "icosphere"), ("normal", "quad"), ("divisions", "quad")):
+    for k, owner in (("radius", "icosphere"), ("normal", "quad"), ("divisions", "quad"), ("vertices", "path")):
         if k in m and kind != owner:
             v.fail(f"{where}.{k}", f"only applies to '{owner}'")
     if kind == "path":
@@ -321,8 +345,12 @@ def _mesh(v: _V, m: dict, where: str, base: Path | None) -> Mesh:
         p = Path(m["path"])
         if not p.is_absolute() and base is not None:
             p = base / p
+        mode = m.get("vertices", "authored")
+        if mode not in VERTEX_MODES:
+            v.fail(f"{where}.vertices", f"must be 'authored' (the file's vertices and normals, the default) or 'merged' "
+                                        f"(vertices merged by position, smooth normals computed), got {mode!r}")
         try:
-            return load_mesh(p)
+            return load_mesh(p, mode)
         except MeshError as exc:
             v.fail(f"{where}.path", str(exc))
     if kind == "icosphere":
@@ -372,7 +400,8 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
         mo = o.get("material", {})
         if not isinstance(mo, dict):
             v.fail(f"{w}.material", "must be a table")
-        parts.append((Mesh(vertices=np.asarray(m.vertices) * scale + shift, faces=m.faces),
+        nrm = None if m.normals is None else np.asarray(m.normals) / scale  # normals transform by the inverse
+        parts.append((Mesh(vertices=np.asarray(m.vertices) * scale + shift, faces=m.faces, normals=nrm),
                       _material(v, mo, f"{w}.material")))
     mesh = parts[0][0] if len(parts) == 1 else combine(*(p[0] for p in parts))
     material, extra = parts[0][1], tuple(p[1] for p in parts[1:])

@@ -27,12 +27,16 @@ class Mesh(eqx.Module):
     """Vertices (traced, differentiable) and triangles (integer data, counter-clockwise = front).
 
     ``material_ids`` (optional, one per face) picks each face's material in
-    :meth:`diffshade.Scene.all_materials`; without it every face uses material 0.
+    :meth:`diffshade.Scene.all_materials`; without it every face uses material 0. ``normals``
+    (optional, one per vertex) are the normals a mesh file gives (OBJ ``vn``, PLY ``nx ny nz``):
+    :meth:`vertex_normals` returns them, normalised, instead of computing them; they are data
+    (they do not follow the vertices in a fit that moves them).
     """
 
     vertices: Float[Array, "V 3"] = eqx.field(converter=as_float_array)
     faces: Int[Array, "F 3"] = eqx.field(converter=lambda f: jnp.asarray(f, dtype=jnp.int32))
     material_ids: Int[Array, " F"] | None = eqx.field(converter=_ids, default=None)
+    normals: Float[Array, "V 3"] | None = eqx.field(converter=lambda x: None if x is None else as_float_array(x), default=None)
 
     def face_normals(self, normalize: bool = True) -> Float[Array, "F 3"]:
         r"""Per-face normal :math:`(v_1 - v_0) \times (v_2 - v_0)` (unit length if ``normalize``).
@@ -47,7 +51,10 @@ class Mesh(eqx.Module):
         r"""Area-weighted vertex normals: :math:`\mathrm{normalize}(\sum_{f \ni v} (v_1 - v_0)\times(v_2 - v_0))`.
 
         docs/model.md §4. A vertex with no (non-degenerate) adjacent face gets the zero vector.
+        A mesh with file ``normals`` returns those, normalised.
         """
+        if self.normals is not None:
+            return safe_normalize(self.normals)
         n = self.face_normals(normalize=False)
         acc = jnp.zeros_like(self.vertices)
         for k in range(3):
@@ -92,15 +99,26 @@ def _check_obj_faces(path: Path) -> None:
                 )
 
 
-def load_mesh(path: str | Path) -> Mesh:
+VERTEX_MODES = ("authored", "merged")
+
+
+def load_mesh(path: str | Path, vertices: str = "authored") -> Mesh:
     """Load a triangle mesh (OBJ, PLY, STL, GLB, OFF, ... through trimesh).
 
-    Scenes are merged into one mesh; vertices that a format duplicates (STL facets, OBJ texture
-    seams) are merged by position, since diffshade shades geometry only. Vertex colours,
-    texture coordinates and materials in the file are not used. Raises :class:`MeshError` with
-    the file name for a missing or unreadable file, a mesh with no triangles, malformed faces or
-    non-finite vertex positions.
+    ``vertices = "authored"`` (the default) keeps the file's vertices as written, and its vertex
+    normals (OBJ ``vn``, PLY ``nx ny nz``) when it has them for every vertex: a mesh whose author
+    split vertices for hard edges, or wrote their own normals, is shaded as authored (as an
+    OpenGL program drawing the file would). Without file normals they are computed (area-weighted)
+    over the file's vertices, so split vertices keep hard edges (an STL's facets look flat).
+    ``vertices = "merged"`` merges vertices that coincide in position (ignoring normal, texture and
+    colour splits) and computes smooth normals: what a file of triangle soup needs to look smooth.
+
+    Scenes are merged into one mesh. Vertex colours, texture coordinates and materials in the file
+    are not used. Raises :class:`MeshError` with the file name for a missing or unreadable file, a
+    mesh with no triangles, malformed faces, non-finite vertex positions or normals.
     """
+    if vertices not in VERTEX_MODES:
+        raise MeshError(f"{path}: vertices must be one of {VERTEX_MODES}, got {vertices!r}")
     import trimesh
 
     path = Path(path)
@@ -113,24 +131,42 @@ def load_mesh(path: str | Path) -> Mesh:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            tm = trimesh.load(str(path), force="mesh", process=False)
+            loaded = trimesh.load(str(path), process=False)
+            # a scene's geometries, placed by its graph (a single mesh is its own part)
+            parts = [loaded] if isinstance(loaded, trimesh.Trimesh) else (
+                [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)] if isinstance(loaded, trimesh.Scene) else [])
     except Exception as exc:  # trimesh raises many types for unreadable files
         raise MeshError(f"{path}: could not read the mesh ({type(exc).__name__}: {exc})") from exc
-    if not isinstance(tm, trimesh.Trimesh) or len(getattr(tm, "faces", [])) == 0:
+    parts = [g for g in parts if len(getattr(g, "faces", [])) > 0]
+    if not parts:
         raise MeshError(f"{path}: the file has no triangles: nothing to render")
-    v = np.asarray(tm.vertices, dtype=np.float64)
-    f = np.asarray(tm.faces)
+    offsets = np.cumsum([0] + [len(g.vertices) for g in parts])
+    v = np.concatenate([np.asarray(g.vertices, dtype=np.float64) for g in parts])
+    f = np.concatenate([np.asarray(g.faces) + o for g, o in zip(parts, offsets[:-1])])
     bad = ~np.isfinite(v).all(axis=1)
     if bad.any():
         raise MeshError(
             f"{path}: {int(bad.sum())} vertex position(s) are NaN or infinite (first: vertex {int(np.argmax(bad))})"
         )
-    # Merge vertices that coincide (to trimesh's tolerance), ignoring UV/normal/colour splits:
-    # diffshade shades geometry only.
-    geom = trimesh.Trimesh(vertices=v, faces=f, process=False)
-    geom.merge_vertices(merge_tex=True, merge_norm=True)
-    v, f = validate_arrays(geom.vertices, geom.faces, str(path))
-    return Mesh(vertices=v, faces=f)
+    if vertices == "merged":
+        # Merge vertices that coincide (to trimesh's tolerance), ignoring UV/normal/colour splits.
+        geom = trimesh.Trimesh(vertices=v, faces=f, process=False)
+        geom.merge_vertices(merge_tex=True, merge_norm=True)
+        v, f = validate_arrays(geom.vertices, geom.faces, str(path))
+        return Mesh(vertices=v, faces=f)
+    v, f = validate_arrays(v, f, str(path))
+    # trimesh keeps normals read from the file in its cache (and computes them only on request)
+    file_normals = [g._cache.cache.get("vertex_normals") for g in parts]
+    normals = None
+    if all(n is not None and np.shape(n) == (len(g.vertices), 3) for n, g in zip(file_normals, parts)):
+        normals = np.concatenate([np.asarray(n, np.float64) for n in file_normals])
+        bad = ~np.isfinite(normals).all(axis=1)
+        if bad.any():
+            raise MeshError(f"{path}: {int(bad.sum())} vertex normal(s) are NaN or infinite (first: vertex {int(np.argmax(bad))})")
+        zero = np.linalg.norm(normals, axis=1) == 0
+        if zero.any():  # a zero normal shades nothing: computed ones stand in for those
+            normals[zero] = np.asarray(Mesh(vertices=v, faces=f).vertex_normals())[zero]
+    return Mesh(vertices=v, faces=f, normals=normals)
 
 
 def icosphere(subdivisions: int = 3, radius: float = 1.0) -> Mesh:
@@ -162,7 +198,10 @@ def combine(*meshes: Mesh) -> Mesh:
         faces.append(m.faces + offset)
         ids.append(jnp.full(m.faces.shape[0], i, jnp.int32))
         offset += m.vertices.shape[0]
-    return Mesh(vertices=jnp.concatenate(verts), faces=jnp.concatenate(faces), material_ids=jnp.concatenate(ids))
+    # file normals kept where a mesh has them (the others' are computed once, here)
+    normals = None if all(m.normals is None for m in meshes) else jnp.concatenate([m.vertex_normals() for m in meshes])
+    return Mesh(vertices=jnp.concatenate(verts), faces=jnp.concatenate(faces), material_ids=jnp.concatenate(ids),
+                normals=normals)
 
 
 def box(extents=(1.0, 1.0, 1.0), center=(0.0, 0.0, 0.0)) -> Mesh:

@@ -41,7 +41,11 @@ def _light_sum(P, n, v, mat: Material, scene: Scene, opts: RenderOptions, back: 
     smooth = opts.spot_edge == "smooth"
     kd, ks, ka, kt = _rgb(mat.diffuse), _rgb(mat.specular), _rgb(mat.ambient), _rgb(mat.transmission)
 
-    def terms(l, att, color, amb):
+    separate = opts.clamp and opts.clamp_at == "vertex" and opts.color_sum == "separate"
+
+    def terms(l, att, color, amb, spec_color=None):
+        """One light's direct terms (3 components; 6 with the specular ones apart, for
+        ``color_sum = "separate"``) and per-light ambient term."""
         ndl = S.dot(n, l)
         # Scalar factors shared by the three channels, computed once per point.
         dif = S.lambert(ndl) if opts.diffuse else None
@@ -63,21 +67,34 @@ def _light_sum(P, n, v, mat: Material, scene: Scene, opts: RenderOptions, back: 
         dif = next(kept) if dif is not None else None
         spec = next(kept) if spec is not None else None
         trans = next(kept) if trans is not None else None
-        acc = [0.0, 0.0, 0.0]
+        acc = [0.0, 0.0, 0.0]  # terms lit by the diffuse colour
         if dif is not None:
             acc = [acc[c] + kd[c] * dif for c in range(3)]
-        if spec is not None:
-            ws = ks if opts.fresnel == "none" else (1.0, 1.0, 1.0)
-            acc = [acc[c] + ws[c] * spec for c in range(3)]
         if trans is not None:
             acc = [acc[c] + kt[c] * trans for c in range(3)]
-        direct = [att * (acc[c] * color[c]) for c in range(3)]
+        sacc = None  # the specular terms
+        if spec is not None:
+            ws = ks if opts.fresnel == "none" else (1.0, 1.0, 1.0)
+            sacc = [ws[c] * spec for c in range(3)]
+        if spec_color is None and not separate:
+            if sacc is not None:
+                acc = [acc[c] + sacc[c] for c in range(3)]
+            direct = [att * (acc[c] * color[c]) for c in range(3)]
+        else:
+            sc = color if spec_color is None else spec_color
+            d = [att * (acc[c] * color[c]) for c in range(3)]
+            sd = [att * (sacc[c] * sc[c]) for c in range(3)] if sacc is not None else [0.0, 0.0, 0.0]
+            direct = d + sd if separate else [d[c] + sd[c] for c in range(3)]
         ambient = [att * (ka[c] * amb[c]) for c in range(3)] if opts.per_light_ambient else None
         return direct, ambient
 
+    def spec_of(li):
+        sp = getattr(li, "specular", None)
+        return None if sp is None else _rgb(sp)
+
     def directional(li):
         l = S.neg(S.normalize(_rgb(li.direction)))
-        return terms(l, 1.0, _rgb(li.color), _rgb(li.ambient))
+        return terms(l, 1.0, _rgb(li.color), _rgb(li.ambient), spec_of(li))
 
     def positional(li, is_spot):
         L = S.sub(_rgb(li.position), P)
@@ -85,7 +102,7 @@ def _light_sum(P, n, v, mat: Material, scene: Scene, opts: RenderOptions, back: 
         att = S.radial_attenuation(S.norm(L), _rgb(li.attenuation))
         if is_spot:
             att = att * S.spot_factor(l, _rgb(li.axis), li.cutoff, li.exponent, li.edge, smooth)
-        return terms(l, att, _rgb(li.color), _rgb(li.ambient))
+        return terms(l, att, _rgb(li.color), _rgb(li.ambient), spec_of(li))
 
     def emitter(li):
         # a directed point emitter of an area light: no light behind it (docs/model.md §1)
@@ -123,7 +140,7 @@ def _light_sum(P, n, v, mat: Material, scene: Scene, opts: RenderOptions, back: 
             if post is not None:
                 d = post(d)
             if s_i is not None:
-                d = [s_i * d[k] for k in range(3)]
+                d = [s_i * x for x in d]
             return d, a
 
         if lights.count > LIGHTS_UNROLLED:
@@ -136,7 +153,7 @@ def _light_sum(P, n, v, mat: Material, scene: Scene, opts: RenderOptions, back: 
                 direct.append(d)
                 ambient.append(a)
     amb = _sum(ambient) if opts.per_light_ambient and ambient else None
-    return _sum(direct), amb
+    return _sum(direct, 6 if separate else 3), amb
 
 
 class _Emitters(Lights):
@@ -190,13 +207,13 @@ def _scan_lights(one, lights, vis):
     return d, a
 
 
-def _sum(cols):
-    """Sum of colour tuples (None entries skipped); ``[0, 0, 0]`` if there are none."""
+def _sum(cols, width: int = 3):
+    """Sum of colour tuples (None entries skipped); ``width`` zeros if there are none."""
     acc = None
     for c in cols:
         if c is not None:
-            acc = list(c) if acc is None else [acc[k] + c[k] for k in range(3)]
-    return acc if acc is not None else [0.0, 0.0, 0.0]
+            acc = list(c) if acc is None else [a + b for a, b in zip(acc, c)]
+    return acc if acc is not None else [0.0] * width
 
 
 def shade_points(P, n, eye, mat: Material, scene: Scene, opts: RenderOptions, back: bool = False, shadow=None, post=None):
@@ -205,8 +222,13 @@ def shade_points(P, n, eye, mat: Material, scene: Scene, opts: RenderOptions, ba
     :math:`S_i`) multiplies each light's direct terms. With ``post`` (a map of one light's direct
     terms to other points, applied before ``shadow``) the result is ``(base, direct)``: the
     unshadowed part at ``P`` and the lights' shadowed direct terms at ``post``'s points.
-    ``back`` marks back-facing fragments (the viewer inside the material, for refraction)."""
-    v = S.normalize(S.sub(_rgb(eye), P))
+    ``back`` marks back-facing fragments (the viewer inside the material, for refraction).
+    With ``color_sum = "separate"`` and ``clamp_at = "vertex"`` the colour has 6 components:
+    the primary colour (all but specular) and the secondary (specular) one."""
+    if opts.viewer == "infinite":  # the eye-space +z axis, in world coordinates
+        v = tuple(jnp.broadcast_to(c, jnp.shape(P[0])) for c in _rgb(scene.camera.view_matrix()[2, :3]))
+    else:
+        v = S.normalize(S.sub(_rgb(eye), P))
     direct, ambient = _light_sum(P, n, v, mat, scene, opts, back, shadow, post)
     base = ambient if ambient is not None else [0.0, 0.0, 0.0]
     if opts.ambient:
@@ -216,11 +238,11 @@ def shade_points(P, n, eye, mat: Material, scene: Scene, opts: RenderOptions, ba
     shape = jnp.shape(P[0])
 
     def full(c):
-        return tuple(jnp.broadcast_to(c[k], shape) for k in range(3))
+        return tuple(jnp.broadcast_to(x, shape) for x in c)
 
     if post is not None:
         return full(base), direct
-    return full([base[k] + direct[k] for k in range(3)])
+    return full([base[k] + direct[k] for k in range(3)] + list(direct[3:]))
 
 
 def _back_material(scene: Scene, opts: RenderOptions) -> Material:
@@ -228,7 +250,19 @@ def _back_material(scene: Scene, opts: RenderOptions) -> Material:
 
 
 def _select(front, a, b):
-    return tuple(jnp.where(front, a[c], b[c]) for c in range(3))
+    return tuple(jnp.where(front, x, y) for x, y in zip(a, b))
+
+
+def _vertex_clamp(col, opts: RenderOptions):
+    """``col`` clamped to [0, 1] where ``clamp_at = "vertex"`` asks for it (before interpolation)."""
+    if opts.clamp and opts.clamp_at == "vertex":
+        return tuple(jnp.clip(c, 0.0, 1.0) for c in col)
+    return tuple(col)
+
+
+def _color_sum(col):
+    """The primary plus the secondary colour (``color_sum = "separate"``: 6 components), else ``col``."""
+    return tuple(col[k] + col[k + 3] for k in range(3)) if len(col) == 6 else tuple(col)
 
 
 _MATERIAL_FIELDS = ("emission", "ambient", "diffuse", "specular", "shininess", "ior", "opacity", "kay_min",
@@ -349,12 +383,16 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=No
     need_kay = opts.transparency and any(kay)
     n_px = None  # the pixel's unit normal, where Kay's opacity needs it
 
+    if opts.shadows and opts.clamp and opts.clamp_at == "vertex" and opts.shading != "phong":
+        raise ValueError("clamp_at='vertex' clamps unshadowed vertex colours: with shadows, clamp per pixel "
+                         "(clamp_at='pixel'; OpenGL's fixed function has no shadows to follow)")
     if opts.shading == "phong":
         n = _keep(*S.normalize(lerp(S.vec(mesh.vertex_normals()))))
         n_px = n
         color = shade_points(P, n, eye, pmat, scene, opts, shadow=shadow)
         if opts.two_sided:
             color = _select(front, color, shade_points(P, S.neg(n), eye, back_mat, scene, opts, True, shadow))
+        color = _color_sum(_vertex_clamp(color, opts))
     elif opts.shading == "gouraud":
         # Lighting at the vertices (at each face's corners when faces have different materials),
         # interpolated; with shadows each light's part is interpolated apart and multiplied by S.
@@ -371,7 +409,8 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=No
 
         def side(normal, mat, back):
             if shadow is None:
-                return interp(_keep(*shade_points(pts, normal, eye, mat, scene, opts, back)))
+                lit = _vertex_clamp(shade_points(pts, normal, eye, mat, scene, opts, back), opts)
+                return _color_sum(interp(_keep(*lit)))
             post = lambda d: interp(_keep(*d))  # noqa: E731
             base, direct = shade_points(pts, normal, eye, mat, scene, opts, back, shadow, post)
             return tuple(b + d for b, d in zip(interp(_keep(*base)), direct))
@@ -381,16 +420,20 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=No
             color = _select(front, color, side(S.neg(nrm), vback, True))
         if need_kay:
             n_px = S.normalize(lerp(S.vec(vn)))
-    else:  # flat: lighting once per triangle, at its centroid
-        tri = mesh.vertices[mesh.faces]
-        centroid = S.vec(jnp.mean(tri, axis=1))
-        fn = S.vec(mesh.face_normals())
+    else:  # flat: lighting once per triangle, at its centroid or its provoking (last) vertex
+        if opts.flat_source == "provoking":
+            last = mesh.faces[:, 2]
+            centroid = S.vec(mesh.vertices[last])
+            fn = _keep(*S.vec(mesh.vertex_normals()[last]))
+        else:
+            centroid = S.vec(jnp.mean(mesh.vertices[mesh.faces], axis=1))
+            fn = S.vec(mesh.face_normals())
         fmat = _material_at(mats, mesh.material_ids, used) if multi else scene.material
         fback = fmat if multi else back_mat
 
         def side(normal, mat, back):
             if shadow is None:
-                cf = _keep(*shade_points(centroid, normal, eye, mat, scene, opts, back))
+                cf = _keep(*_color_sum(_vertex_clamp(shade_points(centroid, normal, eye, mat, scene, opts, back), opts)))
                 return tuple(c[safe_tid] for c in cf)
             gather = lambda col: tuple(c[safe_tid] for c in _keep(*col))  # noqa: E731
             base, direct = shade_points(centroid, normal, eye, mat, scene, opts, back, shadow, gather)
@@ -400,14 +443,18 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=No
         if opts.two_sided:
             color = _select(front, color, side(S.neg(fn), fback, True))
         if need_kay:
-            n_px = tuple(c[safe_tid] for c in fn)
+            n_px = tuple(c[safe_tid] for c in S.vec(mesh.face_normals()))
 
-    if opts.clamp:
+    if opts.clamp and opts.clamp_at == "pixel":
         color = tuple(jnp.clip(c, 0.0, 1.0) for c in color)
     if opts.fog != "none":
         dist = frags.w if opts.fog_distance == "depth" else S.distance(P, _rgb(eye))
         f = S.fog_factor(dist, opts.fog, scene.fog.start, scene.fog.end, scene.fog.density)
         color = S.apply_fog(color, f, _rgb(scene.fog.color))
+    if opts.clamp and opts.clamp_at == "vertex":
+        # OpenGL clamps the vertex colours, and then the final fragment colour (after the colour
+        # sum and fog; only a separate specular sum can leave [0, 1] before it)
+        color = tuple(jnp.clip(c, 0.0, 1.0) for c in color)
     if not layered:
         out = [jnp.where(valid[0], color[c][0], scene.background[c]) for c in range(3)]
         return jnp.stack(out, axis=-1)

@@ -80,8 +80,16 @@ class Material(eqx.Module):
     casts_shadow: bool = eqx.field(static=True, default=True)
 
 
+def _opt_rows(x):
+    return None if x is None else _rows(3)(x)
+
+
 class Lights(eqx.Module):
-    """A structure of arrays of lights of one kind: one row per light in every field."""
+    """A structure of arrays of lights of one kind: one row per light in every field.
+
+    ``color`` is the light's diffuse and specular colour :math:`I_p`; a kind with a ``specular``
+    array (OpenGL's separate ``GL_DIFFUSE`` and ``GL_SPECULAR``) uses ``color`` for the diffuse
+    and transmission terms and ``specular`` for the specular term."""
 
     color: eqx.AbstractVar[Float[Array, "N 3"]]
 
@@ -96,6 +104,7 @@ class DirectionalLights(Lights):
     color: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
     direction: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
     ambient: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
+    specular: Float[Array, "N 3"] | None = eqx.field(converter=_opt_rows, default=None)
 
 
 class PointLights(Lights):
@@ -105,6 +114,7 @@ class PointLights(Lights):
     position: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
     attenuation: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
     ambient: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
+    specular: Float[Array, "N 3"] | None = eqx.field(converter=_opt_rows, default=None)
 
 
 class SpotLights(Lights):
@@ -119,6 +129,7 @@ class SpotLights(Lights):
     cutoff: Float[Array, " N"] = eqx.field(converter=_vec)
     exponent: Float[Array, " N"] = eqx.field(converter=_vec)
     edge: Float[Array, " N"] = eqx.field(converter=_vec)
+    specular: Float[Array, "N 3"] | None = eqx.field(converter=_opt_rows, default=None)
 
 
 class AreaLights(Lights):
@@ -215,6 +226,10 @@ FogMode = Literal["none", "linear", "exp", "exp2"]
 FogDistance = Literal["euclidean", "depth"]
 SpotEdge = Literal["hard", "smooth"]
 Interpolation = Literal["perspective", "affine"]
+ClampAt = Literal["pixel", "vertex"]
+FlatSource = Literal["centroid", "provoking"]
+Viewer = Literal["local", "infinite"]
+ColorSum = Literal["single", "separate"]
 
 _CHOICES = {
     "shading": ("flat", "gouraud", "phong"),
@@ -225,6 +240,10 @@ _CHOICES = {
     "spot_edge": ("hard", "smooth"),
     "interpolation": ("perspective", "affine"),
     "backend": ("auto", "native", "jax"),
+    "clamp_at": ("pixel", "vertex"),
+    "flat_source": ("centroid", "provoking"),
+    "viewer": ("local", "infinite"),
+    "color_sum": ("single", "separate"),
 }
 
 
@@ -249,6 +268,23 @@ class RenderOptions:
     - ``shadows``: a shadow map per light (``shadow_resolution`` texels square; six for a point
       light), compared with receiver-plane depth and ``Scene.shadow_bias``; ``shadow_pcf`` is the
       side of the percentage-closer filter kernel (1 = none).
+
+    OpenGL's fixed-function choices (docs/model.md §2 "OpenGL compatibility"; the defaults are
+    diffshade's own, :meth:`opengl` sets all of OpenGL's):
+
+    - ``clamp_at`` (with ``clamp``): ``"pixel"`` clamps the interpolated colour; ``"vertex"``
+      clamps each vertex's lit colour before Gouraud interpolation, as OpenGL does
+      (:math:`I_{px} = \sum_j b_j \operatorname{clamp}(I_j)` instead of
+      :math:`\operatorname{clamp}(\sum_j b_j I_j)`); the same for Phong and flat shading.
+    - ``flat_source``: flat shading lights the triangle's ``"centroid"`` with its face normal, or
+      its ``"provoking"`` vertex (the last, OpenGL's default) with that vertex's normal.
+    - ``viewer``: ``"local"`` (:math:`v` towards the eye from each point) or ``"infinite"``
+      (:math:`v` the eye-space :math:`+z` axis everywhere, OpenGL's default
+      ``GL_LIGHT_MODEL_LOCAL_VIEWER = false``); it changes the specular terms only.
+    - ``color_sum``: ``"single"`` (``GL_SINGLE_COLOR``) clamps the vertex colour as one sum;
+      ``"separate"`` (``GL_SEPARATE_SPECULAR_COLOR``) clamps and interpolates the specular terms
+      apart from the rest and adds them per pixel. It differs only with ``clamp_at = "vertex"``
+      under Gouraud shading (per pixel, both give :math:`\min(1, P + S)`).
     """
 
     shading: Shading = "phong"
@@ -274,6 +310,21 @@ class RenderOptions:
     shadow_resolution: int = 512
     shadow_pcf: int = 1
     area_grid: tuple[int, int] = (4, 4)
+    clamp_at: ClampAt = "pixel"
+    flat_source: FlatSource = "centroid"
+    viewer: Viewer = "local"
+    color_sum: ColorSum = "single"
+
+    @classmethod
+    def opengl(cls, **overrides) -> "RenderOptions":
+        """OpenGL's fixed-function pipeline: Gouraud shading, Blinn–Phong specular, per-light
+        ambient and emission, colours clamped per vertex, flat shading from the provoking vertex,
+        an infinite viewer, ``GL_SINGLE_COLOR``, one-sided lighting and fog by eye-space depth.
+        ``overrides`` change any of them (``shading="flat"``, ``viewer="local"``, ...)."""
+        base = dict(shading="gouraud", specular="blinn", per_light_ambient=True, emission=True, clamp=True,
+                    clamp_at="vertex", flat_source="provoking", viewer="infinite", color_sum="single",
+                    two_sided=False, fog_distance="depth")
+        return cls(**{**base, **overrides})
 
     def __post_init__(self):
         for name, allowed in _CHOICES.items():

@@ -341,8 +341,7 @@ def _bounded_fixed(prob, theta, fixed):
     out = []
     for i in np.flatnonzero(fixed):
         p = prob.pset.params[np.searchsorted(prob.pset.offsets, i, side="right") - 1]
-        lo = p.bounds[0] if p.bounds else 0.0
-        out.append((i, lo))
+        out.append((i, p.box[0]))
     return out
 
 
@@ -351,9 +350,9 @@ def _polish(ev, prob, red, theta, steps, rtol):
     residual, in float64 on the program's evaluation ``ev``. Scalars on a bound whose gradient
     points outside stay there. Returns ``(θ, r, J, img, fixed, evaluations, converged)``."""
     pset, dt = prob.pset, prob.dtype
-    lo = np.concatenate([np.full(p.size, p.bounds[0] if p.bounds else 0.0) for p in pset.params])
-    hi = np.concatenate([np.full(p.size, p.bounds[1] if p.bounds else np.inf) for p in pset.params])
-    pos = np.concatenate([np.full(p.size, p.bounds is None and p.path[-1] not in
+    lo = np.concatenate([np.full(p.size, p.box[0]) for p in pset.params])
+    hi = np.concatenate([np.full(p.size, p.box[1]) for p in pset.params])
+    pos = np.concatenate([np.full(p.size, p.domain == "positive" and p.path[-1] not in
                                   ("color", "ambient", "emission")) for p in pset.params])
     lin = np.zeros(len(theta), bool)
     lin[red.idx_l] = True

@@ -8,14 +8,17 @@ through an unconstrained ``u``:
 - ``positive`` (exponent m, Kay's p, absorption μ, attenuation a_i, fog density, light colours,
   emission):
   ``θ = exp(u)``, so the solver works on a log scale (m from 1 to 10⁴ is one scale);
-- ``interval(lo, hi)`` (spot cutoff, index of refraction): ``θ = lo + (hi - lo) sigmoid(u)``.
+- ``interval(lo, hi)`` (spot cutoff, index of refraction): ``θ = lo + (hi - lo) sigmoid(u)``;
+- ``real`` (a light's position, x y z in scene units): ``θ = u``.
 
 Names: ``material.<field>``, ``material[i].<field>`` (material id ``i`` of a multi-material
 scene; ``material[0]`` is ``material``) and ``back_material.<field>`` (emission, ambient, diffuse,
 specular, shininess, ior, opacity, kay_min, kay_max, kay_power, transmission, absorption); ``ambient_light``; ``<kind>[i].<field>`` with kind ``directional``, ``point``,
-``spot`` or ``area`` and field ``color``, ``ambient``, ``a0``/``a1``/``a2`` (attenuation), ``cutoff``,
+``spot`` or ``area`` and field ``color``, ``specular`` (a separate specular colour, where the scene gives
+one), ``ambient``, ``a0``/``a1``/``a2`` (attenuation), ``position``
+(not directional), ``cutoff``,
 ``exponent``, ``edge`` (spot), ``width``, ``height`` (area: with the colour, a gauge for a distant
-receiver, which sees only the power); ``multi_lobe[i].<a0|a1|a2>`` (shared by the lobes) and
+receiver, which sees only the power); ``multi_lobe[i].<position|a0|a1|a2>`` (shared by the lobes) and
 ``multi_lobe[i].lobe[j].<color|ambient|cutoff|exponent|edge>``; ``fog.<field>`` (color, start, end, density). RGB fields are per channel
 unless listed as shared (one value for the three channels).
 """
@@ -44,7 +47,8 @@ _MATERIAL = {
     "kay_power": "positive", "transmission": "unit", "absorption": "positive",
 }
 _LIGHT = {"color": "positive", "ambient": "positive", "a0": "positive", "a1": "positive", "a2": "positive",
-          "cutoff": (0.0, 90.0), "exponent": "positive", "edge": (0.0, 90.0), "width": "positive", "height": "positive"}
+          "cutoff": (0.0, 90.0), "exponent": "positive", "edge": (0.0, 90.0), "width": "positive", "height": "positive",
+          "position": "real", "specular": "positive"}
 _SIZE = {"width": 0, "height": 1}  # an area light's size[i, k]
 _KINDS = ("directional", "point", "spot", "area", "multi_lobe")
 _LOBE = {"color", "ambient", "cutoff", "exponent", "edge"}
@@ -60,6 +64,8 @@ def _domain_str(domain) -> str:
         return "[0, 1]"
     if domain == "positive":
         return "(0, inf)"
+    if domain == "real":
+        return "(-inf, inf)"
     return f"[{domain[0]}, {domain[1]}]"
 
 
@@ -76,7 +82,7 @@ class Param:
     name: str
     path: tuple  # ("material", "diffuse") / ("point", 0, "a1") / ("multi_lobe", 0, 1, "color") / ("fog", "density")
     size: int  # 3 for a per-channel RGB field, else 1
-    domain: object  # "unit" | "positive" | (lo, hi)
+    domain: object  # "unit" | "positive" | "real" | (lo, hi)
 
     def get(self, scene: ds.Scene):
         return self._leaf(scene)
@@ -127,13 +133,22 @@ class Param:
     # -- reparametrisation -----------------------------------------------------------------
     @property
     def bounds(self) -> tuple[float, float] | None:
-        """``(lo, hi)`` of a bounded domain ([0, 1] or an interval); None for a positive one."""
-        if self.domain == "positive":
+        """``(lo, hi)`` of a bounded domain ([0, 1] or an interval); None for a positive or real one."""
+        if self.domain in ("positive", "real"):
             return None
         return (0.0, 1.0) if self.domain == "unit" else self.domain
 
+    @property
+    def box(self) -> tuple[float, float]:
+        """The domain as ``(lo, hi)``, infinite ends included (a positive one is ``(0, inf)``)."""
+        if self.domain == "real":
+            return (-np.inf, np.inf)
+        return self.bounds or (0.0, np.inf)
+
     def to_u(self, theta):
         theta = jnp.asarray(theta)
+        if self.domain == "real":
+            return theta
         if self.bounds is None:
             return jnp.log(jnp.maximum(theta, 1e-30))
         lo, hi = self.bounds
@@ -141,6 +156,8 @@ class Param:
         return jnp.log(t) - jnp.log1p(-t)
 
     def from_u(self, u):
+        if self.domain == "real":
+            return u
         if self.bounds is None:
             return jnp.exp(u)
         lo, hi = self.bounds
@@ -153,13 +170,14 @@ class Param:
             ok = ok and (v >= 0).all() and (v <= 1).all()
         elif self.domain == "positive":
             ok = ok and (v > 0).all()
-        else:
+        elif self.domain != "real":
             ok = ok and (v >= self.domain[0]).all() and (v <= self.domain[1]).all()  # a start on a bound is moved inside
         if not ok:
             raise ParamError(f"{self.name}: {what} {np.round(v, 6).tolist()} is outside its domain {_domain_str(self.domain)}")
 
     def labels(self) -> list[str]:
-        return [f"{self.name}[{'rgb'[c]}]" for c in range(3)] if self.size == 3 else [self.name]
+        axes = "xyz" if self.domain == "real" else "rgb"
+        return [f"{self.name}[{axes[c]}]" for c in range(3)] if self.size == 3 else [self.name]
 
 
 def parse(name: str, scene: ds.Scene, shared: bool = False) -> Param:
@@ -179,22 +197,28 @@ def parse(name: str, scene: ds.Scene, shared: bool = False) -> Param:
     m = _MULTI_RE.match(name)
     if m:
         i, field = int(m.group(1)), m.group(2)
-        if field not in ("a0", "a1", "a2"):
-            raise ParamError(f"unknown parameter {name!r}: a multi-lobe light has a0, a1, a2; its lobes have "
+        if field not in ("a0", "a1", "a2", "position"):
+            raise ParamError(f"unknown parameter {name!r}: a multi-lobe light has position, a0, a1, a2; its lobes have "
                              f"multi_lobe[{i}].lobe[j].<{'|'.join(sorted(_LOBE))}>")
         if i >= scene.multi_lobe.count:
             raise ParamError(f"unknown parameter {name!r}: the scene has {scene.multi_lobe.count} multi-lobe light(s)")
-        return Param(name, ("multi_lobe", i, field), 1, _LIGHT[field])
+        return Param(name, ("multi_lobe", i, field), 3 if field == "position" else 1, _LIGHT[field])
     m = _LIGHT_RE.match(name)
     if m:
         kind, i, field = m.group(1), int(m.group(2)), m.group(3)
         count = getattr(scene, kind).count
         if (field not in _LIGHT or (kind != "spot" and field in ("cutoff", "exponent", "edge"))
-                or (kind == "directional" and field[0] == "a" and field != "ambient") or (kind != "area" and field in _SIZE)):
+                or (kind == "directional" and (field[0] == "a" and field != "ambient" or field == "position"))
+                or (kind != "area" and field in _SIZE)):
             raise ParamError(f"unknown parameter {name!r}: a {kind} light has no field {field!r}")
         if i >= count:
             raise ParamError(f"unknown parameter {name!r}: the scene has {count} {kind} light(s)")
-        size = 3 if field in _RGB and not shared else 1
+        if field == "specular" and getattr(getattr(scene, kind), "specular", None) is None:
+            raise ParamError(f"{name}: the scene's {kind} lights have no separate specular colour (their colour sets "
+                             "both); give one with `specular = [r, g, b]` in the scene file")
+        size = 3 if (field in _RGB and not shared) or field == "position" else 1
+        if field == "position" and shared:
+            raise ParamError(f"{name}: a position has no shared form (x, y, z are separate)")
         return Param(name, (kind, i, field), size, _LIGHT[field])
     m = _MATERIAL_RE.match(name)
     if m:
@@ -219,8 +243,8 @@ def parse(name: str, scene: ds.Scene, shared: bool = False) -> Param:
         return Param(name, ("ambient_light",), 1 if shared else 3, "positive")
     raise ParamError(
         f"unknown parameter {name!r}; known: material.<{'|'.join(_MATERIAL)}>, material[i].<...> (material id i), "
-        "back_material.<...>, ambient_light, <directional|point|spot|area>[i].<color|ambient|a0|a1|a2|cutoff|exponent|edge"
-        "|width|height>, multi_lobe[i].<a0|a1|a2>, multi_lobe[i].lobe[j].<color|ambient|cutoff|exponent|edge>, "
+        "back_material.<...>, ambient_light, <directional|point|spot|area>[i].<color|specular|ambient|position|a0|a1|a2|cutoff|"
+        "exponent|edge|width|height>, multi_lobe[i].<position|a0|a1|a2>, multi_lobe[i].lobe[j].<color|ambient|cutoff|exponent|edge>, "
         "fog.<color|start|end|density>"
     )
 
@@ -266,7 +290,9 @@ class ParamSet:
         u = np.empty_like(th)
         for p, a, b in zip(self.params, self.offsets[:-1], self.offsets[1:]):
             v = th[..., a:b]
-            if p.bounds is None:
+            if p.domain == "real":
+                u[..., a:b] = v
+            elif p.bounds is None:
                 u[..., a:b] = np.log(np.maximum(v, 1e-30))
             else:
                 lo, hi = p.bounds

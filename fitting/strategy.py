@@ -44,12 +44,12 @@ from .problem import Problem
 
 _LINEAR_MATERIAL = {"emission", "ambient", "diffuse", "specular", "transmission"}
 # which material fields a light field multiplies (both free: the light's side is nonlinear)
-_PRODUCT = {"color": {"diffuse", "specular", "transmission"}, "ambient": {"ambient"}}
+_PRODUCT = {"color": {"diffuse", "specular", "transmission"}, "ambient": {"ambient"}, "specular": {"specular"}}
 
 
-def split_linear(pset, opts) -> tuple[list[int], dict[str, str]]:
+def split_linear(pset, opts, scene=None) -> tuple[list[int], dict[str, str]]:
     """Indices (into ``pset.params``) of the parameters the image is linear in, and for each other
-    parameter why it is not."""
+    parameter why it is not (``scene`` tells which light kinds have separate specular colours)."""
     names = [p.path for p in pset.params]
     free_mat_fields = {p.path[-1] for p in pset.params if p.path[0] in ("material", "materials", "back_material")}
     linear, why = [], {}
@@ -61,9 +61,12 @@ def split_linear(pset, opts) -> tuple[list[int], dict[str, str]]:
         if kind in ("material", "materials", "back_material"):
             ok = field in _LINEAR_MATERIAL
         elif kind in ("directional", "point", "spot", "area", "multi_lobe"):
-            ok = field in _PRODUCT and not (_PRODUCT[field] & free_mat_fields)
+            product = _PRODUCT.get(field, set())
+            if field == "color" and scene is not None and getattr(getattr(scene, kind), "specular", None) is not None:
+                product = product - {"specular"}  # a separate specular colour lights the specular term
+            ok = field in _PRODUCT and not (product & free_mat_fields)
             if field in _PRODUCT and not ok:
-                why[p.name] = f"multiplies a free material {'/'.join(sorted(_PRODUCT[field] & free_mat_fields))}"
+                why[p.name] = f"multiplies a free material {'/'.join(sorted(product & free_mat_fields))}"
                 continue
         elif p.path == ("ambient_light",):
             ok = "ambient" not in free_mat_fields
@@ -183,7 +186,7 @@ class Reduced:
     def __init__(self, prob: Problem, linear: bool = True):
         self.prob = prob
         pset = prob.pset
-        self.linear_params, self.why = split_linear(pset, prob.opts)
+        self.linear_params, self.why = split_linear(pset, prob.opts, prob.data[0].scene)
         if not linear:
             self.why.update({pset.params[i].name: "method = 'full' asked for" for i in self.linear_params})
             self.linear_params = []
@@ -197,8 +200,8 @@ class Reduced:
                     idx_l.append(j)
                     group.append(g)
                     chan.append(np.eye(3)[c] if p.size == 3 else np.ones(3))
-                    lo.append(p.bounds[0] if p.bounds else 0.0)
-                    hi.append(p.bounds[1] if p.bounds else np.inf)
+                    lo.append(p.box[0])
+                    hi.append(p.box[1])
             else:
                 idx_n.extend(sc)
         self.idx_l, self.idx_n = np.asarray(idx_l, int), np.asarray(idx_n, int)
@@ -312,12 +315,18 @@ def _halton(n: int, d: int, skip: int = 1) -> np.ndarray:
 
 
 def search_ranges(red: Reduced, theta0) -> list[tuple[str, float, float]]:
-    """``(scale, lo, hi)`` per nonlinear scalar: ``log`` for positive parameters, else ``lin``."""
+    """``(scale, lo, hi)`` per nonlinear scalar: ``log`` for positive parameters, else ``lin``
+    (a position: within half its distance from the origin, at least 0.5, of the start)."""
     out = []
+    pset = red.prob.pset
     for j in red.idx_n:
-        p: Param = red.prob.pset.params[red.param_of[j]]
+        k = red.param_of[j]
+        p: Param = pset.params[k]
         field, x0 = p.path[-1], float(theta0[j])
-        if p.bounds is None:
+        if p.domain == "real":
+            r = max(0.5, 0.5 * float(np.linalg.norm(np.asarray(theta0)[pset.offsets[k]:pset.offsets[k + 1]])))
+            out.append(("lin", x0 - r, x0 + r))
+        elif p.bounds is None:
             lo, hi = _RANGES.get(field, (x0 / 30.0, x0 * 30.0))
             if field == "shininess" and red.prob.opts.specular == "blinn":
                 lo, hi = 4 * lo, 4 * hi
@@ -336,6 +345,8 @@ def inside(pset, theta) -> np.ndarray:
     th = np.asarray(theta, np.float64).copy()
     for p, off in zip(pset.params, pset.offsets[:-1]):
         sl = slice(off, off + p.size)
+        if p.domain == "real":
+            continue
         if p.bounds is None:
             th[sl] = np.maximum(th[sl], 1e-6)
         else:

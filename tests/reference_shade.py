@@ -39,17 +39,22 @@ class Ref:
         self.s, self.o = s, opts
 
     # -- docs/model.md §1–2 at one point ------------------------------------------------------------
-    def point_color(self, P, n, mat, margin):
+    def point_color(self, P, n, mat, margin, parts=False):
+        """The colour at ``P`` (``parts``: the primary colour and the specular one apart)."""
         s, o = self.s, self.o
-        v = _n(s["eye"] - P)
+        if getattr(o, "viewer", "local") == "infinite":
+            v = _n(s["eye"] - s["target"])  # the eye-space +z axis
+        else:
+            v = _n(s["eye"] - P)
         c = np.zeros(3)
+        c_spec = np.zeros(3)
         lights = []
-        for col, d, amb in s["directional"]:
-            lights.append((col, -_n(d), 1.0, amb))
-        for col, pos, att, amb in s["point"]:
+        for col, d, amb, scol in s["directional"]:
+            lights.append((col, -_n(d), 1.0, amb, scol))
+        for col, pos, att, amb, scol in s["point"]:
             dist = np.linalg.norm(pos - P)
-            lights.append((col, _n(pos - P), 1.0 / max(att[0] + att[1] * dist + att[2] * dist**2, 1e-300), amb))
-        for col, pos, att, amb, axis, cut, expo, edge in s["spot"]:
+            lights.append((col, _n(pos - P), 1.0 / max(att[0] + att[1] * dist + att[2] * dist**2, 1e-300), amb, scol))
+        for col, pos, att, amb, axis, cut, expo, edge, scol in s["spot"]:
             dist = np.linalg.norm(pos - P)
             l = _n(pos - P)
             cc = float(np.dot(-l, _n(axis)))
@@ -63,11 +68,12 @@ class Ref:
                 t = np.clip((cc - cos_cut) / (cos_in - cos_cut), 0, 1)
                 fang = lobe * t * t * (3 - 2 * t)
                 margin.append(abs(cc - cos_in))
-            lights.append((col, l, fang / max(att[0] + att[1] * dist + att[2] * dist**2, 1e-300), amb))
-        for col, l, f, amb in lights:
+            lights.append((col, l, fang / max(att[0] + att[1] * dist + att[2] * dist**2, 1e-300), amb, scol))
+        for col, l, f, amb, scol in lights:
             ndl = float(np.dot(n, l))
             margin.append(abs(ndl))
             direct = np.zeros(3)
+            spec_term = np.zeros(3)
             if o.diffuse:
                 direct += mat["diffuse"] * max(ndl, 0.0)
             if o.specular != "none" and ndl > 0:
@@ -78,18 +84,19 @@ class Ref:
                     h = _n(l + v)
                     spec = _pow(float(np.dot(n, h)), mat["shininess"])
                 if o.fresnel == "none":
-                    direct += mat["specular"] * spec
+                    spec_term = mat["specular"] * spec
                 else:
-                    direct += self.fresnel(ndl, mat["ior"]) * spec
+                    spec_term = self.fresnel(ndl, mat["ior"]) * spec * np.ones(3)
             term = col * direct
             if o.per_light_ambient:
                 term = term + mat["ambient"] * amb
             c += f * term
+            c_spec += f * scol * spec_term
         if o.ambient:
             c += mat["ambient"] * s["ambient_light"]
         if o.emission:
             c += mat["emission"]
-        return c
+        return (c, c_spec) if parts else c + c_spec
 
     def fresnel(self, cos_t, eta):
         if self.o.fresnel == "schlick":
@@ -157,15 +164,27 @@ class Ref:
             n = sign * _n(wts @ s["normals"][f])
             color = self.point_color(Pi, n, bmat, margin)
         elif o.shading == "gouraud":
-            cols = [self.point_color(tri[k], sign * s["normals"][f[k]], bmat, []) for k in range(3)]
-            color = wts @ np.array(cols)
+            parts = [self.point_color(tri[k], sign * s["normals"][f[k]], bmat, [], parts=True) for k in range(3)]
+            if o.clamp and getattr(o, "clamp_at", "pixel") == "vertex":  # OpenGL: clamp, then interpolate
+                if o.color_sum == "separate":
+                    prim = np.array([np.clip(p, 0, 1) for p, _ in parts])
+                    sec = np.array([np.clip(q, 0, 1) for _, q in parts])
+                    color = wts @ prim + wts @ sec
+                else:
+                    color = wts @ np.array([np.clip(p + q, 0, 1) for p, q in parts])
+            else:
+                color = wts @ np.array([p + q for p, q in parts])
             Pi = wts @ tri
+        elif getattr(o, "flat_source", "centroid") == "provoking":  # the last vertex, its normal
+            color = self.point_color(tri[2], sign * s["normals"][f[2]], bmat, margin)
+            Pi = P
         else:
             cen = tri.mean(0)
             fn = _n(np.cross(tri[1] - tri[0], tri[2] - tri[0]))
             color = self.point_color(cen, sign * fn, bmat, margin)
             Pi = P
-        if o.clamp:
+        vertex_clamp = getattr(o, "clamp_at", "pixel") == "vertex"
+        if o.clamp and not vertex_clamp:
             color = np.clip(color, 0, 1)
         if o.fog != "none":
             dist = np.linalg.norm((wts @ tri if o.shading != "flat" else P) - s["eye"])
@@ -183,6 +202,8 @@ class Ref:
             else:
                 ff = np.exp(-((fog["density"] * dist) ** 2))
             color = ff * color + (1 - ff) * fog["color"]
+        if o.clamp and vertex_clamp:  # OpenGL: the final fragment colour is clamped after fog
+            color = np.clip(color, 0, 1)
         return color, min(margin), fi
 
     def image(self, pixels):

@@ -117,3 +117,29 @@ def test_fit_recovers_an_area_lights_colour_and_size():
     assert r.successful, r.result
     np.testing.assert_allclose(r.values, true, rtol=1e-4)
     assert "variable projection" in r.method  # the colour is linear, the size is not
+
+
+def test_fit_recovers_light_positions():
+    # a position is a real parameter (x, y, z; no bounds): an area light's and a point light's,
+    # moved by 0.2-0.4 units, come back from one image
+    from fitting.fit import fit
+    from fitting.params import ParamSet
+
+    d = dict(ds.DEFAULT_SCENE)
+    d["mesh"] = {"quad": [4, 4], "normal": [0, 0, 1]}
+    d["camera"] = dict(d["camera"], width=24, height=24, eye=[0.0, -1.0, 3.0])
+    d["render"] = {"shading": "phong", "specular": "blinn", "fog": "none", "area_grid": [3, 3]}
+    d.pop("fog", None)
+    d["light"] = [{"type": "area", "color": [1.5, 1.2, 0.9], "position": [0.3, 0.2, 0.6], "normal": [0, 0, -1],
+                   "size": [0.8, 0.5]},
+                  {"type": "point", "color": [0.4, 0.4, 0.5], "position": [-1.0, 0.5, 1.2], "attenuation": [1.0, 0.0, 0.3]}]
+    scene, opts = ds.scene_from_dict(d)
+    free = ["area[0].position", "point[0].position"]
+    pset = ParamSet(free, scene)
+    assert pset.labels[:3] == ["area[0].position[x]", "area[0].position[y]", "area[0].position[z]"]
+    true = np.asarray(pset.theta_of(scene), np.float64)
+    target = np.asarray(jax.jit(ds.render, static_argnames="opts")(scene, opts))
+    moved = true + np.array([0.2, -0.3, 0.2, 0.3, 0.4, -0.3])
+    r = fit(pset.apply(scene, jnp.asarray(moved, scene.mesh.vertices.dtype)), opts, target, free)
+    assert r.successful, r.result
+    np.testing.assert_allclose(r.values, true, atol=2e-4)

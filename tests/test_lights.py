@@ -93,8 +93,8 @@ def test_scanned_lights_gradients_match_finite_differences():
 
 @pytest.mark.parametrize("shading", ["phong", "gouraud"])
 def test_shadows_over_the_light_axis_equal_the_unrolled_ones(shading):
-    scene, opts = many_lights_scene(6, 5, 5, size=12, shading=shading, wall=True, shadows=True,
-                                    shadow_resolution=24, shadow_pcf=3)
+    scene, opts = many_lights_scene(3, 3, 3, size=10, shading=shading, wall=True, shadows=True,
+                                    shadow_resolution=16, shadow_pcf=3)
     ids = ds.scene_visibility(scene, opts)
     params, rest = eqx.partition(scene, eqx.is_inexact_array)
 
@@ -106,7 +106,7 @@ def test_shadows_over_the_light_axis_equal_the_unrolled_ones(shading):
     scanned = _with_unroll(2, lambda: jax.jvp(f, (params,), (tangent,)))
     unrolled = _with_unroll(10 ** 6, lambda: jax.jvp(f, (params,), (tangent,)))
     lit = ds.render(scene, opts.replace(shadows=False), ids)
-    assert float(jnp.sum(scanned[0] < lit - 1e-3)) > 5  # the shadows darken pixels
+    assert float(jnp.sum(scanned[0] < lit - 1e-3)) > 3  # the shadows darken pixels
     np.testing.assert_allclose(scanned[0], unrolled[0], rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(scanned[1], unrolled[1], rtol=1e-10, atol=1e-12)
 

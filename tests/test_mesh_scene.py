@@ -15,15 +15,21 @@ import diffshade as ds
     "name,faces", [("bunny.ply", 16301), ("fandisk.obj", 5750), ("featuretype.STL", 3476), ("fuze.obj", 1000), ("rabbit.obj", 1252)]
 )
 def test_shared_meshes_load(name, faces, meshes_dir):
-    m = ds.load_mesh(os.path.join(meshes_dir, name))
+    path = os.path.join(meshes_dir, name)
+    m = ds.load_mesh(path)
     assert m.faces.shape == (faces, 3)
     assert np.isfinite(np.asarray(m.vertices)).all()
-    # duplicated vertices (STL facets, OBJ seams) are merged
-    assert len(np.unique(np.asarray(m.vertices), axis=0)) == m.vertices.shape[0]
+    # as authored: the file's vertices, in its order
+    tm = trimesh.load(path, process=False)
+    np.testing.assert_array_equal(np.asarray(m.vertices), np.asarray(tm.vertices))
+    # merged: duplicated vertices (STL facets, OBJ seams) become one
+    mm = ds.load_mesh(path, vertices="merged")
+    assert mm.faces.shape == (faces, 3) and mm.normals is None
+    assert len(np.unique(np.asarray(mm.vertices), axis=0)) == mm.vertices.shape[0]
 
 
 def test_stl_is_closed_after_merging(meshes_dir):
-    m = ds.load_mesh(os.path.join(meshes_dir, "featuretype.STL"))
+    m = ds.load_mesh(os.path.join(meshes_dir, "featuretype.STL"), vertices="merged")
     assert trimesh.Trimesh(np.asarray(m.vertices), np.asarray(m.faces), process=False).is_watertight
 
 
@@ -36,9 +42,103 @@ def test_bad_meshes_are_rejected_clearly(name, msg, meshes_dir):
 
 
 def test_negative_indices_load_as_a_cube(meshes_dir):
-    m = ds.load_mesh(os.path.join(meshes_dir, "bad", "negative_indices.obj"))
+    m = ds.load_mesh(os.path.join(meshes_dir, "bad", "negative_indices.obj"), vertices="merged")
     assert m.vertices.shape == (8, 3) and m.faces.shape == (12, 3)
     assert trimesh.Trimesh(np.asarray(m.vertices), np.asarray(m.faces), process=False).is_watertight
+
+
+_CUBE_OBJ = """# a unit cube, one normal per face (hard edges), vertices shared between faces by position
+v -1 -1 -1
+v 1 -1 -1
+v 1 1 -1
+v -1 1 -1
+v -1 -1 1
+v 1 -1 1
+v 1 1 1
+v -1 1 1
+vn 0 0 -1
+vn 0 0 1
+vn 0 -1 0
+vn 0 1 0
+vn -1 0 0
+vn 1 0 0
+f 1//1 3//1 2//1
+f 1//1 4//1 3//1
+f 5//2 6//2 7//2
+f 5//2 7//2 8//2
+f 1//3 2//3 6//3
+f 1//3 6//3 5//3
+f 4//4 8//4 7//4
+f 4//4 7//4 3//4
+f 1//5 5//5 8//5
+f 1//5 8//5 4//5
+f 2//6 3//6 7//6
+f 2//6 7//6 6//6
+"""
+
+
+def test_meshes_load_as_authored_with_their_normals(tmp_path):
+    p = tmp_path / "cube.obj"
+    p.write_text(_CUBE_OBJ)
+    m = ds.load_mesh(p)
+    assert m.faces.shape == (12, 3) and m.vertices.shape == (24, 3) and m.normals is not None
+    # every corner carries its face's normal: hard edges
+    tri = np.asarray(m.vertices)[np.asarray(m.faces)]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    fn /= np.linalg.norm(fn, axis=1, keepdims=True)
+    vn = np.asarray(m.vertex_normals())[np.asarray(m.faces)]
+    np.testing.assert_allclose(vn, np.repeat(fn[:, None], 3, axis=1), atol=1e-12)
+    merged = ds.load_mesh(p, vertices="merged")
+    assert merged.vertices.shape == (8, 3) and merged.normals is None
+    assert abs(float(np.linalg.norm(merged.vertex_normals()[0])) - 1) < 1e-12
+    # Gouraud on the authored cube: each face one colour (a directional light, no specular),
+    # k_d (n·l)⁺ + k_a I_a exactly; merged, the faces blend
+    cam = ds.Camera(eye=[2.5, 2.0, 3.0], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.5, far=20.0, width=32, height=32)
+    light = ds.DirectionalLights(color=[[1.0, 1.0, 1.0]], direction=[[-0.3, -1.0, -0.6]], ambient=[[0, 0, 0]])
+    mat = ds.Material(ambient=0.1, diffuse=0.7, specular=0.0)
+    opts = ds.RenderOptions(shading="gouraud", specular="none")
+    out = []
+    for mesh in (m, merged):
+        scene = ds.Scene(mesh=mesh, camera=cam, material=mat, directional=light, ambient_light=[0.2, 0.2, 0.2])
+        ids = np.asarray(ds.scene_visibility(scene, opts)[0])
+        img = np.asarray(ds.render(scene, opts, jnp.asarray(ids[None])))
+        out.append((img, ids))
+    (img, ids), (img_m, _) = out
+    l = -np.array([-0.3, -1.0, -0.6]) / np.linalg.norm([-0.3, -1.0, -0.6])
+    expect = 0.7 * np.maximum(fn @ l, 0.0) + 0.02
+    seen = ids >= 0
+    np.testing.assert_allclose(img[seen][:, 0], expect[ids[seen]], atol=1e-6)
+    assert np.abs(img_m[seen][:, 0] - expect[ids[seen]]).max() > 0.05
+
+
+def test_file_normals_from_ply_scene_files_and_errors(tmp_path):
+    ply = tmp_path / "tri.ply"
+    ply.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+                   "property float nx\nproperty float ny\nproperty float nz\nelement face 1\n"
+                   "property list uchar int vertex_indices\nend_header\n"
+                   "0 0 0 0 0 2\n1 0 0 0 0.6 0.8\n0 1 0 0 0 1\n3 0 1 2\n")
+    m = ds.load_mesh(ply)
+    np.testing.assert_allclose(m.vertex_normals(), [[0, 0, 1], [0, 0.6, 0.8], [0, 0, 1]], atol=1e-7)
+    d = dict(ds.DEFAULT_SCENE)
+    d.pop("fog", None)
+    scene, _ = ds.scene_from_dict({**d, "mesh": {"path": str(ply)}})
+    assert scene.mesh.normals is not None
+    scene, _ = ds.scene_from_dict({**d, "mesh": {"path": str(ply), "vertices": "merged"}})
+    assert scene.mesh.normals is None
+    # an object scaled along z: its normals transform by the inverse scale
+    mat = {"diffuse": 0.5}
+    bare = {k: x for k, x in d.items() if k not in ("mesh", "material")}
+    scene, _ = ds.scene_from_dict({**bare, "object": [{"path": str(ply), "scale": [1, 1, 4], "material": mat},
+                                                   {"icosphere": 0, "translate": [3, 0, 0], "material": mat}]})
+    n = np.asarray(scene.mesh.vertex_normals())
+    np.testing.assert_allclose(n[1], np.array([0, 0.6, 0.2]) / np.linalg.norm([0, 0.6, 0.2]), atol=1e-7)
+    for mesh, msg in [({"path": str(ply), "vertices": "welded"}, "mesh.vertices"), ({"icosphere": 1, "vertices": "merged"}, "only applies")]:
+        with pytest.raises(ds.SceneError, match=msg):
+            ds.scene_from_dict({**d, "mesh": mesh})
+    bad = tmp_path / "nan_normal.obj"
+    bad.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 nan\nf 1//1 2//1 3//1\n")
+    with pytest.raises(ds.MeshError, match="normal"):
+        ds.load_mesh(bad)
 
 
 def test_nan_colours_do_not_matter(meshes_dir):

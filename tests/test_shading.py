@@ -52,7 +52,15 @@ CONFIGS = {
     "linear-fog-start-equals-end": (["point"], dict(fog="linear")),
     "exp-fog-one-sided": (["point", "behind"], dict(fog="exp", two_sided=False)),
     "affine-interpolation": (["point", "directional"], dict(interpolation="affine")),
+    # OpenGL's fixed-function choices (RenderOptions.opengl), lights with separate specular colours,
+    # a bright point light so that vertices saturate (the clamp order matters)
+    "opengl-specular-colours": (["directional", "bright", "spot"], dict(compat="opengl", fog="exp")),
+    "opengl-separate-specular": (["bright", "spot"], dict(compat="opengl", color_sum="separate", two_sided=True,
+                                                           back_material=True)),
+    "infinite-viewer-vertex-clamp": (["point", "directional"], dict(viewer="infinite", clamp=True, clamp_at="vertex",
+                                                                    specular="blinn")),
 }
+BRIGHT = ds.PointLights(color=[[2.2, 1.9, 1.6]], position=[[0.8, 1.0, 1.6]], attenuation=[[1.0, 0.1, 0.05]], ambient=[[0.2, 0.1, 0.1]])
 
 
 def make_scene(config, shading, dtype=jnp.float64):
@@ -60,7 +68,9 @@ def make_scene(config, shading, dtype=jnp.float64):
     v, f = scene_mesh()
     lights = {}
     for n in names:
-        if n == "behind":
+        if n == "bright":
+            lights["point"] = BRIGHT
+        elif n == "behind":
             lights["point"] = BEHIND if "point" not in lights else jax.tree.map(lambda a, b: jnp.concatenate([a, b]), lights["point"], BEHIND)
         else:
             lights.update(LIGHTS[n])
@@ -74,14 +84,22 @@ def make_scene(config, shading, dtype=jnp.float64):
         back_material=ds.Material(emission=[0.0, 0.01, 0.02], ambient=[0.1, 0.2, 0.3], diffuse=[0.2, 0.6, 0.4], specular=[0.3, 0.3, 0.5], shininess=5.0, ior=1.3),
         ambient_light=[0.25, 0.3, 0.35], background=[0.05, 0.1, 0.15], fog=fog, **lights,
     )
+    if config.startswith("opengl"):  # separate specular colours (white, blue-ish, none at all)
+        spec = {"directional": [[1.0, 1.0, 1.0]], "point": [[0.6, 0.7, 1.4]], "spot": [[0.0, 0.0, 0.0]]}
+        for kind in names:
+            kind = "point" if kind == "bright" else kind
+            scene = eqx.tree_at(lambda s: getattr(s, kind).specular, scene, jnp.asarray(spec[kind]),
+                                is_leaf=lambda x: x is None)
     scene = jax.tree.map(lambda a: a.astype(dtype) if jnp.issubdtype(a.dtype, jnp.floating) else a, scene)
-    opts = ds.RenderOptions(shading=shading, **kw)
+    kw = dict(kw)
+    opts = ds.RenderOptions.opengl(shading=shading, **kw) if kw.pop("compat", None) == "opengl" else ds.RenderOptions(shading=shading, **kw)
     return scene, opts
 
 
 def to_ref(scene: ds.Scene) -> dict:
     a = lambda x: np.asarray(x, np.float64)  # noqa: E731
     mat = lambda m: {k: a(getattr(m, k)) for k in ("emission", "ambient", "diffuse", "specular")} | {"shininess": float(m.shininess), "ior": float(m.ior)}  # noqa: E731
+    spec = lambda k, i: a(k.color[i] if k.specular is None else k.specular[i])  # noqa: E731
     cam = scene.camera
     V, F = a(scene.mesh.vertices), np.asarray(scene.mesh.faces)
     d, p, s = scene.directional, scene.point, scene.spot
@@ -90,10 +108,10 @@ def to_ref(scene: ds.Scene) -> dict:
         "eye": a(cam.eye), "target": a(cam.target), "up": a(cam.up), "fov_y": float(cam.fov_y),
         "near": float(cam.near), "far": float(cam.far), "width": cam.width, "height": cam.height,
         "material": mat(scene.material), "back_material": mat(scene.back_material or scene.material),
-        "directional": [(a(d.color[i]), a(d.direction[i]), a(d.ambient[i])) for i in range(d.count)],
-        "point": [(a(p.color[i]), a(p.position[i]), a(p.attenuation[i]), a(p.ambient[i])) for i in range(p.count)],
+        "directional": [(a(d.color[i]), a(d.direction[i]), a(d.ambient[i]), spec(d, i)) for i in range(d.count)],
+        "point": [(a(p.color[i]), a(p.position[i]), a(p.attenuation[i]), a(p.ambient[i]), spec(p, i)) for i in range(p.count)],
         "spot": [(a(s.color[i]), a(s.position[i]), a(s.attenuation[i]), a(s.ambient[i]), a(s.axis[i]), float(s.cutoff[i]),
-                  float(s.exponent[i]), float(s.edge[i])) for i in range(s.count)],
+                  float(s.exponent[i]), float(s.edge[i]), spec(s, i)) for i in range(s.count)],
         "ambient_light": a(scene.ambient_light), "background": a(scene.background),
         "fog": {"color": a(scene.fog.color), "start": float(scene.fog.start), "end": float(scene.fog.end), "density": float(scene.fog.density)},
     }
