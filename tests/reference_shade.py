@@ -159,31 +159,34 @@ class Ref:
         back = o.two_sided and not front
         bmat = s["back_material"] if (back and o.back_material) else mat
         sign = -1.0 if back else 1.0
+        vertex_clamp = getattr(o, "clamp_at", "pixel") == "vertex"
+
+        def lit(pq):
+            """A point's colour from its (primary, specular) parts; OpenGL's clamp per vertex (per
+            lit point) comes here, the specular part apart with a separate colour sum."""
+            p, q = pq
+            if not (o.clamp and vertex_clamp):
+                return p + q
+            if o.color_sum == "separate":
+                return np.clip(p, 0, 1) + np.clip(q, 0, 1)
+            return np.clip(p + q, 0, 1)
+
         if o.shading == "phong":
             Pi = wts @ tri
             n = sign * _n(wts @ s["normals"][f])
-            color = self.point_color(Pi, n, bmat, margin)
+            color = lit(self.point_color(Pi, n, bmat, margin, parts=True))
         elif o.shading == "gouraud":
-            parts = [self.point_color(tri[k], sign * s["normals"][f[k]], bmat, [], parts=True) for k in range(3)]
-            if o.clamp and getattr(o, "clamp_at", "pixel") == "vertex":  # OpenGL: clamp, then interpolate
-                if o.color_sum == "separate":
-                    prim = np.array([np.clip(p, 0, 1) for p, _ in parts])
-                    sec = np.array([np.clip(q, 0, 1) for _, q in parts])
-                    color = wts @ prim + wts @ sec
-                else:
-                    color = wts @ np.array([np.clip(p + q, 0, 1) for p, q in parts])
-            else:
-                color = wts @ np.array([p + q for p, q in parts])
+            cols = [lit(self.point_color(tri[k], sign * s["normals"][f[k]], bmat, [], parts=True)) for k in range(3)]
+            color = wts @ np.array(cols)
             Pi = wts @ tri
         elif getattr(o, "flat_source", "centroid") == "provoking":  # the last vertex, its normal
-            color = self.point_color(tri[2], sign * s["normals"][f[2]], bmat, margin)
+            color = lit(self.point_color(tri[2], sign * s["normals"][f[2]], bmat, margin, parts=True))
             Pi = P
         else:
             cen = tri.mean(0)
             fn = _n(np.cross(tri[1] - tri[0], tri[2] - tri[0]))
-            color = self.point_color(cen, sign * fn, bmat, margin)
+            color = lit(self.point_color(cen, sign * fn, bmat, margin, parts=True))
             Pi = P
-        vertex_clamp = getattr(o, "clamp_at", "pixel") == "vertex"
         if o.clamp and not vertex_clamp:
             color = np.clip(color, 0, 1)
         if o.fog != "none":
