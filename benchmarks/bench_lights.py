@@ -28,7 +28,7 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 import diffshade as ds  # noqa: E402
-import diffshade._render as R  # noqa: E402
+import diffshade._lighting as R  # noqa: E402
 
 
 def scene_with(n, size, shadows=0):

@@ -9,7 +9,7 @@ import pytest
 from jax.test_util import check_grads
 
 import diffshade as ds
-import diffshade._render as R
+import diffshade._lighting as R
 
 
 def _scene(area, dtype=jnp.float64):

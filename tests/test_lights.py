@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import diffshade as ds
-import diffshade._render as R
+import diffshade._lighting as R
 
 
 def many_lights_scene(n_point, n_spot, n_dir, size=12, shading="phong", seed=0, wall=False, **render):

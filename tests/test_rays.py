@@ -1,0 +1,119 @@
+"""The ray engine: first hits by Embree and by the portable JAX path agree (away from edges), equal
+the rasterizer's visibility for camera rays, honour t_min and the skipped triangle, and the hit
+point is recomputed differentiably from the vertices."""
+
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+
+import diffshade as ds
+from diffshade import _rays
+
+EMBREE = pytest.mark.skipif(not _rays.embree_available(), reason="embreex is not installed")
+
+
+def _rays_at(mesh, n, rng):
+    # rays from a sphere of radius 4 around the mesh towards random points inside its bounds
+    V = np.asarray(mesh.vertices)
+    lo, hi = V.min(0), V.max(0)
+    o = rng.normal(size=(n, 3))
+    o = 4.0 * o / np.linalg.norm(o, axis=1, keepdims=True) * np.linalg.norm(hi - lo)
+    tgt = lo + rng.uniform(size=(n, 3)) * (hi - lo)
+    d = tgt - o
+    return o, d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _edge_margin(mesh, o, d, ids):
+    """Smallest barycentric of each hit (a ray that close to an edge may go either way)."""
+    t, b1, b2, valid = _rays.intersect(jnp.asarray(o), jnp.asarray(d), mesh.vertices, mesh.faces, jnp.asarray(ids))
+    b0 = 1.0 - b1 - b2
+    return np.where(np.asarray(valid), np.minimum(np.minimum(b0, b1), b2), np.inf)
+
+
+@EMBREE
+@pytest.mark.parametrize("which", ["icosphere", "bunny"])
+def test_embree_and_jax_agree_on_first_hits(which, meshes_dir):
+    mesh = ds.icosphere(3) if which == "icosphere" else ds.load_mesh(os.path.join(meshes_dir, "bunny.ply"))
+    mesh = ds.Mesh(vertices=np.asarray(mesh.vertices, np.float64), faces=mesh.faces)
+    o, d = _rays_at(mesh, 3000, np.random.default_rng(0))
+    a = np.asarray(_rays.first_hits(jnp.asarray(o), jnp.asarray(d), mesh.vertices, mesh.faces, backend="embree"))
+    b = np.asarray(_rays.first_hits(jnp.asarray(o), jnp.asarray(d), mesh.vertices, mesh.faces, backend="jax"))
+    assert (a >= 0).sum() > 1000 and (a < 0).sum() > 50  # hits and misses both
+    clear = (_edge_margin(mesh, o, d, a) > 1e-5) & (_edge_margin(mesh, o, d, b) > 1e-5)
+    assert clear.mean() > 0.99
+    np.testing.assert_array_equal(a[clear], b[clear])
+
+
+def test_camera_rays_hit_what_the_rasterizer_sees():
+    scene, opts = ds.default_scene()
+    cam = ds.Camera(eye=scene.camera.eye, target=scene.camera.target, up=scene.camera.up, fov_y=scene.camera.fov_y,
+                    near=scene.camera.near, far=scene.camera.far, width=40, height=30)
+    mesh = scene.mesh
+    ids = np.asarray(ds.visibility(cam.world_to_clip(mesh.vertices), mesh.faces, cam.resolution, 1)[0])
+    # a ray through each pixel centre (NDC -> eye -> world)
+    xs, ys = ds.pixel_centres(30, 40, jnp.float64)
+    X, Y = np.meshgrid(np.asarray(xs), np.asarray(ys))
+    P = np.asarray(cam.projection_matrix(), np.float64)
+    Vinv = np.linalg.inv(np.asarray(cam.view_matrix(), np.float64))
+    d_eye = np.stack([X / P[0, 0], Y / P[1, 1], -np.ones_like(X)], -1)
+    d = d_eye @ Vinv[:3, :3].T
+    o = np.broadcast_to(np.asarray(cam.eye, np.float64), d.shape)
+    for backend in ["jax"] + (["embree"] if _rays.embree_available() else []):
+        hit = np.asarray(_rays.first_hits(jnp.asarray(o), jnp.asarray(d), jnp.asarray(mesh.vertices, jnp.float64),
+                                          mesh.faces, backend=backend))
+        clear = _edge_margin(mesh, o.reshape(-1, 3), d.reshape(-1, 3), ids.reshape(-1)).reshape(ids.shape) > 1e-4
+        assert clear.mean() > 0.9 and (ids[clear] >= 0).sum() > 200
+        np.testing.assert_array_equal(hit[clear], ids[clear])
+
+
+@pytest.mark.parametrize("backend", ["jax", pytest.param("embree", marks=EMBREE)])
+def test_secondary_rays_leave_their_triangle(backend):
+    # from a point on a unit sphere, inwards: the next hit is the exit on the far side (t ≈ 2 cos)
+    mesh = ds.icosphere(3)
+    V = np.asarray(mesh.vertices, np.float64)
+    F = np.asarray(mesh.faces)
+    rng = np.random.default_rng(1)
+    k = rng.choice(len(F), 40, replace=False)
+    o = V[F[k]].mean(1)
+    d = -o / np.linalg.norm(o, axis=1, keepdims=True)
+    d = d + 0.3 * rng.normal(size=d.shape)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    skip = jnp.asarray(k, jnp.int32)
+    hit = np.asarray(_rays.first_hits(jnp.asarray(o), jnp.asarray(d), jnp.asarray(V), mesh.faces, tmin=1e-4,
+                                      skip=skip, backend=backend))
+    assert (hit >= 0).all() and (hit != k).all()
+    t, b1, b2, valid = _rays.intersect(jnp.asarray(o), jnp.asarray(d), jnp.asarray(V), mesh.faces, jnp.asarray(hit))
+    assert bool(jnp.all(valid)) and float(jnp.min(t)) > 0.5  # it crossed the sphere
+
+
+def test_intersect_is_exact_and_differentiable():
+    V = jnp.asarray([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 2.0, 0.0]])
+    F = jnp.asarray([[0, 1, 2]])
+    o = jnp.asarray([[0.5, 0.3, 2.0], [5.0, 5.0, 1.0]])
+    d = jnp.asarray([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]])
+    ids = jnp.asarray([0, -1])
+    t, b1, b2, valid = _rays.intersect(o, d, V, F, ids)
+    np.testing.assert_allclose([t[0], b1[0], b2[0]], [2.0, 0.25, 0.15], rtol=1e-14)
+    assert bool(valid[0]) and not bool(valid[1]) and float(t[1]) == 0.0
+
+    def f(o, d, V):
+        t, b1, b2, _ = _rays.intersect(o, d, V, F, ids)
+        return jnp.sum(t ** 2 + b1 * b2)
+
+    d2 = jnp.asarray([[0.1, -0.05, -1.0], [0.0, 0.0, -1.0]])
+    check_grads(f, (o, d2, V), order=1, modes=("fwd", "rev"), atol=1e-7, rtol=1e-7)
+    g = jax.grad(f, argnums=(0, 1, 2))(o, d2, V)
+    assert all(bool(jnp.all(jnp.isfinite(x))) for x in g)  # the missing ray gives finite zeros
+
+
+def test_bad_ray_backend_is_a_clear_error(monkeypatch):
+    with pytest.raises(ValueError, match="ray backend must be one of"):
+        _rays.resolve_ray_backend("optix")
+    monkeypatch.setattr(_rays, "embree_available", lambda: False)
+    with pytest.raises(ValueError, match="embreex"):
+        _rays.resolve_ray_backend("embree")
+    assert _rays.resolve_ray_backend("auto") == "jax"
