@@ -188,7 +188,7 @@ def _options(v: _V, r: dict) -> RenderOptions:
 
 def _material(v: _V, m: dict, where: str) -> Material:
     keys = ("emission", "ambient", "diffuse", "specular", "shininess", "ior", "opacity", "kay", "kay_min", "kay_max",
-            "kay_power", "transmission", "absorption", "casts_shadow")
+            "kay_power", "transmission", "absorption", "mirror", "refraction", "casts_shadow")
     v.unknown(m, keys, where)
     d = Material()
     flags = {}
@@ -206,6 +206,8 @@ def _material(v: _V, m: dict, where: str) -> Material:
         kay_power=v.num(m, "kay_power", where, default=float(d.kay_power), lo=0.0, lo_open=True),
         transmission=v.vec(m, "transmission", where, default=np.asarray(d.transmission), lo=0.0, hi=1.0, scalar_ok=True),
         absorption=v.vec(m, "absorption", where, default=np.asarray(d.absorption), lo=0.0, scalar_ok=True),
+        mirror=v.vec(m, "mirror", where, default=np.asarray(d.mirror), lo=0.0, hi=1.0, scalar_ok=True),
+        refraction=v.vec(m, "refraction", where, default=np.asarray(d.refraction), lo=0.0, hi=1.0, scalar_ok=True),
         emission=v.vec(m, "emission", where, default=np.asarray(d.emission), lo=0.0, scalar_ok=True),
         ambient=v.vec(m, "ambient", where, default=np.asarray(d.ambient), lo=0.0, hi=1.0, scalar_ok=True),
         diffuse=v.vec(m, "diffuse", where, default=np.asarray(d.diffuse), lo=0.0, hi=1.0, scalar_ok=True),

@@ -213,16 +213,20 @@ def _sum(cols, width: int = 3):
     return acc if acc is not None else [0.0] * width
 
 
-def shade_points(P, n, eye, mat: Material, scene: Scene, opts: RenderOptions, back: bool = False, shadow=None, post=None):
+def shade_points(P, n, eye, mat: Material, scene: Scene, opts: RenderOptions, back: bool = False, shadow=None, post=None,
+                 view=None):
     """Unfogged colour (tuple of 3 arrays) of surface points ``P`` with unit normals ``n``
     (component tuples) seen from ``eye``. ``shadow`` (per light kind, ``[N, ...]`` visibilities
     :math:`S_i`) multiplies each light's direct terms. With ``post`` (a map of one light's direct
     terms to other points, applied before ``shadow``) the result is ``(base, direct)``: the
     unshadowed part at ``P`` and the lights' shadowed direct terms at ``post``'s points.
     ``back`` marks back-facing fragments (the viewer inside the material, for refraction).
-    With ``color_sum = "separate"`` and ``clamp_at = "vertex"`` the colour has 6 components:
+    ``view`` (unit vectors towards the viewer, component tuple) replaces ``eye`` for points seen
+    along a ray. With ``color_sum = "separate"`` and ``clamp_at = "vertex"`` the colour has 6 components:
     the primary colour (all but specular) and the secondary (specular) one."""
-    if opts.viewer == "infinite":  # the eye-space +z axis, in world coordinates
+    if view is not None:  # a ray's point: the unit vector back along the incoming ray
+        v = view
+    elif opts.viewer == "infinite":  # the eye-space +z axis, in world coordinates
         v = tuple(jnp.broadcast_to(c, jnp.shape(P[0])) for c in _rgb(scene.camera.view_matrix()[2, :3]))
     else:
         v = S.normalize(S.sub(_rgb(eye), P))

@@ -17,7 +17,7 @@ def _select(front, a, b):
 
 
 _MATERIAL_FIELDS = ("emission", "ambient", "diffuse", "specular", "shininess", "ior", "opacity", "kay_min",
-                    "kay_max", "kay_power", "transmission", "absorption")
+                    "kay_max", "kay_power", "transmission", "absorption", "mirror", "refraction")
 
 
 def _used_fields(opts: RenderOptions) -> set[str]:
@@ -37,6 +37,8 @@ def _used_fields(opts: RenderOptions) -> set[str]:
         used |= {"opacity", "kay_min", "kay_max", "kay_power"}
     if opts.absorption:
         used.add("absorption")
+    if opts.ray_depth:
+        used |= {"mirror", "refraction", "ior", "absorption"}
     return used
 
 

@@ -22,6 +22,7 @@ from ._materials import _COMPOSITING_FIELDS, _back_material, _material_at, _sele
 from ._raster import _pixel_vertex_ids, fragments, visibility
 from ._scene import RenderOptions, Scene
 from ._shadow import light_visibility
+from ._trace import trace
 from ._util import keep as _keep
 
 
@@ -98,7 +99,12 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=No
     if opts.shadows and opts.clamp and opts.clamp_at == "vertex" and opts.shading != "phong":
         raise ValueError("clamp_at='vertex' clamps unshadowed vertex colours: with shadows, clamp per pixel "
                          "(clamp_at='pixel'; OpenGL's fixed function has no shadows to follow)")
-    if opts.shading == "phong":
+    if opts.shading == "phong" and (opts.ray_depth or opts.shadow_rays):
+        # the global model (docs/model.md §6): the rasterizer's surface points, then rays
+        n = _keep(*S.normalize(lerp(S.vec(mesh.vertex_normals()))))
+        n_px = n
+        color = trace(scene, opts, P, n, front, pmat, tid, back_mat)
+    elif opts.shading == "phong":
         n = _keep(*S.normalize(lerp(S.vec(mesh.vertex_normals()))))
         n_px = n
         color = shade_points(P, n, eye, pmat, scene, opts, shadow=shadow)

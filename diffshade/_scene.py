@@ -62,6 +62,11 @@ class Material(eqx.Module):
     material's faces out of the shadow maps: shadows treat every surface they contain as opaque,
     so a glass object that should let light through (for its transmission or for what lies
     behind it) is given ``casts_shadow=False``.
+
+    The ray-traced global model (docs/model.md §6; ``RenderOptions.ray_depth > 0``): ``mirror``
+    :math:`k_r` (RGB) weights the colour arriving along the mirror direction and ``refraction``
+    :math:`k_{rt}` (RGB) the colour arriving along the refracted one (index ``ior``); both 0 by
+    default, so no scene reflects or refracts unless it says so.
     """
 
     emission: Float[Array, "3"] = eqx.field(converter=_rgb, default=(0.0, 0.0, 0.0))
@@ -76,6 +81,8 @@ class Material(eqx.Module):
     kay_power: Float[Array, ""] = eqx.field(converter=as_float_array, default=2.0)
     transmission: Float[Array, "3"] = eqx.field(converter=_rgb, default=(0.0, 0.0, 0.0))
     absorption: Float[Array, "3"] = eqx.field(converter=_rgb, default=(0.0, 0.0, 0.0))
+    mirror: Float[Array, "3"] = eqx.field(converter=_rgb, default=(0.0, 0.0, 0.0))
+    refraction: Float[Array, "3"] = eqx.field(converter=_rgb, default=(0.0, 0.0, 0.0))
     kay: bool = eqx.field(static=True, default=False)
     casts_shadow: bool = eqx.field(static=True, default=True)
 
@@ -244,6 +251,7 @@ _CHOICES = {
     "flat_source": ("centroid", "provoking"),
     "viewer": ("local", "infinite"),
     "color_sum": ("single", "separate"),
+    "ray_backend": ("auto", "embree", "jax"),
 }
 
 
@@ -268,6 +276,14 @@ class RenderOptions:
     - ``shadows``: a shadow map per light (``shadow_resolution`` texels square; six for a point
       light), compared with receiver-plane depth and ``Scene.shadow_bias``; ``shadow_pcf`` is the
       side of the percentage-closer filter kernel (1 = none).
+
+    The ray-traced global model (docs/model.md §6): ``ray_depth`` (0–8, 0 off) traces mirror and
+    refracted rays from every pixel's surface point that many bounces (a material's ``mirror`` and
+    ``refraction`` weights; Snell with ``ior``, total internal reflection, Bouguer absorption
+    inside, the background where a ray leaves the scene, fog on every segment); ``shadow_rays``
+    decides which lights reach a point by rays to them (exact, no bias) instead of maps;
+    ``ray_backend`` is the ray engine (:mod:`diffshade._rays`). Primary visibility stays the
+    rasterizer's.
 
     OpenGL's fixed-function choices (docs/model.md §2 "OpenGL compatibility"; the defaults are
     diffshade's own, :meth:`opengl` sets all of OpenGL's):
@@ -310,6 +326,9 @@ class RenderOptions:
     shadow_resolution: int = 512
     shadow_pcf: int = 1
     area_grid: tuple[int, int] = (4, 4)
+    ray_depth: int = 0
+    shadow_rays: bool = False
+    ray_backend: Literal["auto", "embree", "jax"] = "auto"
     clamp_at: ClampAt = "pixel"
     flat_source: FlatSource = "centroid"
     viewer: Viewer = "local"
@@ -334,6 +353,15 @@ class RenderOptions:
             x = getattr(self, name)
             if isinstance(x, bool) or not (isinstance(x, int) and x >= 1):
                 raise ValueError(f"RenderOptions.{name} must be a positive integer, got {x!r}")
+        if isinstance(self.ray_depth, bool) or not (isinstance(self.ray_depth, int) and 0 <= self.ray_depth <= 8):
+            raise ValueError(f"RenderOptions.ray_depth must be an integer in [0, 8] (0: no ray tracing), got {self.ray_depth!r}")
+        if (self.ray_depth or self.shadow_rays) and (self.shading != "phong" or self.layered):
+            raise ValueError("the ray-traced mode (ray_depth > 0 or shadow_rays) shades per pixel: it needs "
+                             "shading='phong' and no depth layers (transparency/absorption)")
+        if (self.ray_depth or self.shadow_rays) and self.clamp and self.clamp_at == "vertex":
+            raise ValueError("the ray-traced mode clamps per pixel (clamp_at='pixel'): OpenGL's per-vertex clamp has no rays")
+        if self.shadow_rays and self.shadows:
+            raise ValueError("shadows (maps) and shadow_rays are two ways to the same shadows: choose one")
         g = self.area_grid
         if not (isinstance(g, tuple) and len(g) == 2 and all(isinstance(x, int) and not isinstance(x, bool) and x >= 1 for x in g)):
             raise ValueError(f"RenderOptions.area_grid must be two positive integers (n, m), got {g!r}")

@@ -13,7 +13,8 @@ through an unconstrained ``u``:
 
 Names: ``material.<field>``, ``material[i].<field>`` (material id ``i`` of a multi-material
 scene; ``material[0]`` is ``material``) and ``back_material.<field>`` (emission, ambient, diffuse,
-specular, shininess, ior, opacity, kay_min, kay_max, kay_power, transmission, absorption); ``ambient_light``; ``<kind>[i].<field>`` with kind ``directional``, ``point``,
+specular, shininess, ior, opacity, kay_min, kay_max, kay_power, transmission, absorption, mirror, refraction);
+``ambient_light``; ``<kind>[i].<field>`` with kind ``directional``, ``point``,
 ``spot`` or ``area`` and field ``color``, ``specular`` (a separate specular colour, where the scene gives
 one), ``ambient``, ``a0``/``a1``/``a2`` (attenuation), ``position``
 (not directional), ``cutoff``,
@@ -40,11 +41,11 @@ class ParamError(ValueError):
     """An unknown parameter name, or a start value outside the parameter's domain."""
 
 
-_RGB = {"emission", "ambient", "diffuse", "specular", "color", "transmission", "absorption"}
+_RGB = {"emission", "ambient", "diffuse", "specular", "color", "transmission", "absorption", "mirror", "refraction"}
 _MATERIAL = {
     "emission": "positive", "ambient": "unit", "diffuse": "unit", "specular": "unit",
     "shininess": "positive", "ior": (1.0, 4.0), "opacity": "unit", "kay_min": "unit", "kay_max": "unit",
-    "kay_power": "positive", "transmission": "unit", "absorption": "positive",
+    "kay_power": "positive", "transmission": "unit", "absorption": "positive", "mirror": "unit", "refraction": "unit",
 }
 _LIGHT = {"color": "positive", "ambient": "positive", "a0": "positive", "a1": "positive", "a2": "positive",
           "cutoff": (0.0, 90.0), "exponent": "positive", "edge": (0.0, 90.0), "width": "positive", "height": "positive",

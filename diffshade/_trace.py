@@ -1,0 +1,175 @@
+r"""The ray-traced global model (docs/model.md §6): Whitted's recursion on top of the rasterizer's
+primary visibility.
+
+At a surface point seen along a ray, with :math:`V` the unit vector back along the ray and
+:math:`N` the shading normal facing it,
+
+.. math:: I = I_{local} + k_r I_r + k_{rt} I_t,
+
+:math:`I_{local}` every term of §1–2 (:func:`diffshade._lighting.shade_points`, with shadow rays
+when ``shadow_rays``), :math:`I_r` the colour arriving along the mirror direction
+:math:`R = 2(N\cdot V)N - V` and :math:`I_t` along the refracted direction (Snell, relative index
+``ior`` entering a front face, ``1/ior`` leaving; past the critical angle the refracted weight
+joins the mirror one). With a Fresnel option (``"schlick"`` or ``"dielectric"``) the two weights
+are :math:`k_r + k_{rt} F` and :math:`k_{rt}(1 - F)`. A segment inside a material (after a
+front-facing refraction) is attenuated by :math:`e^{-\mu\ell}`, :math:`\ell` its length; every
+secondary segment is fogged by its length as the rasterizer fogs the primary one; a ray that
+leaves the scene takes the background colour. Recursion is unrolled to ``ray_depth`` bounces.
+
+Which triangle a ray meets is found without gradient (:func:`diffshade._rays.first_hits`); where
+it meets it, the normal there and every direction are recomputed from the vertices, so the image
+is differentiable in materials, lights, ``ior``, ``absorption``, the camera and the vertices.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from . import _shade as S
+from ._lighting import _rgb, shade_points
+from ._materials import _material_at, _used_fields
+from ._rays import first_hits, intersect
+from ._scene import RenderOptions, Scene
+from ._shadow import SHADOW_KINDS
+
+# Secondary rays start this far (relative to the scene's size) along themselves, and skip the
+# triangle they leave: a ray never meets its own surface again through rounding.
+_T_MIN = 1e-5
+
+
+def _scale(scene: Scene):
+    X = jax.lax.stop_gradient(scene.mesh.vertices)
+    return jnp.linalg.norm(jnp.max(X, axis=0) - jnp.min(X, axis=0)) + 1e-30
+
+
+def shadow_ray_visibility(scene: Scene, opts: RenderOptions, P, tri):
+    """:math:`S_i \\in \\{0, 1\\}` of every light at points ``P`` (component tuples) on triangles
+    ``tri``, by a ray to the light: per kind of :data:`diffshade._shadow.SHADOW_KINDS`, ``[N, ...]``
+    (the format of the shadow maps'). No gradient; opaque occluders."""
+    Pa = jax.lax.stop_gradient(jnp.stack(P, -1))
+    eps = _T_MIN * _scale(scene)
+    out = {}
+    for kind in SHADOW_KINDS:
+        lights = jax.lax.stop_gradient(getattr(scene, kind))
+        if not lights.count:
+            continue
+        rows = []
+        for i in range(lights.count):
+            if kind == "directional":
+                d = jnp.broadcast_to(-lights.direction[i] / jnp.linalg.norm(lights.direction[i]), Pa.shape)
+                far = jnp.inf
+            else:
+                L = lights.position[i] - Pa
+                far = jnp.linalg.norm(L, axis=-1)
+                d = L / jnp.maximum(far, 1e-30)[..., None]
+            hit = first_hits(Pa, d, scene.mesh.vertices, scene.mesh.faces, tmin=eps, skip=tri, backend=opts.ray_backend)
+            t, _, _, ok = intersect(Pa, d, jax.lax.stop_gradient(scene.mesh.vertices), scene.mesh.faces, hit)
+            blocked = ok & (t < far - eps)
+            rows.append(jnp.where(blocked, 0.0, 1.0).astype(Pa.dtype))
+        out[kind] = jnp.stack(rows)
+    return out
+
+
+def _surface(scene: Scene, mats, used, o, d, ids):
+    """Where rays ``o + t d`` meet triangles ``ids`` (``-1``: none): the point, the interpolated
+    unit normal as the mesh gives it, whether the ray met the front face, the material, the
+    distance and whether there was a hit."""
+    mesh = scene.mesh
+    t, b1, b2, valid = intersect(o, d, mesh.vertices, mesh.faces, ids)
+    safe = jnp.where(valid, ids, 0)
+    f = mesh.faces[safe]
+    vn = mesh.vertex_normals()
+    n = (1.0 - b1 - b2)[..., None] * vn[f[..., 0]] + b1[..., None] * vn[f[..., 1]] + b2[..., None] * vn[f[..., 2]]
+    front = jnp.sum(mesh.face_normals()[safe] * d, -1) < 0
+    n = S.normalize(S.vec(n))
+    P = S.vec(o + t[..., None] * d)
+    multi = len(mats) > 1 and mesh.material_ids is not None
+    mat = _material_at(mats, mesh.material_ids[safe], used) if multi else mats[0]
+    return P, n, front, mat, t, valid
+
+
+def _fresnel(opts, cos_i, eta_rel, ior):
+    """Reflected fraction at an interface (cosine on the incoming side, relative index)."""
+    if opts.fresnel == "dielectric":
+        return S.fresnel_dielectric(cos_i, eta_rel)
+    return S.fresnel_schlick(cos_i, ior)
+
+
+def _bounce(scene, opts, mats, used, P, n, front, mat, tri, v, level, back_mat):
+    """The colour at surface points with mesh normals ``n`` (local terms as the rasterizer's
+    Phong shading has them, two-sided or not; below ``ray_depth``, plus the mirror and refracted
+    rays' colours, whose directions use the normal facing the ray)."""
+    shadow = shadow_ray_visibility(scene, opts, P, tri) if opts.shadow_rays else None
+    n_face = tuple(jnp.where(front, c, -c) for c in n)
+    # seen from the camera, the viewer is the rasterizer's (local or infinite); along a ray, -d
+    eye, view = (scene.camera.eye, None) if level == 0 else (None, v)
+    if opts.two_sided:
+        fr = shade_points(P, n_face, eye, mat, scene, opts, shadow=shadow, view=view)
+        bk = shade_points(P, n_face, eye, back_mat, scene, opts, True, shadow=shadow, view=view)
+        local = tuple(jnp.where(front, a, b) for a, b in zip(fr, bk))
+    else:
+        local = shade_points(P, n, eye, mat, scene, opts, shadow=shadow, view=view)
+    n = n_face
+    if level >= opts.ray_depth:
+        return local
+    kr, kt = _rgb(jnp.broadcast_to(mat.mirror, front.shape + (3,))), _rgb(jnp.broadcast_to(mat.refraction, front.shape + (3,)))
+    ndv = S.dot(n, v)  # > 0: n faces the ray
+    Pa = jnp.stack(P, -1)
+    # mirror direction R = 2 (N·V) N - V
+    R = jnp.stack(S.sub(S.scale(n, 2.0 * ndv), v), -1)
+    # refraction: relative index eta1/eta2 = 1/ior entering a front face, ior leaving
+    ior = jnp.broadcast_to(mat.ior, front.shape)
+    ratio = jnp.where(front, 1.0 / ior, ior)
+    k = 1.0 - ratio * ratio * (1.0 - ndv * ndv)
+    tir = k <= 0.0
+    sk = jnp.sqrt(jnp.where(tir, 1.0, k))
+    din = S.neg(v)  # incoming direction
+    T = jnp.stack(S.add(S.scale(din, ratio), S.scale(n, ratio * ndv - sk)), -1)
+    T = jnp.where(tir[..., None], R, T)
+    if opts.fresnel != "none":
+        F = jnp.where(tir, 1.0, _fresnel(opts, ndv, jnp.where(front, ior, 1.0 / ior), ior))
+        w_r = [kr[c] + kt[c] * F for c in range(3)]
+        w_t = [kt[c] * (1.0 - F) for c in range(3)]
+    else:
+        w_r = [kr[c] + jnp.where(tir, kt[c], 0.0) for c in range(3)]
+        w_t = [jnp.where(tir, 0.0, kt[c]) for c in range(3)]
+    # inside the material after a front-facing refraction: Bouguer's e^{-mu l} on that segment
+    mu = jnp.where(front[..., None], jnp.broadcast_to(mat.absorption, front.shape + (3,)), 0.0)
+    c_r = _segment(scene, opts, mats, used, Pa, R, tri, level + 1, None)
+    c_t = _segment(scene, opts, mats, used, Pa, T, tri, level + 1, mu)
+    return tuple(local[c] + w_r[c] * c_r[c] + w_t[c] * c_t[c] for c in range(3))
+
+
+def _segment(scene, opts, mats, used, o, d, skip, level, mu):
+    """The colour arriving at ``o`` along ``-d`` (unit ``d``): what the ray meets, shaded, fogged
+    over the segment, absorbed by ``mu`` (``[..., 3]``, or None), the background on a miss."""
+    d = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
+    eps = _T_MIN * _scale(scene)
+    ids = first_hits(o, d, scene.mesh.vertices, scene.mesh.faces, tmin=eps, skip=skip, backend=opts.ray_backend)
+    P, n, front, mat, t, valid = _surface(scene, mats, used, o, d, ids)
+    v = S.vec(-d)
+    multi = len(mats) > 1 and scene.mesh.material_ids is not None
+    back_mat = scene.back_material if (opts.back_material and scene.back_material is not None and not multi) else mat
+    col = _bounce(scene, opts, mats, used, P, n, front, mat, ids, v, level, back_mat)
+    if opts.clamp:
+        col = tuple(jnp.clip(c, 0.0, 1.0) for c in col)
+    if opts.fog != "none":
+        f = S.fog_factor(t, opts.fog, scene.fog.start, scene.fog.end, scene.fog.density)
+        col = S.apply_fog(col, f, _rgb(scene.fog.color))
+    col = tuple(jnp.where(valid, col[c], scene.background[c]) for c in range(3))
+    if mu is not None:
+        att = jnp.exp(-mu * jnp.where(valid, t, 0.0)[..., None])
+        col = tuple(col[c] * att[..., c] for c in range(3))
+    return col
+
+
+def trace(scene: Scene, opts: RenderOptions, P, n, front, pmat, tri, back_mat):
+    """Colour (unfogged, unclamped) at the rasterizer's primary surface points ``P`` with
+    interpolated mesh normals ``n``, on triangles ``tri`` (``front``: their front faces are
+    seen): local terms with shadow rays and the recursion of mirror and refracted rays to
+    ``opts.ray_depth``."""
+    mats = scene.all_materials()
+    used = _used_fields(opts)
+    v = S.normalize(S.sub(_rgb(scene.camera.eye), P))
+    return _bounce(scene, opts, mats, used, P, n, front, pmat, tri, v, 0, back_mat)
