@@ -177,8 +177,9 @@ def _options(v: _V, r: dict) -> RenderOptions:
                 v.fail(f"render.{k}", f"must be a list of {len(default)} positive integers, got {x!r}")
             x = tuple(x)
         elif isinstance(default, int):
-            if isinstance(x, bool) or not isinstance(x, int) or x < 1:
-                v.fail(f"render.{k}", f"must be a positive integer, got {x!r}")
+            lowest = 0 if k == "ray_depth" else 1
+            if isinstance(x, bool) or not isinstance(x, int) or x < lowest:
+                v.fail(f"render.{k}", f"must be an integer >= {lowest}, got {x!r}")
         kw[k] = x
     try:
         return RenderOptions.opengl(**kw) if compat == "opengl" else RenderOptions(**kw)

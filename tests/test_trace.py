@@ -182,3 +182,37 @@ def test_options_are_checked():
         ds.RenderOptions(shadows=True, shadow_rays=True)
     with pytest.raises(ds.SceneError, match="mirror"):
         _scene(floor={"mirror": 1.5})
+
+
+def test_fit_recovers_the_index_and_absorption_of_glass_and_a_mirror_weight(tmp_path):
+    # a glass slab tilted by 30° in front of a wall lit by a nearby point light (its shading
+    # varies over the wall, so the refracted rays' shift is seen): eta and mu from one image
+    import trimesh
+
+    from fitting.fit import fit
+    from fitting.params import ParamSet
+
+    b = trimesh.creation.box(extents=[1.4, 1.2, 0.5])
+    b.apply_transform(trimesh.transformations.rotation_matrix(np.deg2rad(30), [0, 1, 0]))
+    b.apply_translation([0, 0, 1.0])
+    b.export(tmp_path / "slab.obj")
+    d = {"camera": {"eye": [0.0, 0.3, 4.0], "target": [0, 0, 0], "up": [0, 1, 0], "fov_y": 35, "near": 0.1, "far": 50,
+                    "width": 28, "height": 24},
+         "render": {"shading": "phong", "specular": "none", "fog": "none", "ambient": False, "ray_depth": 2},
+         "object": [{"path": str(tmp_path / "slab.obj"),
+                     "material": {"diffuse": 0.0, "ambient": 0.0, "specular": 0.0, "refraction": 1.0, "ior": 1.5,
+                                  "absorption": [0.3, 0.5, 0.9], "mirror": 0.15}},
+                    {"quad": [6, 6], "normal": [0, 0, 1], "translate": [0, 0, -1.0], "divisions": 6,
+                     "material": {"diffuse": [0.9, 0.6, 0.3], "specular": 0.0}}],
+         "light": [{"type": "point", "position": [0.4, 0.3, -0.6], "attenuation": [0.2, 0.0, 1.0], "color": 0.6},
+                   {"type": "directional", "direction": [0.2, -0.3, -1.0], "color": 0.5}]}
+    scene, opts = ds.scene_from_dict(d)
+    free = ["material.ior", "material.absorption", "material.mirror"]
+    pset = ParamSet(free, scene, shared=["material.mirror"])
+    true = np.asarray(pset.theta_of(scene), np.float64)
+    target = np.asarray(_render(scene, opts))
+    start = pset.apply(scene, jnp.asarray(true * np.r_[1.1, 0.6, 1.5, 0.8, 2.0], scene.mesh.vertices.dtype))
+    r = fit(start, opts, target, free, shared=["material.mirror"])
+    assert r.successful, r.result
+    np.testing.assert_allclose(r.values[0], 1.5, rtol=1e-4)
+    np.testing.assert_allclose(r.values, true, rtol=1e-3)
