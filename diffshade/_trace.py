@@ -26,6 +26,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from . import _lighting as Lg
 from . import _shade as S
 from ._lighting import _rgb, shade_points
 from ._materials import _material_at, _used_fields
@@ -49,25 +50,30 @@ def shadow_ray_visibility(scene: Scene, opts: RenderOptions, P, tri):
     (the format of the shadow maps'). No gradient; opaque occluders."""
     Pa = jax.lax.stop_gradient(jnp.stack(P, -1))
     eps = _T_MIN * _scale(scene)
+    X = jax.lax.stop_gradient(scene.mesh.vertices)
     out = {}
     for kind in SHADOW_KINDS:
         lights = jax.lax.stop_gradient(getattr(scene, kind))
         if not lights.count:
             continue
-        rows = []
-        for i in range(lights.count):
+
+        def one(li, kind=kind):
             if kind == "directional":
-                d = jnp.broadcast_to(-lights.direction[i] / jnp.linalg.norm(lights.direction[i]), Pa.shape)
+                d = jnp.broadcast_to(-li.direction / jnp.linalg.norm(li.direction), Pa.shape)
                 far = jnp.inf
             else:
-                L = lights.position[i] - Pa
+                L = li.position - Pa
                 far = jnp.linalg.norm(L, axis=-1)
                 d = L / jnp.maximum(far, 1e-30)[..., None]
-            hit = first_hits(Pa, d, scene.mesh.vertices, scene.mesh.faces, tmin=eps, skip=tri, backend=opts.ray_backend)
-            t, _, _, ok = intersect(Pa, d, jax.lax.stop_gradient(scene.mesh.vertices), scene.mesh.faces, hit)
-            blocked = ok & (t < far - eps)
-            rows.append(jnp.where(blocked, 0.0, 1.0).astype(Pa.dtype))
-        out[kind] = jnp.stack(rows)
+            hit = first_hits(Pa, d, X, scene.mesh.faces, tmin=eps, skip=tri, backend=opts.ray_backend)
+            t, _, _, ok = intersect(Pa, d, X, scene.mesh.faces, hit)
+            return jnp.where(ok & (t < far - eps), 0.0, 1.0).astype(Pa.dtype)
+
+        # past a few lights of a kind, one copy in the program (as for shadow maps and lighting)
+        if lights.count > Lg.LIGHTS_UNROLLED:
+            out[kind] = jax.lax.map(one, lights)
+        else:
+            out[kind] = jnp.stack([one(jax.tree.map(lambda x: x[i], lights)) for i in range(lights.count)])
     return out
 
 

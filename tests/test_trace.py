@@ -216,3 +216,23 @@ def test_fit_recovers_the_index_and_absorption_of_glass_and_a_mirror_weight(tmp_
     assert r.successful, r.result
     np.testing.assert_allclose(r.values[0], 1.5, rtol=1e-4)
     np.testing.assert_allclose(r.values, true, rtol=1e-3)
+
+
+def test_shadow_rays_over_many_lights_follow_the_light_axis_rule():
+    import diffshade._lighting as Lg
+
+    lights = [{"type": "point", "position": [float(np.cos(a)) * 2, 2.0, float(np.sin(a)) * 2], "attenuation": [1, 0, 0.05],
+               "color": 0.3} for a in np.linspace(0, 5, 6)]
+    scene, opts = _scene(size=(20, 16), lights=lights, render={"specular": "none"})
+    opts = opts.replace(shadow_rays=True, ray_backend="jax")
+    old = Lg.LIGHTS_UNROLLED
+    try:
+        Lg.LIGHTS_UNROLLED = 2
+        scanned = ds.render(scene, opts)
+        Lg.LIGHTS_UNROLLED = 10 ** 6
+        unrolled = ds.render(scene, opts)
+    finally:
+        Lg.LIGHTS_UNROLLED = old
+    lit = ds.render(scene, opts.replace(shadow_rays=False))
+    assert float(jnp.sum(scanned < lit - 1e-3)) > 10  # shadows
+    np.testing.assert_allclose(scanned, unrolled, rtol=1e-13, atol=1e-15)
