@@ -102,7 +102,7 @@ def _fresnel(opts, cos_i, eta_rel, ior):
     return S.fresnel_schlick(cos_i, ior)
 
 
-def _bounce(scene, opts, mats, used, P, n, front, mat, tri, v, level, back_mat):
+def _bounce(scene, opts, mats, used, P, n, front, mat, tri, v, level, back_mat, mu_in=None):
     """The colour at surface points with mesh normals ``n`` (local terms as the rasterizer's
     Phong shading has them, two-sided or not; below ``ray_depth``, plus the mirror and refracted
     rays' colours, whose directions use the normal facing the ray)."""
@@ -121,30 +121,47 @@ def _bounce(scene, opts, mats, used, P, n, front, mat, tri, v, level, back_mat):
         return local
     kr, kt = _rgb(jnp.broadcast_to(mat.mirror, front.shape + (3,))), _rgb(jnp.broadcast_to(mat.refraction, front.shape + (3,)))
     ndv = S.dot(n, v)  # > 0: n faces the ray
-    Pa = jnp.stack(P, -1)
-    # mirror direction R = 2 (N·V) N - V
-    R = jnp.stack(S.sub(S.scale(n, 2.0 * ndv), v), -1)
-    # refraction: relative index eta1/eta2 = 1/ior entering a front face, ior leaving
     ior = jnp.broadcast_to(mat.ior, front.shape)
-    ratio = jnp.where(front, 1.0 / ior, ior)
-    k = 1.0 - ratio * ratio * (1.0 - ndv * ndv)
+    R = mirror_direction(n, v)
+    T, tir = refracted_direction(n, v, jnp.where(front, 1.0 / ior, ior))
+    w_r, w_t = ray_weights(opts, kr, kt, ndv, jnp.where(front, ior, 1.0 / ior), ior, tir)
+    Pa = jnp.stack(P, -1)
+    # the mirror ray stays in the incoming ray's medium; the refracted one enters the material
+    # through a front face (Bouguer's e^{-mu l} on its segment) or leaves it through a back face
+    mu_t = jnp.where(front[..., None], jnp.broadcast_to(mat.absorption, front.shape + (3,)), 0.0)
+    c_r = _segment(scene, opts, mats, used, Pa, jnp.stack(R, -1), tri, level + 1, mu_in)
+    c_t = _segment(scene, opts, mats, used, Pa, jnp.stack(T, -1), tri, level + 1, mu_t)
+    return tuple(local[c] + w_r[c] * c_r[c] + w_t[c] * c_t[c] for c in range(3))
+
+
+def mirror_direction(n, v):
+    r""":math:`R = 2(N\cdot V)N - V` (component tuples; ``n`` facing ``v``)."""
+    return S.sub(S.scale(n, 2.0 * S.dot(n, v)), v)
+
+
+def refracted_direction(n, v, ratio):
+    r"""Snell's refracted direction of the ray arriving along :math:`-V` at a surface with unit
+    normal ``n`` facing it, ``ratio`` :math:`= \eta_1/\eta_2` (incoming over outgoing side):
+    :math:`T = -r V + (r\cos\theta_1 - \sqrt{k})N`, :math:`k = 1 - r^2(1 - \cos^2\theta_1)`.
+    Returns ``(T, tir)``; where :math:`k \le 0` (total internal reflection) ``T`` is the mirror
+    direction."""
+    cos1 = S.dot(n, v)
+    k = 1.0 - ratio * ratio * (1.0 - cos1 * cos1)
     tir = k <= 0.0
     sk = jnp.sqrt(jnp.where(tir, 1.0, k))
-    din = S.neg(v)  # incoming direction
-    T = jnp.stack(S.add(S.scale(din, ratio), S.scale(n, ratio * ndv - sk)), -1)
-    T = jnp.where(tir[..., None], R, T)
+    T = S.add(S.scale(S.neg(v), ratio), S.scale(n, ratio * cos1 - sk))
+    R = mirror_direction(n, v)
+    return tuple(jnp.where(tir, r, t) for r, t in zip(R, T)), tir
+
+
+def ray_weights(opts: RenderOptions, kr, kt, cos1, eta_rel, ior, tir):
+    r"""The mirror and refracted rays' weights (colour tuples): ``kr`` and ``kt``, or with a
+    Fresnel option ``kr + kt F`` and ``kt (1 - F)`` (``F`` of the relative index ``eta_rel``
+    :math:`= \eta_2/\eta_1`); total internal reflection gives the refracted weight to the mirror."""
     if opts.fresnel != "none":
-        F = jnp.where(tir, 1.0, _fresnel(opts, ndv, jnp.where(front, ior, 1.0 / ior), ior))
-        w_r = [kr[c] + kt[c] * F for c in range(3)]
-        w_t = [kt[c] * (1.0 - F) for c in range(3)]
-    else:
-        w_r = [kr[c] + jnp.where(tir, kt[c], 0.0) for c in range(3)]
-        w_t = [jnp.where(tir, 0.0, kt[c]) for c in range(3)]
-    # inside the material after a front-facing refraction: Bouguer's e^{-mu l} on that segment
-    mu = jnp.where(front[..., None], jnp.broadcast_to(mat.absorption, front.shape + (3,)), 0.0)
-    c_r = _segment(scene, opts, mats, used, Pa, R, tri, level + 1, None)
-    c_t = _segment(scene, opts, mats, used, Pa, T, tri, level + 1, mu)
-    return tuple(local[c] + w_r[c] * c_r[c] + w_t[c] * c_t[c] for c in range(3))
+        F = jnp.where(tir, 1.0, _fresnel(opts, cos1, eta_rel, ior))
+        return [kr[c] + kt[c] * F for c in range(3)], [kt[c] * (1.0 - F) for c in range(3)]
+    return ([kr[c] + jnp.where(tir, kt[c], 0.0) for c in range(3)], [jnp.where(tir, 0.0, kt[c]) for c in range(3)])
 
 
 def _segment(scene, opts, mats, used, o, d, skip, level, mu):
@@ -157,7 +174,7 @@ def _segment(scene, opts, mats, used, o, d, skip, level, mu):
     v = S.vec(-d)
     multi = len(mats) > 1 and scene.mesh.material_ids is not None
     back_mat = scene.back_material if (opts.back_material and scene.back_material is not None and not multi) else mat
-    col = _bounce(scene, opts, mats, used, P, n, front, mat, ids, v, level, back_mat)
+    col = _bounce(scene, opts, mats, used, P, n, front, mat, ids, v, level, back_mat, mu)
     if opts.clamp:
         col = tuple(jnp.clip(c, 0.0, 1.0) for c in col)
     if opts.fog != "none":

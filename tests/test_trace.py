@@ -236,3 +236,73 @@ def test_shadow_rays_over_many_lights_follow_the_light_axis_rule():
     lit = ds.render(scene, opts.replace(shadow_rays=False))
     assert float(jnp.sum(scanned < lit - 1e-3)) > 10  # shadows
     np.testing.assert_allclose(scanned, unrolled, rtol=1e-13, atol=1e-15)
+
+
+def _v(a):
+    return tuple(jnp.asarray(x, jnp.float64) for x in a)
+
+
+def test_snell_total_internal_reflection_and_fresnel_weights():
+    from diffshade import _trace as T
+
+    n = _v([0.0, 0.0, 1.0])
+    for theta in np.deg2rad([0.0, 20.0, 45.0, 80.0]):
+        v = _v([np.sin(theta), 0.0, np.cos(theta)])  # towards where the ray came from
+        for ratio in (1 / 1.5, 1.5):
+            t, tir = T.refracted_direction(n, v, ratio)
+            s = ratio * np.sin(theta)
+            if s < 1:
+                assert not bool(tir)
+                # Snell: sin θ2 = r sin θ1, on the far side, unit length
+                np.testing.assert_allclose(-float(t[0]), s, rtol=1e-12, atol=1e-15)
+                np.testing.assert_allclose(float(t[2]), -np.sqrt(1 - s * s), rtol=1e-12)
+            else:  # beyond the critical angle: the mirror direction
+                assert bool(tir)
+                np.testing.assert_allclose([float(c) for c in t], [-np.sin(theta), 0.0, np.cos(theta)], atol=1e-12)
+    # exactly at the critical angle (leaving glass of index 1.5): finite, reflected, and gradients finite
+    crit = np.arcsin(1 / 1.5)
+    g = jax.grad(lambda th: jnp.sum(jnp.stack(T.refracted_direction(n, (jnp.sin(th), 0.0 * th, jnp.cos(th)), 1.5)[0])))(
+        jnp.asarray(crit))
+    assert bool(jnp.isfinite(g))
+    # Fresnel: the two weights of a refracting material (k_r = 0) sum to k_rt, TIR included
+    kt = _v([0.8, 0.5, 0.2])
+    zero = _v([0.0, 0.0, 0.0])
+    for fres in ("schlick", "dielectric"):
+        opts = ds.RenderOptions(fresnel=fres)
+        for cos1, eta in ((0.9, 1.5), (0.3, 1.5), (0.9, 1 / 1.5), (0.2, 1 / 1.5)):
+            _, tir = T.refracted_direction(n, _v([np.sqrt(1 - cos1 ** 2), 0.0, cos1]), 1.0 / eta)
+            w_r, w_t = T.ray_weights(opts, zero, kt, jnp.asarray(cos1), jnp.asarray(eta), jnp.asarray(1.5), tir)
+            np.testing.assert_allclose([float(a + b) for a, b in zip(w_r, w_t)], [0.8, 0.5, 0.2], rtol=1e-12)
+            assert all(float(w) >= 0 for w in w_t) and (not bool(tir) or all(float(w) == 0 for w in w_t))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_slab_shifts_a_ray_by_the_closed_form(backend):
+    # a ray through a parallel slab of thickness d leaves parallel to itself, shifted sideways by
+    # d sin θ (1 − cos θ / √(η² − sin² θ)); traced with the engine and the tracer's Snell
+    from diffshade import _trace as T
+
+    d_slab, eta = 0.5, 1.5
+    mesh = ds.box((4.0, 4.0, d_slab))
+    V = jnp.asarray(mesh.vertices, jnp.float64)
+    for theta in np.deg2rad([10.0, 35.0, 60.0]):
+        o = jnp.asarray([[-2.0 * np.tan(theta) * 0.6, 0.1, 2.0]])
+        d = jnp.asarray([[np.sin(theta), 0.0, -np.cos(theta)]])
+        hit = _rays.first_hits(o, d, V, mesh.faces, backend=backend)
+        t, _, _, ok = _rays.intersect(o, d, V, mesh.faces, hit)
+        p1 = o + t[:, None] * d
+        n_in = _v([0.0, 0.0, 1.0])
+        t1, _ = T.refracted_direction(n_in, tuple(-c[0] for c in d.T), 1 / eta)
+        d1 = jnp.stack(t1)[None]
+        hit2 = _rays.first_hits(p1, d1, V, mesh.faces, tmin=1e-4, skip=hit, backend=backend)  # the tracer's kind of t_min
+        t2, _, _, ok2 = _rays.intersect(p1, d1, V, mesh.faces, hit2)
+        p2 = p1 + t2[:, None] * d1
+        t3, tir = T.refracted_direction(n_in, tuple(-c[0] for c in d1.T), eta)  # leaving: the normal facing the ray is +z
+        out = jnp.stack(t3)
+        assert bool(ok[0]) and bool(ok2[0]) and not bool(tir)
+        np.testing.assert_allclose(np.asarray(out), np.asarray(d[0]), atol=1e-12)  # parallel to the incoming ray
+        # perpendicular distance between the incoming line and the outgoing one
+        w = np.asarray(p2[0] - o[0])
+        shift = np.linalg.norm(w - np.dot(w, np.asarray(d[0])) * np.asarray(d[0]))
+        expect = d_slab * np.sin(theta) * (1 - np.cos(theta) / np.sqrt(eta ** 2 - np.sin(theta) ** 2))
+        np.testing.assert_allclose(shift, expect, rtol=1e-9)
