@@ -75,6 +75,20 @@ class Camera(eqx.Module):
         m = self.projection_matrix() @ self.view_matrix()
         return points @ m[:, :3].T + m[:, 3]
 
+    def pixel_rays(self, dtype=jnp.float32) -> tuple[Float[Array, "H W 3"], Float[Array, "H W 3"]]:
+        """Origin (the eye) and unit direction in world space of the ray through every pixel centre
+        (row 0 at the top), the rays the rasterizer's visibility answers."""
+        from ._raster import pixel_centres
+
+        xs, ys = pixel_centres(self.height, self.width, dtype)
+        X, Y = jnp.meshgrid(xs, ys)
+        P = self.projection_matrix()
+        d_eye = jnp.stack([X / P[0, 0], Y / P[1, 1], -jnp.ones_like(X)], -1)
+        R = self.view_matrix()[:3, :3]  # world -> eye rotation: its transpose takes eye to world
+        d = d_eye @ R
+        d = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
+        return jnp.broadcast_to(self.eye, d.shape).astype(d.dtype), d
+
     def world_to_eye(self, points: Float[Array, "*N 3"]) -> Float[Array, "*N 3"]:
         """Eye-space coordinates (camera at the origin, looking down ``-z``)."""
         v = self.view_matrix()

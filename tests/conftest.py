@@ -34,3 +34,18 @@ def meshes_dir():
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def isolated_compilation_cache(tmp_path_factory):
+    """The CLI turns on JAX's persistent compilation cache (``$DIFFSHADE_CACHE``, by default the
+    user's ``~/.cache/diffshade/xla``). Tests that run it, in this process or in a subprocess,
+    use a cache of this session's own: they never read entries another run left (a worker once crashed
+    with a segfault reading an entry of the shared cache) and never write into the user's."""
+    old = os.environ.get("DIFFSHADE_CACHE")
+    os.environ["DIFFSHADE_CACHE"] = str(tmp_path_factory.mktemp("xla-cache"))
+    yield
+    if old is None:
+        os.environ.pop("DIFFSHADE_CACHE", None)
+    else:
+        os.environ["DIFFSHADE_CACHE"] = old

@@ -54,20 +54,27 @@ def test_camera_rays_hit_what_the_rasterizer_sees():
                     near=scene.camera.near, far=scene.camera.far, width=40, height=30)
     mesh = scene.mesh
     ids = np.asarray(ds.visibility(cam.world_to_clip(mesh.vertices), mesh.faces, cam.resolution, 1)[0])
-    # a ray through each pixel centre (NDC -> eye -> world)
-    xs, ys = ds.pixel_centres(30, 40, jnp.float64)
-    X, Y = np.meshgrid(np.asarray(xs), np.asarray(ys))
-    P = np.asarray(cam.projection_matrix(), np.float64)
-    Vinv = np.linalg.inv(np.asarray(cam.view_matrix(), np.float64))
-    d_eye = np.stack([X / P[0, 0], Y / P[1, 1], -np.ones_like(X)], -1)
-    d = d_eye @ Vinv[:3, :3].T
-    o = np.broadcast_to(np.asarray(cam.eye, np.float64), d.shape)
+    o, d = (np.asarray(a) for a in cam.pixel_rays(jnp.float64))  # a ray through each pixel centre
     for backend in ["jax"] + (["embree"] if _rays.embree_available() else []):
         hit = np.asarray(_rays.first_hits(jnp.asarray(o), jnp.asarray(d), jnp.asarray(mesh.vertices, jnp.float64),
                                           mesh.faces, backend=backend))
         clear = _edge_margin(mesh, o.reshape(-1, 3), d.reshape(-1, 3), ids.reshape(-1)).reshape(ids.shape) > 1e-4
         assert clear.mean() > 0.9 and (ids[clear] >= 0).sum() > 200
         np.testing.assert_array_equal(hit[clear], ids[clear])
+
+
+def test_pixel_rays_pass_through_the_pixel_centres():
+    scene, _ = ds.default_scene()
+    c = scene.camera
+    cam = ds.Camera(eye=c.eye, target=c.target, up=c.up, fov_y=c.fov_y, near=c.near, far=c.far, width=7, height=5)
+    o, d = cam.pixel_rays(jnp.float64)
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(d), axis=-1), 1.0, rtol=1e-14)
+    for s in (0.5, 3.0):  # points along each ray project onto its pixel's centre
+        clip = np.asarray(cam.world_to_clip(o + s * d))
+        ndc = clip[..., :2] / clip[..., 3:]
+        xs, ys = (np.asarray(a) for a in ds.pixel_centres(5, 7, jnp.float64))
+        np.testing.assert_allclose(ndc[..., 0], np.broadcast_to(xs[None], (5, 7)), atol=1e-13)
+        np.testing.assert_allclose(ndc[..., 1], np.broadcast_to(ys[:, None], (5, 7)), atol=1e-13)
 
 
 @pytest.mark.parametrize("backend", ["jax", pytest.param("embree", marks=EMBREE)])
