@@ -39,10 +39,15 @@ class Ref:
         self.s, self.o = s, opts
 
     # -- docs/model.md §1–2 at one point ------------------------------------------------------------
-    def point_color(self, P, n, mat, margin, parts=False):
-        """The colour at ``P`` (``parts``: the primary colour and the specular one apart)."""
+    def point_color(self, P, n, mat, margin, parts=False, view=None, visible=None):
+        """The colour at ``P`` (``parts``: the primary colour and the specular one apart). ``view``:
+        the unit vector to the viewer when not the camera (a point seen along a ray);
+        ``visible(P, source)``: a light's shadow visibility, ``source`` ``("dir", l)`` or
+        ``("pos", position)``."""
         s, o = self.s, self.o
-        if getattr(o, "viewer", "local") == "infinite":
+        if view is not None:
+            v = _n(view)
+        elif getattr(o, "viewer", "local") == "infinite":
             v = _n(s["eye"] - s["target"])  # the eye-space +z axis
         else:
             v = _n(s["eye"] - P)
@@ -50,10 +55,10 @@ class Ref:
         c_spec = np.zeros(3)
         lights = []
         for col, d, amb, scol in s["directional"]:
-            lights.append((col, -_n(d), 1.0, amb, scol))
+            lights.append((col, -_n(d), 1.0, amb, scol, ("dir", -_n(d))))
         for col, pos, att, amb, scol in s["point"]:
             dist = np.linalg.norm(pos - P)
-            lights.append((col, _n(pos - P), 1.0 / max(att[0] + att[1] * dist + att[2] * dist**2, 1e-300), amb, scol))
+            lights.append((col, _n(pos - P), 1.0 / max(att[0] + att[1] * dist + att[2] * dist**2, 1e-300), amb, scol, ("pos", pos)))
         for col, pos, att, amb, axis, cut, expo, edge, scol in s["spot"]:
             dist = np.linalg.norm(pos - P)
             l = _n(pos - P)
@@ -68,8 +73,8 @@ class Ref:
                 t = np.clip((cc - cos_cut) / (cos_in - cos_cut), 0, 1)
                 fang = lobe * t * t * (3 - 2 * t)
                 margin.append(abs(cc - cos_in))
-            lights.append((col, l, fang / max(att[0] + att[1] * dist + att[2] * dist**2, 1e-300), amb, scol))
-        for col, l, f, amb, scol in lights:
+            lights.append((col, l, fang / max(att[0] + att[1] * dist + att[2] * dist**2, 1e-300), amb, scol, ("pos", pos)))
+        for col, l, f, amb, scol, src in lights:
             ndl = float(np.dot(n, l))
             margin.append(abs(ndl))
             direct = np.zeros(3)
@@ -87,11 +92,12 @@ class Ref:
                     spec_term = mat["specular"] * spec
                 else:
                     spec_term = self.fresnel(ndl, mat["ior"]) * spec * np.ones(3)
-            term = col * direct
+            vis = 1.0 if visible is None else visible(P, src)
+            term = vis * col * direct
             if o.per_light_ambient:
                 term = term + mat["ambient"] * amb
             c += f * term
-            c_spec += f * scol * spec_term
+            c_spec += f * vis * scol * spec_term
         if o.ambient:
             c += mat["ambient"] * s["ambient_light"]
         if o.emission:
