@@ -136,8 +136,9 @@ def _light_sum(P, n, v, mat: Material, scene: Scene, opts: RenderOptions, back: 
             d, a = fn(li)
             if post is not None:
                 d = post(d)
-            if s_i is not None:
-                d = [s_i * x for x in d]
+            if s_i is not None:  # S_i, or with coloured shadow rays its RGB transmittance
+                coloured = opts.shadow_rays and opts.shadow_ray_crossings > 0
+                d = [(s_i[..., c % 3] if coloured else s_i) * x for c, x in enumerate(d)]
             return d, a
 
         if lights.count > LIGHTS_UNROLLED:

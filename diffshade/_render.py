@@ -88,7 +88,8 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=No
         P = lerp(Pv)
     shadow = None
     if opts.shadows and scene.area.count:
-        raise ValueError("shadow maps do not cover area lights: render a scene with area lights without shadows")
+        raise ValueError("shadow maps do not cover area lights: use shadow_rays=True (soft shadows, a ray to every "
+                         "emitter) or render the scene without shadows")
     if opts.shadows:
         ng = tuple(c[safe_tid] for c in S.vec(mesh.face_normals()))
         shadow = light_visibility(scene, opts, P, ng, Lg.LIGHTS_UNROLLED)

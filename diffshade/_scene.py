@@ -281,9 +281,13 @@ class RenderOptions:
     refracted rays from every pixel's surface point that many bounces (a material's ``mirror`` and
     ``refraction`` weights; Snell with ``ior``, total internal reflection, Bouguer absorption
     inside, the background where a ray leaves the scene, fog on every segment); ``shadow_rays``
-    decides which lights reach a point by rays to them (exact, no bias) instead of maps;
-    ``ray_backend`` is the ray engine (:mod:`diffshade._rays`). Primary visibility stays the
-    rasterizer's.
+    decides which lights reach a point by rays to them (exact, no bias) instead of maps. A shadow
+    ray is straight: it may cross up to ``shadow_ray_crossings`` surfaces of transparent materials
+    (``refraction > 0``), each multiplying the light by the material's ``refraction`` weight
+    :math:`k_{rt}` and the path inside by :math:`e^{-\mu\ell}` (coloured shadows; no bending,
+    no Fresnel); any other surface, or one crossing more, blocks it; materials with
+    ``casts_shadow=False`` are not seen at all. ``ray_backend`` is the ray engine
+    (:mod:`diffshade._rays`). Primary visibility stays the rasterizer's.
 
     OpenGL's fixed-function choices (docs/model.md §2 "OpenGL compatibility"; the defaults are
     diffshade's own, :meth:`opengl` sets all of OpenGL's):
@@ -328,6 +332,7 @@ class RenderOptions:
     area_grid: tuple[int, int] = (4, 4)
     ray_depth: int = 0
     shadow_rays: bool = False
+    shadow_ray_crossings: int = 2
     ray_backend: Literal["auto", "embree", "jax"] = "auto"
     clamp_at: ClampAt = "pixel"
     flat_source: FlatSource = "centroid"
@@ -355,6 +360,9 @@ class RenderOptions:
                 raise ValueError(f"RenderOptions.{name} must be a positive integer, got {x!r}")
         if isinstance(self.ray_depth, bool) or not (isinstance(self.ray_depth, int) and 0 <= self.ray_depth <= 8):
             raise ValueError(f"RenderOptions.ray_depth must be an integer in [0, 8] (0: no ray tracing), got {self.ray_depth!r}")
+        c = self.shadow_ray_crossings
+        if isinstance(c, bool) or not (isinstance(c, int) and 0 <= c <= 8):
+            raise ValueError(f"RenderOptions.shadow_ray_crossings must be an integer in [0, 8] (0: every surface blocks), got {c!r}")
         if (self.ray_depth or self.shadow_rays) and (self.shading != "phong" or self.layered):
             raise ValueError("the ray-traced mode (ray_depth > 0 or shadow_rays) shades per pixel: it needs "
                              "shading='phong' and no depth layers (transparency/absorption)")

@@ -44,31 +44,84 @@ def _scale(scene: Scene):
     return jnp.linalg.norm(jnp.max(X, axis=0) - jnp.min(X, axis=0)) + 1e-30
 
 
+def _light_rays(kind, li, Pa):
+    """Unit directions from points ``Pa`` to one light and the distance (``inf`` for a directional one)."""
+    if kind == "directional":
+        return jnp.broadcast_to(-li.direction / jnp.linalg.norm(li.direction), Pa.shape), jnp.inf
+    L = li.position - Pa
+    far = jnp.linalg.norm(L, axis=-1)
+    return L / jnp.maximum(far, 1e-30)[..., None], far
+
+
 def shadow_ray_visibility(scene: Scene, opts: RenderOptions, P, tri):
-    """:math:`S_i \\in \\{0, 1\\}` of every light at points ``P`` (component tuples) on triangles
-    ``tri``, by a ray to the light: per kind of :data:`diffshade._shadow.SHADOW_KINDS`, ``[N, ...]``
-    (the format of the shadow maps'). No gradient; opaque occluders."""
-    Pa = jax.lax.stop_gradient(jnp.stack(P, -1))
+    r"""Visibility of every light at points ``P`` (component tuples) on triangles ``tri``, by a
+    straight ray to the light: per kind (those of :data:`diffshade._shadow.SHADOW_KINDS` and the
+    area lights' emitters), ``[N, ...]`` in {0, 1} (``shadow_ray_crossings = 0``: every surface
+    blocks; no gradient) or ``[N, ..., 3]``, the light's RGB transmittance through up to
+    ``shadow_ray_crossings`` transparent surfaces (``refraction > 0``): :math:`k_{rt}` per surface
+    and :math:`e^{-\mu\ell}` per path inside, differentiable in both and in the geometry."""
+    mesh = scene.mesh
+    Pa = jnp.stack(P, -1)
     eps = _T_MIN * _scale(scene)
-    X = jax.lax.stop_gradient(scene.mesh.vertices)
+    X = jax.lax.stop_gradient(mesh.vertices)
+    K = opts.shadow_ray_crossings
+    mats = scene.all_materials()
+    multi = len(mats) > 1 and mesh.material_ids is not None
+    mid = lambda f: mesh.material_ids[jnp.where(f >= 0, f, 0)] if multi else jnp.zeros_like(f)  # noqa: E731
+    # per material: seen by shadow rays at all, transparent (k_rt), absorbing (mu); static flags
+    seen = jnp.asarray([m.casts_shadow for m in mats])
+    k_rt = jnp.stack([jnp.broadcast_to(m.refraction, (3,)) for m in mats])
+    mu = jnp.stack([jnp.broadcast_to(m.absorption, (3,)) for m in mats])
+    faces = mesh.faces
+    if not all(m.casts_shadow for m in mats):  # invisible materials: their faces made degenerate
+        keep_face = seen[mid(jnp.arange(faces.shape[0]))] if multi else jnp.broadcast_to(seen[0], faces.shape[:1])
+        faces = jnp.where(keep_face[:, None], faces, faces[:, :1])
+    fn = jax.lax.stop_gradient(mesh.face_normals())
+
+    def opaque(kind, li):
+        d, far = _light_rays(kind, jax.lax.stop_gradient(li), jax.lax.stop_gradient(Pa))
+        hit = first_hits(jax.lax.stop_gradient(Pa), d, X, faces, tmin=eps, skip=tri, backend=opts.ray_backend)
+        t, _, _, ok = intersect(jax.lax.stop_gradient(Pa), d, X, faces, hit)
+        return jnp.where(ok & (t < far - eps), 0.0, 1.0).astype(Pa.dtype)
+
+    def coloured(kind, li):
+        d, far = _light_rays(kind, li, Pa)
+        dn = jax.lax.stop_gradient(d)
+        # a ray that starts into its own surface's back side travels inside that material first
+        inside = jnp.sum(fn[jnp.where(tri >= 0, tri, 0)] * dn, -1) < 0
+        m_in = jnp.where((inside & (tri >= 0))[..., None], mu[mid(tri)], 0.0)
+        vis = jnp.ones(Pa.shape, Pa.dtype)
+        o, skip, left = Pa, tri, far
+        active = jnp.ones(Pa.shape[:-1], bool)
+        for k in range(K + 1):
+            hit = first_hits(jax.lax.stop_gradient(o), dn, X, faces, tmin=eps, skip=skip, backend=opts.ray_backend)
+            t, _, _, ok = intersect(o, d, mesh.vertices, faces, hit)
+            block = active & ok & (t < left - eps)
+            seg = jnp.where(block, t, jnp.where(active & jnp.isfinite(left), left, 0.0))
+            vis = vis * jnp.exp(-m_in * seg[..., None])
+            m = mid(hit)
+            if k == K:
+                vis = jnp.where(block[..., None], 0.0, vis)
+                break
+            clear = jnp.any(k_rt[m] > 0, -1)
+            vis = jnp.where(block[..., None], jnp.where(clear[..., None], vis * k_rt[m], 0.0), vis)
+            front = jnp.sum(fn[jnp.where(hit >= 0, hit, 0)] * dn, -1) < 0
+            active = block & clear
+            m_in = jnp.where((active & front)[..., None], mu[m], 0.0)  # entering: inside until the next surface
+            o = o + jnp.where(block, t, 0.0)[..., None] * d
+            left = left - jnp.where(block, t, 0.0)
+            skip = jnp.where(block, hit, skip)
+        return vis
+
+    one_kind = coloured if K > 0 else opaque
     out = {}
-    for kind in SHADOW_KINDS:
-        lights = jax.lax.stop_gradient(getattr(scene, kind))
+    kinds = [(k, getattr(scene, k)) for k in SHADOW_KINDS]
+    if scene.area.count:
+        kinds.append(("area", Lg.area_emitters(scene.area, opts.area_grid)))
+    for kind, lights in kinds:
         if not lights.count:
             continue
-
-        def one(li, kind=kind):
-            if kind == "directional":
-                d = jnp.broadcast_to(-li.direction / jnp.linalg.norm(li.direction), Pa.shape)
-                far = jnp.inf
-            else:
-                L = li.position - Pa
-                far = jnp.linalg.norm(L, axis=-1)
-                d = L / jnp.maximum(far, 1e-30)[..., None]
-            hit = first_hits(Pa, d, X, scene.mesh.faces, tmin=eps, skip=tri, backend=opts.ray_backend)
-            t, _, _, ok = intersect(Pa, d, X, scene.mesh.faces, hit)
-            return jnp.where(ok & (t < far - eps), 0.0, 1.0).astype(Pa.dtype)
-
+        one = lambda li, kind=kind: one_kind("point" if kind == "area" else kind, li)  # noqa: E731
         # past a few lights of a kind, one copy in the program (as for shadow maps and lighting)
         if lights.count > Lg.LIGHTS_UNROLLED:
             out[kind] = jax.lax.map(one, lights)

@@ -124,7 +124,7 @@ def fit(
                             extra=(rtol, atol, max_steps, history, verbose, solver, red.idx_n.tobytes()))
     compile_s += c
 
-    ev, c = _evaluator(prob, red, theta_ref, max_steps, rtol)
+    ev, c = _evaluator(prob, red, theta_ref)
     compile_s += c
     t_run = time.perf_counter()
 
@@ -184,16 +184,21 @@ def fit(
     return _report(prob, red, best, theta0, notes, hist, steps_total, compile_s, solve_s, n2, n_cens, msg_solver)
 
 
-def _programs(prob, red, U, sub, theta_ref, max_steps, rtol, history=False, verbose=False, search=True):
+def _limits(max_steps, rtol, dtype):
+    """The solve program's step limit and tolerance, as the data they are."""
+    return jnp.asarray(max_steps, jnp.int32), jnp.asarray(rtol, dtype)
+
+
+def _programs(prob, red, U, sub, theta_ref, history=0, verbose=False, search=True):
     """The compiled search and solve programs (:mod:`fitting.program`) for these shapes (the
     search ``None`` when there is nothing to rank), and the seconds their compile took (0 when
-    cached)."""
+    cached). ``history``: the capacity of the recorded path (0: none)."""
     dtype = prob.dtype
     n2, _ = prob.counts()
     z = jnp.zeros(len(red.idx_l) + len(red.idx_n), dtype)
-    items = [("program", make_program(red, max_steps=max_steps, rtol=rtol, history=history, verbose=verbose),
-              (z, prob.data, theta_ref, jnp.asarray(n2, dtype), jnp.asarray(0)),
-              (max_steps, rtol, history, verbose, red.idx_n.tobytes()))]
+    items = [("program", make_program(red, history=history, verbose=verbose),
+              (z, prob.data, theta_ref, jnp.asarray(n2, dtype), jnp.asarray(0), *_limits(0, 0.0, dtype)),
+              (history, verbose, red.idx_n.tobytes()))]
     search = search and len(red.idx_n) and len(U) > 1
     if search:
         items.append(("search", make_search(red), (jnp.asarray(U, dtype), sub, theta_ref), (red.idx_n.tobytes(),)))
@@ -220,7 +225,8 @@ class _Evaluator:
         red = self.red
         theta = np.asarray(theta, np.float64)
         z = np.concatenate([theta[red.idx_l], theta[red.idx_n]])
-        out = self.fn(jnp.asarray(z, self.dtype), self.prob.data, self.theta_ref, self.n2, jnp.asarray(1))
+        out = self.fn(jnp.asarray(z, self.dtype), self.prob.data, self.theta_ref, self.n2, jnp.asarray(1),
+                      *_limits(0, 0.0, self.dtype))
         img = np.asarray(out["img"], np.float64)
         T = np.asarray(out["T"])
         d = img - self.t
@@ -234,8 +240,8 @@ class _Evaluator:
         return r, JT.T, img
 
 
-def _evaluator(prob, red, theta_ref, max_steps, rtol):
-    fn, _, c = _programs(prob, red, None, None, theta_ref, max_steps, rtol, search=False)
+def _evaluator(prob, red, theta_ref):
+    fn, _, c = _programs(prob, red, None, None, theta_ref, search=False)
     return _Evaluator(fn, prob, red, theta_ref), c
 
 
@@ -252,7 +258,7 @@ def _fit_program(prob, red, theta0, *, starts, restarts, max_steps, polish_steps
     # host in float64 on the program's evaluation (float32 normal equations cannot resolve the
     # weakly determined directions the polish must still move: measured, noisy fits stopped
     # short with |z| up to 70).
-    fn, search, compile_s = _programs(prob, red, U, sub, theta_ref, max_steps, rtol, history, verbose)
+    fn, search, compile_s = _programs(prob, red, U, sub, theta_ref, max_steps + 1 if history else 0, verbose)
     ev = _Evaluator(fn, prob, red, theta_ref)
     n2_arr = jnp.asarray(n2, dtype)
     notes, hist = [], []
@@ -264,7 +270,7 @@ def _fit_program(prob, red, theta0, *, starts, restarts, max_steps, polish_steps
     for attempt in range(restarts + 1):
         b = int(np.argmin(np.where(exclude, np.inf, costs)))
         z0 = np.concatenate([x_start, U[b]])
-        out = fn(jnp.asarray(z0, dtype), prob.data, theta_ref, n2_arr, jnp.asarray(0))
+        out = fn(jnp.asarray(z0, dtype), prob.data, theta_ref, n2_arr, jnp.asarray(0), *_limits(max_steps, rtol, dtype))
         z = np.asarray(out["z"], np.float64)
         k0 = int(out["k"])
         u = z[len(red.idx_l):]

@@ -124,16 +124,18 @@ def make_search(red: Reduced):
     return search
 
 
-def make_program(red: Reduced, *, max_steps: int, rtol: float, history: bool, verbose: bool = False):
-    """``program(z0, data, theta_ref, n_res, mode) -> dict`` (see the module docstring).
-    ``mode`` 0: variable projection from ``z0 = (x, u)``; 1: evaluate at ``z0`` given in natural
-    units and return ``img`` and the tangents ``T``."""
+def make_program(red: Reduced, *, history: int = 0, verbose: bool = False):
+    """``program(z0, data, theta_ref, n_res, mode, max_steps, rtol) -> dict`` (see the module
+    docstring). ``mode`` 0: variable projection from ``z0 = (x, u)``; 1: evaluate at ``z0``
+    given in natural units and return ``img`` and the tangents ``T``. The step limit and the
+    tolerance are data (changing them compiles nothing); ``history`` (static) is the capacity of
+    the recorded path, 0 for none."""
     prob = red.prob
     E_all, _ = _tangents(red)
     n_l, n_n = len(red.idx_l), len(red.idx_n)
     p = n_l + n_n
     idx_n = red.idx_n
-    S = max_steps + 1
+    S = history
 
     def to_theta(zz, natural, theta_ref):
         """θ from ``z``: the nonlinear part is ``u`` (``natural`` False) or already θ (True)."""
@@ -141,7 +143,7 @@ def make_program(red: Reduced, *, max_steps: int, rtol: float, history: bool, ve
         th = red.theta(jnp.where(natural, 0.0, un), zz[:n_l], theta_ref)  # double where: exp(θ) may overflow
         return th.at[idx_n].set(jnp.where(natural, un.astype(th.dtype), th[idx_n]))
 
-    def program(z0, data, theta_ref, n_res, mode):
+    def program(z0, data, theta_ref, n_res, mode, max_steps, rtol):
         dt = theta_ref.dtype
         eps = float(jnp.finfo(dt).eps)
         rcond = 1e2 * eps
@@ -199,7 +201,7 @@ def make_program(red: Reduced, *, max_steps: int, rtol: float, history: bool, ve
                 th_new = red.theta(z_new[n_l:], z_new[:n_l], theta_ref)
                 s["hz"] = s["hz"].at[i].set(jnp.where(ok, th_new, s["hz"][i]))
                 s["hc"] = s["hc"].at[i].set(jnp.where(ok, c_new, s["hc"][i]))
-                s["nh"] = i + ok
+                s["nh"] = jnp.minimum(i + ok, S - 1)
             # converged: the undamped Gauss–Newton step would gain less than a hundredth of the
             # residual variance plus what float rounding of the residual explains, or move no
             # nonlinear variable by more than rtol

@@ -26,6 +26,7 @@ def to_trace_ref(scene) -> dict:
     a = lambda x: np.asarray(x, np.float64)  # noqa: E731
     s = to_ref(scene)
     mats = scene.all_materials()
+    s["casts_shadow"] = [m.casts_shadow for m in mats]
     s["materials"] = [{k: a(getattr(m, k)) for k in ("emission", "ambient", "diffuse", "specular", "mirror", "refraction", "absorption")}
                       | {"shininess": float(m.shininess), "ior": float(m.ior)} for m in mats]
     nf = len(s["faces"])
@@ -70,8 +71,11 @@ class TraceRef(Ref):
         return t[fi], fi, np.array([1 - u[fi] - w[fi], u[fi], w[fi]])
 
     def shadow(self, P, src, skip, margin):
-        """1 if nothing lies between ``P`` and the light, else 0; ``margin`` gets how close the
-        shadow ray passes to an occluder's edge."""
+        r"""The light's transmittance from ``P`` along a straight ray: 0 behind an opaque surface
+        (or one transparent crossing too many), else the product of the ``refraction`` weights of
+        the surfaces crossed and :math:`e^{-\mu\ell}` inside (RGB); ``margin`` gets how close
+        the shadow ray passes to an edge."""
+        s = self.s
         if src[0] == "dir":
             d, far = src[1], np.inf
         else:
@@ -79,12 +83,29 @@ class TraceRef(Ref):
             far = np.linalg.norm(L)
             d = L / far
         t, u, w, ok = self._mt(P, d)
-        inrange = ok & (t > self.eps) & (t < far - self.eps)
+        seen = np.array([s["casts_shadow"][s["material_ids"][f]] for f in range(len(t))])
+        inrange = ok & (t > self.eps) & (t < far - self.eps) & seen
         inrange[skip] = False
         inside = np.minimum(np.minimum(u, w), 1 - u - w)  # > 0 inside the triangle, < 0 outside
         if inrange.any():
             margin.append(np.abs(inside[inrange]).min() * 10)
-        return 0.0 if (inrange & (inside >= 0)).any() else 1.0
+        hits = sorted((t[f], f) for f in np.flatnonzero(inrange & (inside >= 0)))
+        K = self.o.shadow_ray_crossings
+        if K == 0:  # every surface blocks
+            return 0.0 if hits else 1.0
+        mat = lambda f: s["materials"][s["material_ids"][f]]  # noqa: E731
+        vis, at = np.ones(3), 0.0
+        m_in = mat(skip)["absorption"] * np.ones(3) if np.dot(self.fn[skip], d) < 0 else np.zeros(3)
+        for j, (th, f) in enumerate(hits):
+            vis = vis * np.exp(-m_in * (th - at))
+            at = th
+            if j >= K or not np.any(mat(f)["refraction"] > 0):
+                return np.zeros(3)
+            vis = vis * mat(f)["refraction"]
+            m_in = mat(f)["absorption"] * np.ones(3) if np.dot(self.fn[f], d) < 0 else np.zeros(3)
+        if np.isfinite(far):
+            vis = vis * np.exp(-m_in * (far - at))
+        return vis
 
     def local(self, P, n, front, fi, v, margin, level):
         """Local terms at a hit on face ``fi`` (mesh normal ``n``), seen along ``v``."""

@@ -171,6 +171,9 @@ def test_second_fit_of_the_same_structure_compiles_nothing():
     ps = ParamSet(free, scene)
     r = fit(ps.apply(scene, ps.theta_of(scene) * 0.7), opts, target * 0.9, free)
     assert r.compile_s == 0.0
+    # the step limit, the tolerances and the polish's steps are numbers: still nothing compiled
+    r = fit(ps.apply(scene, ps.theta_of(scene) * 0.8), opts, target, free, max_steps=7, rtol=1e-5, polish_steps=3)
+    assert r.compile_s == 0.0 and r.steps > 0
 
 
 def test_recovers_transparency_absorption_transmission_and_kay():

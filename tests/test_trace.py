@@ -329,3 +329,61 @@ def test_traced_image_matches_an_independent_numpy_tracer(case):
     # the scene exercises what it should: the glass changes the image, and so do the floor's reflections
     flat = np.asarray(_render(scene, opts.replace(ray_depth=0, shadow_rays=False)))
     assert np.abs(img - flat)[safe].max() > 0.1
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_coloured_filter_tints_the_shadow_by_its_transmittance(backend):
+    # a horizontal glass slab (thickness 0.3, k_rt, mu) under a vertical directional light: the
+    # floor below it gets k_d (n.l) k_rt^2 e^{-mu 0.3} (two surfaces crossed, straight shadow rays);
+    # with shadow_ray_crossings = 0, or a second slab beyond the crossings, it is black
+    k_rt, mu, h = np.array([0.9, 0.7, 0.5]), np.array([0.5, 1.0, 2.0]), 0.3
+    d = {"camera": {"eye": [0.0, 2.5, 2.5], "target": [0, -0.5, 0], "up": [0, 1, 0], "fov_y": 50, "near": 0.1, "far": 50,
+                    "width": 24, "height": 20},
+         "render": {"shading": "phong", "specular": "none", "fog": "none", "ambient": False, "shadow_rays": True,
+                    "ray_backend": backend},
+         "object": [{"box": [1.2, h, 1.2], "translate": [0, 0.5, 0],
+                     "material": {"diffuse": 0.0, "ambient": 0.0, "specular": 0.0, "refraction": k_rt.tolist(),
+                                  "absorption": mu.tolist()}},
+                    {"quad": [8, 8], "normal": [0, 1, 0], "translate": [0, -0.7, 0], "divisions": 2,
+                     "material": {"diffuse": [0.8, 0.8, 0.8], "specular": 0.0}}],
+         "light": [{"type": "directional", "direction": [0, -1, 0], "color": 1.0}]}
+    scene, opts = ds.scene_from_dict(d)
+    scene = _f64(scene)
+    img = np.asarray(_render(scene, opts))
+    ids = np.asarray(ds.scene_visibility(scene, opts)[0])
+    o, dd = (np.asarray(a) for a in scene.camera.pixel_rays(jnp.float64))
+    t = (-0.7 - o[..., 1]) / dd[..., 1]
+    x = o + t[..., None] * dd
+    floor = ids >= 12
+    under = floor & (np.maximum(np.abs(x[..., 0]), np.abs(x[..., 2])) < 0.6 * 0.9)
+    free = floor & (np.maximum(np.abs(x[..., 0]), np.abs(x[..., 2])) > 0.6 * 1.1)
+    assert under.sum() > 10 and free.sum() > 50
+    np.testing.assert_allclose(img[under], np.broadcast_to(0.8 * k_rt ** 2 * np.exp(-mu * h), img[under].shape), rtol=1e-9)
+    np.testing.assert_allclose(img[free], 0.8, rtol=1e-9)
+    blocked = np.asarray(_render(scene, opts.replace(shadow_ray_crossings=0)))
+    np.testing.assert_allclose(blocked[under], 0.0, atol=1e-12)
+    np.testing.assert_allclose(blocked[free], 0.8, rtol=1e-9)
+    # the shadow's colour is differentiable in k_rt and mu (forward and reverse)
+    def f(k, m):
+        mat = scene.material
+        mm = ds.Material(**{**{q: getattr(mat, q) for q in mat.__dataclass_fields__}, "refraction": k, "absorption": m})
+        return ds.render(ds.Scene(**{**{q: getattr(scene, q) for q in scene.__dataclass_fields__}, "material": mm}), opts)[under]
+    check_grads(jax.jit(f), (jnp.asarray(k_rt), jnp.asarray(mu)), order=1, modes=("fwd", "rev"), eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_area_lights_cast_soft_shadows_by_rays(backend):
+    # a 4 x 4 area light above the ball: the floor under it has an umbra (every emitter hidden),
+    # a penumbra (some hidden) and is unshadowed far away; each emitter's ray is an exact shadow ray
+    lights = [{"type": "area", "color": 3.0, "position": [0.0, 2.0, 0.0], "normal": [0, -1, 0], "up": [0, 0, 1],
+               "size": [1.2, 1.2]}]
+    scene, opts = _scene(size=(40, 30), lights=lights, render={"ambient": False, "specular": "none", "area_grid": [4, 4]},
+                         ico=2)
+    lit = np.asarray(_render(scene, opts))
+    img = np.asarray(_render(scene, opts.replace(shadow_rays=True, ray_backend=backend)))
+    floor = np.asarray(ds.scene_visibility(scene, opts)[0]) >= 320
+    frac = img[floor][:, 0] / np.maximum(lit[floor][:, 0], 1e-30)
+    assert (frac < 1e-12).sum() > 5  # umbra
+    assert ((frac > 0.05) & (frac < 0.95)).sum() > 10  # penumbra
+    assert (np.abs(frac - 1) < 1e-12).sum() > 50  # unshadowed
+    assert frac.min() >= -1e-12 and frac.max() <= 1 + 1e-12
