@@ -21,6 +21,7 @@ from ._raster import (
     visibility_passes,
 )
 from ._render import render, scene_visibility, shade, to_uint8, truncated_pixels
+from ._trace import ray_counts
 from ._scene import (
     AreaLights,
     DirectionalLights,
@@ -46,4 +47,5 @@ __all__ = [
     "no_point", "no_spot", "phong_to_blinn", "pixel_centres", "rasterize", "render", "scene_from_dict",
     "scene_visibility", "shade", "to_uint8", "visibility", "visibility_passes", "box", "combine", "quad",
     "truncated_pixels",
+    "ray_counts",
 ]

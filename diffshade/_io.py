@@ -177,7 +177,7 @@ def _options(v: _V, r: dict) -> RenderOptions:
                 v.fail(f"render.{k}", f"must be a list of {len(default)} positive integers, got {x!r}")
             x = tuple(x)
         elif isinstance(default, int):
-            lowest = 0 if k in ("ray_depth", "shadow_ray_crossings") else 1
+            lowest = 0 if k in ("ray_depth", "shadow_ray_crossings", "ray_capacity") else 1
             if isinstance(x, bool) or not isinstance(x, int) or x < lowest:
                 v.fail(f"render.{k}", f"must be an integer >= {lowest}, got {x!r}")
         kw[k] = x

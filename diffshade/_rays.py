@@ -69,16 +69,20 @@ def _embree_scene(tris: np.ndarray):
     return sc
 
 
-def _embree_hits(orig, dirs, tmin, tris):
-    """Host side: first-hit triangle ids of rays ``orig + t dirs``, ``t > tmin`` (NumPy in and out)."""
-    orig = np.ascontiguousarray(orig, np.float32).reshape(-1, 3)
-    dirs = np.ascontiguousarray(dirs, np.float32).reshape(-1, 3)
-    tmin = np.ascontiguousarray(np.broadcast_to(tmin, orig.shape[:1]), np.float32)
-    if len(orig) == 0:
-        return np.zeros((0,), np.int32)
+def _embree_hits(orig, dirs, tmin, active, tris):
+    """Host side: first-hit triangle ids of rays ``orig + t dirs``, ``t > tmin`` (NumPy in and
+    out); only the ``active`` rays are traced (the others get ``-1``)."""
+    active = np.asarray(active, bool).reshape(-1)
+    out = np.full(active.shape, -1, np.int32)
+    if not active.any():
+        return out
+    orig = np.asarray(orig, np.float32).reshape(-1, 3)[active]
+    dirs = np.asarray(dirs, np.float32).reshape(-1, 3)[active]
+    tmin = np.broadcast_to(np.asarray(tmin, np.float32), active.shape)[active]
     sc = _embree_scene(np.ascontiguousarray(tris, np.float32))
-    # embreex takes no per-ray tnear: start each ray at tmin along itself, then shift t back
-    return np.asarray(sc.run(orig + tmin[:, None] * dirs, dirs), np.int32)
+    # embreex takes no per-ray tnear: start each ray at tmin along itself
+    out[active] = sc.run(np.ascontiguousarray(orig + tmin[:, None] * dirs), np.ascontiguousarray(dirs))
+    return out
 
 
 def _moller_trumbore(o, d, v0, v1, v2):
@@ -126,22 +130,24 @@ def _jax_hits(orig, dirs, tmin, skip, tris, chunk: int = 256):
     return hit_id
 
 
-def first_hits(orig, dirs, vertices, faces, tmin=0.0, skip=None, backend: str = "auto"):
+def first_hits(orig, dirs, vertices, faces, tmin=0.0, skip=None, active=None, backend: str = "auto"):
     """Id of the first triangle each ray ``orig + t dirs`` (``[..., 3]``) meets with ``t > tmin``
     (``-1`` where none), no gradient. ``skip`` (``[...]`` triangle ids, ``-1`` for none) is left
-    out by the JAX engine; Embree relies on ``tmin``. Works under ``jit`` and ``vmap``."""
+    out by the JAX engine; Embree relies on ``tmin``. Rays not ``active`` (``[...]`` bools) get
+    ``-1`` (Embree does not trace them). Works under ``jit`` and ``vmap``."""
     backend = resolve_ray_backend(backend)
     shape = jnp.shape(orig)[:-1]
     o = jax.lax.stop_gradient(jnp.reshape(orig, (-1, 3)))
     d = jax.lax.stop_gradient(jnp.reshape(dirs, (-1, 3)))
     tm = jax.lax.stop_gradient(jnp.broadcast_to(jnp.asarray(tmin, o.dtype), shape).reshape(-1))
+    act = jnp.ones(o.shape[:1], bool) if active is None else jnp.broadcast_to(active, shape).reshape(-1)
     tris = jax.lax.stop_gradient(vertices)[faces]
     if backend == "embree":
         out = jax.ShapeDtypeStruct(o.shape[:1], jnp.int32)
-        ids = jax.pure_callback(_embree_hits, out, o, d, tm, tris, vmap_method="sequential")
+        ids = jax.pure_callback(_embree_hits, out, o, d, tm, act, tris, vmap_method="sequential")
     else:
         sk = jnp.full(o.shape[:1], -1, jnp.int32) if skip is None else jnp.reshape(skip, (-1,)).astype(jnp.int32)
-        ids = _jax_hits(o, d, tm, sk, tris)
+        ids = jnp.where(act, _jax_hits(o, d, jnp.where(act, tm, jnp.inf), sk, tris), -1)
     return ids.reshape(shape)
 
 

@@ -287,7 +287,10 @@ class RenderOptions:
     :math:`k_{rt}` and the path inside by :math:`e^{-\mu\ell}` (coloured shadows; no bending,
     no Fresnel); any other surface, or one crossing more, blocks it; materials with
     ``casts_shadow=False`` are not seen at all. ``ray_backend`` is the ray engine
-    (:mod:`diffshade._rays`). Primary visibility stays the rasterizer's.
+    (:mod:`diffshade._rays`). Primary visibility stays the rasterizer's. Rays are traced a
+    generation at a time; ``ray_capacity`` (0: none) bounds a generation: its rays of non-zero
+    weight are compacted into that many slots, so only the pixels that show a mirror or glass
+    cost anything; rays beyond it are dropped (:func:`diffshade.ray_counts` gives what a scene needs).
 
     OpenGL's fixed-function choices (docs/model.md §2 "OpenGL compatibility"; the defaults are
     diffshade's own, :meth:`opengl` sets all of OpenGL's):
@@ -333,6 +336,7 @@ class RenderOptions:
     ray_depth: int = 0
     shadow_rays: bool = False
     shadow_ray_crossings: int = 2
+    ray_capacity: int = 0
     ray_backend: Literal["auto", "embree", "jax"] = "auto"
     clamp_at: ClampAt = "pixel"
     flat_source: FlatSource = "centroid"
@@ -360,6 +364,8 @@ class RenderOptions:
                 raise ValueError(f"RenderOptions.{name} must be a positive integer, got {x!r}")
         if isinstance(self.ray_depth, bool) or not (isinstance(self.ray_depth, int) and 0 <= self.ray_depth <= 8):
             raise ValueError(f"RenderOptions.ray_depth must be an integer in [0, 8] (0: no ray tracing), got {self.ray_depth!r}")
+        if isinstance(self.ray_capacity, bool) or not (isinstance(self.ray_capacity, int) and self.ray_capacity >= 0):
+            raise ValueError(f"RenderOptions.ray_capacity must be an integer >= 0 (0: no limit), got {self.ray_capacity!r}")
         c = self.shadow_ray_crossings
         if isinstance(c, bool) or not (isinstance(c, int) and 0 <= c <= 8):
             raise ValueError(f"RenderOptions.shadow_ray_crossings must be an integer in [0, 8] (0: every surface blocks), got {c!r}")

@@ -94,7 +94,8 @@ def shadow_ray_visibility(scene: Scene, opts: RenderOptions, P, tri):
         o, skip, left = Pa, tri, far
         active = jnp.ones(Pa.shape[:-1], bool)
         for k in range(K + 1):
-            hit = first_hits(jax.lax.stop_gradient(o), dn, X, faces, tmin=eps, skip=skip, backend=opts.ray_backend)
+            hit = first_hits(jax.lax.stop_gradient(o), dn, X, faces, tmin=eps, skip=skip, active=active,
+                             backend=opts.ray_backend)
             t, _, _, ok = intersect(o, d, mesh.vertices, faces, hit)
             block = active & ok & (t < left - eps)
             seg = jnp.where(block, t, jnp.where(active & jnp.isfinite(left), left, 0.0))
@@ -155,38 +156,6 @@ def _fresnel(opts, cos_i, eta_rel, ior):
     return S.fresnel_schlick(cos_i, ior)
 
 
-def _bounce(scene, opts, mats, used, P, n, front, mat, tri, v, level, back_mat, mu_in=None):
-    """The colour at surface points with mesh normals ``n`` (local terms as the rasterizer's
-    Phong shading has them, two-sided or not; below ``ray_depth``, plus the mirror and refracted
-    rays' colours, whose directions use the normal facing the ray)."""
-    shadow = shadow_ray_visibility(scene, opts, P, tri) if opts.shadow_rays else None
-    n_face = tuple(jnp.where(front, c, -c) for c in n)
-    # seen from the camera, the viewer is the rasterizer's (local or infinite); along a ray, -d
-    eye, view = (scene.camera.eye, None) if level == 0 else (None, v)
-    if opts.two_sided:
-        fr = shade_points(P, n_face, eye, mat, scene, opts, shadow=shadow, view=view)
-        bk = shade_points(P, n_face, eye, back_mat, scene, opts, True, shadow=shadow, view=view)
-        local = tuple(jnp.where(front, a, b) for a, b in zip(fr, bk))
-    else:
-        local = shade_points(P, n, eye, mat, scene, opts, shadow=shadow, view=view)
-    n = n_face
-    if level >= opts.ray_depth:
-        return local
-    kr, kt = _rgb(jnp.broadcast_to(mat.mirror, front.shape + (3,))), _rgb(jnp.broadcast_to(mat.refraction, front.shape + (3,)))
-    ndv = S.dot(n, v)  # > 0: n faces the ray
-    ior = jnp.broadcast_to(mat.ior, front.shape)
-    R = mirror_direction(n, v)
-    T, tir = refracted_direction(n, v, jnp.where(front, 1.0 / ior, ior))
-    w_r, w_t = ray_weights(opts, kr, kt, ndv, jnp.where(front, ior, 1.0 / ior), ior, tir)
-    Pa = jnp.stack(P, -1)
-    # the mirror ray stays in the incoming ray's medium; the refracted one enters the material
-    # through a front face (Bouguer's e^{-mu l} on its segment) or leaves it through a back face
-    mu_t = jnp.where(front[..., None], jnp.broadcast_to(mat.absorption, front.shape + (3,)), 0.0)
-    c_r = _segment(scene, opts, mats, used, Pa, jnp.stack(R, -1), tri, level + 1, mu_in)
-    c_t = _segment(scene, opts, mats, used, Pa, jnp.stack(T, -1), tri, level + 1, mu_t)
-    return tuple(local[c] + w_r[c] * c_r[c] + w_t[c] * c_t[c] for c in range(3))
-
-
 def mirror_direction(n, v):
     r""":math:`R = 2(N\cdot V)N - V` (component tuples; ``n`` facing ``v``)."""
     return S.sub(S.scale(n, 2.0 * S.dot(n, v)), v)
@@ -217,35 +186,138 @@ def ray_weights(opts: RenderOptions, kr, kt, cos1, eta_rel, ior, tir):
     return ([kr[c] + jnp.where(tir, kt[c], 0.0) for c in range(3)], [jnp.where(tir, 0.0, kt[c]) for c in range(3)])
 
 
-def _segment(scene, opts, mats, used, o, d, skip, level, mu):
-    """The colour arriving at ``o`` along ``-d`` (unit ``d``): what the ray meets, shaded, fogged
-    over the segment, absorbed by ``mu`` (``[..., 3]``, or None), the background on a miss."""
-    d = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
-    eps = _T_MIN * _scale(scene)
-    ids = first_hits(o, d, scene.mesh.vertices, scene.mesh.faces, tmin=eps, skip=skip, backend=opts.ray_backend)
+def _local(scene, opts, P, n, front, mat, back_mat, tri, eye, view):
+    """Local terms at surface points with mesh normals ``n`` (as the rasterizer's Phong shading
+    has them, two-sided or not, with shadow rays when on), and the normals facing the viewer."""
+    shadow = shadow_ray_visibility(scene, opts, P, tri) if opts.shadow_rays else None
+    n_face = tuple(jnp.where(front, c, -c) for c in n)
+    if opts.two_sided:
+        fr = shade_points(P, n_face, eye, mat, scene, opts, shadow=shadow, view=view)
+        bk = shade_points(P, n_face, eye, back_mat, scene, opts, True, shadow=shadow, view=view)
+        return tuple(jnp.where(front, a, b) for a, b in zip(fr, bk)), n_face
+    return shade_points(P, n, eye, mat, scene, opts, shadow=shadow, view=view), n_face
+
+
+def _children(opts, mat, n_face, v, front):
+    """The mirror and refracted directions at surface points (normals facing ``v``) and their
+    weights, ``[..., 3]``; and the absorption of the refracted ray's medium (the material's when
+    it enters through a front face, none when it leaves)."""
+    shape = front.shape
+    rgb = lambda x: _rgb(jnp.broadcast_to(x, shape + (3,)))  # noqa: E731
+    ior = jnp.broadcast_to(mat.ior, shape)
+    R = mirror_direction(n_face, v)
+    T, tir = refracted_direction(n_face, v, jnp.where(front, 1.0 / ior, ior))
+    w_r, w_t = ray_weights(opts, rgb(mat.mirror), rgb(mat.refraction), S.dot(n_face, v), jnp.where(front, ior, 1.0 / ior),
+                           ior, tir)
+    mu_t = jnp.where(front[..., None], jnp.broadcast_to(mat.absorption, shape + (3,)), 0.0)
+    return jnp.stack(R, -1), jnp.stack(T, -1), jnp.stack(w_r, -1), jnp.stack(w_t, -1), mu_t
+
+
+def _unit(d):
+    """``d / |d|`` with a finite value and gradient at ``d = 0``."""
+    q = jnp.sum(d * d, -1, keepdims=True)
+    ok = q > 0
+    return jnp.where(ok, d / jnp.sqrt(jnp.where(ok, q, 1.0)), 0.0)
+
+
+def _compact(rays, capacity: int, n_pixels: int):
+    """The live rays (non-zero weight) moved to the front of a buffer of ``capacity``; beyond it,
+    rays are dropped (:func:`ray_counts` says how many a scene needs)."""
+    live = jnp.any(rays["w"] != 0, -1)
+    idx = jnp.nonzero(live, size=capacity, fill_value=0)[0]
+    kept = jnp.arange(capacity) < jnp.sum(live)
+    out = {k: v[idx] for k, v in rays.items()}
+    out["w"] = jnp.where(kept[:, None], out["w"], 0.0)
+    out["pix"] = jnp.where(kept, out["pix"], n_pixels)  # out of range: dropped by the scatter
+    return out
+
+
+_COUNTS = []  # set by ray_counts(): the live rays of each generation are appended here
+
+
+def _shoot(scene, opts, mats, used, rays, spawn: bool):
+    """One generation of secondary rays: the colour each brings to its pixel (its weight times
+    what it meets, shaded and fogged by its length and absorbed by its medium, or the background)
+    and, when ``spawn``, the next generation (a mirror and a refracted ray from each hit)."""
+    o, d = rays["o"], _unit(rays["d"])
+    live = jnp.any(rays["w"] != 0, -1)
+    if _COUNTS:
+        _COUNTS[-1].append(jnp.sum(live))
+    mesh = scene.mesh
+    ids = first_hits(o, d, mesh.vertices, mesh.faces, tmin=_T_MIN * _scale(scene), skip=rays["skip"], active=live,
+                     backend=opts.ray_backend)
     P, n, front, mat, t, valid = _surface(scene, mats, used, o, d, ids)
-    v = S.vec(-d)
-    multi = len(mats) > 1 and scene.mesh.material_ids is not None
+    multi = len(mats) > 1 and mesh.material_ids is not None
     back_mat = scene.back_material if (opts.back_material and scene.back_material is not None and not multi) else mat
-    col = _bounce(scene, opts, mats, used, P, n, front, mat, ids, v, level, back_mat, mu)
-    if opts.clamp:
-        col = tuple(jnp.clip(c, 0.0, 1.0) for c in col)
-    if opts.fog != "none":
-        f = S.fog_factor(t, opts.fog, scene.fog.start, scene.fog.end, scene.fog.density)
-        col = S.apply_fog(col, f, _rgb(scene.fog.color))
-    col = tuple(jnp.where(valid, col[c], scene.background[c]) for c in range(3))
-    if mu is not None:
-        att = jnp.exp(-mu * jnp.where(valid, t, 0.0)[..., None])
-        col = tuple(col[c] * att[..., c] for c in range(3))
-    return col
+    v = S.vec(-d)
+    local, n_face = _local(scene, opts, P, n, front, mat, back_mat, ids, None, v)
+    col = jnp.stack(local, -1)
+    w = rays["w"] * jnp.exp(-rays["mu"] * jnp.where(valid, t, 0.0)[..., None])  # Bouguer over the segment
+    f = None
+    if opts.fog != "none":  # every segment fogged by its length
+        f = S.fog_factor(t, opts.fog, scene.fog.start, scene.fog.end, scene.fog.density)[..., None]
+        col = f * col + (1.0 - f) * scene.fog.color
+    c = w * jnp.where(valid[..., None], col, scene.background)
+    if not spawn:
+        return c, None
+    R, T, w_r, w_t, mu_t = _children(opts, mat, n_face, v, front)
+    wf = jnp.where(valid[..., None], w if f is None else w * f, 0.0)
+    Pa = jnp.stack(P, -1)
+    kids = dict(o=jnp.concatenate([Pa, Pa]), d=jnp.concatenate([R, T]), w=jnp.concatenate([wf * w_r, wf * w_t]),
+                mu=jnp.concatenate([rays["mu"], mu_t]), pix=jnp.concatenate([rays["pix"]] * 2),
+                skip=jnp.concatenate([ids, ids]))
+    return c, kids
 
 
 def trace(scene: Scene, opts: RenderOptions, P, n, front, pmat, tri, back_mat):
     """Colour (unfogged, unclamped) at the rasterizer's primary surface points ``P`` with
-    interpolated mesh normals ``n``, on triangles ``tri`` (``front``: their front faces are
-    seen): local terms with shadow rays and the recursion of mirror and refracted rays to
-    ``opts.ray_depth``."""
+    interpolated mesh normals ``n``, on triangles ``tri`` (``-1``: none; ``front``: their front
+    faces are seen): local terms with shadow rays, plus ``opts.ray_depth`` generations of mirror
+    and refracted rays, traced breadth first. Everything after the primary hit is linear in what
+    the rays meet, so each ray carries its weight (the product of the weights, absorptions and
+    fog factors on its path) and adds its colour to its pixel."""
+    local, n_face = _local(scene, opts, P, n, front, pmat, back_mat, tri, scene.camera.eye, None)
+    if opts.ray_depth == 0:
+        return local
+    shape = front.shape
+    N = front.size
     mats = scene.all_materials()
     used = _used_fields(opts)
     v = S.normalize(S.sub(_rgb(scene.camera.eye), P))
-    return _bounce(scene, opts, mats, used, P, n, front, pmat, tri, v, 0, back_mat)
+    R, T, w_r, w_t, mu_t = _children(opts, pmat, n_face, v, front)
+    flat = lambda a: a.reshape((N,) + a.shape[len(shape):])  # noqa: E731
+    seen = flat(tri >= 0)[:, None]
+    Pa = flat(jnp.stack(P, -1))
+    pix = jnp.arange(N)
+    rays = dict(o=jnp.concatenate([Pa, Pa]), d=jnp.concatenate([flat(R), flat(T)]),
+                w=jnp.concatenate([jnp.where(seen, flat(w_r), 0.0), jnp.where(seen, flat(w_t), 0.0)]),
+                mu=jnp.concatenate([jnp.zeros_like(Pa), flat(mu_t)]), pix=jnp.concatenate([pix, pix]),
+                skip=jnp.concatenate([flat(tri), flat(tri)]))
+    acc = jnp.zeros((N, 3), Pa.dtype)
+    for level in range(1, opts.ray_depth + 1):
+        # (once compacted, every later generation is: it has twice the rays)
+        compacted = 0 < opts.ray_capacity < rays["w"].shape[0]
+        if compacted:
+            rays = _compact(rays, opts.ray_capacity, N)
+        to = rays["pix"]
+        c, rays = _shoot(scene, opts, mats, used, rays, spawn=level < opts.ray_depth)
+        if compacted:
+            acc = acc.at[to].add(c, mode="drop")  # scattered to their pixels
+        else:  # blocks of every pixel's rays in pixel order: a reshape and a sum
+            acc = acc + c.reshape(-1, N, 3).sum(0)
+    return tuple(local[k] + acc[:, k].reshape(shape) for k in range(3))
+
+
+def ray_counts(scene: Scene, opts: RenderOptions) -> list[int]:
+    """How many secondary rays each generation (1 to ``opts.ray_depth``) of a render of ``scene``
+    traces: the rays of non-zero weight, without any capacity. A ``ray_capacity`` below the
+    largest of them drops rays (their light is missing from the image)."""
+    from ._render import render
+
+    _COUNTS.append([])
+    try:
+        with jax.disable_jit():
+            render(scene, opts.replace(ray_capacity=0))
+        return [int(x) for x in _COUNTS[-1]]
+    finally:
+        _COUNTS.pop()

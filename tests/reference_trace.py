@@ -6,8 +6,8 @@ shadow) is intersected with every triangle by Möller–Trumbore; the local term
 the mirror ray :math:`R = 2(N\\cdot V)N - V` and Snell's refracted ray (relative index η entering
 a front face, 1/η leaving, total internal reflection giving its weight to the mirror ray) are
 traced recursively to the depth; a segment inside a material is attenuated by
-:math:`e^{-\\mu \\ell}`; every secondary segment is clamped, fogged by its length and, on a miss,
-takes the background. Returns per pixel the colour and how far the whole ray tree is from a
+:math:`e^{-\\mu \\ell}`; every secondary segment is fogged by its length and, on a miss, takes
+the background; only the pixel's final colour is clamped. Returns per pixel the colour and how far the whole ray tree is from a
 discontinuity (triangle edges of every hit, a shadow ray grazing an occluder's edge, n·l = 0,
 the critical angle), so that tests compare only where the two must agree.
 """
@@ -161,8 +161,6 @@ class TraceRef(Ref):
             n = _n(bary @ s["normals"][f])
             front = float(np.dot(self.fn[fi], d)) < 0
             col = self.color_at(P, n, front, fi, -d, level, margin, mu)
-            if o.clamp:
-                col = np.clip(col, 0, 1)
             if o.fog != "none":
                 col = self._fog(col, t)
         if mu is not None:

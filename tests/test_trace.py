@@ -387,3 +387,32 @@ def test_area_lights_cast_soft_shadows_by_rays(backend):
     assert ((frac > 0.05) & (frac < 0.95)).sum() > 10  # penumbra
     assert (np.abs(frac - 1) < 1e-12).sum() > 50  # unshadowed
     assert frac.min() >= -1e-12 and frac.max() <= 1 + 1e-12
+
+
+def test_ray_capacity_traces_only_the_live_rays_and_says_what_a_scene_needs():
+    # only the glass ball's pixels spawn rays (the floor is matte): with a capacity of what
+    # ray_counts says, the image is the uncompacted one; below it, light is missing
+    ball = {"refraction": 0.8, "mirror": 0.1, "ior": 1.5, "absorption": [0.2, 0.5, 1.0], "diffuse": [0.3, 0.1, 0.05]}
+    scene, opts = _scene(ball=ball, size=(24, 18), ico=2, render={"fresnel": "schlick"})
+    opts = opts.replace(ray_depth=2)
+    counts = ds.ray_counts(scene, opts)
+    ids = np.asarray(ds.scene_visibility(scene, opts)[0])
+    ball_px = int(((ids >= 0) & (ids < 320)).sum())
+    assert counts[0] == 2 * ball_px and 0 < counts[1] <= 2 * counts[0], (counts, ball_px)
+    full = np.asarray(_render(scene, opts))
+    cap = max(counts)
+    np.testing.assert_allclose(np.asarray(_render(scene, opts.replace(ray_capacity=cap))), full, rtol=1e-12, atol=1e-14)
+    short = np.asarray(_render(scene, opts.replace(ray_capacity=counts[0] // 2)))
+    assert np.abs(short - full).max() > 1e-3
+    # compacted, the image stays differentiable (forward and reverse)
+    o2 = opts.replace(ray_capacity=cap)
+
+    def f(ior, mu):
+        m = scene.material
+        mm = ds.Material(**{**{q: getattr(m, q) for q in m.__dataclass_fields__}, "ior": ior, "absorption": mu})
+        return jnp.sum(ds.render(ds.Scene(**{**{q: getattr(scene, q) for q in scene.__dataclass_fields__}, "material": mm}), o2) ** 2)
+
+    check_grads(jax.jit(f), (scene.material.ior, scene.material.absorption), order=1, modes=("fwd", "rev"), eps=1e-6,
+                atol=1e-5, rtol=1e-4)
+    with pytest.raises(ValueError, match="ray_capacity"):
+        ds.RenderOptions(ray_capacity=-1)
