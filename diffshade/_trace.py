@@ -14,7 +14,13 @@ joins the mirror one). With a Fresnel option (``"schlick"`` or ``"dielectric"``)
 are :math:`k_r + k_{rt} F` and :math:`k_{rt}(1 - F)`. A segment inside a material (after a
 front-facing refraction) is attenuated by :math:`e^{-\mu\ell}`, :math:`\ell` its length; every
 secondary segment is fogged by its length as the rasterizer fogs the primary one; a ray that
-leaves the scene takes the background colour. Recursion is unrolled to ``ray_depth`` bounces.
+leaves the scene takes the background colour; only the pixel's final colour is clamped.
+
+Past the primary hit everything is linear in what the rays meet, so the recursion is traced
+breadth first, ``ray_depth`` generations: each ray carries its weight (the product of the ray
+weights, absorptions and fog factors on its path) and adds its colour to its pixel. Only live
+rays (non-zero weight) are traced; with ``ray_capacity`` each generation is compacted to them,
+so only the pixels that show a mirror or glass cost anything.
 
 Which triangle a ray meets is found without gradient (:func:`diffshade._rays.first_hits`); where
 it meets it, the normal there and every direction are recomputed from the vertices, so the image
@@ -314,10 +320,12 @@ def ray_counts(scene: Scene, opts: RenderOptions) -> list[int]:
     largest of them drops rays (their light is missing from the image)."""
     from ._render import render
 
-    _COUNTS.append([])
-    try:
-        with jax.disable_jit():
-            render(scene, opts.replace(ray_capacity=0))
-        return [int(x) for x in _COUNTS[-1]]
-    finally:
-        _COUNTS.pop()
+    def counts(s):
+        _COUNTS.append([])
+        try:
+            render(s, opts.replace(ray_capacity=0))  # traced for the counts only (the image is unused)
+            return _COUNTS[-1]
+        finally:
+            _COUNTS.pop()
+
+    return [int(x) for x in jax.jit(counts)(scene)]

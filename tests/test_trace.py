@@ -416,3 +416,100 @@ def test_ray_capacity_traces_only_the_live_rays_and_says_what_a_scene_needs():
                 atol=1e-5, rtol=1e-4)
     with pytest.raises(ValueError, match="ray_capacity"):
         ds.RenderOptions(ray_capacity=-1)
+
+
+def _prism():
+    # a right-angle prism: legs on y = 0 and x = 0, hypotenuse x + y = 1, from z = -1 to 1
+    import trimesh
+
+    V = np.array([[0, 0, -1], [1, 0, -1], [0, 1, -1], [0, 0, 1], [1, 0, 1], [0, 1, 1]], float)
+    F = np.array([[0, 2, 1], [3, 4, 5], [0, 1, 4], [0, 4, 3], [1, 2, 5], [1, 5, 4], [2, 0, 3], [2, 3, 5]])
+    m = trimesh.Trimesh(V, F, process=False)
+    assert m.is_watertight and m.volume > 0  # outward faces
+    return jnp.asarray(V), jnp.asarray(F, jnp.int32)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_prism_face_beyond_the_critical_angle_reflects_totally(backend):
+    # a ray entering a leg face at normal incidence meets the hypotenuse at 45°: beyond the critical
+    # angle for eta = 1.5 (41.8°) it reflects totally and leaves through the other leg turned by 90°;
+    # for eta = 1.3 (critical 50.3°) it leaves through the hypotenuse at Snell's angle
+    from diffshade import _trace as T
+
+    V, F = _prism()
+    fn = np.asarray(ds.mesh_from_arrays(np.asarray(V), np.asarray(F)).face_normals())
+    for eta in (1.5, 1.3):
+        o = jnp.asarray([[0.3, -1.0, 0.2]])
+        d = jnp.asarray([[0.0, 1.0, 0.0]])
+        hit = _rays.first_hits(o, d, V, F, backend=backend)
+        t, _, _, ok = _rays.intersect(o, d, V, F, hit)
+        p1 = o + t[:, None] * d
+        n1 = _v(fn[int(hit[0])])  # the leg y = 0, outward -y, faces the incoming ray
+        t1, tir1 = T.refracted_direction(n1, tuple(-c[0] for c in d.T), 1 / eta)
+        d1 = jnp.stack(t1)[None]
+        np.testing.assert_allclose(np.asarray(d1[0]), [0, 1, 0], atol=1e-12)  # normal incidence: straight on
+        hit2 = _rays.first_hits(p1, d1, V, F, tmin=1e-6, skip=hit, backend=backend)
+        t2, _, _, ok2 = _rays.intersect(p1, d1, V, F, hit2)
+        p2 = p1 + t2[:, None] * d1
+        np.testing.assert_allclose(np.asarray(p2[0]), [0.3, 0.7, 0.2], atol=1e-12)  # on the hypotenuse
+        n_out = fn[int(hit2[0])]
+        np.testing.assert_allclose(n_out, np.array([1, 1, 0]) / np.sqrt(2), atol=1e-12)
+        t2d, tir2 = T.refracted_direction(_v(-n_out), tuple(-c for c in np.asarray(d1[0])), eta)  # leaving: the
+        out = np.array([float(c) for c in t2d])  # normal facing the ray is the inward one
+        if eta == 1.5:
+            assert bool(tir2)
+            np.testing.assert_allclose(out, [-1, 0, 0], atol=1e-12)  # reflected: turned by 90°
+            hit3 = _rays.first_hits(p2, jnp.asarray([out]), V, F, tmin=1e-6, skip=hit2, backend=backend)
+            t3, _, _, ok3 = _rays.intersect(p2, jnp.asarray([out]), V, F, hit3)
+            np.testing.assert_allclose(np.asarray(p2[0] + t3[0] * out), [0.0, 0.7, 0.2], atol=1e-12)  # the other leg
+            w_r, w_t = T.ray_weights(ds.RenderOptions(fresnel="dielectric"), _v([0, 0, 0]), _v([0.9, 0.9, 0.9]),
+                                     jnp.asarray(np.cos(np.pi / 4)), jnp.asarray(1 / eta), jnp.asarray(eta), tir2)
+            assert [float(w) for w in w_r] == [0.9] * 3 and [float(w) for w in w_t] == [0.0] * 3
+        else:
+            assert not bool(tir2)
+            sin_t = eta * np.sin(np.pi / 4)
+            np.testing.assert_allclose(np.arccos(np.dot(out, n_out)), np.arcsin(sin_t), rtol=1e-12)
+            assert np.dot(out, n_out) > 0  # it leaves
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_glass_sphere_deviates_rays_by_snells_law(backend):
+    # a ray at impact parameter b through a sphere of radius R and index eta leaves deviated by
+    # D = 2 (θ_i − θ_t), sin θ_i = b / R, sin θ_t = sin θ_i / eta; the icosphere (20,480 faces, normals
+    # interpolated as the tracer shades) agrees to its faceting
+    from diffshade import _trace as T
+
+    mesh = ds.icosphere(5)
+    V = jnp.asarray(mesh.vertices, jnp.float64)
+    F = mesh.faces
+    vn = np.asarray(ds.mesh_from_arrays(np.asarray(V), np.asarray(F)).vertex_normals())
+    eta = 1.5
+
+    def normal_at(hit, p):
+        f = np.asarray(F)[int(hit)]
+        A, B, C = np.asarray(V)[f]
+        # barycentrics of p in the triangle
+        M = np.stack([B - A, C - A], 1)
+        b1, b2 = np.linalg.lstsq(M, p - A, rcond=None)[0]
+        n = (1 - b1 - b2) * vn[f[0]] + b1 * vn[f[1]] + b2 * vn[f[2]]
+        return n / np.linalg.norm(n)
+
+    for b in (0.2, 0.5, 0.8):
+        o = jnp.asarray([[b, 0.013, 3.0]])
+        d = jnp.asarray([[0.0, 0.0, -1.0]])
+        hit = _rays.first_hits(o, d, V, F, backend=backend)
+        t, _, _, _ = _rays.intersect(o, d, V, F, hit)
+        p1 = np.asarray(o + t[:, None] * d)[0]
+        t1, _ = T.refracted_direction(_v(normal_at(hit[0], p1)), _v([0.0, 0.0, 1.0]), 1 / eta)
+        d1 = np.array([float(c) for c in t1])
+        hit2 = _rays.first_hits(jnp.asarray([p1]), jnp.asarray([d1]), V, F, tmin=1e-6, skip=hit, backend=backend)
+        t2, _, _, _ = _rays.intersect(jnp.asarray([p1]), jnp.asarray([d1]), V, F, hit2)
+        p2 = p1 + float(t2[0]) * d1
+        t3, tir = T.refracted_direction(_v(-normal_at(hit2[0], p2)), _v(-d1), eta)
+        out = np.array([float(c) for c in t3])
+        assert not bool(tir)
+        R = np.linalg.norm(p1)
+        th_i = np.arcsin(np.hypot(b, 0.013) / R)
+        th_t = np.arcsin(np.sin(th_i) / eta)
+        dev = np.arccos(np.clip(np.dot(out, [0.0, 0.0, -1.0]), -1, 1))
+        np.testing.assert_allclose(dev, 2 * (th_i - th_t), atol=3e-4)  # measured up to 9e-5 rad
