@@ -405,8 +405,9 @@ def _polish(ev, prob, red, theta, steps, rtol):
         if np.isfinite(c2) and c2 <= cost:
             moved = np.max(np.abs(new - theta) / np.maximum(np.abs(theta), 1e-3))
             stalled = stalled + 1 if cost - c2 <= len(theta) * floor_var else 0
+            damped = lam > 1e-3  # a step shortened by damping says nothing about convergence
             theta, r, J, img, cost, lam = new, r2, J2, img2, c2, max(lam / 10, 1e-9)
-            if moved <= tol:
+            if moved <= tol and not damped:
                 conv = True
                 break
         else:

@@ -513,3 +513,30 @@ def test_a_glass_sphere_deviates_rays_by_snells_law(backend):
         th_t = np.arcsin(np.sin(th_i) / eta)
         dev = np.arccos(np.clip(np.dot(out, [0.0, 0.0, -1.0]), -1, 1))
         np.testing.assert_allclose(dev, 2 * (th_i - th_t), atol=3e-4)  # measured up to 9e-5 rad
+
+
+def test_float32_engines_agree_on_a_glass_ball():
+    # regression: XLA's CPU backend miscompiled the Möller–Trumbore test written with jnp.cross and
+    # sums over a last axis of 3 in float32 (one ray's t came out 5e-7 instead of 5.34 inside a batch):
+    # the pure-JAX engine then missed the ball's exit faces, and float32 fits got wrong absorption
+    # tangents (standard errors 2.6x too small). Both engines, float32, must give the float64 image.
+    d = {"camera": {"eye": [0, 0.9, 3.6], "target": [0, -0.2, 0], "up": [0, 1, 0], "fov_y": 40, "near": 0.1, "far": 50,
+                    "width": 48, "height": 48},
+         "render": {"shading": "phong", "specular": "blinn", "fog": "none", "ray_depth": 2, "fresnel": "dielectric"},
+         "object": [{"icosphere": 3, "translate": [0.0, 0.05, 0.0], "scale": 0.75,
+                     "material": {"diffuse": 0.0, "ambient": 0.0, "specular": 0.6, "shininess": 120, "refraction": 0.85,
+                                  "mirror": 0.1, "ior": 1.52, "absorption": [0.05, 0.3, 0.9]}},
+                    {"quad": [8, 8], "normal": [0, 1, 0], "translate": [0, -0.7, -1], "material": {"diffuse": [0.8, 0.75, 0.6]}},
+                    {"quad": [8, 4], "normal": [0, 0, 1], "translate": [0, 1.3, -5], "divisions": 2,
+                     "material": {"diffuse": [0.6, 0.35, 0.3], "specular": 0.0}}],
+         "light": [{"type": "point", "position": [0.8, -0.4, -1.2], "attenuation": [0.2, 0, 1.5]},
+                   {"type": "directional", "direction": [-0.5, -1, -0.3], "color": 0.35}],
+         "background": [0.55, 0.65, 0.8]}
+    scene, opts = ds.scene_from_dict(d)
+    scene = _f64(scene)
+    ref = np.asarray(_render(scene, opts.replace(ray_backend="jax")))
+    s32 = jax.tree.map(lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a, scene)
+    engines = ["jax"] + (["embree"] if _rays.embree_available() else [])
+    for be in engines:
+        img = np.asarray(_render(s32, opts.replace(ray_backend=be)), np.float64)
+        assert np.abs(img - ref).max() < 1e-4, (be, np.abs(img - ref).max(), int((np.abs(img - ref).max(-1) > 1e-3).sum()))
