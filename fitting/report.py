@@ -7,7 +7,11 @@ the larger of the quantisation floor of an integer target (:math:`q/\sqrt{12}` f
 part of the residual, estimated from differences of neighbouring pixels,
 :math:`\hat\sigma_w^2 = \overline{(r_i - r_j)^2}/2` (pixel noise is independent from pixel to
 pixel; a model that misses — a wrong highlight, a wrong falloff — leaves a residual that is smooth
-over neighbours and adds to the variance, not to the differences). With
+over neighbours and adds to the variance, not to the differences). Noise spreads over every pixel,
+so this estimate is capped at twice its robust counterpart (from the median of the absolute
+differences; at least one code step of an integer target): a residual carried by a few pixels
+with jumps — refracted rays crossing a tile edge, a misplaced silhouette — is not taken for noise
+(:func:`white_noise`). With
 :math:`s^2 = \mathrm{RSS}/(n - p)` over the two-sided residuals, the fit is rejected when
 :math:`s/\sigma > 1 + 3\sqrt{2/n} + 0.01` (:func:`noise_ratio_limit`: three standard deviations
 of the ratio of two variance estimates; "converged, but the residual is 40× the noise"); its
@@ -80,31 +84,50 @@ class FitResult:
         }
 
 
-def white_noise(res_images, used_masks) -> tuple[float, int]:
-    """``(σ̂_w, pairs)``: the white part of the residual from horizontal and vertical neighbour
-    differences where both residuals are two-sided and weighted."""
-    s, n = 0.0, 0
+def white_noise(res_images, used_masks, quantum: float | None = None) -> tuple[float, int, float]:
+    """``(σ̂_w, pairs, σ̂_rms)``: the white part of the residual from horizontal and vertical
+    neighbour differences where both residuals are two-sided and weighted.
+
+    ``σ̂_rms`` is the root-mean-square estimate; ``σ̂_w`` is the same capped at twice its robust
+    (median-based) counterpart, and at no less than one code step ``quantum`` of an integer
+    target: pixel noise spreads over every pixel, so the two agree (Gaussian noise: ratio 1.0;
+    photon noise that varies with the signal, measured 1.2). A residual carried by a few pixels
+    with jumps — refracted rays that cross a tile edge, a misplaced silhouette — has a large RMS
+    and a small median, and is not noise."""
+    diffs = []
     for r, m in zip(res_images, used_masks):
         for ax in (0, 1):
             a = np.take(r, range(1, r.shape[ax]), axis=ax) - np.take(r, range(r.shape[ax] - 1), axis=ax)
             ok = np.take(m, range(1, m.shape[ax]), axis=ax) & np.take(m, range(m.shape[ax] - 1), axis=ax)
-            s += float(np.sum(a[ok] ** 2))
-            n += int(ok.sum())
-    return (np.sqrt(s / (2 * n)) if n else 0.0), n
+            diffs.append(np.asarray(a[ok], np.float64).reshape(-1))
+    d = np.concatenate(diffs) if diffs else np.zeros(0)
+    n = len(d)
+    if not n:
+        return 0.0, 0, 0.0
+    rms = float(np.sqrt(np.mean(d * d) / 2))
+    robust = 1.4826 * float(np.median(np.abs(d))) / np.sqrt(2.0)  # MAD of a zero-median difference
+    return min(rms, max(WHITE_SPREAD * robust, quantum or 0.0)), n, rms
+
+
+WHITE_SPREAD = 2.0  # the largest RMS / robust ratio of the residual's differences taken for noise
 
 
 def noise_level(prob, res_images, noise=None) -> tuple[float, str]:
     """σ for the verdict and a phrase saying where it came from."""
     if noise is not None:
         return float(noise), "given"
-    sw, _ = white_noise(res_images, prob.used_masks())
-    cands = [(sw, "white part of the residual")]
+    sw, _, rms = white_noise(res_images, prob.used_masks(), prob.quantum)
+    if sw < rms:
+        cands = [(sw, f"white part of the residual, robust estimate (the RMS estimate {rms:.3g} is "
+                      f"{rms / max(sw, 1e-300):.3g}× that: a few pixels with jumps, not noise)")]
+    else:
+        cands = [(sw, "white part of the residual")]
     if prob.quantum:
         cands.append((prob.quantum / np.sqrt(12.0), f"quantisation of {round(1 / prob.quantum) + 1}-level codes"))
     else:
         tmax = max(float(np.max(np.abs(np.asarray(vd.target)))) for vd in prob.data)
         cands.append((float_floor(prob.dtype, tmax), "float rounding of the target"))
-    return max(cands)
+    return max(cands, key=lambda c: c[0])
 
 
 def verdict(converged: bool, solver_msg: str, ratio: float, sigma: float, source: str, n: int) -> tuple[bool, str]:

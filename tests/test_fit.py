@@ -153,6 +153,37 @@ def test_noisy_target_verdict_and_given_noise():
     assert not r2.successful and r2.noise_source == "given" and r2.noise_ratio > 3
 
 
+def test_white_noise_is_noise_spread_over_every_pixel_not_a_few_jumps():
+    # the verdict's noise estimate from a residual: Gaussian noise, noise that grows with the
+    # signal (photon noise), and quantised noise are taken whole; a residual carried by a few
+    # pixels that jump (refracted rays crossing a tile edge: a fit that stopped next to the
+    # truth) is not noise, and the fit is rejected rather than called a success
+    from fitting.report import noise_ratio_limit, verdict, white_noise
+
+    rng = np.random.default_rng(0)
+    H, W = 48, 64
+    signal = np.clip(rng.uniform(0.0, 1.0, (H, W, 1)) * np.linspace(0.2, 1.0, W)[None, :, None], 0, 1) * np.ones(3)
+    m = np.ones((H, W), bool)
+    g = rng.normal(0, 0.01, (H, W, 3))
+    s, n, rms = white_noise([g], [m])
+    assert n == 3 * ((H - 1) * W + H * (W - 1)) and s == rms and abs(s / 0.01 - 1) < 0.03
+    photon = rng.normal(0, 1, (H, W, 3)) * (0.002 + 0.03 * np.sqrt(signal))
+    s, _, rms = white_noise([photon], [m])
+    assert s == rms
+    q = 1 / 255  # noise well below a code step: most differences are 0, the median too
+    quant = np.round((signal + rng.normal(0, 0.3 * q, signal.shape)) / q) * q - signal
+    s, _, rms = white_noise([quant], [m], quantum=q)
+    assert s == rms
+    jumps = np.zeros((H, W, 3))
+    hit = rng.uniform(size=(H, W)) < 0.1
+    jumps[hit] = rng.choice([-0.6, 0.6], size=(int(hit.sum()), 1))
+    jumps += rng.normal(0, 1e-6, jumps.shape)
+    s, n, rms = white_noise([jumps], [m])
+    assert rms > 0.1 and s < 1e-5
+    ok, msg = verdict(True, "", float(np.sqrt(np.mean(jumps ** 2))) / s, s, "white part", n)
+    assert not ok and "× the noise" in msg and noise_ratio_limit(n) < 1.1
+
+
 def test_clamp_falls_back_to_lm_on_all_parameters_and_says_so():
     scene, opts = small_scene(clamp=True)
     target = jax.jit(ds.render, static_argnames="opts")(scene, opts)
