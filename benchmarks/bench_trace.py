@@ -17,7 +17,10 @@ dielectric (η 1.5), the rest diffuse: forward, and forward + gradient of the me
 in the floor's reflectance. It traces one path per pixel where diffshade traces both branches
 of the tree; the comparison is the issue's, not a claim of equal work.
 
-    python benchmarks/bench_trace.py [--sizes 256 512] [--depths 0 1 2] [--engines embree] [--subdiv 4 6] [--no-mitsuba]
+First, the ray engine alone: one ray per pixel through trimesh's embreex wrapper
+(``intersects_first``) and through the batched query diffshade makes (``--engine-only`` stops there).
+
+    python benchmarks/bench_trace.py [--sizes 256 512] [--depths 0 1 2] [--engines embree] [--subdiv 4 6] [--no-mitsuba] [--engine-only]
 """
 
 from __future__ import annotations
@@ -157,6 +160,36 @@ def mitsuba_times(size, subdiv, depth):
     return out
 
 
+def engine_times(size, subdiv, repeats=5):
+    """First hits of one ray per pixel (the camera's rays) against the scene's triangles: trimesh's
+    embreex wrapper (``mesh.ray.intersects_first``) against the batched query diffshade makes
+    (``EmbreeScene.run`` on a BVH kept across calls); ms (median) each."""
+    import trimesh
+
+    scene, opts = scene_with(size, subdiv, 1, "embree", False)
+    o, d = (np.asarray(a, np.float32).reshape(-1, 3) for a in scene.camera.pixel_rays(jnp.float32))
+    o = np.ascontiguousarray(np.broadcast_to(o, d.shape))
+    V, F = np.asarray(scene.mesh.vertices, np.float64), np.asarray(scene.mesh.faces)
+    mesh = trimesh.Trimesh(V, F, process=False)
+    tris = np.asarray(V[F], np.float32)
+    act = np.ones(len(d), bool)
+
+    def med(fn):
+        fn()  # first call apart (BVH build)
+        ts = []
+        for _ in range(repeats):
+            t = time.perf_counter()
+            fn()
+            ts.append(time.perf_counter() - t)
+        return 1e3 * float(np.median(ts))
+
+    a = mesh.ray.intersects_first(o, d)
+    b = _rays._embree_hits(o, d, 0.0, act, tris)
+    agree = float(np.mean(a == b))
+    return med(lambda: mesh.ray.intersects_first(o, d)), med(lambda: _rays._embree_hits(o, d, 0.0, act, tris)), agree, \
+        type(mesh.ray).__module__
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[256, 512])
@@ -166,7 +199,19 @@ def main():
     ap.add_argument("--shadow-rays", action="store_true")
     ap.add_argument("--no-compact", action="store_true", help="trace every pixel's full ray tree (ray_capacity 0)")
     ap.add_argument("--no-mitsuba", action="store_true")
+    ap.add_argument("--engine-only", action="store_true", help="only the ray engine: trimesh's wrapper against the batched query")
     args = ap.parse_args()
+    if _rays.embree_available():
+        print("| faces | rays | trimesh intersects_first ms | batched EmbreeScene.run ms | Mrays/s batched | same ids |")
+        print("|---|---|---|---|---|---|")
+        for subdiv in args.subdiv:
+            for size in args.sizes:
+                tw, tb, agree, mod = engine_times(size, subdiv)
+                print(f"| {20 * 4 ** subdiv} | {size}² | {tw:.1f} | {tb:.1f} | {size * size / tb / 1e3:.2f} | {agree:.4%} |",
+                      flush=True)
+        print(f"(trimesh's ray backend: {mod})\n")
+    if args.engine_only:
+        return
     engines = [e for e in args.engines if e != "embree" or _rays.embree_available()]
     print(f"JAX {jax.__version__} on {jax.devices()[0].device_kind}; shadow rays {'on' if args.shadow_rays else 'off'}; "
           f"{'full trees' if args.no_compact else 'compacted generations'}\n")

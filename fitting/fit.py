@@ -307,7 +307,7 @@ def _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2,
     pset = prob.pset
     theta, r, J, fixed = best["theta"], best["r"], best["J"], best["fixed"]
     labels = pset.labels
-    stderr, undetermined, gauges, _ = uncertainty(J, r, n2, labels)
+    stderr, undetermined, gauges, _ = uncertainty(J, r, n2, labels, best["sigma"])
     successful, msg = verdict(best["converged"], msg_solver, best["ratio"], best["sigma"], best["source"], n2)
     on_bound = [f"{labels[i]} = {theta[i]:.6g} ({'lower' if theta[i] <= lo else 'upper'} bound)"
                 for i, lo in _bounded_fixed(prob, theta, fixed)]

@@ -17,8 +17,9 @@ with jumps — refracted rays crossing a tile edge, a misplaced silhouette — i
 of the ratio of two variance estimates; "converged, but the residual is 40× the noise"); its
 standard errors are then marked as not meaningful.
 
-**Standard errors** are Gauss–Newton's, :math:`s^2 (J^T J)^{-1}` in the natural parameters with
-the full (censored) residual at the solution; a parameter whose column is zero is *undetermined*
+**Standard errors** are Gauss–Newton's, :math:`\max(s^2, \sigma^2) (J^T J)^{-1}` in the natural
+parameters with the full (censored) residual at the solution (:math:`\sigma` the verdict's noise
+level: a noise-free float fit is as precise as the float floor, not as its rounding-level residual); a parameter whose column is zero is *undetermined*
 (s.e. inf) and a near-singular scaled Jacobian is reported as a gauge (its weakest combination).
 """
 
@@ -143,13 +144,19 @@ def verdict(converged: bool, solver_msg: str, ratio: float, sigma: float, source
     return True, ""
 
 
-def uncertainty(J, r, n_two_sided, labels):
-    """Standard errors, undetermined labels and gauge descriptions from the Jacobian ``J`` (natural
+def uncertainty(J, r, n_two_sided, labels, sigma: float = 0.0):
+    r"""Standard errors, undetermined labels and gauge descriptions from the Jacobian ``J`` (natural
     parameters) and residual ``r`` at the solution. Scalars fitted on a bound are kept in the
     covariance: the bound is not information from the images, and holding it fixed would hide a
-    valley that runs into it (measured: a k_d on its bound made a1's s.e. 13x too small)."""
+    valley that runs into it (measured: a k_d on its bound made a1's s.e. 13x too small).
+
+    The variance is the residual's, :math:`s^2 = \mathrm{RSS}/(n - p)`, and no less than
+    ``sigma``², the noise level the verdict used: on a noise-free float target the residual is the
+    render's own rounding, far below the float floor the verdict allows, and a float32 solve
+    cannot resolve a valley more finely than that floor (measured: a noise-free fit stopped with
+    a1 3e-4 off at a residual 0.008x the floor, 25 standard errors from s alone)."""
     n, p = J.shape
-    s2 = float(r @ r) / max(n_two_sided - p, 1)
+    s2 = max(float(r @ r) / max(n_two_sided - p, 1), float(sigma) ** 2)
     col = np.linalg.norm(J, axis=0)
     undetermined_mask = col <= 1e-10 * max(col.max(), 1e-300)
     stderr = np.full(p, np.inf)

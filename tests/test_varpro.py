@@ -46,12 +46,12 @@ def test_term_images_are_the_jacobian_columns_of_the_linear_parameters():
                                                                       "material.specular", "fog.color"]
     theta = prob.pset.theta_of(scene)
     vd = prob.data[0]
-    A, b = red.design(vd, theta)
-    J = jax.jacfwd(lambda t: prob.image(vd, t).reshape(-1))(theta)
+    A, b = jax.jit(lambda t: red.design(vd, t))(theta)  # compiled: op by op it took 27 s
+    J = jax.jit(jax.jacfwd(lambda t: prob.image(vd, t).reshape(-1)))(theta)
     np.testing.assert_allclose(np.asarray(A), np.asarray(J)[:, red.idx_l], rtol=1e-10, atol=1e-12)
     # affine: b + A x reproduces the image at any x
     x = theta[red.idx_l]
-    np.testing.assert_allclose(np.asarray(b).reshape(-1) + np.asarray(A @ x), np.asarray(prob.image(vd, theta)).reshape(-1),
+    np.testing.assert_allclose(np.asarray(b).reshape(-1) + np.asarray(A @ x), np.asarray(jax.jit(lambda t: prob.image(vd, t))(theta)).reshape(-1),
                                rtol=1e-10, atol=1e-12)
 
 
@@ -86,6 +86,7 @@ def _brute_force(A, r0, lo, hi):
 
 def test_bounded_lsq_matches_brute_force():
     rng = np.random.default_rng(0)
+    solve = jax.jit(bounded_lsq)  # one compile per column count, not one per trial
     for trial in range(30):
         n = int(rng.integers(1, 5))
         A = rng.normal(size=(40, n)) * rng.uniform(0.01, 10, n)
@@ -94,7 +95,7 @@ def test_bounded_lsq_matches_brute_force():
         r0 = -(A @ x_true) + 0.05 * rng.normal(size=40)
         lo = np.zeros(n)
         hi = np.where(rng.uniform(size=n) < 0.7, 1.0, np.inf)
-        x, free = bounded_lsq(jnp.asarray(A), jnp.asarray(r0), jnp.asarray(lo), jnp.asarray(hi), jnp.zeros(n))
+        x, free = solve(jnp.asarray(A), jnp.asarray(r0), jnp.asarray(lo), jnp.asarray(hi), jnp.zeros(n))
         xb, cb = _brute_force(A, r0, lo, hi)
         c = np.sum((A @ np.asarray(x) + r0) ** 2)
         assert c <= cb * (1 + 1e-9) + 1e-12, (trial, np.asarray(x), xb)
