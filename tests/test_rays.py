@@ -48,6 +48,29 @@ def test_embree_and_jax_agree_on_first_hits(which, meshes_dir):
     np.testing.assert_array_equal(a[clear], b[clear])
 
 
+@EMBREE
+def test_embree_batches_split_over_threads_give_the_same_hits():
+    # a large batch is traced in slices on a thread pool (embreex releases the GIL); the ids
+    # equal one call's, and partial batches (inactive rays, per-ray t_min) keep their places
+    mesh = ds.icosphere(3)
+    tris = np.ascontiguousarray(np.asarray(mesh.vertices, np.float32)[np.asarray(mesh.faces)])
+    rng = np.random.default_rng(1)
+    n = 3 * _rays._MIN_CHUNK + 17
+    o, d = (a.astype(np.float32) for a in _rays_at(mesh, n, rng))
+    sc = _rays._embree_scene(tris)
+    one = sc.run(np.ascontiguousarray(o), np.ascontiguousarray(d))
+    assert (one >= 0).sum() > n // 3 and (one < 0).sum() > 100
+    for k in (2, 3):
+        np.testing.assert_array_equal(_rays._run_split(sc, np.ascontiguousarray(o), np.ascontiguousarray(d), threads=k), one)
+    active = rng.uniform(size=n) < 0.7
+    tmin = rng.uniform(0, 0.5, n).astype(np.float32)
+    got = _rays._embree_hits(o, d, tmin, active, tris)
+    ref = sc.run(np.ascontiguousarray(o[active] + tmin[active, None] * d[active]), np.ascontiguousarray(d[active]))
+    np.testing.assert_array_equal(got[active], ref)
+    assert (got[~active] == -1).all()
+    np.testing.assert_array_equal(_rays._embree_hits(o, d, 0.0, np.ones(n, bool), tris), one)
+
+
 def test_camera_rays_hit_what_the_rasterizer_sees():
     scene, opts = ds.default_scene()
     cam = ds.Camera(eye=scene.camera.eye, target=scene.camera.target, up=scene.camera.up, fov_y=scene.camera.fov_y,
