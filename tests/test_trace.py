@@ -150,6 +150,28 @@ def test_traced_gradients_match_finite_differences():
     check_grads(jax.jit(f), args, order=1, modes=("fwd", "rev"), eps=1e-6, atol=1e-5, rtol=1e-4)
 
 
+def test_traced_gradients_reach_the_vertices_of_the_glass():
+    # the slab's vertices moved along a random direction: the refracted rays' hits on the wall move
+    # with them (ids fixed by the engine, positions recomputed in JAX), forward and reverse
+    # against central differences; vmap over two geometries equals rendering each
+    scene, opts = _slab_scene(1.4, "auto", depth=2)
+    ids = ds.scene_visibility(scene, opts)
+    V0 = scene.mesh.vertices
+    slab = np.unique(np.asarray(scene.mesh.faces)[:12])
+    dV = np.zeros(V0.shape)
+    dV[slab] = np.random.default_rng(4).normal(size=(len(slab), 3))
+    dV = jnp.asarray(dV)
+
+    def img(V):
+        return ds.render(eqx.tree_at(lambda q: q.mesh.vertices, scene, V), opts, ids)
+
+    f = jax.jit(lambda a: jnp.sum(img(V0 + a * dV) ** 2))
+    assert abs(float(f(1e-3)) - float(f(0.0))) > 1e-4  # the slab's geometry does move what is seen through it
+    check_grads(f, (jnp.asarray(0.0),), order=1, modes=("fwd", "rev"), eps=1e-6, atol=1e-5, rtol=1e-4)
+    both = jax.jit(jax.vmap(lambda a: jnp.sum(img(V0 + a * dV) ** 2)))(jnp.asarray([0.0, 1e-3]))
+    np.testing.assert_allclose(np.asarray(both), [float(f(0.0)), float(f(1e-3))], rtol=1e-12)
+
+
 def test_no_nan_at_grazing_incidence_critical_angle_and_eta_one():
     # the slab's sides are seen at grazing angles, and rays inside it reflect totally; one
     # compiled jvp, three indices (data)
