@@ -334,6 +334,7 @@ methods = {"varpro (default)": dict(method="auto", solver="varpro"), "varpro + l
            "varpro + dogleg": dict(method="auto", solver="dogleg"), "full lm": dict(method="full", solver="lm")}
 if SMALL:
     methods.pop("varpro + dogleg")
+    methods.pop("full lm")
 caps = (5, 100) if SMALL else (3, 5, 10, 20, 100)
 runs = []
 for name, kw in methods.items():

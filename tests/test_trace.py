@@ -37,9 +37,14 @@ def _scene(floor=None, ball=None, size=(32, 24), render=None, lights=None, ico=3
     return _f64(scene), opts
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
-@pytest.mark.parametrize("render", [{}, {"fog": "exp", "two_sided": True, "per_light_ambient": True},
-                                    {"specular": "phong", "fresnel": "schlick", "viewer": "infinite"}])
+_NO_EMBREE = pytest.mark.skipif(not _rays.embree_available(), reason="no embreex")
+
+
+# both engines on the plain options; the other options (terms, not engines) on the default engine
+@pytest.mark.parametrize("render,backend", [
+    ({}, "jax"), pytest.param({}, "embree", marks=_NO_EMBREE),
+    ({"fog": "exp", "two_sided": True, "per_light_ambient": True}, "auto"),
+    ({"specular": "phong", "fresnel": "schlick", "viewer": "infinite"}, "auto")])
 def test_without_mirrors_or_glass_the_modes_agree_exactly(backend, render):
     scene, opts = _scene(render=render)
     raster = _render(scene, opts)

@@ -1,0 +1,262 @@
+r"""Colour encodings of images on disk: linear, sRGB and a pure gamma (docs/model.md §8).
+
+The renderer works in **linear** values, proportional to the light. Image files usually hold
+*encoded* code values ``v`` in [0, 1]; the encoding maps them to linear values ``L``:
+
+- ``"linear"``: :math:`L = v`;
+- ``"srgb"`` (IEC 61966-2-1): :math:`L = v / 12.92` for :math:`v \le 0.04045`, else
+  :math:`L = ((v + 0.055) / 1.055)^{2.4}`; encoding is the inverse, :math:`v = 12.92 L` for
+  :math:`L \le 0.0031308`, else :math:`v = 1.055 L^{1/2.4} - 0.055`;
+- ``"gamma:G"``: :math:`L = v^G` (``G`` = 2.2 for a classic display gamma).
+
+Both ends are fixed points (0 → 0, 1 → 1) and every map is increasing, so a pixel clipped at the
+top or bottom code is clipped in either domain. In a PNG the encoding is declared by its ``sRGB``
+chunk, an ``iCCP`` profile, or a ``gAMA`` chunk (the file gamma ``1/G``): :func:`png_encoding`
+reads them, :func:`png_info` writes them.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+ENCODINGS = ("linear", "srgb", "gamma:G")
+_A, _K_DEC, _K_ENC, _S, _P = 0.055, 0.04045, 0.0031308, 12.92, 2.4
+
+
+class EncodingError(ValueError):
+    """An unknown colour encoding, or a file whose declared encoding cannot be decoded."""
+
+
+def parse_encoding(name: str) -> tuple[str, float]:
+    """``("linear", 1)``, ``("srgb", 2.4)`` or ``("gamma", G)`` from ``"linear"``, ``"srgb"`` or
+    ``"gamma:G"`` (``G`` > 0)."""
+    if not isinstance(name, str):
+        raise EncodingError(f"colour encoding must be a string ({', '.join(ENCODINGS)}), got {name!r}")
+    n = name.strip().lower()
+    if n in ("linear", "srgb"):
+        return n, (1.0 if n == "linear" else _P)
+    if n.startswith("gamma:"):
+        try:
+            g = float(n[6:])
+        except ValueError:
+            g = float("nan")
+        if not (np.isfinite(g) and 0.05 <= g <= 20):
+            raise EncodingError(f"colour encoding {name!r}: the gamma must be a number in [0.05, 20], e.g. 'gamma:2.2'")
+        return ("linear", 1.0) if abs(g - 1.0) < 1e-9 else ("gamma", g)
+    raise EncodingError(f"unknown colour encoding {name!r}; one of 'linear', 'srgb', 'gamma:G' (e.g. 'gamma:2.2')")
+
+
+def _xp(a):
+    return np if isinstance(a, (np.ndarray, float, int, np.floating)) else jnp
+
+
+def decode(v, encoding: str = "srgb"):
+    """Linear values from encoded code values ``v`` (NumPy or JAX; differentiable, finite at 0)."""
+    kind, g = parse_encoding(encoding)
+    xp = _xp(v)
+    if kind == "linear":
+        return v
+    if kind == "srgb":
+        hi = v > _K_DEC
+        safe = xp.where(hi, v, 1.0)  # double where: no power of a negative base off its branch
+        return xp.where(hi, ((safe + _A) / (1 + _A)) ** _P, v / _S)
+    pos = v > 0
+    return xp.where(pos, xp.where(pos, v, 1.0) ** g, 0.0)
+
+
+def encode(L, encoding: str = "srgb"):
+    """Encoded code values from linear values ``L`` (the inverse of :func:`decode`; values
+    outside [0, 1] are encoded as they are, clipping is the caller's)."""
+    kind, g = parse_encoding(encoding)
+    xp = _xp(L)
+    if kind == "linear":
+        return L
+    if kind == "srgb":
+        hi = L > _K_ENC
+        safe = xp.where(hi, L, 1.0)
+        return xp.where(hi, (1 + _A) * safe ** (1 / _P) - _A, L * _S)
+    pos = L > 0
+    return xp.where(pos, xp.where(pos, L, 1.0) ** (1 / g), 0.0)
+
+
+def decode_slope(v, encoding: str = "srgb", floor: float = 0.5 / 255):
+    """``dL/dv`` at code value ``v`` (at least ``floor`` for a pure gamma, whose slope is 0 at 0):
+    a residual in linear units divided by it is, to first order, the residual in code values."""
+    kind, g = parse_encoding(encoding)
+    xp = _xp(v)
+    if kind == "linear":
+        return xp.ones_like(v)
+    if kind == "srgb":
+        hi = v > _K_DEC
+        safe = xp.where(hi, v, 1.0)
+        return xp.where(hi, _P / (1 + _A) * ((safe + _A) / (1 + _A)) ** (_P - 1), 1.0 / _S)
+    vv = xp.maximum(v, floor)
+    return g * vv ** (g - 1)
+
+
+# -- PNG chunks -------------------------------------------------------------------------------------
+
+def png_encoding(path) -> tuple[str | None, str]:
+    """``(encoding, why)`` from a PNG's chunks: ``sRGB`` → ``"srgb"``; an ``iCCP`` profile whose
+    description names sRGB → ``"srgb"`` (any other profile is an :class:`EncodingError`: this
+    package does not convert between colour spaces); ``gAMA`` → ``"linear"`` or ``"gamma:G"``;
+    none of them (or not a PNG) → ``(None, "...")``."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            fmt, info = im.format, dict(im.info)
+    except Exception as exc:  # noqa: BLE001 - PIL raises many types; name the file
+        raise EncodingError(f"{path}: cannot read the image header: {exc}") from exc
+    if fmt != "PNG":
+        return None, f"a {fmt} file declares no encoding this package reads"
+    if "srgb" in info:
+        return "srgb", "its sRGB chunk"
+    if info.get("icc_profile"):
+        desc = _icc_description(info["icc_profile"])
+        if "srgb" in desc.lower().replace(" ", ""):
+            return "srgb", f"its ICC profile ({desc})"
+        raise EncodingError(f"{path}: its ICC profile is {desc!r}, not sRGB; convert the image to sRGB or "
+                            "declare the encoding (--encoding srgb | linear | gamma:G) to read it as that")
+    if "gamma" in info:
+        fg = float(info["gamma"])
+        if not fg > 0:
+            raise EncodingError(f"{path}: its gAMA chunk says {fg}, not a positive gamma")
+        g = 1.0 / fg
+        return (("linear" if abs(g - 1) < 1e-3 else f"gamma:{g:.4g}"), f"its gAMA chunk ({fg:.5g})")
+    return None, "no sRGB, iCCP or gAMA chunk"
+
+
+def _icc_description(icc: bytes) -> str:
+    try:
+        import io
+
+        from PIL import ImageCms
+
+        return ImageCms.getProfileDescription(ImageCms.ImageCmsProfile(io.BytesIO(icc))).strip()
+    except Exception:  # noqa: BLE001 - an unreadable profile
+        return "an unreadable ICC profile"
+
+
+def png_info(encoding: str):
+    """A ``PIL.PngImagePlugin.PngInfo`` declaring ``encoding``: ``sRGB`` (with the ``gAMA`` of
+    0.45455 the PNG specification asks beside it), or ``gAMA`` of ``1/G`` (1.0 for linear)."""
+    import struct
+
+    from PIL.PngImagePlugin import PngInfo
+
+    kind, g = parse_encoding(encoding)
+    info = PngInfo()
+    if kind == "srgb":
+        info.add(b"sRGB", b"\x00")  # rendering intent: perceptual
+        info.add(b"gAMA", struct.pack(">I", 45455))
+    else:
+        info.add(b"gAMA", struct.pack(">I", int(round(100000 / g))))
+    return info
+
+
+def quantise(image, encoding: str = "linear", bits: int = 8) -> np.ndarray:
+    """Linear ``image`` clipped to [0, 1], encoded, and rounded to ``bits``-bit codes (8 or 16)."""
+    if bits not in (8, 16):
+        raise EncodingError(f"bits must be 8 or 16, got {bits}")
+    top = 255 if bits == 8 else 65535
+    v = encode(np.clip(np.asarray(image, np.float64), 0.0, 1.0), encoding)
+    return np.round(np.clip(v, 0.0, 1.0) * top).astype(np.uint8 if bits == 8 else np.uint16)
+
+
+def write_png(path, image, encoding: str = "linear", bits: int = 8) -> None:
+    """``image`` (linear, ``[H, W, 3]``) to a PNG encoded as ``encoding``, its chunks declaring it."""
+    from PIL import Image
+
+    codes = quantise(image, encoding, bits)
+    if bits == 8:
+        Image.fromarray(codes, "RGB").save(path, format="PNG", pnginfo=png_info(encoding))
+    else:  # PIL has no 16-bit RGB mode: the few chunks of a PNG written here
+        _write_png16(path, codes, png_info(encoding))
+
+
+def _write_png16(path, codes: np.ndarray, info) -> None:
+    """A 16-bit RGB PNG (colour type 2, no interlace, filter 0 on every row) with ``info``'s chunks."""
+    import zlib
+
+    h, w, _ = codes.shape
+
+    def chunk(cid: bytes, payload: bytes) -> bytes:
+        return len(payload).to_bytes(4, "big") + cid + payload + zlib.crc32(cid + payload).to_bytes(4, "big")
+
+    rows = np.ascontiguousarray(codes.astype(">u2")).view(np.uint8).reshape(h, w * 6)
+    raw = np.concatenate([np.zeros((h, 1), np.uint8), rows], axis=1).tobytes()
+    ihdr = w.to_bytes(4, "big") + h.to_bytes(4, "big") + bytes([16, 2, 0, 0, 0])
+    out = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr)
+    out += b"".join(chunk(cid, payload) for cid, payload, *_ in info.chunks)
+    out += chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b"")
+    with open(path, "wb") as f:
+        f.write(out)
+
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def read_png16(path) -> np.ndarray | None:
+    """A 16-bit PNG's codes as ``uint16`` ``[H, W, C]`` (grey, grey + alpha, RGB, RGBA), or None
+    for any other PNG (8-bit, palette, interlaced: PIL reads those). PIL reads 16-bit colour PNGs
+    as 8-bit, silently dropping the low byte; this reads them whole (all five row filters)."""
+    import zlib
+
+    with open(path, "rb") as f:
+        data = f.read()
+    if data[:8] != _PNG_SIGNATURE:
+        return None
+    pos, idat, hdr = 8, [], None
+    while pos + 8 <= len(data):
+        n = int.from_bytes(data[pos:pos + 4], "big")
+        cid, payload = data[pos + 4:pos + 8], data[pos + 8:pos + 8 + n]
+        pos += 12 + n
+        if cid == b"IHDR":
+            hdr = (int.from_bytes(payload[0:4], "big"), int.from_bytes(payload[4:8], "big"), payload[8], payload[9],
+                   payload[12])
+        elif cid == b"IDAT":
+            idat.append(payload)
+        elif cid == b"IEND":
+            break
+    if hdr is None:
+        raise EncodingError(f"{path}: a PNG without an IHDR chunk")
+    w, h, depth, ctype, interlace = hdr
+    channels = {0: 1, 2: 3, 4: 2, 6: 4}.get(ctype)
+    if depth != 16 or interlace or channels is None:
+        return None
+    bpp = 2 * channels
+    try:
+        raw = np.frombuffer(zlib.decompress(b"".join(idat)), np.uint8)
+        raw = raw[:h * (1 + w * bpp)].reshape(h, 1 + w * bpp)
+    except (zlib.error, ValueError) as exc:
+        raise EncodingError(f"{path}: corrupt or truncated PNG image data ({exc})") from exc
+    out = np.zeros((h, w * bpp), np.int64)
+    prev = np.zeros(w * bpp, np.int64)
+    for y in range(h):
+        kind, line = raw[y, 0], raw[y, 1:].astype(np.int64)
+        if kind == 0:
+            cur = line
+        elif kind == 1:  # Sub: a running sum along each byte lane
+            cur = np.cumsum(line.reshape(w, bpp), axis=0).reshape(-1) & 255
+        elif kind == 2:  # Up
+            cur = (line + prev) & 255
+        elif kind in (3, 4):  # Average, Paeth: pixel by pixel
+            cur = np.zeros_like(line)
+            left, upleft = np.zeros(bpp, np.int64), np.zeros(bpp, np.int64)
+            for x in range(w):
+                sl = slice(x * bpp, (x + 1) * bpp)
+                up = prev[sl]
+                if kind == 3:
+                    pred = (left + up) >> 1
+                else:
+                    p = left + up - upleft
+                    pa, pb, pc = np.abs(p - left), np.abs(p - up), np.abs(p - upleft)
+                    pred = np.where((pa <= pb) & (pa <= pc), left, np.where(pb <= pc, up, upleft))
+                cur[sl] = (line[sl] + pred) & 255
+                left, upleft = cur[sl], up
+        else:
+            raise EncodingError(f"{path}: row {y} has an unknown PNG filter type {kind}")
+        out[y], prev = cur, cur
+    return out.astype(np.uint8).reshape(h, w * channels, 2).view(">u2").reshape(h, w, channels).astype(np.uint16)
