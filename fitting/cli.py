@@ -27,14 +27,30 @@ class InputError(ValueError):
     """A bad command-line input (the message names the file and the problem)."""
 
 
-def load_target(path: Path, resolution: tuple[int, int], with_quantum: bool = False):
-    """A target image as float64 ``[H, W, 3]`` and its saturation level (1.0 for integer files,
-    whose brightest code is a clipped value; None for ``.npy`` floats, which are not clipped);
-    ``with_quantum``: also the code step (1/255, 1/65535; None for floats)."""
+def load_target(path: Path, resolution: tuple[int, int], with_quantum: bool = False, encoding: str = "auto",
+                with_encoding: bool = False, decoded: bool = True):
+    """A target image as linear float64 ``[H, W, 3]`` and its saturation level (1.0 for integer
+    files, whose brightest code is a clipped value; None for ``.npy`` floats, which are not
+    clipped); ``with_quantum``: also the code step (1/255, 1/65535; None for floats);
+    ``with_encoding``: also ``(encoding, why)``.
+
+    ``encoding``: ``"auto"`` (a PNG's sRGB/iCCP/gAMA chunks; a file without them is read as
+    linear, and ``why`` says so), or ``"linear"``, ``"srgb"``, ``"gamma:G"`` to override. Integer
+    codes are decoded to linear values; the ends are fixed points of every encoding, so a clipped
+    code (0 or the top one) is decided on the encoded value and stays clipped. ``.npy`` floats
+    are linear unless an encoding is given. ``decoded`` False: the code values themselves (in
+    [0, 1]), for :func:`fitting.fit.fit`'s ``encoding``."""
     import numpy as np
+
+    from diffshade import _color
 
     if not path.exists():
         raise InputError(f"{path}: target image not found")
+    if encoding != "auto":
+        try:
+            _color.parse_encoding(encoding)
+        except _color.EncodingError as exc:
+            raise InputError(str(exc)) from exc
     if path.suffix.lower() == ".npy":
         try:
             img = np.load(path, allow_pickle=False)
@@ -43,13 +59,25 @@ def load_target(path: Path, resolution: tuple[int, int], with_quantum: bool = Fa
         sat, q = None, None
         if not np.issubdtype(img.dtype, np.floating):
             raise InputError(f"{path}: a .npy target must hold floats (linear radiance), got {img.dtype}")
+        enc, why = ("linear", "a .npy array (floats are linear)") if encoding == "auto" else (encoding, "--encoding")
     else:
         import skimage.io
 
         try:
-            img = skimage.io.imread(path)
+            declared, why = _color.png_encoding(path)
+            img = _color.read_png16(path) if path.suffix.lower() == ".png" else None
+            if img is None:
+                img = skimage.io.imread(path)
+        except _color.EncodingError as exc:
+            raise InputError(str(exc)) from exc
         except Exception as exc:  # noqa: BLE001 - imageio raises many types; name the file
             raise InputError(f"{path}: cannot read as an image: {exc}") from exc
+        if encoding != "auto":
+            enc, why = encoding, "--encoding"
+        elif declared is None:
+            enc, why = "linear", f"{why}: read as linear (pass --encoding srgb for a photograph)"
+        else:
+            enc = declared
         if img.dtype == np.uint8:
             img, sat, q = img / 255.0, 1.0, 1 / 255
         elif img.dtype == np.uint16:
@@ -70,7 +98,10 @@ def load_target(path: Path, resolution: tuple[int, int], with_quantum: bool = Fa
         raise InputError(f"{path}: image is {img.shape[1]}x{img.shape[0]} but the scene's camera renders {w}x{h}")
     if not np.isfinite(img).all():
         raise InputError(f"{path}: contains NaN or inf")
-    return (img, sat, q) if with_quantum else (img, sat)
+    if decoded:
+        img = np.asarray(_color.decode(img, enc), np.float64)
+    out = (img, sat) + ((q,) if with_quantum else ()) + (((enc, why),) if with_encoding else ())
+    return out
 
 
 def write_mtl(scene, opts, path: Path, header: str) -> None:
@@ -113,21 +144,20 @@ def _write_text(text: str, out: Path) -> None:
     tmp.replace(out)
 
 
-def _write_png(image, out: Path, overwrite: bool) -> None:
-    import numpy as np
-    import skimage.io
-
-    import diffshade as ds
+def _write_png(image, out: Path, overwrite: bool, encoding: str = "linear") -> None:
+    """``image`` (linear) as an 8-bit PNG encoded as ``encoding``, its chunks declaring it
+    (``gAMA`` 1.0 for linear, ``sRGB`` for sRGB), written through a temporary file."""
+    from diffshade import _color
 
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out}: exists; pass --overwrite to replace it")
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(out.name + ".tmp.png")
-    skimage.io.imsave(tmp, np.asarray(ds.to_uint8(image)), check_contrast=False)
+    _color.write_png(tmp, image, encoding)
     tmp.replace(out)
 
 
-def _render(scene, opts, out: Path, overwrite: bool) -> None:
+def _render(scene, opts, out: Path, overwrite: bool, encoding: str = "linear") -> None:
     import jax
 
     import diffshade as ds
@@ -138,7 +168,7 @@ def _render(scene, opts, out: Path, overwrite: bool) -> None:
     t1 = time.perf_counter()
     img = fn(scene, opts).block_until_ready()
     t2 = time.perf_counter()
-    _write_png(img, out, overwrite)
+    _write_png(img, out, overwrite, encoding)
     h, w = scene.camera.resolution
     print(
         f"rendered {w}x{h}, {scene.mesh.faces.shape[0]} faces, shading={opts.shading}, "
@@ -158,15 +188,25 @@ def _render(scene, opts, out: Path, overwrite: bool) -> None:
             print(f"note: {cut} pixel(s) have more than {opts.layers} surfaces; what lies beyond the last layer "
                   "is not composited (raise render.layers to include it)")
     print(f"first call (compile + run) {t1 - t0:.2f} s, steady state {1e3 * (t2 - t1):.1f} ms")
-    print(f"wrote {out}")
+    print(f"wrote {out} ({encoding} encoding, declared in the file)")
 
 
 def cmd_render(args) -> int:
     import diffshade as ds
 
     scene, opts = ds.load_scene(args.scene)
-    _render(scene, opts, Path(args.output), args.overwrite)
+    _render(scene, opts, Path(args.output), args.overwrite, _check_encoding(args.encoding))
     return EXIT_OK
+
+
+def _check_encoding(name: str) -> str:
+    from diffshade import _color
+
+    try:
+        _color.parse_encoding(name)
+    except _color.EncodingError as exc:
+        raise InputError(str(exc)) from exc
+    return name
 
 
 DEMO_FREE = ["material.ambient", "material.diffuse", "material.specular", "material.shininess",
@@ -250,6 +290,7 @@ def cmd_fit(args) -> int:
     import numpy as np
 
     import diffshade as ds
+    from diffshade import _color
 
     from .fit import compare_models, fit
     from .params import ParamSet
@@ -261,12 +302,17 @@ def cmd_fit(args) -> int:
         raise InputError(f"{len(args.targets)} target(s) but {len(view_paths)} --views scene file(s); give one per target")
     views = [ds.load_scene(v)[0] for v in view_paths] if view_paths else [scene] * len(args.targets)
     target_paths = [Path(t) for t in args.targets]
-    loaded = [load_target(t, v.camera.resolution, with_quantum=True) for t, v in zip(target_paths, views)]
-    targets = [img for img, _, _ in loaded]
-    sats = {sat for _, sat, _ in loaded}
+    loaded = [load_target(t, v.camera.resolution, with_quantum=True, encoding=args.encoding, with_encoding=True,
+                          decoded=False) for t, v in zip(target_paths, views)]
+    targets = [img for img, *_ in loaded]  # code values; the fit decodes them (clipping decided on the codes)
+    sats = {sat for _, sat, _, _ in loaded}
     saturation = 1.0 if sats == {1.0} and not args.no_censor else None
-    quanta = [q for _, _, q in loaded if q is not None]
+    quanta = [q for _, _, q, _ in loaded if q is not None]
     quantum = max(quanta) if len(quanta) == len(loaded) else None
+    encodings = [e for *_, e in loaded]
+    for t, (enc, why) in zip(target_paths, encodings):
+        undeclared = why.startswith("no sRGB")
+        print(f"{'warning: ' if undeclared else ''}{t}: {enc} ({why})")
     masks = None
     mask_paths = [Path(m) for m in args.mask] if args.mask else []
     if mask_paths:
@@ -298,7 +344,7 @@ def cmd_fit(args) -> int:
     print(f"fitting {', '.join(args.free)} to {len(targets)} image(s) of {views[0].camera.width}x"
           f"{views[0].camera.height} with {args.solver}" + (" (clipped pixels censored)" if saturation else ""))
     kw = dict(views=views, masks=masks, shared=args.shared or (), solver=args.solver, max_steps=args.max_steps,
-              saturation=saturation, quantum=quantum, noise=args.noise)
+              saturation=saturation, quantum=quantum, noise=args.noise, encoding=[e for e, _ in encodings])
     r = fit(scene, opts, targets, args.free, verbose=args.verbose, **kw)
     report = [f"diffshade fit: scene {scene_path}, target(s) {', '.join(map(str, target_paths))}", *_report_table(r)]
     comparison = []
@@ -319,12 +365,14 @@ def cmd_fit(args) -> int:
     fitted_scene = pset.apply(scene, theta)
     render = jax.jit(ds.render, static_argnames="opts")
     rows = []
-    for v, t in zip(views, targets):
+    for v, t, (enc, _) in zip(views, targets, encodings):
+        t = np.asarray(_color.decode(t, enc), np.float64)
         img = np.asarray(render(pset.apply(v, theta), opts), np.float64)
         rows.append(np.concatenate([t, img, np.clip(0.5 + 10.0 * (img - t), 0, 1)], axis=1))
     import json
 
     meta = {"scene": str(scene_path), "targets": [str(t) for t in target_paths], "views": [str(v) for v in view_paths],
+            "encodings": [{"encoding": e, "from": why} for e, why in encodings],
             "free": args.free, "shared": args.shared or [], "solver": args.solver, "censored_at": saturation,
             "options": {k: getattr(opts, k) for k in opts.__dataclass_fields__}}
     doc = {**meta, **r.as_dict()}
@@ -333,7 +381,7 @@ def cmd_fit(args) -> int:
     _write_text(json.dumps(doc, indent=2, default=float) + "\n", outputs[0])
     write_mtl(fitted_scene, opts, outputs[1], f"{report[0]}\nfree: {' '.join(args.free)}; result: "
               f"{r.result or 'successful'}; standard errors in fit.json")
-    _write_png(np.concatenate(rows, axis=0), outputs[2], True)
+    _write_png(np.concatenate(rows, axis=0), outputs[2], True, encodings[0][0])
     _write_text("\n".join(report) + "\n", outputs[3])
     print(f"wrote {', '.join(str(o) for o in outputs)} (fit.png: target | fit | 10x residual + 0.5)")
     return EXIT_OK if r.successful else EXIT_FIT
@@ -365,10 +413,12 @@ def main(argv=None) -> int:
     p.add_argument("scene", help="scene file (.toml)")
     p.add_argument("-o", "--output", default="render.png", help="output PNG (default: render.png)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    p.add_argument("--encoding", default="linear", metavar="ENC",
+                   help="colour encoding of the PNG: linear (default), srgb, gamma:G; declared in its chunks")
     p.set_defaults(func=cmd_render)
     p = sub.add_parser("fit", help="fit named scene parameters to target image(s)",
                        description="Fit the named free parameters of a scene file to target images (PNG: 8/16-bit, "
-                       "linear; or .npy floats). Start values are the scene file's. Writes fit.json, material.mtl, "
+                       "encoding from the file or --encoding; or .npy floats, linear). Start values are the scene file's. Writes fit.json, material.mtl, "
                        "fit.png and report.txt into --output-dir.")
     p.add_argument("scene", help="scene file (.toml); its values are the starting point")
     p.add_argument("targets", nargs="+", help="target image(s), one per view, each the camera's size")
@@ -386,6 +436,9 @@ def main(argv=None) -> int:
     p.add_argument("--max-steps", type=int, default=100)
     p.add_argument("--compare", action="store_true",
                    help="also fit the nested term sets (no specular, Phong<->Blinn, no fog) and rank by BIC")
+    p.add_argument("--encoding", default="auto", metavar="ENC",
+                   help="the targets' colour encoding: auto (default: a PNG's sRGB/iCCP/gAMA chunks; none: linear, "
+                   "with a warning), linear, srgb, gamma:G; the fit weighs residuals in code values")
     p.add_argument("--no-censor", action="store_true",
                    help="do not treat fully saturated channels of 8/16-bit targets as clipped")
     p.add_argument("-v", "--verbose", action="store_true", help="print the loss at every solver step")

@@ -64,6 +64,7 @@ def fit(
     method: str = "auto",
     verbose: bool = False,
     history: bool = False,
+    encoding=None,
 ) -> FitResult:
     """Fit the ``free`` parameters of ``scene`` to ``targets``.
 
@@ -83,13 +84,19 @@ def fit(
     :mod:`fitting.report`). ``rtol``/``atol``: the solver's tolerances, by default 1e-6 in
     float32 and 1e-10 in float64. ``verbose``: print every solver step. ``history``: keep the
     loss and parameters of every accepted step in ``FitResult.history``.
+
+    ``encoding``: None (the targets are linear values), or how the targets are encoded
+    (``"srgb"``, ``"gamma:G"``, ``"linear"``; one, or one per target): they are then the file's
+    code values in [0, 1], decoded to linear values, with clipping decided on the codes and each
+    residual weighted by :math:`1/(dL/dv)`, so that the fit measures it in code values (where
+    quantisation and the file's noise are uniform; ``noise`` is then in code values too).
     """
     if method not in ("auto", "full"):
         raise FitError(f"unknown method {method!r}; 'auto' or 'full'")
     if solver != "varpro" and solver not in SOLVERS:
         raise FitError(f"unknown solver {solver!r}; 'varpro' or one of {sorted(SOLVERS)}")
     prob = Problem.build(scene, opts, as_list(targets), free, views=views, masks=masks, shared=shared,
-                         saturation=saturation, quantum=quantum)
+                         saturation=saturation, quantum=quantum, encoding=encoding)
     pset, dtype = prob.pset, prob.dtype
     theta0 = pset.theta_of(scene)
     pset.check(theta0)

@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import diffshade as ds
+from diffshade import _color
 
 from .params import ParamSet
 
@@ -57,7 +58,7 @@ class ViewData(eqx.Module):
     px: jax.Array  # [1, N] NDC x of their centres
     py: jax.Array  # [1, N] NDC y
     target: jax.Array  # [N, 3]
-    weight: jax.Array  # [N, 1] √mask (0 in padding)
+    weight: jax.Array  # [N, 3] √mask × the encoding's per-channel weight (0 in padding)
     hi: jax.Array  # [N, 3] bool: censored from above (target at saturation)
     lo: jax.Array  # [N, 3] bool: censored from below (target at 0 of an integer image)
 
@@ -92,8 +93,11 @@ class Problem:
 
     @classmethod
     def build(cls, scene, opts, targets, free, *, views=None, masks=None, shared=(), saturation=None,
-              quantum=None, lower_censor=None):
+              quantum=None, lower_censor=None, encoding=None):
         targets = as_list(targets)
+        encodings = list(encoding) if isinstance(encoding, (list, tuple)) else [encoding] * len(targets)
+        if len(encodings) != len(targets):
+            raise FitError(f"{len(targets)} targets but {len(encodings)} encodings")
         views = list(views) if views is not None else [scene] * len(targets)
         if len(views) != len(targets):
             raise FitError(f"{len(targets)} targets but {len(views)} views")
@@ -106,8 +110,21 @@ class Problem:
         lower = (saturation is not None) if lower_censor is None else lower_censor
         vis = jax.jit(ds.scene_visibility, static_argnums=1)
         data, books, full = [], [], []
-        for k, (t, v, m) in enumerate(zip(targets, views, masks)):
+        for k, (t, v, m, enc) in enumerate(zip(targets, views, masks, encodings)):
             t = np.asarray(check_target(t, v, k), np.float64)
+            # an encoded target: clipping is decided on the code values; the residual is taken in
+            # linear values weighted per channel by 1/(dL/dv), i.e. in code values to first order,
+            # where quantisation and the file's noise are uniform
+            chan_w = np.ones_like(t)
+            if enc is not None and enc != "linear":
+                try:
+                    _color.parse_encoding(enc)
+                except _color.EncodingError as exc:
+                    raise FitError(f"target {k}: {exc}") from exc
+                hi_enc = (t >= saturation) if saturation is not None else np.zeros(t.shape, bool)
+                lo_enc = (t <= 0.0) if lower else np.zeros(t.shape, bool)
+                chan_w = 1.0 / _color.decode_slope(np.clip(t, 0.0, 1.0), enc, floor=(quantum or 1 / 255) / 2)
+                t = np.asarray(_color.decode(t, enc), np.float64)
             full.append(t)
             h, w = v.camera.resolution
             if m is None:
@@ -123,8 +140,12 @@ class Problem:
             rows = np.flatnonzero(covered.reshape(-1))
             n = max(PAD, -(-len(rows) // PAD) * PAD)
             pad = n - len(rows)
-            hi = (t >= saturation) if saturation is not None else np.zeros(t.shape, bool)
-            lo = (t <= 0.0) if lower else np.zeros(t.shape, bool)
+            if enc is not None and enc != "linear":
+                hi, lo = hi_enc, lo_enc
+            else:
+                hi = (t >= saturation) if saturation is not None else np.zeros(t.shape, bool)
+                lo = (t <= 0.0) if lower else np.zeros(t.shape, bool)
+            cw = wgt[..., None] * chan_w  # [H, W, 3]
             xs, ys = (np.asarray(c, np.float64) for c in ds.pixel_centres(h, w, np.float64))
             r_idx, c_idx = rows // w, rows % w
             flat = lambda a: a.reshape(h * w, *a.shape[2:])[rows]  # noqa: E731
@@ -134,11 +155,11 @@ class Problem:
             data.append(ViewData(
                 scene=v, ids=jnp.asarray(kids),
                 px=jnp.asarray(padn(xs[c_idx], 0.0)[None], dtype), py=jnp.asarray(padn(ys[r_idx], 0.0)[None], dtype),
-                target=jnp.asarray(padn(flat(t), 0.0), dtype), weight=jnp.asarray(padn(flat(wgt)[:, None], 0.0), dtype),
+                target=jnp.asarray(padn(flat(t), 0.0), dtype), weight=jnp.asarray(padn(flat(cw), 0.0), dtype),
                 hi=jnp.asarray(padn(flat(hi), False)), lo=jnp.asarray(padn(flat(lo), False))))
             bg = np.broadcast_to(np.asarray(v.background, np.float64), t.shape)
             d = bg - t
-            d = np.where(hi, np.minimum(d, 0), np.where(lo, np.maximum(d, 0), d)) * wgt[..., None]
+            d = np.where(hi, np.minimum(d, 0), np.where(lo, np.maximum(d, 0), d)) * cw
             unc = ~covered
             const = np.where(unc[..., None], d, 0.0)
             books.append(View(rows=rows, shape=(h, w), const=const))
@@ -164,10 +185,10 @@ class Problem:
         (the uncovered ones do not depend on the parameters and are left out of the statistics)."""
         n, c = 0, 0
         for vd in self.data:
-            w = np.asarray(vd.weight)[:, 0] > 0
+            w = np.broadcast_to(np.asarray(vd.weight) > 0, vd.hi.shape)
             cens = np.asarray(vd.hi | vd.lo)
-            n += int((w[:, None] & ~cens).sum())
-            c += int((w[:, None] & cens).sum())
+            n += int((w & ~cens).sum())
+            c += int((w & cens).sum())
         return n, c
 
     def residual_images(self, r_flat) -> list[np.ndarray]:
@@ -201,8 +222,8 @@ class Problem:
         out = []
         for vd, b in zip(self.data, self.views):
             m = np.zeros((b.shape[0] * b.shape[1], 3), bool)
-            w = np.asarray(vd.weight)[:len(b.rows), 0] > 0
+            w = np.broadcast_to(np.asarray(vd.weight) > 0, vd.hi.shape)[:len(b.rows)]
             cens = np.asarray(vd.hi | vd.lo)[:len(b.rows)]
-            m[b.rows] = w[:, None] & ~cens
+            m[b.rows] = w & ~cens
             out.append(m.reshape(*b.shape, 3))
         return out
