@@ -55,6 +55,10 @@ def files(tmp_path_factory):
     skimage.io.imsave(d / "small.png", np.zeros((16, 16, 3), np.uint8), check_contrast=False)
     skimage.io.imsave(d / "rgba.png", np.zeros((32, 32, 4), np.uint8), check_contrast=False)
     skimage.io.imsave(d / "gray.png", np.zeros((32, 32), np.uint8), check_contrast=False)
+    from PIL import Image, ImageCms
+
+    lab = ImageCms.ImageCmsProfile(ImageCms.createProfile("LAB")).tobytes()
+    Image.fromarray(np.zeros((32, 32, 3), np.uint8)).save(d / "lab.png", icc_profile=lab)
     return d
 
 
@@ -67,6 +71,8 @@ def test_fit_writes_parameters_mtl_image_and_report(files, tmp_path, capsys):
     text = capsys.readouterr().out
     assert rc == EXIT_OK, text
     assert target.read_bytes() == before
+    # skimage wrote the target without an encoding chunk: read as linear, with a warning
+    assert f"warning: {target}: linear (no sRGB, iCCP or gAMA chunk" in text
     doc = json.loads((out / "fit.json").read_text())
     assert doc["successful"] and doc["censored_at"] == 1.0
     truth = TRUE_KD + [TRUE_M]
@@ -99,6 +105,8 @@ def test_fit_writes_parameters_mtl_image_and_report(files, tmp_path, capsys):
         ("gray.png", [], "a grayscale image (1 channel(s)); expected RGB"),
         ("target.png", ["-p", "material.colour"], "unknown parameter 'material.colour'"),
         ("target.png", ["-p", "point[1].a1"], "the scene has 1 point light"),
+        ("target.png", ["-p", "material.diffuse", "--encoding", "cmyk"], "unknown colour encoding 'cmyk'"),
+        ("lab.png", [], "its ICC profile is 'Lab identity built-in', not sRGB"),
     ],
 )
 def test_fit_input_errors_are_named(files, tmp_path, capsys, target, extra, msg):
@@ -154,3 +162,33 @@ def test_clipped_target_is_censored_not_fitted_to_the_clip():
     err_p = np.max(np.abs(plain.values - true) / true)
     assert cens.successful and err_c < 1e-4, (cens.values, true)
     assert err_p > 10 * max(err_c, 1e-5), (plain.values, true)
+
+
+def test_targets_are_decoded_as_their_files_declare(files, tmp_path, capsys):
+    # render --encoding srgb writes sRGB codes and says so in the file; load_target decodes them
+    # (16-bit ones with all their bits); --encoding overrides a declaration
+    from diffshade import _color
+    from fitting.cli import load_target
+
+    scene, opts = ds.load_scene(files / "true.toml")
+    linear = np.asarray(jax.jit(ds.render, static_argnames="opts")(scene, opts), np.float64)
+    out = tmp_path / "srgb.png"
+    assert main(["render", str(files / "true.toml"), "-o", str(out), "--encoding", "srgb"]) == EXIT_OK
+    assert "srgb encoding, declared in the file" in capsys.readouterr().out
+    assert _color.png_encoding(out)[0] == "srgb"
+    assert np.array_equal(skimage.io.imread(out), _color.quantise(linear, "srgb"))
+    img, sat, q, (enc, why) = load_target(out, (32, 32), with_quantum=True, with_encoding=True)
+    assert enc == "srgb" and "sRGB chunk" in why and sat == 1.0 and q == 1 / 255
+    assert np.abs(img - np.clip(linear, 0, 1)).max() < 0.01  # decoded: linear again, to the 8-bit step
+    codes, *_ = load_target(out, (32, 32), decoded=False)
+    np.testing.assert_array_equal(codes, skimage.io.imread(out) / 255.0)
+    img_lin, *_, (enc2, why2) = load_target(out, (32, 32), encoding="linear", with_encoding=True)
+    assert enc2 == "linear" and why2 == "--encoding" and np.array_equal(img_lin, codes)
+    deep = tmp_path / "deep.png"
+    _color.write_png(deep, linear, "gamma:2.2", bits=16)
+    img16, sat16, q16, (enc16, _) = load_target(deep, (32, 32), with_quantum=True, with_encoding=True)
+    assert enc16 == "gamma:2.2" and q16 == 1 / 65535
+    assert np.abs(img16 - np.clip(linear, 0, 1)).max() < 1e-4  # 16 bits, not 8
+    assert main(["render", str(files / "true.toml"), "-o", str(tmp_path / "x.png"), "--encoding", "gamma:-1"]) \
+        == EXIT_INPUT
+    assert "the gamma must be a number" in capsys.readouterr().err
