@@ -5,7 +5,7 @@ PYTHON ?= python3
 VENV := .venv
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench setup
+.PHONY: demo test test-all bench setup
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -20,6 +20,10 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(VENV)/bin/python -m pytest -n 2 -q
+
+# every test, the slow variants too (the default run leaves them out to stay well under 15 minutes)
+test-all: $(STAMP)
+	$(VENV)/bin/python -m pytest -n 2 -q -m ""
 
 # Transparent huge pages for malloc: XLA's large per-call buffers are otherwise page-faulted in
 # again on every call (measured: 12-tangent Jacobian at 512^2 80 ms instead of 170 ms).

@@ -58,7 +58,10 @@ def _with_unroll(k, fn, *args):
         R.LIGHTS_UNROLLED = old
 
 
-@pytest.mark.parametrize("shading", ["phong", "gouraud", "flat"])
+# the scan is the same code for every interpolation mode: phong in the default run, the others
+# in the full one (pytest -m "")
+@pytest.mark.parametrize("shading", ["phong", pytest.param("gouraud", marks=pytest.mark.slow),
+                                     pytest.param("flat", marks=pytest.mark.slow)])
 def test_scan_over_lights_equals_the_unrolled_sum_values_and_tangents(shading):
     scene, opts = many_lights_scene(7, 6, 6, shading=shading)
     ids = ds.scene_visibility(scene, opts)
@@ -91,7 +94,7 @@ def test_scanned_lights_gradients_match_finite_differences():
                                          modes=("fwd", "rev"), atol=1e-6, rtol=1e-5))
 
 
-@pytest.mark.parametrize("shading", ["phong", "gouraud"])
+@pytest.mark.parametrize("shading", ["phong", pytest.param("gouraud", marks=pytest.mark.slow)])
 def test_shadows_over_the_light_axis_equal_the_unrolled_ones(shading):
     scene, opts = many_lights_scene(3, 3, 3, size=10, shading=shading, wall=True, shadows=True,
                                     shadow_resolution=16, shadow_pcf=3)

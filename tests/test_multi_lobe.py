@@ -43,7 +43,8 @@ def _spots(lobes=LOBES, position=POSITION):
     return [{"type": "spot", "position": position, "attenuation": ATTENUATION, **b} for b in lobes]
 
 
-@pytest.mark.parametrize("shading", ["phong", "gouraud", "flat"])
+@pytest.mark.parametrize("shading", ["phong", pytest.param("gouraud", marks=pytest.mark.slow),
+                                     pytest.param("flat", marks=pytest.mark.slow)])
 def test_a_multi_lobe_light_equals_the_sum_of_its_spots(shading):
     a, opts = ds.scene_from_dict(_dict([_multi()], shading))
     b, opts_b = ds.scene_from_dict(_dict(_spots(), shading))
