@@ -431,7 +431,8 @@ def main(argv=None) -> int:
                    help="varpro (default): the compiled variable-projection LM; lm, dogleg, gauss-newton: "
                    "optimistix's solver on the same reduced problem")
     p.add_argument("--noise", type=float, default=None, metavar="SIGMA",
-                   help="the targets' noise level (linear units), for the chi-square verdict; default: "
+                   help="the targets' noise level (in code values of an encoded target, else linear), for the "
+                   "chi-square verdict; default: "
                    "estimated from the residual (its pixel-to-pixel white part) and the quantisation")
     p.add_argument("--max-steps", type=int, default=100)
     p.add_argument("--compare", action="store_true",
