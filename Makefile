@@ -21,7 +21,7 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(VENV)/bin/python -m pytest -n 2 -q
 
-# every test, the slow variants too (the default run leaves them out to stay well under 15 minutes)
+# every test, the slow variants too (the default run leaves them out, to keep it short on 2 cores)
 test-all: $(STAMP)
 	$(VENV)/bin/python -m pytest -n 2 -q -m ""
 
