@@ -28,7 +28,7 @@ class InputError(ValueError):
 
 
 def load_target(path: Path, resolution: tuple[int, int], with_quantum: bool = False, encoding: str = "auto",
-                with_encoding: bool = False, decoded: bool = True):
+                with_encoding: bool = False, decoded: bool = True, with_alpha: bool = False):
     """A target image as linear float64 ``[H, W, 3]`` and its saturation level (1.0 for integer
     files, whose brightest code is a clipped value; None for ``.npy`` floats, which are not
     clipped); ``with_quantum``: also the code step (1/255, 1/65535; None for floats);
@@ -39,7 +39,8 @@ def load_target(path: Path, resolution: tuple[int, int], with_quantum: bool = Fa
     codes are decoded to linear values; the ends are fixed points of every encoding, so a clipped
     code (0 or the top one) is decided on the encoded value and stays clipped. ``.npy`` floats
     are linear unless an encoding is given. ``decoded`` False: the code values themselves (in
-    [0, 1]), for :func:`fitting.fit.fit`'s ``encoding``."""
+    [0, 1]), for :func:`fitting.fit.fit`'s ``encoding``. ``with_alpha``: an RGBA image is accepted
+    and its alpha channel (in [0, 1], never decoded) returned last, None for RGB."""
     import numpy as np
 
     from diffshade import _color
@@ -88,6 +89,9 @@ def load_target(path: Path, resolution: tuple[int, int], with_quantum: bool = Fa
             raise InputError(f"{path}: unsupported pixel type {img.dtype} (8- or 16-bit or float images)")
     img = np.asarray(img, np.float64)
     h, w = resolution
+    alpha = None
+    if with_alpha and img.ndim == 3 and img.shape[2] == 4:
+        img, alpha = img[..., :3], img[..., 3]
     if img.ndim == 2 or (img.ndim == 3 and img.shape[2] != 3):
         ch = 1 if img.ndim == 2 else img.shape[2]
         what = {1: "grayscale", 2: "grayscale + alpha", 4: "RGBA"}.get(ch, f"{ch}-channel")
@@ -101,7 +105,7 @@ def load_target(path: Path, resolution: tuple[int, int], with_quantum: bool = Fa
     if decoded:
         img = np.asarray(_color.decode(img, enc), np.float64)
     out = (img, sat) + ((q,) if with_quantum else ()) + (((enc, why),) if with_encoding else ())
-    return out
+    return out + ((alpha,) if with_alpha else ())
 
 
 def write_mtl(scene, opts, path: Path, header: str) -> None:
@@ -303,13 +307,14 @@ def cmd_fit(args) -> int:
     views = [ds.load_scene(v)[0] for v in view_paths] if view_paths else [scene] * len(args.targets)
     target_paths = [Path(t) for t in args.targets]
     loaded = [load_target(t, v.camera.resolution, with_quantum=True, encoding=args.encoding, with_encoding=True,
-                          decoded=False) for t, v in zip(target_paths, views)]
+                          decoded=False, with_alpha=True) for t, v in zip(target_paths, views)]
     targets = [img for img, *_ in loaded]  # code values; the fit decodes them (clipping decided on the codes)
-    sats = {sat for _, sat, _, _ in loaded}
+    sats = {sat for _, sat, _, _, _ in loaded}
     saturation = 1.0 if sats == {1.0} and not args.no_censor else None
-    quanta = [q for _, _, q, _ in loaded if q is not None]
+    quanta = [q for _, _, q, _, _ in loaded if q is not None]
     quantum = max(quanta) if len(quanta) == len(loaded) else None
-    encodings = [e for *_, e in loaded]
+    encodings = [e for *_, e, _ in loaded]
+    alphas = [a for *_, a in loaded]
     for t, (enc, why) in zip(target_paths, encodings):
         undeclared = why.startswith("no sRGB")
         print(f"{'warning: ' if undeclared else ''}{t}: {enc} ({why})")
@@ -330,6 +335,11 @@ def cmd_fit(args) -> int:
                 raise InputError(f"{mp}: mask is {m.shape[1]}x{m.shape[0]} but the camera renders "
                                  f"{v.camera.width}x{v.camera.height}")
             masks.append(m / max(m.max(), 1e-300))
+    elif any(a is not None for a in alphas):  # a PNG's alpha channel is its mask (0: not the object)
+        masks = [np.ones(v.camera.resolution) if a is None else a for a, v in zip(alphas, views)]
+        for t, a in zip(target_paths, alphas):
+            if a is not None:
+                print(f"{t}: its alpha channel is the mask ({int((a > 0).sum())} of {a.size} pixels weighted)")
 
     out_dir = Path(args.output_dir)
     outputs = [out_dir / n for n in FIT_OUTPUTS]
@@ -343,7 +353,9 @@ def cmd_fit(args) -> int:
     pset = ParamSet(args.free, scene, args.shared or ())  # name errors before any compile
     print(f"fitting {', '.join(args.free)} to {len(targets)} image(s) of {views[0].camera.width}x"
           f"{views[0].camera.height} with {args.solver}" + (" (clipped pixels censored)" if saturation else ""))
-    kw = dict(views=views, masks=masks, shared=args.shared or (), solver=args.solver, max_steps=args.max_steps,
+    if args.margin < 0:
+        raise InputError(f"--margin {args.margin}: a number of pixels, 0 or more")
+    kw = dict(views=views, masks=masks, margin=args.margin, shared=args.shared or (), solver=args.solver, max_steps=args.max_steps,
               saturation=saturation, quantum=quantum, noise=args.noise, encoding=[e for e, _ in encodings])
     r = fit(scene, opts, targets, args.free, verbose=args.verbose, **kw)
     report = [f"diffshade fit: scene {scene_path}, target(s) {', '.join(map(str, target_paths))}", *_report_table(r)]
@@ -426,7 +438,11 @@ def main(argv=None) -> int:
                    help="free parameters, e.g. material.diffuse material.shininess point[0].a1 fog.density")
     p.add_argument("--shared", nargs="+", metavar="NAME", help="RGB parameters fitted as one value for all channels")
     p.add_argument("--views", nargs="+", metavar="SCENE", help="one scene file per target (other cameras/lights)")
-    p.add_argument("--mask", nargs="+", metavar="IMAGE", help="one weight image per target (0 = ignore)")
+    p.add_argument("--mask", nargs="+", metavar="IMAGE",
+                   help="one weight image per target (0 = ignore); default: an RGBA target's alpha channel")
+    p.add_argument("--margin", type=int, default=0, metavar="PX",
+                   help="leave out pixels within PX of the model's silhouette or the mask's edge (where a slightly "
+                   "misregistered mesh puts background into the residual); default 0")
     p.add_argument("--solver", default="varpro", choices=["varpro", "lm", "dogleg", "gauss-newton"],
                    help="varpro (default): the compiled variable-projection LM; lm, dogleg, gauss-newton: "
                    "optimistix's solver on the same reduced problem")

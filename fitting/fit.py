@@ -65,6 +65,7 @@ def fit(
     verbose: bool = False,
     history: bool = False,
     encoding=None,
+    margin: int = 0,
 ) -> FitResult:
     """Fit the ``free`` parameters of ``scene`` to ``targets``.
 
@@ -90,13 +91,15 @@ def fit(
     code values in [0, 1], decoded to linear values, with clipping decided on the codes and each
     residual weighted by :math:`1/(dL/dv)`, so that the fit measures it in code values (where
     quantisation and the file's noise are uniform; ``noise`` is then in code values too).
+    ``margin``: pixels within this many (8-neighbour steps) of the model's silhouette or of a
+    mask's edge are left out of the fit (a misregistered mesh puts background there).
     """
     if method not in ("auto", "full"):
         raise FitError(f"unknown method {method!r}; 'auto' or 'full'")
     if solver != "varpro" and solver not in SOLVERS:
         raise FitError(f"unknown solver {solver!r}; 'varpro' or one of {sorted(SOLVERS)}")
     prob = Problem.build(scene, opts, as_list(targets), free, views=views, masks=masks, shared=shared,
-                         saturation=saturation, quantum=quantum, encoding=encoding)
+                         saturation=saturation, quantum=quantum, encoding=encoding, margin=margin)
     pset, dtype = prob.pset, prob.dtype
     theta0 = pset.theta_of(scene)
     pset.check(theta0)

@@ -93,7 +93,7 @@ class Problem:
 
     @classmethod
     def build(cls, scene, opts, targets, free, *, views=None, masks=None, shared=(), saturation=None,
-              quantum=None, lower_censor=None, encoding=None):
+              quantum=None, lower_censor=None, encoding=None, margin: int = 0):
         targets = as_list(targets)
         encodings = list(encoding) if isinstance(encoding, (list, tuple)) else [encoding] * len(targets)
         if len(encodings) != len(targets):
@@ -137,6 +137,15 @@ class Problem:
             wgt = np.sqrt(m)
             ids = np.asarray(vis(v, opts))
             covered = (ids[0] >= 0) & (wgt > 0)
+            if margin:
+                if int(margin) != margin or margin < 0:
+                    raise FitError(f"margin must be a whole number of pixels >= 0, got {margin!r}")
+                from skimage.morphology import erosion
+
+                # away from the silhouette and the mask's edge by `margin` 8-neighbour steps (a
+                # square footprint; the image border is not an edge)
+                k = 2 * int(margin) + 1
+                covered = erosion(covered, np.ones((k, k), bool), mode="ignore")
             rows = np.flatnonzero(covered.reshape(-1))
             n = max(PAD, -(-len(rows) // PAD) * PAD)
             pad = n - len(rows)

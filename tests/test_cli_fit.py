@@ -51,7 +51,12 @@ def files(tmp_path_factory):
     scene, opts = ds.load_scene(d / "true.toml")
     img = np.asarray(jax.jit(ds.render, static_argnames="opts")(scene, opts), np.float64)
     noisy = np.clip(img + np.random.default_rng(0).normal(0, 2 / 255, img.shape), 0, 1)
-    skimage.io.imsave(d / "target.png", np.round(noisy * 255).astype(np.uint8), check_contrast=False)
+    # RGBA: a block of the sphere hidden by alpha 0 holds garbage (a sticker on the photograph)
+    alpha = np.full(img.shape[:2], 255, np.uint8)
+    alpha[12:18, 10:16] = 0
+    noisy[12:18, 10:16] = [1.0, 0.0, 1.0]
+    rgba = np.concatenate([np.round(noisy * 255).astype(np.uint8), alpha[..., None]], axis=-1)
+    skimage.io.imsave(d / "target.png", rgba, check_contrast=False)
     skimage.io.imsave(d / "small.png", np.zeros((16, 16, 3), np.uint8), check_contrast=False)
     skimage.io.imsave(d / "rgba.png", np.zeros((32, 32, 4), np.uint8), check_contrast=False)
     skimage.io.imsave(d / "gray.png", np.zeros((32, 32), np.uint8), check_contrast=False)
@@ -73,6 +78,9 @@ def test_fit_writes_parameters_mtl_image_and_report(files, tmp_path, capsys):
     assert target.read_bytes() == before
     # skimage wrote the target without an encoding chunk: read as linear, with a warning
     assert f"warning: {target}: linear (no sRGB, iCCP or gAMA chunk" in text
+    # its alpha channel is the mask: the garbage under alpha 0 is left out (else no fit would
+    # find the truth below)
+    assert f"{target}: its alpha channel is the mask (988 of 1024 pixels weighted)" in text
     doc = json.loads((out / "fit.json").read_text())
     assert doc["successful"] and doc["censored_at"] == 1.0
     truth = TRUE_KD + [TRUE_M]
@@ -101,7 +109,7 @@ def test_fit_writes_parameters_mtl_image_and_report(files, tmp_path, capsys):
     [
         ("missing.png", [], "target image not found"),
         ("small.png", [], "image is 16x16 but the scene's camera renders 32x32"),
-        ("rgba.png", [], "a RGBA image (4 channel(s)); expected RGB"),
+        ("rgba.png", ["-p", "material.diffuse", "--margin", "-1"], "--margin -1: a number of pixels"),
         ("gray.png", [], "a grayscale image (1 channel(s)); expected RGB"),
         ("target.png", ["-p", "material.colour"], "unknown parameter 'material.colour'"),
         ("target.png", ["-p", "point[1].a1"], "the scene has 1 point light"),

@@ -184,6 +184,29 @@ def test_white_noise_is_noise_spread_over_every_pixel_not_a_few_jumps():
     assert not ok and "× the noise" in msg and noise_ratio_limit(n) < 1.1
 
 
+def test_margin_leaves_out_the_pixels_next_to_the_silhouette_and_the_mask_edge():
+    from skimage.morphology import erosion
+
+    from fitting.problem import Problem
+
+    scene, opts = small_scene()
+    target = np.zeros(scene.camera.resolution + (3,))
+    mask = np.ones(scene.camera.resolution)
+    mask[10:16, 8:14] = 0  # a hole in the object
+    ids = np.asarray(ds.scene_visibility(scene, opts)[0])
+    base = (ids >= 0) & (mask > 0)
+    for margin in (0, 1, 2):
+        prob = Problem.build(scene, opts, target, ["material.diffuse"], masks=[mask], margin=margin)
+        used = prob.used_masks()[0][..., 0]
+        k = 2 * margin + 1
+        expect = erosion(base, np.ones((k, k), bool), mode="ignore") if margin else base
+        assert np.array_equal(used, expect)
+        assert prob.counts()[0] == 3 * int(expect.sum())
+    assert expect.sum() < base.sum() - 40  # a ring of two pixels around the sphere and the hole
+    with pytest.raises(FitError, match="margin must be a whole number"):
+        Problem.build(scene, opts, target, ["material.diffuse"], margin=1.5)
+
+
 def test_clamp_falls_back_to_lm_on_all_parameters_and_says_so():
     scene, opts = small_scene(clamp=True)
     target = jax.jit(ds.render, static_argnames="opts")(scene, opts)
