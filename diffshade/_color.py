@@ -51,33 +51,33 @@ def _xp(a):
     return np if isinstance(a, (np.ndarray, float, int, np.floating)) else jnp
 
 
+def _above(x, knee, f, below):
+    """``f(x)`` where ``x > knee``, else ``below(x)``; double where: ``f`` (a power) never sees
+    the values off its branch, so neither values nor derivatives there are NaN."""
+    xp = _xp(x)
+    hi = x > knee
+    return xp.where(hi, f(xp.where(hi, x, 1.0)), below(x))
+
+
 def decode(v, encoding: str = "srgb"):
     """Linear values from encoded code values ``v`` (NumPy or JAX; differentiable, finite at 0)."""
     kind, g = parse_encoding(encoding)
-    xp = _xp(v)
     if kind == "linear":
         return v
     if kind == "srgb":
-        hi = v > _K_DEC
-        safe = xp.where(hi, v, 1.0)  # double where: no power of a negative base off its branch
-        return xp.where(hi, ((safe + _A) / (1 + _A)) ** _P, v / _S)
-    pos = v > 0
-    return xp.where(pos, xp.where(pos, v, 1.0) ** g, 0.0)
+        return _above(v, _K_DEC, lambda x: ((x + _A) / (1 + _A)) ** _P, lambda x: x / _S)
+    return _above(v, 0.0, lambda x: x ** g, lambda x: 0.0 * x)
 
 
 def encode(L, encoding: str = "srgb"):
     """Encoded code values from linear values ``L`` (the inverse of :func:`decode`; values
     outside [0, 1] are encoded as they are, clipping is the caller's)."""
     kind, g = parse_encoding(encoding)
-    xp = _xp(L)
     if kind == "linear":
         return L
     if kind == "srgb":
-        hi = L > _K_ENC
-        safe = xp.where(hi, L, 1.0)
-        return xp.where(hi, (1 + _A) * safe ** (1 / _P) - _A, L * _S)
-    pos = L > 0
-    return xp.where(pos, xp.where(pos, L, 1.0) ** (1 / g), 0.0)
+        return _above(L, _K_ENC, lambda x: (1 + _A) * x ** (1 / _P) - _A, lambda x: x * _S)
+    return _above(L, 0.0, lambda x: x ** (1 / g), lambda x: 0.0 * x)
 
 
 def decode_slope(v, encoding: str = "srgb", floor: float = 0.5 / 255):
@@ -88,9 +88,8 @@ def decode_slope(v, encoding: str = "srgb", floor: float = 0.5 / 255):
     if kind == "linear":
         return xp.ones_like(v)
     if kind == "srgb":
-        hi = v > _K_DEC
-        safe = xp.where(hi, v, 1.0)
-        return xp.where(hi, _P / (1 + _A) * ((safe + _A) / (1 + _A)) ** (_P - 1), 1.0 / _S)
+        return _above(v, _K_DEC, lambda x: _P / (1 + _A) * ((x + _A) / (1 + _A)) ** (_P - 1),
+                      lambda x: 0.0 * x + 1.0 / _S)
     vv = xp.maximum(v, floor)
     return g * vv ** (g - 1)
 

@@ -115,14 +115,14 @@ class Problem:
             # an encoded target: clipping is decided on the code values; the residual is taken in
             # linear values weighted per channel by 1/(dL/dv), i.e. in code values to first order,
             # where quantisation and the file's noise are uniform
+            hi = (t >= saturation) if saturation is not None else np.zeros(t.shape, bool)
+            lo = (t <= 0.0) if lower else np.zeros(t.shape, bool)
             chan_w = np.ones_like(t)
             if enc is not None and enc != "linear":
                 try:
                     _color.parse_encoding(enc)
                 except _color.EncodingError as exc:
                     raise FitError(f"target {k}: {exc}") from exc
-                hi_enc = (t >= saturation) if saturation is not None else np.zeros(t.shape, bool)
-                lo_enc = (t <= 0.0) if lower else np.zeros(t.shape, bool)
                 chan_w = 1.0 / _color.decode_slope(np.clip(t, 0.0, 1.0), enc, floor=(quantum or 1 / 255) / 2)
                 t = np.asarray(_color.decode(t, enc), np.float64)
             full.append(t)
@@ -149,11 +149,6 @@ class Problem:
             rows = np.flatnonzero(covered.reshape(-1))
             n = max(PAD, -(-len(rows) // PAD) * PAD)
             pad = n - len(rows)
-            if enc is not None and enc != "linear":
-                hi, lo = hi_enc, lo_enc
-            else:
-                hi = (t >= saturation) if saturation is not None else np.zeros(t.shape, bool)
-                lo = (t <= 0.0) if lower else np.zeros(t.shape, bool)
             cw = wgt[..., None] * chan_w  # [H, W, 3]
             xs, ys = (np.asarray(c, np.float64) for c in ds.pixel_centres(h, w, np.float64))
             r_idx, c_idx = rows // w, rows % w
