@@ -8,8 +8,8 @@ Pipeline (each stage a function of its own)::
     image = shade(scene, ids, options)                               # terms of docs/model.md, fog
 """
 
-from ._camera import Camera
-from ._io import DEFAULT_SCENE, SceneError, default_scene, load_scene, scene_from_dict
+from ._camera import Camera, OpenCVCamera, rodrigues, undistort
+from ._io import DEFAULT_SCENE, SceneError, default_scene, load_camera, load_scene, scene_from_dict
 from ._mesh import Mesh, MeshError, box, combine, icosphere, load_mesh, mesh_from_arrays, quad
 from ._raster import (
     Fragments,
@@ -41,9 +41,9 @@ from ._scene import (
 from ._shade import blinn_to_phong, phong_to_blinn
 
 __all__ = [
-    "AreaLights", "no_area", "Camera", "DEFAULT_SCENE", "DirectionalLights", "Fog", "Fragments", "Material", "Mesh", "MeshError", "MultiLobeLights", "no_multi_lobe",
+    "AreaLights", "no_area", "Camera", "OpenCVCamera", "rodrigues", "undistort", "DEFAULT_SCENE", "DirectionalLights", "Fog", "Fragments", "Material", "Mesh", "MeshError", "MultiLobeLights", "no_multi_lobe",
     "PointLights", "RenderOptions", "Scene", "SceneError", "SpotLights", "blinn_to_phong", "default_scene",
-    "fragments", "icosphere", "interpolate", "load_mesh", "load_scene", "mesh_from_arrays", "no_directional",
+    "fragments", "icosphere", "interpolate", "load_camera", "load_mesh", "load_scene", "mesh_from_arrays", "no_directional",
     "no_point", "no_spot", "phong_to_blinn", "pixel_centres", "rasterize", "render", "scene_from_dict",
     "scene_visibility", "shade", "to_uint8", "visibility", "visibility_passes", "box", "combine", "quad",
     "truncated_pixels",

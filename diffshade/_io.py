@@ -68,7 +68,7 @@ from typing import Any
 
 import numpy as np
 
-from ._camera import Camera
+from ._camera import Camera, OpenCVCamera
 from ._mesh import VERTEX_MODES, Mesh, MeshError, box, combine, icosphere, load_mesh, quad
 from ._scene import (
     AreaLights,
@@ -409,25 +409,7 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
     mesh = parts[0][0] if len(parts) == 1 else combine(*(p[0] for p in parts))
     material, extra = parts[0][1], tuple(p[1] for p in parts[1:])
 
-    c = v.table(d, "camera", required=True)
-    v.unknown(c, ("eye", "target", "up", "fov_y", "near", "far", "width", "height"), "camera")
-    eye = v.vec(c, "eye", "camera")
-    target = v.vec(c, "target", "camera", default=[0.0, 0.0, 0.0])
-    up = v.vec(c, "up", "camera", default=[0.0, 1.0, 0.0], nonzero=True)
-    if np.allclose(eye, target):
-        v.fail("camera.target", "must differ from camera.eye")
-    if np.linalg.norm(np.cross(target - eye, up)) < 1e-9 * np.linalg.norm(target - eye) * np.linalg.norm(up):
-        v.fail("camera.up", "must not be parallel to the viewing direction")
-    fov = v.num(c, "fov_y", "camera", default=45.0, lo=0.0, hi=180.0, lo_open=True, hi_open=True)
-    near = v.num(c, "near", "camera", default=0.1, lo=0.0, lo_open=True)
-    far = v.num(c, "far", "camera", default=100.0, lo=near, lo_open=True)
-    size = {}
-    for k in ("width", "height"):
-        x = c.get(k, 256)
-        if isinstance(x, bool) or not isinstance(x, int) or not 1 <= x <= 8192:
-            v.fail(f"camera.{k}", f"must be an integer in [1, 8192], got {x!r}")
-        size[k] = x
-    camera = Camera(eye=eye, target=target, up=up, fov_y=fov, near=near, far=far, **size)
+    camera = _camera(v, v.table(d, "camera", required=True), "camera")
 
     back = _material(v, d["back_material"], "back_material") if "back_material" in d else None
     if back is not None and extra:
@@ -463,6 +445,108 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
         **{f"shadow_{k}": v.num(sh, k, "shadow", lo=0.0) for k in sh},  # absent: the Scene defaults
     )
     return scene, opts
+
+
+_GL_CAMERA = ("eye", "target", "up", "fov_y")
+_CV_CAMERA = ("K", "fx", "fy", "cx", "cy", "R", "rvec", "t", "tvec", "distortion")
+_ANY_CAMERA = ("model", "near", "far", "width", "height", "exposure", "white_balance")
+
+
+def _matrix(v: _V, d: dict, key: str, where: str, shape):
+    x = d[key]
+    try:
+        a = np.asarray(x, dtype=np.float64)
+    except (TypeError, ValueError):
+        a = None
+    if a is None or a.shape != shape or isinstance(x, (str, bool)):
+        v.fail(f"{where}.{key}", f"must be a {shape[0]}x{shape[1]} matrix (a list of {shape[0]} rows), got {x!r}")
+    if not np.isfinite(a).all():
+        v.fail(f"{where}.{key}", "must be finite")
+    return a
+
+
+def _camera(v: _V, c: dict, w: str):
+    """A camera table: OpenGL's (eye, target, up, fov_y; ``model = "opengl"``, the default) or
+    OpenCV's (``model = "opencv"``: K or fx, fy, cx, cy; R or rvec; t or tvec; optional
+    distortion), with near, far, width, height and the gain (exposure, white_balance)."""
+    model = c.get("model", "opencv" if any(k in c for k in _CV_CAMERA) else "opengl")
+    if model not in ("opengl", "opencv"):
+        v.fail(f"{w}.model", f"must be 'opengl' or 'opencv', got {model!r}")
+    v.unknown(c, _ANY_CAMERA + (_GL_CAMERA if model == "opengl" else _CV_CAMERA), w)
+    size = {}
+    for k in ("width", "height"):
+        x = c.get(k, 256)
+        if isinstance(x, bool) or not isinstance(x, int) or not 1 <= x <= 8192:
+            v.fail(f"{w}.{k}", f"must be an integer in [1, 8192], got {x!r}")
+        size[k] = x
+    gain = dict(exposure=v.num(c, "exposure", w, default=1.0, lo=0.0, lo_open=True),
+                white_balance=v.vec(c, "white_balance", w, default=[1.0, 1.0, 1.0], scalar_ok=True))
+    if (gain["white_balance"] <= 0).any():
+        v.fail(f"{w}.white_balance", f"gains must be > 0, got {gain['white_balance'].tolist()}")
+    if model == "opencv":
+        near = v.num(c, "near", w, default=0.1, lo=0.0, lo_open=True)
+        far = v.num(c, "far", w, default=100.0, lo=near, lo_open=True)
+        if "K" in c:
+            if any(k in c for k in ("fx", "fy", "cx", "cy")):
+                v.fail(w, "give the intrinsics as K or as fx, fy, cx, cy, not both")
+            K = _matrix(v, c, "K", w, (3, 3))
+        else:
+            fx, fy = (v.num(c, k, w, lo=0.0, lo_open=True) for k in ("fx", "fy"))
+            K = np.array([[fx, 0.0, v.num(c, "cx", w)], [0.0, fy, v.num(c, "cy", w)], [0.0, 0.0, 1.0]])
+        if ("R" in c) == ("rvec" in c):
+            v.fail(w, "give the rotation as R (3x3) or as rvec (axis-angle), one of them")
+        if ("t" in c) == ("tvec" in c):
+            v.fail(w, "give the translation as t or as tvec, one of them")
+        rot = dict(R=_matrix(v, c, "R", w, (3, 3))) if "R" in c else dict(rvec=v.vec(c, "rvec", w))
+        t = v.vec(c, "t" if "t" in c else "tvec", w)
+        dist = np.zeros(5)
+        if "distortion" in c:
+            x = c["distortion"]
+            if not isinstance(x, list) or len(x) not in (4, 5, 8):
+                v.fail(f"{w}.distortion", f"must be OpenCV's 4, 5 or 8 coefficients (k1, k2, p1, p2[, k3[, k4, k5, "
+                       f"k6]]), got {x!r}")
+            dist = v.vec(c, "distortion", w, n=len(x))
+        try:
+            return OpenCVCamera.from_opencv(K, t=t, near=near, far=far, distortion=dist, **rot, **size, **gain)
+        except ValueError as exc:
+            v.fail(w, str(exc))
+    eye = v.vec(c, "eye", w)
+    target = v.vec(c, "target", w, default=[0.0, 0.0, 0.0])
+    up = v.vec(c, "up", w, default=[0.0, 1.0, 0.0], nonzero=True)
+    if np.allclose(eye, target):
+        v.fail(f"{w}.target", f"must differ from {w}.eye")
+    if np.linalg.norm(np.cross(target - eye, up)) < 1e-9 * np.linalg.norm(target - eye) * np.linalg.norm(up):
+        v.fail(f"{w}.up", "must not be parallel to the viewing direction")
+    fov = v.num(c, "fov_y", w, default=45.0, lo=0.0, hi=180.0, lo_open=True, hi_open=True)
+    near = v.num(c, "near", w, default=0.1, lo=0.0, lo_open=True)
+    far = v.num(c, "far", w, default=100.0, lo=near, lo_open=True)
+    return Camera(eye=eye, target=target, up=up, fov_y=fov, near=near, far=far, **size, **gain)
+
+
+def load_camera(path: str | Path):
+    """A camera from a JSON or TOML file with the keys of a scene file's ``[camera]`` table (an
+    OpenCV calibration: ``K``, ``R``/``rvec``, ``t``/``tvec``, ``distortion``, ``width``,
+    ``height``; or OpenGL's ``eye``, ``target``, ``up``, ``fov_y``)."""
+    import json
+
+    path = Path(path)
+    if not path.exists():
+        raise SceneError(f"{path}: camera file not found")
+    try:
+        if path.suffix.lower() == ".json":
+            d = json.loads(path.read_text())
+        else:
+            with open(path, "rb") as fh:
+                d = tomllib.load(fh)
+    except (json.JSONDecodeError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise SceneError(f"{path}: not valid {'JSON' if path.suffix.lower() == '.json' else 'TOML'}: {exc}") from exc
+    except OSError as exc:
+        raise SceneError(f"{path}: cannot read: {exc}") from exc
+    if not isinstance(d, dict):
+        raise SceneError(f"{path}: must hold a table of camera fields, got {type(d).__name__}")
+    v = _V(str(path))
+    return _camera(v, d.get("camera", d) if isinstance(d.get("camera"), dict) else d, "camera")
+
 
 
 def load_scene(path: str | Path) -> tuple[Scene, RenderOptions]:

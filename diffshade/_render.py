@@ -167,8 +167,11 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=No
     color = fog_and_clamp(color, scene, opts, frags.w, P)
     if not layered:
         out = [jnp.where(valid[0], color[c][0], scene.background[c]) for c in range(3)]
-        return jnp.stack(out, axis=-1)
-    return composite(color, scene, opts, valid, front, pmat, P, n_px, kay, pix_mid)
+        img = jnp.stack(out, axis=-1)
+    else:
+        img = composite(color, scene, opts, valid, front, pmat, P, n_px, kay, pix_mid)
+    # the camera's gain (exposure and white balance) on everything it sees, background included
+    return img * cam.gain().astype(img.dtype)
 
 
 def render(scene: Scene, opts: RenderOptions = RenderOptions(), ids: Int[Array, "K H W"] | None = None,

@@ -18,11 +18,7 @@ from jaxtyping import Array, Float
 from ._camera import Camera
 from ._mesh import Mesh
 from ._util import as_float_array
-
-
-def _rgb(x):
-    x = as_float_array(x)
-    return jnp.broadcast_to(x, (3,)) if jnp.ndim(x) == 0 else x
+from ._util import rgb_array as _rgb
 
 
 def _rows(n: int):

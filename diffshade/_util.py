@@ -20,6 +20,12 @@ def as_float_array(x):
     return x
 
 
+def rgb_array(x):
+    """Converter for an RGB field: a float array of shape (3,) (one number is grey)."""
+    x = as_float_array(x)
+    return jnp.broadcast_to(x, (3,)) if jnp.ndim(x) == 0 else x
+
+
 def safe_normalize(v, axis=-1, fallback=None):
     """``v / |v|``; returns ``fallback`` (default zeros) for zero-length vectors, with finite gradients."""
     sq = jnp.sum(v * v, axis=axis, keepdims=True)

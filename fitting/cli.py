@@ -305,6 +305,13 @@ def cmd_fit(args) -> int:
     if view_paths and len(view_paths) != len(args.targets):
         raise InputError(f"{len(args.targets)} target(s) but {len(view_paths)} --views scene file(s); give one per target")
     views = [ds.load_scene(v)[0] for v in view_paths] if view_paths else [scene] * len(args.targets)
+    camera_paths = [Path(c) for c in args.cameras] if args.cameras else []
+    if camera_paths:
+        import equinox as eqx
+
+        if len(camera_paths) != len(args.targets):
+            raise InputError(f"{len(args.targets)} target(s) but {len(camera_paths)} --cameras file(s); give one per target")
+        views = [eqx.tree_at(lambda s: s.camera, v, ds.load_camera(c)) for v, c in zip(views, camera_paths)]
     target_paths = [Path(t) for t in args.targets]
     loaded = [load_target(t, v.camera.resolution, with_quantum=True, encoding=args.encoding, with_encoding=True,
                           decoded=False, with_alpha=True) for t, v in zip(target_paths, views)]
@@ -341,16 +348,31 @@ def cmd_fit(args) -> int:
             if a is not None:
                 print(f"{t}: its alpha channel is the mask ({int((a > 0).sum())} of {a.size} pixels weighted)")
 
+    # a calibrated camera's lens distortion: the target (and its mask) resampled to the ideal
+    # pinhole camera the renderer draws; clipped codes stay clipped; pixels the photograph does
+    # not reach get no weight
+    for k, v in enumerate(views):
+        dist = np.asarray(getattr(v.camera, "distortion", np.zeros(1)), np.float64)
+        if not dist.any():
+            continue
+        Kmat = np.asarray(v.camera.intrinsics(), np.float64)
+        targets[k], valid = ds.undistort(targets[k], Kmat, dist, saturation=1.0 if sats == {1.0} else None)
+        m = np.ones(v.camera.resolution) if masks is None or masks[k] is None else ds.undistort(masks[k], Kmat, dist)[0]
+        masks = masks if masks is not None else [np.ones(w.camera.resolution) for w in views]
+        masks[k] = m * valid
+        print(f"{target_paths[k]}: undistorted (k1..: {np.round(dist, 5).tolist()}); "
+              f"{int((~valid).sum())} pixel(s) outside the photograph left out")
+
     out_dir = Path(args.output_dir)
     outputs = [out_dir / n for n in FIT_OUTPUTS]
-    inputs = {p.resolve() for p in [scene_path, *view_paths, *target_paths, *mask_paths]}
+    inputs = {p.resolve() for p in [scene_path, *view_paths, *camera_paths, *target_paths, *mask_paths]}
     for o in outputs:
         if o.resolve() in inputs:
             raise InputError(f"{o}: is one of the inputs; choose another --output-dir (inputs are never overwritten)")
         if o.exists() and not args.overwrite:
             raise InputError(f"{o}: exists; pass --overwrite to replace it or choose another --output-dir")
 
-    pset = ParamSet(args.free, scene, args.shared or ())  # name errors before any compile
+    pset = ParamSet(args.free, scene, args.shared or (), n_views=len(targets))  # name errors before any compile
     print(f"fitting {', '.join(args.free)} to {len(targets)} image(s) of {views[0].camera.width}x"
           f"{views[0].camera.height} with {args.solver}" + (" (clipped pixels censored)" if saturation else ""))
     if args.margin < 0:
@@ -377,13 +399,14 @@ def cmd_fit(args) -> int:
     fitted_scene = pset.apply(scene, theta)
     render = jax.jit(ds.render, static_argnames="opts")
     rows = []
-    for v, t, (enc, _) in zip(views, targets, encodings):
+    for k, (v, t, (enc, _)) in enumerate(zip(views, targets, encodings)):
         t = np.asarray(_color.decode(t, enc), np.float64)
-        img = np.asarray(render(pset.apply(v, theta), opts), np.float64)
+        img = np.asarray(render(pset.apply(v, theta, k), opts), np.float64)
         rows.append(np.concatenate([t, img, np.clip(0.5 + 10.0 * (img - t), 0, 1)], axis=1))
     import json
 
     meta = {"scene": str(scene_path), "targets": [str(t) for t in target_paths], "views": [str(v) for v in view_paths],
+            "cameras": [str(c) for c in camera_paths],
             "encodings": [{"encoding": e, "from": why} for e, why in encodings],
             "free": args.free, "shared": args.shared or [], "solver": args.solver, "censored_at": saturation,
             "options": {k: getattr(opts, k) for k in opts.__dataclass_fields__}}
@@ -435,9 +458,12 @@ def main(argv=None) -> int:
     p.add_argument("scene", help="scene file (.toml); its values are the starting point")
     p.add_argument("targets", nargs="+", help="target image(s), one per view, each the camera's size")
     p.add_argument("-p", "--free", nargs="+", required=True, metavar="NAME",
-                   help="free parameters, e.g. material.diffuse material.shininess point[0].a1 fog.density")
+                   help="free parameters, e.g. material.diffuse material.shininess point[0].a1 fog.density; view[i].NAME is view i's own (view[*].NAME: every view but the reference view 0), e.g. view[*].camera.exposure")
     p.add_argument("--shared", nargs="+", metavar="NAME", help="RGB parameters fitted as one value for all channels")
     p.add_argument("--views", nargs="+", metavar="SCENE", help="one scene file per target (other cameras/lights)")
+    p.add_argument("--cameras", nargs="+", metavar="FILE",
+                   help="one camera file per target (JSON or TOML: an OpenCV calibration K, R or rvec, t or tvec, "
+                   "distortion, width, height; replaces the view's camera; a distorted target is undistorted)")
     p.add_argument("--mask", nargs="+", metavar="IMAGE",
                    help="one weight image per target (0 = ignore); default: an RGBA target's alpha channel")
     p.add_argument("--margin", type=int, default=0, metavar="PX",

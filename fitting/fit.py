@@ -39,7 +39,8 @@ def _subset(vd: ViewData, count: int) -> ViewData:
     step = max(1, n // count)
     take = lambda a, ax: jax.lax.slice_in_dim(a, 0, n, step, axis=ax)  # noqa: E731
     return ViewData(scene=vd.scene, ids=take(vd.ids, 2), px=take(vd.px, 1), py=take(vd.py, 1),
-                    target=take(vd.target, 0), weight=take(vd.weight, 0), hi=take(vd.hi, 0), lo=take(vd.lo, 0))
+                    target=take(vd.target, 0), weight=take(vd.weight, 0), hi=take(vd.hi, 0), lo=take(vd.lo, 0),
+                    index=vd.index)
 
 
 def fit(
@@ -70,8 +71,10 @@ def fit(
     """Fit the ``free`` parameters of ``scene`` to ``targets``.
 
     ``targets``: one image or a list, one per view; ``views``: the scenes of the views (same
-    structure; they differ in camera, lights, ...), default ``scene`` for every target. The free
-    parameters are shared by all views. ``masks``: optional per-view ``[H, W]`` weights.
+    structure; they differ in camera, lights, ...), default ``scene`` for every target. A free
+    parameter is shared by all views unless its name starts with ``view[i].`` (view ``i``'s own,
+    e.g. an exposure; ``view[*].`` frees it for every view but the reference view 0: see
+    :mod:`fitting.params`). ``masks``: optional per-view ``[H, W]`` weights.
 
     The scene's values are the start of the nonlinear parameters (one of the ``starts`` ranked
     by the global search); the linear ones need none. ``restarts``: how many further starts are
@@ -101,7 +104,7 @@ def fit(
     prob = Problem.build(scene, opts, as_list(targets), free, views=views, masks=masks, shared=shared,
                          saturation=saturation, quantum=quantum, encoding=encoding, margin=margin)
     pset, dtype = prob.pset, prob.dtype
-    theta0 = pset.theta_of(scene)
+    theta0 = pset.theta_of(scene, views)
     pset.check(theta0)
     tol = 1e-6 if dtype == jnp.float32 else 1e-10
     rtol = tol if rtol is None else rtol

@@ -20,8 +20,16 @@ one), ``ambient``, ``a0``/``a1``/``a2`` (attenuation), ``position``
 (not directional), ``cutoff``,
 ``exponent``, ``edge`` (spot), ``width``, ``height`` (area: with the colour, a gauge for a distant
 receiver, which sees only the power); ``multi_lobe[i].<position|a0|a1|a2>`` (shared by the lobes) and
-``multi_lobe[i].lobe[j].<color|ambient|cutoff|exponent|edge>``; ``fog.<field>`` (color, start, end, density). RGB fields are per channel
-unless listed as shared (one value for the three channels).
+``multi_lobe[i].lobe[j].<color|ambient|cutoff|exponent|edge>``; ``fog.<field>`` (color, start, end, density);
+``camera.exposure`` (one gain), ``camera.white_balance`` (RGB gains) and, for an OpenCV camera,
+``camera.rvec``/``camera.tvec`` (its pose). RGB fields are per channel unless listed as shared
+(one value for the three channels).
+
+**Per view.** A name is shared by every view unless it starts with ``view[i].``: then it is view
+``i``'s alone (``view[2].camera.exposure``, ``view[1].point[0].position``), and its start value is
+read from that view's scene. ``view[*].<name>`` stands for every view but view 0, the reference
+whose gains stay 1: the gauge of exposure and white balance (docs/model.md §9), since
+``exposure · white_balance · k`` is all an image shows.
 """
 
 from __future__ import annotations
@@ -54,6 +62,8 @@ _SIZE = {"width": 0, "height": 1}  # an area light's size[i, k]
 _KINDS = ("directional", "point", "spot", "area", "multi_lobe")
 _LOBE = {"color", "ambient", "cutoff", "exponent", "edge"}
 _FOG = {"color": "unit", "start": "positive", "end": "positive", "density": "positive"}
+_CAMERA = {"exposure": "positive", "white_balance": "positive", "rvec": "real", "tvec": "real"}
+_VIEW_RE = re.compile(r"^view\[(\d+|\*)\]\.(.+)$")
 _LIGHT_RE = re.compile(r"^(directional|point|spot|area)\[(\d+)\]\.(\w+)$")
 _LOBE_RE = re.compile(r"^multi_lobe\[(\d+)\]\.lobe\[(\d+)\]\.(\w+)$")
 _MULTI_RE = re.compile(r"^multi_lobe\[(\d+)\]\.(\w+)$")
@@ -84,6 +94,7 @@ class Param:
     path: tuple  # ("material", "diffuse") / ("point", 0, "a1") / ("multi_lobe", 0, 1, "color") / ("fog", "density")
     size: int  # 3 for a per-channel RGB field, else 1
     domain: object  # "unit" | "positive" | "real" | (lo, hi)
+    view: int | None = None  # a per-view parameter: the view it belongs to
 
     def get(self, scene: ds.Scene):
         return self._leaf(scene)
@@ -106,7 +117,10 @@ class Param:
         x = jnp.asarray(self._node(scene))
         return x if self.size == 3 or x.ndim == 0 else jnp.mean(x)
 
-    def set(self, scene: ds.Scene, value) -> ds.Scene:
+    def set(self, scene: ds.Scene, value, view: int | None = None) -> ds.Scene:
+        """``scene`` with this parameter at ``value`` (unchanged if it is another view's)."""
+        if self.view is not None and view != self.view:
+            return scene
         p = self.path
         if p[0] in _KINDS and len(p) == 4:
             kind, i, j, field = p
@@ -181,8 +195,28 @@ class Param:
         return [f"{self.name}[{axes[c]}]" for c in range(3)] if self.size == 3 else [self.name]
 
 
-def parse(name: str, scene: ds.Scene, shared: bool = False) -> Param:
-    """The :class:`Param` called ``name`` in ``scene`` (raises :class:`ParamError`)."""
+def parse(name: str, scene: ds.Scene, shared: bool = False, n_views: int | None = None) -> Param:
+    """The :class:`Param` called ``name`` in ``scene`` (raises :class:`ParamError`); ``n_views``
+    (when known) bounds a ``view[i].`` prefix."""
+    m = _VIEW_RE.match(name)
+    if m:
+        if m.group(1) == "*":
+            raise ParamError(f"{name}: view[*] is expanded by the parameter set (it needs the number of views)")
+        i = int(m.group(1))
+        if n_views is not None and i >= n_views:
+            raise ParamError(f"unknown parameter {name!r}: the fit has {n_views} view(s)")
+        inner = parse(m.group(2), scene, shared)
+        return Param(name, inner.path, inner.size, inner.domain, i)
+    parts = name.split(".")
+    if parts[0] == "camera":
+        if len(parts) != 2 or parts[1] not in _CAMERA:
+            raise ParamError(f"unknown parameter {name!r}: a camera has {', '.join(_CAMERA)}")
+        if parts[1] in ("rvec", "tvec") and not isinstance(scene.camera, ds.OpenCVCamera):
+            raise ParamError(f"{name}: only an OpenCV camera (model = \"opencv\") has a pose vector")
+        rgb = parts[1] == "white_balance" and not shared
+        if parts[1] in ("rvec", "tvec") and shared:
+            raise ParamError(f"{name}: a pose vector has no shared form")
+        return Param(name, tuple(parts), 3 if rgb or parts[1] in ("rvec", "tvec") else 1, _CAMERA[parts[1]])
     m = _LOBE_RE.match(name)
     if m:
         i, j, field = int(m.group(1)), int(m.group(2)), m.group(3)
@@ -246,21 +280,40 @@ def parse(name: str, scene: ds.Scene, shared: bool = False) -> Param:
         f"unknown parameter {name!r}; known: material.<{'|'.join(_MATERIAL)}>, material[i].<...> (material id i), "
         "back_material.<...>, ambient_light, <directional|point|spot|area>[i].<color|specular|ambient|position|a0|a1|a2|cutoff|"
         "exponent|edge|width|height>, multi_lobe[i].<position|a0|a1|a2>, multi_lobe[i].lobe[j].<color|ambient|cutoff|exponent|edge>, "
-        "fog.<color|start|end|density>"
+        "fog.<color|start|end|density>, camera.<exposure|white_balance|rvec|tvec>, view[i].<any of these>"
     )
+
+
+def expand_views(names, n_views: int | None) -> list[str]:
+    """``view[*].<name>`` → ``view[1].<name>``, …, ``view[n-1].<name>`` (view 0 is the reference)."""
+    out = []
+    for n in names:
+        m = _VIEW_RE.match(n)
+        if m and m.group(1) == "*":
+            if n_views is None:
+                raise ParamError(f"{n}: view[*] needs the number of views")
+            if n_views < 2:
+                raise ParamError(f"{n}: view[*] means every view but the reference view 0, and the fit has one view")
+            out += [f"view[{i}].{m.group(2)}" for i in range(1, n_views)]
+        else:
+            out.append(n)
+    return out
 
 
 class ParamSet:
     """An ordered set of free parameters and the flat vectors ``θ`` (natural) and ``u`` (solver)."""
 
-    def __init__(self, names, scene: ds.Scene, shared=()):
-        shared = set(shared)
+    def __init__(self, names, scene: ds.Scene, shared=(), n_views: int | None = None):
+        names, shared = expand_views(names, n_views), set(expand_views(shared, n_views))
         unknown_shared = shared - set(names)
         if unknown_shared:
             raise ParamError(f"shared parameters {sorted(unknown_shared)} are not among the free parameters")
         if len(set(names)) != len(names):
             raise ParamError("a parameter is listed twice")
-        self.params = [parse(n, scene, n in shared) for n in names]
+        self.params = [parse(n, scene, n in shared, n_views) for n in names]
+        for p in self.params:
+            if p.view is not None and p.name.split(".", 1)[1] in names:
+                raise ParamError(f"{p.name}: {p.name.split('.', 1)[1]} is free for every view already")
         self.sizes = [p.size for p in self.params]
         self.offsets = np.cumsum([0] + self.sizes)
 
@@ -268,15 +321,23 @@ class ParamSet:
     def labels(self) -> list[str]:
         return [lab for p in self.params for lab in p.labels()]
 
-    def theta_of(self, scene):
-        return jnp.concatenate([jnp.atleast_1d(p.get(scene)) for p in self.params])
+    @property
+    def names(self) -> list[str]:
+        return [p.name for p in self.params]
+
+    def theta_of(self, scene, views=None):
+        """The parameters' values in ``scene`` (a per-view one's in ``views[i]`` when given)."""
+        get = lambda p: p.get(scene if p.view is None or views is None else views[p.view])  # noqa: E731
+        return jnp.concatenate([jnp.atleast_1d(get(p)) for p in self.params])
 
     def split(self, vec):
         return [vec[a:b] if p.size == 3 else vec[a] for p, a, b in zip(self.params, self.offsets[:-1], self.offsets[1:])]
 
-    def apply(self, scene, theta):
+    def apply(self, scene, theta, view: int | None = None):
+        """``scene`` with the parameters at ``theta``; ``view``: which view ``scene`` is (its
+        own per-view parameters are set, other views' left alone)."""
         for p, v in zip(self.params, self.split(theta)):
-            scene = p.set(scene, v)
+            scene = p.set(scene, v, view)
         return scene
 
     def theta_from_u(self, u):

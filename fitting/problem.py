@@ -61,6 +61,7 @@ class ViewData(eqx.Module):
     weight: jax.Array  # [N, 3] √mask × the encoding's per-channel weight (0 in padding)
     hi: jax.Array  # [N, 3] bool: censored from above (target at saturation)
     lo: jax.Array  # [N, 3] bool: censored from below (target at 0 of an integer image)
+    index: int = eqx.field(static=True, default=0)  # which view (its own per-view parameters apply)
 
 
 @dataclass
@@ -106,7 +107,7 @@ class Problem:
         if len(masks) != len(targets):
             raise FitError(f"{len(targets)} targets but {len(masks)} masks")
         dtype = scene.mesh.vertices.dtype
-        pset = ParamSet(list(free), scene, shared)
+        pset = ParamSet(list(free), scene, shared, n_views=len(targets))
         lower = (saturation is not None) if lower_censor is None else lower_censor
         vis = jax.jit(ds.scene_visibility, static_argnums=1)
         data, books, full = [], [], []
@@ -160,8 +161,9 @@ class Problem:
                 scene=v, ids=jnp.asarray(kids),
                 px=jnp.asarray(padn(xs[c_idx], 0.0)[None], dtype), py=jnp.asarray(padn(ys[r_idx], 0.0)[None], dtype),
                 target=jnp.asarray(padn(flat(t), 0.0), dtype), weight=jnp.asarray(padn(flat(cw), 0.0), dtype),
-                hi=jnp.asarray(padn(flat(hi), False)), lo=jnp.asarray(padn(flat(lo), False))))
-            bg = np.broadcast_to(np.asarray(v.background, np.float64), t.shape)
+                hi=jnp.asarray(padn(flat(hi), False)), lo=jnp.asarray(padn(flat(lo), False)), index=k))
+            # what the model shows where no surface is (the camera's gain at its start values)
+            bg = np.broadcast_to(np.asarray(v.background, np.float64) * np.asarray(v.camera.gain(), np.float64), t.shape)
             d = bg - t
             d = np.where(hi, np.minimum(d, 0), np.where(lo, np.maximum(d, 0), d)) * cw
             unc = ~covered
@@ -172,7 +174,7 @@ class Problem:
     # -- evaluation ----------------------------------------------------------------------------
     def image(self, vd: ViewData, theta):
         """The model at a view's compacted pixels, ``[N, 3]``."""
-        img = ds.render(self.pset.apply(vd.scene, theta), self.opts, ids=vd.ids, pixels=(vd.px, vd.py))
+        img = ds.render(self.pset.apply(vd.scene, theta, vd.index), self.opts, ids=vd.ids, pixels=(vd.px, vd.py))
         return img[0]
 
     def residual(self, theta, data):
@@ -216,7 +218,8 @@ class Problem:
             n = vd.target.shape[0]
             m = np.asarray(img_flat[off * 3:(off + n) * 3], np.float64).reshape(n, 3)[:len(b.rows)]
             off += n
-            img = np.broadcast_to(np.asarray(vd.scene.background, np.float64), (b.shape[0] * b.shape[1], 3)).copy()
+            bg = np.asarray(vd.scene.background, np.float64) * np.asarray(vd.scene.camera.gain(), np.float64)
+            img = np.broadcast_to(bg, (b.shape[0] * b.shape[1], 3)).copy()
             img[b.rows] = m
             out.append(img.reshape(*b.shape, 3))
         return out

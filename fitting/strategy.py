@@ -47,6 +47,16 @@ _LINEAR_MATERIAL = {"emission", "ambient", "diffuse", "specular", "transmission"
 _PRODUCT = {"color": {"diffuse", "specular", "transmission"}, "ambient": {"ambient"}, "specular": {"specular"}}
 
 
+def _is_linear_candidate(p) -> bool:
+    """A parameter the image is linear in when it is the only one of its product free."""
+    kind, field = p.path[0], p.path[-1]
+    if kind in ("material", "materials", "back_material"):
+        return field in _LINEAR_MATERIAL
+    if kind in ("directional", "point", "spot", "area", "multi_lobe"):
+        return field in _PRODUCT
+    return p.path in (("ambient_light",), ("fog", "color"))
+
+
 def split_linear(pset, opts, scene=None) -> tuple[list[int], dict[str, str]]:
     """Indices (into ``pset.params``) of the parameters the image is linear in, and for each other
     parameter why it is not (``scene`` tells which light kinds have separate specular colours)."""
@@ -72,6 +82,16 @@ def split_linear(pset, opts, scene=None) -> tuple[list[int], dict[str, str]]:
             ok = "ambient" not in free_mat_fields
             if not ok:
                 why[p.name] = "multiplies a free material ambient"
+                continue
+        elif p.path in (("camera", "exposure"), ("camera", "white_balance")):
+            # the gain multiplies the whole image: linear unless another linear candidate (a k,
+            # a light colour, ...) or another gain of the same view is free
+            others = [q for j, q in enumerate(pset.params) if j != i and (_is_linear_candidate(q)
+                      or (q.path[0] == "camera" and q.path[1] in ("exposure", "white_balance")
+                          and (q.view is None or p.view is None or q.view == p.view)))]
+            ok = not others
+            if not ok:
+                why[p.name] = f"multiplies the image, and {others[0].name} is free"
                 continue
         else:
             ok = p.path == ("fog", "color")
