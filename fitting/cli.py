@@ -361,7 +361,9 @@ def cmd_fit(args) -> int:
         masks = masks if masks is not None else [np.ones(w.camera.resolution) for w in views]
         masks[k] = m * valid
         print(f"{target_paths[k]}: undistorted (k1..: {np.round(dist, 5).tolist()}); "
-              f"{int((~valid).sum())} pixel(s) outside the photograph left out")
+              f"{int((~valid).sum())} pixel(s) outside the photograph left out"
+              + ("" if args.noise else "; resampling averages neighbouring pixels' noise, so the estimate "
+                 "from the residual is low: pass --noise SIGMA if the camera's is known"))
 
     out_dir = Path(args.output_dir)
     outputs = [out_dir / n for n in FIT_OUTPUTS]
