@@ -21,6 +21,9 @@ one), ``ambient``, ``a0``/``a1``/``a2`` (attenuation), ``position``
 ``exponent``, ``edge`` (spot), ``width``, ``height`` (area: with the colour, a gauge for a distant
 receiver, which sees only the power); ``multi_lobe[i].<position|a0|a1|a2>`` (shared by the lobes) and
 ``multi_lobe[i].lobe[j].<color|ambient|cutoff|exponent|edge>``; ``fog.<field>`` (color, start, end, density);
+``directional[i].direction`` and ``spot[i].axis``: two angles in degrees, the tilt from the
+start direction about two axes normal to it (a chart of the sphere centred on the start: no pole
+where a light points straight down; the fitted direction is ``direction_of(tilt, frame)``);
 ``camera.exposure`` (one gain), ``camera.white_balance`` (RGB gains) and, for an OpenCV camera,
 ``camera.rvec``/``camera.tvec`` (its pose). RGB fields are per channel unless listed as shared
 (one value for the three channels).
@@ -34,6 +37,7 @@ whose gains stay 1: the gauge of exposure and white balance (docs/model.md §9),
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from dataclasses import dataclass
 
@@ -95,8 +99,11 @@ class Param:
     size: int  # 3 for a per-channel RGB field, else 1
     domain: object  # "unit" | "positive" | "real" | (lo, hi)
     view: int | None = None  # a per-view parameter: the view it belongs to
+    frame: tuple | None = None  # a direction's chart: the start direction d0 and two axes e1, e2 normal to it
 
     def get(self, scene: ds.Scene):
+        if self.frame is not None:
+            return tilt_of(self._node(scene), self.frame)
         return self._leaf(scene)
 
     def _node(self, scene):
@@ -121,6 +128,8 @@ class Param:
         """``scene`` with this parameter at ``value`` (unchanged if it is another view's)."""
         if self.view is not None and view != self.view:
             return scene
+        if self.frame is not None:
+            value = direction_of(value, self.frame)
         p = self.path
         if p[0] in _KINDS and len(p) == 4:
             kind, i, j, field = p
@@ -191,6 +200,8 @@ class Param:
             raise ParamError(f"{self.name}: {what} {np.round(v, 6).tolist()} is outside its domain {_domain_str(self.domain)}")
 
     def labels(self) -> list[str]:
+        if self.frame is not None:
+            return [f"{self.name}[tilt_u]", f"{self.name}[tilt_v]"]
         axes = "xyz" if self.domain == "real" else "rgb"
         return [f"{self.name}[{axes[c]}]" for c in range(3)] if self.size == 3 else [self.name]
 
@@ -205,8 +216,7 @@ def parse(name: str, scene: ds.Scene, shared: bool = False, n_views: int | None 
         i = int(m.group(1))
         if n_views is not None and i >= n_views:
             raise ParamError(f"unknown parameter {name!r}: the fit has {n_views} view(s)")
-        inner = parse(m.group(2), scene, shared)
-        return Param(name, inner.path, inner.size, inner.domain, i)
+        return dataclasses.replace(parse(m.group(2), scene, shared), name=name, view=i)
     parts = name.split(".")
     if parts[0] == "camera":
         if len(parts) != 2 or parts[1] not in _CAMERA:
@@ -242,9 +252,11 @@ def parse(name: str, scene: ds.Scene, shared: bool = False, n_views: int | None 
     if m:
         kind, i, field = m.group(1), int(m.group(2)), m.group(3)
         count = getattr(scene, kind).count
-        if (field not in _LIGHT or (kind != "spot" and field in ("cutoff", "exponent", "edge"))
-                or (kind == "directional" and (field[0] == "a" and field != "ambient" or field == "position"))
-                or (kind != "area" and field in _SIZE)):
+        direction = (kind, field) in (("directional", "direction"), ("spot", "axis"))
+        if not direction and (field not in _LIGHT or (kind != "spot" and field in ("cutoff", "exponent", "edge"))
+                              or (kind == "directional" and (field[0] == "a" and field != "ambient"
+                                                             or field == "position"))
+                              or (kind != "area" and field in _SIZE)):
             raise ParamError(f"unknown parameter {name!r}: a {kind} light has no field {field!r}")
         if i >= count:
             raise ParamError(f"unknown parameter {name!r}: the scene has {count} {kind} light(s)")
@@ -252,8 +264,11 @@ def parse(name: str, scene: ds.Scene, shared: bool = False, n_views: int | None 
             raise ParamError(f"{name}: the scene's {kind} lights have no separate specular colour (their colour sets "
                              "both); give one with `specular = [r, g, b]` in the scene file")
         size = 3 if (field in _RGB and not shared) or field == "position" else 1
-        if field == "position" and shared:
-            raise ParamError(f"{name}: a position has no shared form (x, y, z are separate)")
+        if field in ("position", "direction", "axis") and shared:
+            raise ParamError(f"{name}: a {field} has no shared form")
+        if direction:
+            d0 = np.asarray(getattr(getattr(scene, kind), field)[i], np.float64)
+            return Param(name, (kind, i, field), 2, "real", frame=direction_frame(d0))
         return Param(name, (kind, i, field), size, _LIGHT[field])
     m = _MATERIAL_RE.match(name)
     if m:
@@ -279,9 +294,52 @@ def parse(name: str, scene: ds.Scene, shared: bool = False, n_views: int | None 
     raise ParamError(
         f"unknown parameter {name!r}; known: material.<{'|'.join(_MATERIAL)}>, material[i].<...> (material id i), "
         "back_material.<...>, ambient_light, <directional|point|spot|area>[i].<color|specular|ambient|position|a0|a1|a2|cutoff|"
-        "exponent|edge|width|height>, multi_lobe[i].<position|a0|a1|a2>, multi_lobe[i].lobe[j].<color|ambient|cutoff|exponent|edge>, "
+        "exponent|edge|width|height>, directional[i].direction, spot[i].axis, multi_lobe[i].<position|a0|a1|a2>, multi_lobe[i].lobe[j].<color|ambient|cutoff|exponent|edge>, "
         "fog.<color|start|end|density>, camera.<exposure|white_balance|rvec|tvec>, view[i].<any of these>"
     )
+
+
+def direction_frame(d0) -> tuple:
+    """``(d0, e1, e2)``: the unit start direction and two unit axes normal to it (host tuples)."""
+    d0 = np.asarray(d0, np.float64)
+    n = np.linalg.norm(d0)
+    if not np.isfinite(n) or n == 0:
+        raise ParamError(f"a direction to fit must be a non-zero vector, got {d0.tolist()}")
+    d0 = d0 / n
+    helper = np.eye(3)[np.argmin(np.abs(d0))]  # the world axis least aligned with d0
+    e1 = np.cross(d0, helper)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(d0, e1)
+    return tuple(tuple(float(c) for c in v) for v in (d0, e1, e2))
+
+
+def direction_of(tilt, frame):
+    r"""The unit direction tilted from the start ``d0`` by ``tilt = (a, b)`` degrees about the chart's
+    axes (the exponential map of the sphere at ``d0``): with :math:`w = a e_1 + b e_2` in radians
+    and :math:`\varphi = |w|`, :math:`d = \cos\varphi\, d_0 + \frac{\sin\varphi}{\varphi} w`
+    (double ``where``: smooth through 0). Singular only 180° from ``d0``."""
+    d0, e1, e2 = (jnp.asarray(v) for v in frame)
+    t = jnp.deg2rad(jnp.asarray(tilt))
+    w = t[0] * e1.astype(t.dtype) + t[1] * e2.astype(t.dtype)
+    p2 = t[0] * t[0] + t[1] * t[1]
+    small = p2 < 1e-8
+    phi = jnp.sqrt(jnp.where(small, 1.0, p2))
+    sinc = jnp.where(small, 1.0 - p2 / 6.0, jnp.sin(phi) / phi)
+    cos = jnp.where(small, 1.0 - p2 / 2.0 + p2 * p2 / 24.0, jnp.cos(phi))
+    return cos * d0.astype(t.dtype) + sinc * w
+
+
+def tilt_of(direction, frame):
+    """The inverse of :func:`direction_of`: the tilt (degrees) of ``direction`` in the chart."""
+    d0, e1, e2 = (jnp.asarray(v) for v in frame)
+    d = jnp.asarray(direction)
+    d = d / jnp.linalg.norm(d)
+    s = jnp.stack([d @ e1.astype(d.dtype), d @ e2.astype(d.dtype)])
+    sn2 = s @ s
+    ok = sn2 > 0
+    sn = jnp.sqrt(jnp.where(ok, sn2, 1.0))
+    phi = jnp.arctan2(sn, d @ d0.astype(d.dtype))
+    return jnp.rad2deg(jnp.where(ok, phi / sn, 1.0) * s)
 
 
 def expand_views(names, n_views: int | None) -> list[str]:
@@ -331,7 +389,7 @@ class ParamSet:
         return jnp.concatenate([jnp.atleast_1d(get(p)) for p in self.params])
 
     def split(self, vec):
-        return [vec[a:b] if p.size == 3 else vec[a] for p, a, b in zip(self.params, self.offsets[:-1], self.offsets[1:])]
+        return [vec[a:b] if p.size > 1 else vec[a] for p, a, b in zip(self.params, self.offsets[:-1], self.offsets[1:])]
 
     def apply(self, scene, theta, view: int | None = None):
         """``scene`` with the parameters at ``theta``; ``view``: which view ``scene`` is (its

@@ -343,7 +343,9 @@ def search_ranges(red: Reduced, theta0) -> list[tuple[str, float, float]]:
         k = red.param_of[j]
         p: Param = pset.params[k]
         field, x0 = p.path[-1], float(theta0[j])
-        if p.domain == "real":
+        if p.frame is not None:  # a direction's tilt, degrees
+            out.append(("lin", x0 - 30.0, x0 + 30.0))
+        elif p.domain == "real":
             r = max(0.5, 0.5 * float(np.linalg.norm(np.asarray(theta0)[pset.offsets[k]:pset.offsets[k + 1]])))
             out.append(("lin", x0 - r, x0 + r))
         elif p.bounds is None:
