@@ -69,7 +69,7 @@ from typing import Any
 import numpy as np
 
 from ._camera import Camera, OpenCVCamera
-from ._mesh import VERTEX_MODES, Mesh, MeshError, box, combine, icosphere, load_mesh, quad
+from ._mesh import COLOR_MODES, VERTEX_MODES, Mesh, MeshError, box, combine, icosphere, load_mesh, quad
 from ._scene import (
     AreaLights,
     DirectionalLights,
@@ -327,7 +327,7 @@ def _spot_lobe(v: "_V", b: dict, w: str, lobe: bool = False):
     return color, amb, axis, cutoff, exponent, edge
 
 
-_MESH_KEYS = ("path", "vertices", "icosphere", "radius", "box", "quad", "normal", "divisions")
+_MESH_KEYS = ("path", "vertices", "colors", "icosphere", "radius", "box", "quad", "normal", "divisions")
 
 
 def _mesh(v: _V, m: dict, where: str, base: Path | None) -> Mesh:
@@ -339,7 +339,8 @@ def _mesh(v: _V, m: dict, where: str, base: Path | None) -> Mesh:
         v.fail(where, "give exactly one of 'path' (a mesh file), 'icosphere' (subdivisions), 'box' (extents) or "
                       "'quad' (size)")
     kind = kinds[0]
-    for k, owner in (("radius", "icosphere"), ("normal", "quad"), ("divisions", "quad"), ("vertices", "path")):
+    for k, owner in (("radius", "icosphere"), ("normal", "quad"), ("divisions", "quad"), ("vertices", "path"),
+                     ("colors", "path")):
         if k in m and kind != owner:
             v.fail(f"{where}.{k}", f"only applies to '{owner}'")
     if kind == "path":
@@ -352,8 +353,11 @@ def _mesh(v: _V, m: dict, where: str, base: Path | None) -> Mesh:
         if mode not in VERTEX_MODES:
             v.fail(f"{where}.vertices", f"must be 'authored' (the file's vertices and normals, the default) or 'merged' "
                                         f"(vertices merged by position, smooth normals computed), got {mode!r}")
+        cmode = m.get("colors", "srgb")
+        if cmode not in COLOR_MODES:
+            v.fail(f"{where}.colors", f"how the file's vertex colours are encoded: one of {COLOR_MODES}, got {cmode!r}")
         try:
-            return load_mesh(p, mode)
+            return load_mesh(p, mode, cmode)
         except MeshError as exc:
             v.fail(f"{where}.path", str(exc))
     if kind == "icosphere":
@@ -404,9 +408,15 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
         if not isinstance(mo, dict):
             v.fail(f"{w}.material", "must be a table")
         nrm = None if m.normals is None else np.asarray(m.normals) / scale  # normals transform by the inverse
-        parts.append((Mesh(vertices=np.asarray(m.vertices) * scale + shift, faces=m.faces, normals=nrm),
+        parts.append((Mesh(vertices=np.asarray(m.vertices) * scale + shift, faces=m.faces, normals=nrm, colors=m.colors),
                       _material(v, mo, f"{w}.material")))
-    mesh = parts[0][0] if len(parts) == 1 else combine(*(p[0] for p in parts))
+    try:
+        mesh = parts[0][0] if len(parts) == 1 else combine(*(p[0] for p in parts))
+    except ValueError as exc:
+        v.fail("object", str(exc))
+    if opts.vertex_color != "none" and mesh.colors is None:
+        v.fail("render.vertex_color", f"is {opts.vertex_color!r} but the mesh has no vertex colours (a PLY with red "
+                                      "green blue, an OBJ with v x y z r g b)")
     material, extra = parts[0][1], tuple(p[1] for p in parts[1:])
 
     camera = _camera(v, v.table(d, "camera", required=True), "camera")

@@ -30,13 +30,22 @@ class Mesh(eqx.Module):
     :meth:`diffshade.Scene.all_materials`; without it every face uses material 0. ``normals``
     (optional, one per vertex) are the normals a mesh file gives (OBJ ``vn``, PLY ``nx ny nz``):
     :meth:`vertex_normals` returns them, normalised, instead of computing them; they are data
-    (they do not follow the vertices in a fit that moves them).
+    (they do not follow the vertices in a fit that moves them). ``colors`` (optional, one linear
+    RGB per vertex) are per-vertex reflectances, used where ``RenderOptions.vertex_color`` asks.
     """
 
     vertices: Float[Array, "V 3"] = eqx.field(converter=as_float_array)
     faces: Int[Array, "F 3"] = eqx.field(converter=lambda f: jnp.asarray(f, dtype=jnp.int32))
     material_ids: Int[Array, " F"] | None = eqx.field(converter=_ids, default=None)
     normals: Float[Array, "V 3"] | None = eqx.field(converter=lambda x: None if x is None else as_float_array(x), default=None)
+    colors: Float[Array, "V 3"] | None = eqx.field(converter=lambda x: None if x is None else as_float_array(x), default=None)
+
+    def __check_init__(self):
+        nv = self.vertices.shape[0]
+        for name in ("normals", "colors"):
+            x = getattr(self, name)
+            if x is not None and x.shape != (nv, 3):
+                raise ValueError(f"Mesh.{name} must be shaped ({nv}, 3), one per vertex, got {x.shape}")
 
     def face_normals(self, normalize: bool = True) -> Float[Array, "F 3"]:
         r"""Per-face normal :math:`(v_1 - v_0) \times (v_2 - v_0)` (unit length if ``normalize``).
@@ -102,7 +111,32 @@ def _check_obj_faces(path: Path) -> None:
 VERTEX_MODES = ("authored", "merged")
 
 
-def load_mesh(path: str | Path, vertices: str = "authored") -> Mesh:
+COLOR_MODES = ("srgb", "linear", "ignore")
+
+
+def _file_colors(parts, path, encoding: str):
+    """The file's per-vertex colours as linear RGB in [0, 1] (None if it has none)."""
+    if encoding == "ignore":
+        return None
+    cols = []
+    for g in parts:
+        vis = getattr(g, "visual", None)
+        if vis is None or getattr(vis, "kind", None) != "vertex":
+            return None
+        c = np.asarray(vis.vertex_colors)
+        if c.shape[0] != len(g.vertices):
+            return None
+        cols.append(c[:, :3])
+    c = np.concatenate(cols).astype(np.float64)
+    c = c / 255.0 if np.issubdtype(cols[0].dtype, np.integer) else c
+    if not np.isfinite(c).all() or (c < 0).any() or (c > 1).any():
+        raise MeshError(f"{path}: vertex colours must be finite and in [0, 1]")
+    from ._color import decode
+
+    return np.asarray(decode(c, encoding), np.float64)
+
+
+def load_mesh(path: str | Path, vertices: str = "authored", colors: str = "srgb") -> Mesh:
     """Load a triangle mesh (OBJ, PLY, STL, GLB, OFF, ... through trimesh).
 
     ``vertices = "authored"`` (the default) keeps the file's vertices as written, and its vertex
@@ -113,12 +147,16 @@ def load_mesh(path: str | Path, vertices: str = "authored") -> Mesh:
     ``vertices = "merged"`` merges vertices that coincide in position (ignoring normal, texture and
     colour splits) and computes smooth normals: what a file of triangle soup needs to look smooth.
 
-    Scenes are merged into one mesh. Vertex colours, texture coordinates and materials in the file
-    are not used. Raises :class:`MeshError` with the file name for a missing or unreadable file, a
+    Scenes are merged into one mesh. Per-vertex colours (PLY ``red green blue``, OBJ ``v x y z r g
+    b``) become ``Mesh.colors``, decoded as ``colors`` says: ``"srgb"`` (the default: 8-bit colours
+    in files are display values), ``"linear"``, or ``"ignore"``; merged vertices average theirs.
+    Texture coordinates and materials in the file are not used. Raises :class:`MeshError` with the file name for a missing or unreadable file, a
     mesh with no triangles, malformed faces, non-finite vertex positions or normals.
     """
     if vertices not in VERTEX_MODES:
         raise MeshError(f"{path}: vertices must be one of {VERTEX_MODES}, got {vertices!r}")
+    if colors not in COLOR_MODES:
+        raise MeshError(f"{path}: colors must be one of {COLOR_MODES}, got {colors!r}")
     import trimesh
 
     path = Path(path)
@@ -148,12 +186,22 @@ def load_mesh(path: str | Path, vertices: str = "authored") -> Mesh:
         raise MeshError(
             f"{path}: {int(bad.sum())} vertex position(s) are NaN or infinite (first: vertex {int(np.argmax(bad))})"
         )
+    col = _file_colors(parts, path, colors)
     if vertices == "merged":
         # Merge vertices that coincide (to trimesh's tolerance), ignoring UV/normal/colour splits.
         geom = trimesh.Trimesh(vertices=v, faces=f, process=False)
         geom.merge_vertices(merge_tex=True, merge_norm=True)
-        v, f = validate_arrays(geom.vertices, geom.faces, str(path))
-        return Mesh(vertices=v, faces=f)
+        v2, f2 = validate_arrays(geom.vertices, geom.faces, str(path))
+        merged = None
+        if col is not None:  # each merged vertex: the mean colour of the file's vertices it replaces
+            old_to_new = np.zeros(len(v), np.int64)
+            old_to_new[np.asarray(f).reshape(-1)] = np.asarray(f2).reshape(-1)
+            used = np.zeros(len(v), bool)
+            used[np.asarray(f).reshape(-1)] = True
+            merged = np.zeros((len(v2), 3))
+            np.add.at(merged, old_to_new[used], col[used])
+            merged /= np.maximum(np.bincount(old_to_new[used], minlength=len(v2)), 1)[:, None]
+        return Mesh(vertices=v2, faces=f2, colors=merged)
     v, f = validate_arrays(v, f, str(path))
     # trimesh keeps normals read from the file in its cache (and computes them only on request)
     file_normals = [g._cache.cache.get("vertex_normals") for g in parts]
@@ -166,7 +214,7 @@ def load_mesh(path: str | Path, vertices: str = "authored") -> Mesh:
         zero = np.linalg.norm(normals, axis=1) == 0
         if zero.any():  # a zero normal shades nothing: computed ones stand in for those
             normals[zero] = np.asarray(Mesh(vertices=v, faces=f).vertex_normals())[zero]
-    return Mesh(vertices=v, faces=f, normals=normals)
+    return Mesh(vertices=v, faces=f, normals=normals, colors=col)
 
 
 def icosphere(subdivisions: int = 3, radius: float = 1.0) -> Mesh:
@@ -200,8 +248,11 @@ def combine(*meshes: Mesh) -> Mesh:
         offset += m.vertices.shape[0]
     # file normals kept where a mesh has them (the others' are computed once, here)
     normals = None if all(m.normals is None for m in meshes) else jnp.concatenate([m.vertex_normals() for m in meshes])
+    if any(m.colors is not None for m in meshes) and not all(m.colors is not None for m in meshes):
+        raise ValueError("combine: some meshes have vertex colours and some do not; give every mesh colours or none")
+    colors = None if meshes[0].colors is None else jnp.concatenate([m.colors for m in meshes])
     return Mesh(vertices=jnp.concatenate(verts), faces=jnp.concatenate(faces), material_ids=jnp.concatenate(ids),
-                normals=normals)
+                normals=normals, colors=colors)
 
 
 def box(extents=(1.0, 1.0, 1.0), center=(0.0, 0.0, 0.0)) -> Mesh:

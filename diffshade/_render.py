@@ -10,6 +10,7 @@ module joins them for the rasterizer.
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
@@ -82,6 +83,21 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=No
     pmat = _material_at(mats, pix_mid, used if opts.shading == "phong" else used & _COMPOSITING_FIELDS) if multi else scene.material
     back_mat = pmat if multi else _back_material(scene, opts)
 
+    if opts.vertex_color != "none":
+        # glColorMaterial: the vertex colours take the place of k_d (and k_a), front and back
+        if mesh.colors is None:
+            raise ValueError(f"RenderOptions.vertex_color is {opts.vertex_color!r} but the mesh has no colours")
+        fields = ("diffuse",) if opts.vertex_color == "diffuse" else ("ambient", "diffuse")
+
+        def colored(mat, col):
+            return eqx.tree_at(lambda m: tuple(getattr(m, f) for f in fields), mat, (col,) * len(fields))
+
+        if opts.shading == "phong":  # interpolated to the pixel
+            pix_col = jnp.stack(lerp(tuple(mesh.colors[:, c] for c in range(3))), axis=-1)
+            pmat, back_mat = colored(pmat, pix_col), colored(back_mat, pix_col)
+    else:
+        colored = None
+
     Pv = S.vec(mesh.vertices)
     P = None
     if opts.shading == "phong" or opts.shadows or opts.absorption or (opts.fog != "none" and opts.fog_distance == "euclidean"):
@@ -121,9 +137,13 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=No
             pts, nrm, interp = S.vec(mesh.vertices[corners]), S.vec(vn[corners]), lerp_corners
             vmat = _material_at(mats, jnp.repeat(mesh.material_ids, 3), used)
             vback = vmat
+            if colored is not None:  # lit at the vertices with their own colours
+                vmat = vback = colored(vmat, mesh.colors[corners])
         else:
             pts, nrm, interp = Pv, S.vec(vn), lerp
             vmat, vback = scene.material, back_mat
+            if colored is not None:
+                vmat, vback = colored(vmat, mesh.colors), colored(vback, mesh.colors)
         nrm = _keep(*nrm)
 
         def side(normal, mat, back):
@@ -149,6 +169,10 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=No
             fn = S.vec(mesh.face_normals())
         fmat = _material_at(mats, mesh.material_ids, used) if multi else scene.material
         fback = fmat if multi else back_mat
+        if colored is not None:  # the face's colour: its provoking vertex's, or the mean of its three
+            fcol = (mesh.colors[mesh.faces[:, 2]] if opts.flat_source == "provoking"
+                    else jnp.mean(mesh.colors[mesh.faces], axis=1))
+            fmat, fback = colored(fmat, fcol), colored(fback, fcol)
 
         def side(normal, mat, back):
             if shadow is None:

@@ -233,6 +233,7 @@ ClampAt = Literal["pixel", "vertex"]
 FlatSource = Literal["centroid", "provoking"]
 Viewer = Literal["local", "infinite"]
 ColorSum = Literal["single", "separate"]
+VertexColor = Literal["none", "diffuse", "ambient_and_diffuse"]
 
 _CHOICES = {
     "shading": ("flat", "gouraud", "phong"),
@@ -247,6 +248,7 @@ _CHOICES = {
     "flat_source": ("centroid", "provoking"),
     "viewer": ("local", "infinite"),
     "color_sum": ("single", "separate"),
+    "vertex_color": ("none", "diffuse", "ambient_and_diffuse"),
     "ray_backend": ("auto", "embree", "jax"),
 }
 
@@ -295,6 +297,11 @@ class RenderOptions:
       clamps each vertex's lit colour before Gouraud interpolation, as OpenGL does
       (:math:`I_{px} = \sum_j b_j \operatorname{clamp}(I_j)` instead of
       :math:`\operatorname{clamp}(\sum_j b_j I_j)`); the same for Phong and flat shading.
+    - ``vertex_color``: the mesh's per-vertex colours (``Mesh.colors``, linear) take the place of
+      the material's :math:`k_d` (``"diffuse"``) or of :math:`k_a` and :math:`k_d`
+      (``"ambient_and_diffuse"``), as ``glColorMaterial`` with ``GL_COLOR_MATERIAL`` enabled;
+      ``"none"`` (the default) ignores them. Interpolated to the pixel under Phong shading, lit
+      at the vertices under Gouraud, averaged over the face (or the provoking vertex's) under flat.
     - ``flat_source``: flat shading lights the triangle's ``"centroid"`` with its face normal, or
       its ``"provoking"`` vertex (the last, OpenGL's default) with that vertex's normal.
     - ``viewer``: ``"local"`` (:math:`v` towards the eye from each point) or ``"infinite"``
@@ -338,6 +345,7 @@ class RenderOptions:
     flat_source: FlatSource = "centroid"
     viewer: Viewer = "local"
     color_sum: ColorSum = "single"
+    vertex_color: VertexColor = "none"
 
     @classmethod
     def opengl(cls, **overrides) -> "RenderOptions":
@@ -370,6 +378,10 @@ class RenderOptions:
                              "shading='phong' and no depth layers (transparency/absorption)")
         if (self.ray_depth or self.shadow_rays) and self.clamp and self.clamp_at == "vertex":
             raise ValueError("the ray-traced mode clamps per pixel (clamp_at='pixel'): OpenGL's per-vertex clamp has no rays")
+        if self.vertex_color != "none" and (self.ray_depth or self.shadow_rays or self.layered):
+            raise ValueError("vertex_color is supported by the rasterized, one-layer render (no ray tracing, "
+                             "transparency or absorption yet): a surface point's colour off the first layer is not "
+                             "interpolated there")
         if self.shadow_rays and self.shadows:
             raise ValueError("shadows (maps) and shadow_rays are two ways to the same shadows: choose one")
         g = self.area_grid

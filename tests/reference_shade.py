@@ -167,6 +167,17 @@ class Ref:
         sign = -1.0 if back else 1.0
         vertex_clamp = getattr(o, "clamp_at", "pixel") == "vertex"
 
+        vc = getattr(o, "vertex_color", "none")
+
+        def colored(m, col):
+            """glColorMaterial: the colour in place of k_d (and k_a)."""
+            if vc == "none":
+                return m
+            m = dict(m, diffuse=col)
+            return dict(m, ambient=col) if vc == "ambient_and_diffuse" else m
+
+        cols_f = s["colors"][f] if vc != "none" else None
+
         def lit(pq):
             """A point's colour from its (primary, specular) parts; OpenGL's clamp per vertex (per
             lit point) comes here, the specular part apart with a separate colour sum."""
@@ -180,18 +191,22 @@ class Ref:
         if o.shading == "phong":
             Pi = wts @ tri
             n = sign * _n(wts @ s["normals"][f])
-            color = lit(self.point_color(Pi, n, bmat, margin, parts=True))
+            color = lit(self.point_color(Pi, n, colored(bmat, None if cols_f is None else wts @ cols_f), margin, parts=True))
         elif o.shading == "gouraud":
-            cols = [lit(self.point_color(tri[k], sign * s["normals"][f[k]], bmat, [], parts=True)) for k in range(3)]
+            cols = [lit(self.point_color(tri[k], sign * s["normals"][f[k]],
+                                         colored(bmat, None if cols_f is None else cols_f[k]), [], parts=True))
+                    for k in range(3)]
             color = wts @ np.array(cols)
             Pi = wts @ tri
         elif getattr(o, "flat_source", "centroid") == "provoking":  # the last vertex, its normal
-            color = lit(self.point_color(tri[2], sign * s["normals"][f[2]], bmat, margin, parts=True))
+            color = lit(self.point_color(tri[2], sign * s["normals"][f[2]],
+                                         colored(bmat, None if cols_f is None else cols_f[2]), margin, parts=True))
             Pi = P
         else:
             cen = tri.mean(0)
             fn = _n(np.cross(tri[1] - tri[0], tri[2] - tri[0]))
-            color = lit(self.point_color(cen, sign * fn, bmat, margin, parts=True))
+            color = lit(self.point_color(cen, sign * fn, colored(bmat, None if cols_f is None else cols_f.mean(0)),
+                                         margin, parts=True))
             Pi = P
         if o.clamp and not vertex_clamp:
             color = np.clip(color, 0, 1)

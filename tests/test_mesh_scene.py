@@ -302,3 +302,43 @@ def test_cli_demo_and_errors(tmp_path):
     before = out.read_bytes()
     r = subprocess.run(exe + ["render", str(good), "-o", str(out)], capture_output=True, text=True)
     assert r.returncode == 3 and "exists" in r.stderr and out.read_bytes() == before
+
+
+def test_vertex_colours_are_read_decoded_and_merged(tmp_path):
+    import trimesh
+
+    from diffshade._color import decode
+
+    tm = trimesh.creation.icosphere(subdivisions=1)
+    codes = np.random.default_rng(2).integers(0, 256, (len(tm.vertices), 3))
+    rgba = np.concatenate([codes, np.full((len(codes), 1), 255)], axis=1).astype(np.uint8)
+    coloured = trimesh.Trimesh(tm.vertices, tm.faces, vertex_colors=rgba, process=False)
+    coloured.export(tmp_path / "c.ply")
+    m = ds.load_mesh(tmp_path / "c.ply")
+    np.testing.assert_allclose(np.asarray(m.colors), decode(codes / 255.0, "srgb"), atol=1e-12)
+    lin = ds.load_mesh(tmp_path / "c.ply", colors="linear")
+    np.testing.assert_allclose(np.asarray(lin.colors), codes / 255.0, atol=1e-12)
+    assert ds.load_mesh(tmp_path / "c.ply", colors="ignore").colors is None
+    # a triangle soup (every face its own vertices, with its corners' colours): merged, each vertex
+    # gets the mean colour of the copies it replaces, here all equal
+    soup = trimesh.Trimesh(tm.vertices[tm.faces.reshape(-1)], np.arange(3 * len(tm.faces)).reshape(-1, 3),
+                           vertex_colors=rgba[tm.faces.reshape(-1)], process=False)
+    soup.export(tmp_path / "soup.ply")
+    mm = ds.load_mesh(tmp_path / "soup.ply", "merged", colors="linear")
+    assert mm.vertices.shape[0] == len(tm.vertices)
+    # match merged vertices to the originals by position
+    d = np.linalg.norm(np.asarray(mm.vertices)[:, None] - tm.vertices[None], axis=-1)
+    np.testing.assert_allclose(np.asarray(mm.colors), codes[np.argmin(d, axis=1)] / 255.0, atol=1e-12)
+    # a scene asking for vertex colours from a mesh without them is told so
+    (tmp_path / "plain.ply").write_bytes(trimesh.Trimesh(tm.vertices, tm.faces).export(file_type="ply"))
+    d = dict(ds.DEFAULT_SCENE, mesh={"path": str(tmp_path / "plain.ply")},
+             render=dict(ds.DEFAULT_SCENE["render"], vertex_color="diffuse"))
+    with pytest.raises(ds.SceneError, match="render.vertex_color.*has no vertex colours"):
+        ds.scene_from_dict(d)
+    d["mesh"] = {"path": str(tmp_path / "c.ply"), "colors": "linear"}
+    scene, opts = ds.scene_from_dict(d)
+    assert opts.vertex_color == "diffuse"
+    np.testing.assert_allclose(np.asarray(scene.mesh.colors), codes / 255.0, atol=1e-12)
+    d["mesh"] = {"path": str(tmp_path / "c.ply"), "colors": "cmyk"}
+    with pytest.raises(ds.SceneError, match="mesh.colors"):
+        ds.scene_from_dict(d)

@@ -113,6 +113,7 @@ def to_ref(scene: ds.Scene) -> dict:
         "spot": [(a(s.color[i]), a(s.position[i]), a(s.attenuation[i]), a(s.ambient[i]), a(s.axis[i]), float(s.cutoff[i]),
                   float(s.exponent[i]), float(s.edge[i]), spec(s, i)) for i in range(s.count)],
         "ambient_light": a(scene.ambient_light), "background": a(scene.background),
+        "colors": None if scene.mesh.colors is None else a(scene.mesh.colors),
         "fog": {"color": a(scene.fog.color), "start": float(scene.fog.start), "end": float(scene.fog.end), "density": float(scene.fog.density)},
     }
 
@@ -136,6 +137,44 @@ def test_render_matches_reference(config, shading):
     np.testing.assert_array_equal(ids[safe], ref_ids[safe])
     np.testing.assert_allclose(img[safe], ref[safe], rtol=1e-7, atol=1e-9)
     assert np.isfinite(img).all()
+
+
+@pytest.mark.parametrize("shading, mode", [("flat", "diffuse"), ("gouraud", "ambient_and_diffuse"),
+                                           ("phong", "diffuse"), ("phong", "ambient_and_diffuse")])
+def test_vertex_colours_match_reference(shading, mode):
+    """Per-vertex colours in place of k_d (and k_a), glColorMaterial's way: interpolated per pixel
+    (Phong), lit at the vertices (Gouraud), averaged over the face (flat)."""
+    scene, opts = make_scene("all-lights-back-material-exp2", shading)
+    nv = scene.mesh.vertices.shape[0]
+    colors = np.random.default_rng(5).uniform(0.05, 0.95, (nv, 3))
+    scene = eqx.tree_at(lambda s: s.mesh.colors, scene, jnp.asarray(colors), is_leaf=lambda x: x is None)
+    opts = opts.replace(vertex_color=mode)
+    img, ids = (np.asarray(x) for x in _render_fn(opts)(scene))
+    pixels = [(i, j) for j in range(H) for i in range(W)]
+    ref, margin, ref_ids = Ref(to_ref(scene), opts).image(pixels)
+    ref, margin = ref.reshape(H, W, 3), margin.reshape(H, W)
+    safe = margin > 2e-3
+    assert safe.mean() > 0.6
+    np.testing.assert_allclose(img[safe], ref[safe], rtol=1e-7, atol=1e-9)
+    # the colours show: the same scene without them differs
+    plain = np.asarray(_render_fn(opts.replace(vertex_color="none"))(scene)[0])
+    assert np.abs(plain - img)[ids >= 0].max() > 0.05
+
+
+def test_vertex_colours_equal_to_the_material_change_nothing():
+    scene, opts = make_scene("all-lights-back-material-exp2", "gouraud")
+    opts = opts.replace(back_material=False, vertex_color="ambient_and_diffuse")
+    m = scene.material
+    nv = scene.mesh.vertices.shape[0]
+    # ambient and diffuse differ in the material: a colour can stand for both only in "diffuse" mode
+    col = jnp.broadcast_to(m.diffuse, (nv, 3))
+    with_col = eqx.tree_at(lambda s: (s.mesh.colors, s.material.ambient), scene, (col, m.diffuse),
+                           is_leaf=lambda x: x is None)
+    plain = eqx.tree_at(lambda s: s.material.ambient, scene, m.diffuse)
+    np.testing.assert_allclose(np.asarray(_render_fn(opts)(with_col)[0]),
+                               np.asarray(_render_fn(opts.replace(vertex_color="none"))(plain)[0]), rtol=1e-12, atol=1e-14)
+    with pytest.raises(ValueError, match="the mesh has no colours"):
+        ds.render(scene, opts)
 
 
 def _direct_only(config="all-lights-back-material-exp2", shading="phong", **kw):
