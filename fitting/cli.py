@@ -268,10 +268,22 @@ FIT_OUTPUTS = ("fit.json", "material.mtl", "fit.png", "report.txt")
 
 
 def _report_table(r) -> list[str]:
+    import numpy as np
+
     lines = [f"{'parameter':26s} {'start':>11s} {'fitted':>11s} {'std. error':>11s} {'rel. s.e.':>10s}"]
-    for n, s_, v, se in zip(r.names, r.start, r.values, r.stderr):
+    albedo = [i for i, n in enumerate(r.names) if n.startswith("mesh.colors[")]
+    skip = set(albedo)
+    for i, (n, s_, v, se) in enumerate(zip(r.names, r.start, r.values, r.stderr)):
+        if i in skip:
+            continue
         rel = se / abs(v) if v != 0 else float("inf")
         lines.append(f"{n:26s} {s_:11.5g} {v:11.5g} {se:11.3g} {rel:10.2e}")
+    if albedo:  # thousands of scalars: a summary here, every value in fit.json
+        se = r.stderr[albedo]
+        fin = np.isfinite(se)
+        lines.append(f"{'mesh.colors':26s} {len(albedo) // 3} vertices: values in [{r.values[albedo].min():.3g}, "
+                     f"{r.values[albedo].max():.3g}], median s.e. {np.median(se[fin]) if fin.any() else np.inf:.3g}, "
+                     f"{int((~fin).sum()) // 3} vertices undetermined (every value in fit.json)")
     lines.append(f"result: {r.result or 'successful'}; {r.steps} steps; compile {r.compile_s:.2f} s, solve {r.solve_s:.2f} s; "
                  f"RMS residual {r.rms:.3e}; PSNR {r.psnr:.2f} dB; SSIM {r.ssim:.5f}")
     lines.append(f"method: {r.method}")
@@ -282,7 +294,10 @@ def _report_table(r) -> list[str]:
     for n in r.notes:
         lines.append("  " + n)
     if r.undetermined:
-        lines.append("NOT DETERMINED by the images (values are the starts, not estimates): " + ", ".join(r.undetermined))
+        und = [u for u in r.undetermined if not u.startswith("mesh.colors[")]
+        n_v = len(r.undetermined) - len(und)
+        lines.append("NOT DETERMINED by the images (values are the starts, not estimates): " + ", ".join(
+            und + ([f"the albedo of {n_v} vertices (seen by no view, or unlit where seen)"] if n_v else [])))
     for g in r.gauges:
         lines.append("near-gauge (the images barely constrain this combination): " + g)
     return lines
@@ -368,7 +383,7 @@ def cmd_fit(args) -> int:
     out_dir = Path(args.output_dir)
     outputs = [out_dir / n for n in FIT_OUTPUTS]
     inputs = {p.resolve() for p in [scene_path, *view_paths, *camera_paths, *target_paths, *mask_paths]}
-    for o in outputs:
+    for o in outputs + ([out_dir / "albedo.ply"] if "mesh.colors" in args.free else []):
         if o.resolve() in inputs:
             raise InputError(f"{o}: is one of the inputs; choose another --output-dir (inputs are never overwritten)")
         if o.exists() and not args.overwrite:
@@ -379,7 +394,7 @@ def cmd_fit(args) -> int:
           f"{views[0].camera.height} with {args.solver}" + (" (clipped pixels censored)" if saturation else ""))
     if args.margin < 0:
         raise InputError(f"--margin {args.margin}: a number of pixels, 0 or more")
-    kw = dict(views=views, masks=masks, margin=args.margin, shared=args.shared or (), solver=args.solver, max_steps=args.max_steps,
+    kw = dict(views=views, masks=masks, margin=args.margin, albedo_smoothness=args.albedo_smoothness, shared=args.shared or (), solver=args.solver, max_steps=args.max_steps,
               saturation=saturation, quantum=quantum, noise=args.noise, encoding=[e for e, _ in encodings])
     r = fit(scene, opts, targets, args.free, verbose=args.verbose, **kw)
     report = [f"diffshade fit: scene {scene_path}, target(s) {', '.join(map(str, target_paths))}", *_report_table(r)]
@@ -420,6 +435,15 @@ def cmd_fit(args) -> int:
               f"{r.result or 'successful'}; standard errors in fit.json")
     _write_png(np.concatenate(rows, axis=0), outputs[2], True, encodings[0][0])
     _write_text("\n".join(report) + "\n", outputs[3])
+    if "mesh.colors" in pset.names:  # the fitted albedo on the mesh, as sRGB vertex colours
+        import trimesh
+
+        m = fitted_scene.mesh
+        codes = np.round(np.asarray(_color.encode(np.clip(np.asarray(m.colors, np.float64), 0, 1), "srgb")) * 255)
+        rgba = np.concatenate([codes, np.full((len(codes), 1), 255)], axis=1).astype(np.uint8)
+        ply = out_dir / "albedo.ply"
+        trimesh.Trimesh(np.asarray(m.vertices), np.asarray(m.faces), vertex_colors=rgba, process=False).export(ply)
+        print(f"wrote {ply} (the fitted albedo as sRGB vertex colours)")
     print(f"wrote {', '.join(str(o) for o in outputs)} (fit.png: target | fit | 10x residual + 0.5)")
     return EXIT_OK if r.successful else EXIT_FIT
 
@@ -468,6 +492,9 @@ def main(argv=None) -> int:
                    "distortion, width, height; replaces the view's camera; a distorted target is undistorted)")
     p.add_argument("--mask", nargs="+", metavar="IMAGE",
                    help="one weight image per target (0 = ignore); default: an RGBA target's alpha channel")
+    p.add_argument("--albedo-smoothness", type=float, default=0.0, metavar="LAMBDA",
+                   help="with mesh.colors free (per-vertex albedo): weight of a prior on the albedo differences "
+                   "across mesh edges (0, the default: none; vertices no view sees stay undetermined)")
     p.add_argument("--margin", type=int, default=0, metavar="PX",
                    help="leave out pixels within PX of the model's silhouette or the mask's edge (where a slightly "
                    "misregistered mesh puts background into the residual); default 0")

@@ -67,6 +67,7 @@ def fit(
     history: bool = False,
     encoding=None,
     margin: int = 0,
+    albedo_smoothness: float = 0.0,
 ) -> FitResult:
     """Fit the ``free`` parameters of ``scene`` to ``targets``.
 
@@ -96,6 +97,10 @@ def fit(
     quantisation and the file's noise are uniform; ``noise`` is then in code values too).
     ``margin``: pixels within this many (8-neighbour steps) of the model's silhouette or of a
     mask's edge are left out of the fit (a misregistered mesh puts background there).
+
+    ``mesh.colors`` among ``free`` (per-vertex albedo, with ``opts.vertex_color`` on) fits it as a
+    sparse linear block (:mod:`fitting.albedo`), with the smoothness prior
+    ``albedo_smoothness`` λ (0: none) on the differences across mesh edges.
     """
     if method not in ("auto", "full"):
         raise FitError(f"unknown method {method!r}; 'auto' or 'full'")
@@ -106,6 +111,12 @@ def fit(
     pset, dtype = prob.pset, prob.dtype
     theta0 = pset.theta_of(scene, views)
     pset.check(theta0)
+    if any(p.path == ("mesh", "colors") for p in pset.params):
+        from .albedo import fit_albedo
+
+        return fit_albedo(prob, np.asarray(theta0, np.float64), smoothness=albedo_smoothness,
+                          max_steps=max(max_steps, 20), noise=noise, verbose=verbose,
+                          rtol=1e-6 if dtype == jnp.float32 else 1e-10)
     tol = 1e-6 if dtype == jnp.float32 else 1e-10
     rtol = tol if rtol is None else rtol
     atol = tol if atol is None else atol

@@ -24,6 +24,7 @@ receiver, which sees only the power); ``multi_lobe[i].<position|a0|a1|a2>`` (sha
 ``directional[i].direction`` and ``spot[i].axis``: two angles in degrees, the tilt from the
 start direction about two axes normal to it (a chart of the sphere centred on the start: no pole
 where a light points straight down; the fitted direction is ``direction_of(tilt, frame)``);
+``mesh.colors`` (per-vertex albedo, ``[0, 1]``, 3 per vertex; fitted by :mod:`fitting.albedo`);
 ``camera.exposure`` (one gain), ``camera.white_balance`` (RGB gains) and, for an OpenCV camera,
 ``camera.rvec``/``camera.tvec`` (its pose). RGB fields are per channel unless listed as shared
 (one value for the three channels).
@@ -104,6 +105,8 @@ class Param:
     def get(self, scene: ds.Scene):
         if self.frame is not None:
             return tilt_of(self._node(scene), self.frame)
+        if self.path == ("mesh", "colors"):
+            return jnp.asarray(scene.mesh.colors).reshape(-1)
         return self._leaf(scene)
 
     def _node(self, scene):
@@ -130,6 +133,8 @@ class Param:
             return scene
         if self.frame is not None:
             value = direction_of(value, self.frame)
+        if self.path == ("mesh", "colors"):
+            return eqx.tree_at(lambda s: s.mesh.colors, scene, jnp.asarray(value).reshape(-1, 3).astype(scene.mesh.colors.dtype))
         p = self.path
         if p[0] in _KINDS and len(p) == 4:
             kind, i, j, field = p
@@ -200,6 +205,8 @@ class Param:
             raise ParamError(f"{self.name}: {what} {np.round(v, 6).tolist()} is outside its domain {_domain_str(self.domain)}")
 
     def labels(self) -> list[str]:
+        if self.path == ("mesh", "colors"):
+            return [f"mesh.colors[{v}][{c}]" for v in range(self.size // 3) for c in "rgb"]
         if self.frame is not None:
             return [f"{self.name}[tilt_u]", f"{self.name}[tilt_v]"]
         axes = "xyz" if self.domain == "real" else "rgb"
@@ -218,6 +225,13 @@ def parse(name: str, scene: ds.Scene, shared: bool = False, n_views: int | None 
             raise ParamError(f"unknown parameter {name!r}: the fit has {n_views} view(s)")
         return dataclasses.replace(parse(m.group(2), scene, shared), name=name, view=i)
     parts = name.split(".")
+    if name == "mesh.colors":
+        if scene.mesh.colors is None:
+            raise ParamError("mesh.colors: the mesh has no vertex colours to fit (load a mesh with colours, or give "
+                             "Mesh(colors=...) a start)")
+        if shared:
+            raise ParamError("mesh.colors has no shared form")
+        return Param(name, ("mesh", "colors"), 3 * int(scene.mesh.colors.shape[0]), "unit")
     if parts[0] == "camera":
         if len(parts) != 2 or parts[1] not in _CAMERA:
             raise ParamError(f"unknown parameter {name!r}: a camera has {', '.join(_CAMERA)}")
@@ -295,7 +309,7 @@ def parse(name: str, scene: ds.Scene, shared: bool = False, n_views: int | None 
         f"unknown parameter {name!r}; known: material.<{'|'.join(_MATERIAL)}>, material[i].<...> (material id i), "
         "back_material.<...>, ambient_light, <directional|point|spot|area>[i].<color|specular|ambient|position|a0|a1|a2|cutoff|"
         "exponent|edge|width|height>, directional[i].direction, spot[i].axis, multi_lobe[i].<position|a0|a1|a2>, multi_lobe[i].lobe[j].<color|ambient|cutoff|exponent|edge>, "
-        "fog.<color|start|end|density>, camera.<exposure|white_balance|rvec|tvec>, view[i].<any of these>"
+        "fog.<color|start|end|density>, camera.<exposure|white_balance|rvec|tvec>, mesh.colors, view[i].<any of these>"
     )
 
 

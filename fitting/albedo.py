@@ -1,0 +1,370 @@
+r"""Per-vertex albedo: thousands of linear parameters, a sparse block of the variable projection.
+
+With ``RenderOptions.vertex_color`` on, the image is linear in the mesh's vertex colours
+:math:`x` (3 per vertex): :math:`r(x, \theta) = A(\theta)\,x + b(\theta) - y`, where each pixel
+depends on the three vertices of the triangle it sees, so :math:`A` has at most three non-zeros
+per residual row.
+
+**The design matrix** comes from a handful of forward-mode tangents, not one per column: the
+vertices are coloured so that no two of a colour share a triangle (a greedy colouring of the
+mesh graph: Curtis, Powell & Reid's compression of a sparse Jacobian), and the tangent with ones
+on the vertices of one colour gives, in each pixel, the derivative with respect to the one vertex
+of that colour on its triangle. The same pass gives the image and one tangent per other free
+scalar :math:`\theta` (exponent, attenuation, gains, light position, …).
+
+**The solve** is variable projection on the host in float64: for given :math:`\theta` the
+albedo is the bounded sparse least-squares optimum (``0 ≤ x ≤ 1``: a primal active set whose
+Newton steps are sparse Cholesky-type solves, ``scipy.sparse.linalg.factorized``; with an
+optional smoothness prior :math:`\lambda \sum_{(i,j) \in \text{edges}} (x_i - x_j)^2`
+stacked under :math:`A`); Levenberg–Marquardt moves :math:`\theta` on the reduced residual with
+Kaufman's Jacobian :math:`P^\perp J_\theta`, the projection computed by a sparse factorisation of
+:math:`A_f^T A_f + \lambda L^T L` over the free albedo scalars. SciPy is the well-kept library for
+sparse least squares (scikit-image already depends on it).
+
+**What the images cannot tell.** A vertex no view sees, or sees only where no light reaches it
+(no covered pixel depends on its albedo), has a zero column: without a prior it keeps its start value and is reported undetermined; with one, it
+takes the value the prior gives its neighbours and is reported as such. A gauge between the
+albedo and a parameter that scales the whole image (a light colour, an exposure of the reference
+view, an attenuation seen at one distance only) shows as a near-singular
+:math:`J_\theta^T P^\perp J_\theta` and is named in the report.
+"""
+
+from __future__ import annotations
+
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .problem import FitError, Problem
+from .report import FitResult, image_quality, noise_level, noise_ratio_limit, uncertainty, verdict
+
+
+def vertex_colouring(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """A colour per vertex such that the three vertices of every triangle differ (greedy, largest
+    degree first); at most the largest degree + 1 colours."""
+    f = np.asarray(faces)
+    nbrs = [set() for _ in range(n_vertices)]
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        for i, j in zip(f[:, a], f[:, b]):
+            nbrs[i].add(j)
+            nbrs[j].add(i)
+    colour = np.full(n_vertices, -1, np.int64)
+    for v in np.argsort([-len(n) for n in nbrs], kind="stable"):
+        used = {colour[u] for u in nbrs[v]}
+        c = 0
+        while c in used:
+            c += 1
+        colour[v] = c
+    return colour
+
+
+def _edges(faces: np.ndarray) -> np.ndarray:
+    f = np.asarray(faces)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    return np.unique(np.sort(e, axis=1), axis=0)
+
+
+class AlbedoProblem:
+    """The albedo block of a :class:`fitting.problem.Problem`: the colouring, the compiled
+    evaluation (image, compressed albedo tangents, other tangents) and the sparse assembly."""
+
+    def __init__(self, prob: Problem, smoothness: float = 0.0):
+        import scipy.sparse as sp
+
+        self.sp = sp
+        self.prob = prob
+        pset = prob.pset
+        opts = prob.opts
+        if opts.vertex_color == "none":
+            raise FitError("mesh.colors is free but render.vertex_color is 'none': the colours are not in the image")
+        if opts.clamp:
+            raise FitError("mesh.colors with clamp = true: the image is not linear in the colours; fit without clamping")
+        if opts.layered:
+            raise FitError("mesh.colors with transparency layers is not supported")
+        k = [i for i, p in enumerate(pset.params) if p.path == ("mesh", "colors")]
+        if len(k) != 1 or pset.params[k[0]].view is not None:
+            raise FitError("mesh.colors: free once, shared by every view")
+        self.k = k[0]
+        a, b = int(pset.offsets[self.k]), int(pset.offsets[self.k + 1])
+        self.sl = slice(a, b)
+        self.n_alb = b - a
+        self.nv = self.n_alb // 3
+        self.other = np.r_[np.arange(0, a), np.arange(b, int(pset.offsets[-1]))].astype(int)
+        mesh = prob.data[0].scene.mesh
+        self.faces = np.asarray(mesh.faces)
+        self.colour = vertex_colouring(self.faces, self.nv)
+        self.n_col = int(self.colour.max()) + 1
+        self.smoothness = float(smoothness)
+        if self.smoothness < 0 or not np.isfinite(self.smoothness):
+            raise FitError(f"albedo smoothness must be a finite number >= 0, got {smoothness!r}")
+        E = np.zeros((self.n_col + len(self.other), int(pset.offsets[-1])))
+        for c in range(self.n_col):
+            E[c, a:b] = np.repeat(self.colour == c, 3).astype(float)
+        E[self.n_col + np.arange(len(self.other)), self.other] = 1.0
+        self.E = E
+        self._fn = None
+
+    # -- the compiled evaluation ----------------------------------------------------------------
+    def _compile(self, theta):
+        prob = self.prob
+
+        def evaluate(th, E, data):
+            outs = []
+            for vd in data:
+                f = lambda t: prob.image(vd, t)  # noqa: B023,E731
+                img, T = jax.vmap(lambda e: jax.jvp(f, (th,), (e,)), out_axes=(None, 0))(E)
+                outs.append((img, T))
+            return outs
+
+        t0 = time.perf_counter()
+        fn = jax.jit(evaluate)
+        args = (jnp.asarray(theta, self.prob.dtype), jnp.asarray(self.E, self.prob.dtype), prob.data)
+        self._fn = fn.lower(*args).compile()
+        return time.perf_counter() - t0
+
+    def evaluate(self, theta):
+        """``(img [M], A (sparse, M × n_alb), J_o [M, n_o], w [M])`` at ``theta`` (natural):
+        the model (unweighted), the weighted albedo columns and other parameters' columns, and
+        the weights; censored entries get weight 0 (one-sided residuals are not linear)."""
+        sp = self.sp
+        outs = self._fn(jnp.asarray(theta, self.prob.dtype), jnp.asarray(self.E, self.prob.dtype), self.prob.data)
+        imgs, rows, cols, vals, Jo, ws, off = [], [], [], [], [], [], 0
+        for vd, (img, T) in zip(self.prob.data, outs):
+            img, T = np.asarray(img, np.float64), np.asarray(T, np.float64)
+            w = np.asarray(vd.weight, np.float64) * ~np.asarray(vd.hi | vd.lo)  # [N, 3]
+            n = img.shape[0]
+            tri = np.asarray(vd.ids)[0, 0]  # [N] the triangle each compacted pixel sees (-1: padding)
+            ok = tri >= 0
+            verts = np.where(ok[:, None], self.faces[np.where(ok, tri, 0)], 0)  # [N, 3]
+            for j in range(3):
+                v = verts[:, j]
+                cls = self.colour[v]
+                d = T[cls, np.arange(n)] * w  # [N, 3]: the derivative wrt vertex v's colour, per channel
+                for c in range(3):
+                    keep = ok & (d[:, c] != 0)
+                    rows.append(off + np.flatnonzero(keep) * 3 + c)
+                    cols.append(v[keep] * 3 + c)
+                    vals.append(d[keep, c])
+            Jo.append((T[self.n_col:] * w).reshape(len(self.other), 3 * n).T)
+            imgs.append(img.reshape(-1))
+            ws.append(w.reshape(-1))
+            off += 3 * n
+        A = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                          shape=(off, self.n_alb))
+        A.sum_duplicates()
+        return np.concatenate(imgs), A, np.concatenate(Jo) if len(self.other) else np.zeros((off, 0)), np.concatenate(ws)
+
+    def target(self):
+        return np.concatenate([(np.asarray(vd.target, np.float64) * np.asarray(vd.weight, np.float64)
+                                * ~np.asarray(vd.hi | vd.lo)).reshape(-1) for vd in self.prob.data])
+
+    def prior(self):
+        """``√λ`` times the edge differences of the albedo, per channel (sparse, n_edges·3 × n_alb)."""
+        sp = self.sp
+        e = _edges(self.faces)
+        m = len(e)
+        rows = np.repeat(np.arange(3 * m), 2)
+        cols = np.stack([3 * e[:, 0][:, None] + np.arange(3), 3 * e[:, 1][:, None] + np.arange(3)], -1).reshape(-1)
+        vals = np.tile([1.0, -1.0], 3 * m) * np.sqrt(self.smoothness)
+        return sp.csr_matrix((vals, (rows, cols)), shape=(3 * m, self.n_alb))
+
+
+def fit_albedo(prob: Problem, theta0, *, smoothness: float = 0.0, max_steps: int = 50, rtol: float = 1e-10,
+               noise=None, verbose: bool = False) -> FitResult:
+    """Fit the per-vertex albedo and the other free parameters of ``prob`` (see the module)."""
+    from scipy.sparse.linalg import factorized
+
+    ap = AlbedoProblem(prob, smoothness)
+    sp = ap.sp
+    pset = prob.pset
+    theta = np.array(pset.theta_from_u(pset.u_from_theta(jnp.asarray(theta0))), np.float64)  # inside the domain
+    theta[ap.sl] = np.clip(np.asarray(theta0, np.float64)[ap.sl], 0.0, 1.0)
+    compile_s = ap._compile(theta)
+    t0 = time.perf_counter()
+    y = ap.target()
+    Lp = ap.prior() if smoothness > 0 else None
+    lo = np.concatenate([np.full(p.size, p.box[0]) for p in pset.params])[ap.other]
+    hi = np.concatenate([np.full(p.size, p.box[1]) for p in pset.params])[ap.other]
+    param_of = np.repeat(np.arange(len(pset.params)), pset.sizes)
+    pos = np.asarray([pset.params[param_of[i]].domain == "positive" for i in ap.other], bool)
+    notes = [f"albedo: {ap.nv} vertices in {ap.n_col} colour classes ({ap.n_col + len(ap.other)} tangents per "
+             f"evaluation), smoothness λ = {smoothness:g}"]
+
+    def normal(A, idx):
+        """A sparse factorisation of ``A_I^T A_I + λ L_I^T L_I`` over the scalars ``idx``."""
+        Af = A[:, idx]
+        G = Af.T @ Af
+        if Lp is not None:
+            Lf = Lp[:, idx]
+            G = G + Lf.T @ Lf
+        G = G + sp.identity(G.shape[0]) * (1e-13 * max(G.diagonal().max(), 1e-300))
+        return factorized(G.tocsc())
+
+    def solve_x(theta, x0):
+        """The bounded optimum over the albedo (primal active set: Newton steps on the free set
+        by a sparse factorisation, variables that leave [0, 1] fixed on the bound they cross,
+        released when their multiplier says so), and the pieces the reduced problem needs."""
+        img, A, Jo, w = ap.evaluate(theta)
+        b = img * w - A @ theta[ap.sl]  # the (weighted) image with the albedo at 0
+        seen = np.asarray(abs(A).sum(axis=0)).ravel() > 0
+        det = seen | (Lp is not None)
+        x = np.clip(x0, 0.0, 1.0)
+        at_lo, at_hi = np.zeros(ap.n_alb, bool), np.zeros(ap.n_alb, bool)
+
+        def grad(x):
+            g = A.T @ (A @ x + b - y)
+            return g + (Lp.T @ (Lp @ x) if Lp is not None else 0.0)
+
+        solve = None
+        for _ in range(4 * 20):
+            free = det & ~at_lo & ~at_hi
+            idx = np.flatnonzero(free)
+            if len(idx):
+                solve = normal(A, idx)
+                x_new = x.copy()
+                x_new[idx] = x[idx] - solve(grad(x)[idx])
+            else:
+                x_new = x
+            out = free & ((x_new < 0) | (x_new > 1))
+            if out.any():  # fix the violators on the bound they crossed
+                at_lo |= out & (x_new < 0)
+                at_hi |= out & (x_new > 1)
+                x = np.clip(x_new, 0.0, 1.0)
+                continue
+            x = x_new
+            g = grad(x)
+            release = (at_lo & (g < 0)) | (at_hi & (g > 0))
+            if not release.any():
+                break
+            at_lo &= ~release
+            at_hi &= ~release
+        free = det & ~at_lo & ~at_hi
+        idx = np.flatnonzero(free)
+        for _ in range(2):  # iterative refinement: the normal equations lose cond² digits
+            if solve is not None and len(idx):
+                x[idx] = np.clip(x[idx] - solve(grad(x)[idx]), 0.0, 1.0)
+        r = A @ x + b - y
+        return x, r, A, Jo, seen, img, free, solve
+
+    def reduced(theta):
+        x, r, A, Jo, seen, img, free, solve = solve_x(theta, theta[ap.sl])
+        th = theta.copy()
+        th[ap.sl] = x
+        Af = A[:, free]
+        if Jo.shape[1] and free.any():
+            AtJ = np.asarray(Af.T @ Jo)
+            Jr = Jo - Af @ np.column_stack([solve(AtJ[:, j]) for j in range(Jo.shape[1])])
+        else:
+            Jr = Jo
+        cost = float(r @ r) + (float(np.sum((Lp @ x) ** 2)) if Lp is not None else 0.0)
+        return th, r, Jr, cost, A, seen, free, img
+
+    th, r, Jr, cost, A, seen, free, img = reduced(theta)
+    lam, steps, converged = 1e-3, 0, len(ap.other) == 0
+    n_res = max(int(np.count_nonzero(y)) - ap.n_alb - len(ap.other), 1)
+    while not converged and steps < max_steps:
+        steps += 1
+        H, g = Jr.T @ Jr, Jr.T @ r
+        d = np.sqrt(np.maximum(np.diag(H), 1e-300))
+        Hs = H / d[:, None] / d[None, :]
+        gs = g / d
+        gn = -np.linalg.lstsq(Hs, gs, rcond=1e-12)[0] / d
+        # Gauss–Newton's predicted gain below a hundredth of the residual variance: converged
+        if -(g @ gn) < max(1e-2 * cost / n_res, rtol * cost):
+            converged = True
+            break
+        accepted = False
+        for _ in range(12):
+            step = -np.linalg.solve(Hs + lam * np.eye(len(d)), gs) / d
+            cand = th[ap.other] + step
+            cand = np.where(pos, np.maximum(cand, np.maximum(th[ap.other] * 1e-3, 1e-12)), cand)
+            cand = np.clip(cand, lo, hi)
+            t2 = th.copy()
+            t2[ap.other] = cand
+            res = reduced(t2)
+            if res[3] < cost:
+                th, r, Jr, cost, A, seen, free, img = res
+                lam = max(lam / 3, 1e-9)
+                accepted = True
+                break
+            lam *= 4
+        if verbose:
+            print(f"albedo LM step {steps}: cost {cost:.6e}, λ {lam:.1e}")
+        if not accepted:
+            converged = True  # no step lowers the cost: at the optimum to float precision
+            break
+    solve_s = time.perf_counter() - t0
+
+    # -- the report ------------------------------------------------------------------------------
+    labels = pset.labels
+    n2, n_cens = prob.counts()
+    res_imgs = prob.residual_images(r)
+    sigma, source = noise_level(prob, res_imgs, noise)
+    p_eff = int(free.sum()) + len(ap.other)
+    s2 = float(r @ r) / max(n2 - p_eff, 1)
+    ratio = float(np.sqrt(s2) / max(sigma, 1e-300))
+    successful, msg = verdict(converged, "" if converged else f"no convergence in {max_steps} steps", ratio, sigma,
+                              source, n2)
+    stderr = np.full(len(th), np.inf)
+    gauges, undetermined = [], []
+    if len(ap.other):
+        o_labels = [labels[i] for i in ap.other]
+        se_o, und_o, gauges, _ = uncertainty(Jr, r, n2, o_labels, sigma)
+        stderr[ap.other] = se_o
+        undetermined += und_o
+    s2_eff = max(s2, sigma**2)
+    # albedo: the marginal covariance of the full problem [x; θ_o] through its Schur complement:
+    # cov_x = M⁻¹ + Z S⁻¹ Zᵀ, M = AᵀA (+ λLᵀL) over the determined scalars, Z = M⁻¹AᵀJ_o,
+    # S = J_oᵀJ_o − J_oᵀA Z (the other parameters' information with the albedo projected out);
+    # diag(M⁻¹) per channel (M is block diagonal by channel), dense up to 4000 vertices
+    _, Jo_fin = Jr, ap.evaluate(th)[2]
+    det = seen | (Lp is not None)
+    idx_det = np.flatnonzero(det)
+    G = (A.T @ A)
+    if Lp is not None:
+        G = G + Lp.T @ Lp
+    G = G.tocsc()[idx_det][:, idx_det]
+    diag_inv = np.zeros(len(idx_det))
+    for c in range(3):
+        sel = np.flatnonzero(idx_det % 3 == c)
+        if not len(sel):
+            continue
+        Gc = G[sel][:, sel]
+        if len(sel) <= 4000:
+            diag_inv[sel] = np.diag(np.linalg.pinv(Gc.toarray()))
+        else:  # the diagonal approximation (correlations with neighbours left out)
+            diag_inv[sel] = 1.0 / np.maximum(Gc.diagonal(), 1e-300)
+    if len(ap.other) and len(idx_det):
+        AtJ = np.asarray(A[:, idx_det].T @ Jo_fin)
+        solve = factorized((G + ap.sp.identity(G.shape[0]) * 1e-13 * max(G.diagonal().max(), 1e-300)).tocsc())
+        Z = np.column_stack([solve(AtJ[:, j]) for j in range(AtJ.shape[1])])
+        S = Jo_fin.T @ Jo_fin - AtJ.T @ Z
+        diag_inv = diag_inv + np.sum((Z @ np.linalg.pinv(S)) * Z, axis=1)
+    se_alb = np.full(ap.n_alb, np.inf)
+    se_alb[idx_det] = np.sqrt(np.clip(diag_inv, 0, None) * s2_eff)
+    stderr[ap.sl] = se_alb
+    unseen = np.flatnonzero(~seen.reshape(-1, 3).any(axis=1))
+    if len(unseen):
+        if Lp is None:
+            undetermined += [f"mesh.colors[{v}]" for v in unseen]
+            notes.append(f"albedo: the images do not depend on {len(unseen)} of {ap.nv} vertices (seen by no view, "
+                         "or unlit where seen): kept at their start, undetermined")
+        else:
+            notes.append(f"albedo: the images do not depend on {len(unseen)} of {ap.nv} vertices (seen by no view, "
+                         "or unlit where seen): their values come from the smoothness prior alone")
+    on_bound = int((~free & seen.reshape(-1)).sum()) if ap.n_alb else 0
+    notes.append(f"albedo: {int(seen.sum()) // 3} vertices seen; {on_bound} albedo scalars on a bound (0 or 1); "
+                 f"{steps} LM steps on the {len(ap.other)} other scalar(s)")
+    psnr, ssim = image_quality(prob.full_images(img)[0], prob.targets[0])
+    method = (f"variable projection with a sparse linear block: {ap.n_alb} per-vertex albedo scalars "
+              f"(bounded sparse least squares{', smoothness prior' if Lp is not None else ''}), "
+              f"Levenberg–Marquardt on {len(ap.other)} other scalar(s)")
+    return FitResult(
+        names=labels, values=th, start=np.asarray(theta0, np.float64), stderr=stderr, result=msg,
+        successful=successful, steps=steps, compile_s=compile_s, solve_s=solve_s,
+        rms=float(np.sqrt(float(r @ r) / max(n2, 1))), psnr=psnr, ssim=ssim, rss=float(r @ r), n_residuals=n2,
+        undetermined=undetermined, gauges=gauges, notes=notes, method=method, noise=sigma, noise_source=source,
+        noise_ratio=ratio, converged=converged, stderr_meaningful=successful, on_bound=[], censored=n_cens,
+    )
