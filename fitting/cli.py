@@ -496,8 +496,9 @@ def main(argv=None) -> int:
                    help="with mesh.colors free (per-vertex albedo): weight of a prior on the albedo differences "
                    "across mesh edges (0, the default: none; vertices no view sees stay undetermined)")
     p.add_argument("--margin", type=int, default=0, metavar="PX",
-                   help="leave out pixels within PX of the model's silhouette or the mask's edge (where a slightly "
-                   "misregistered mesh puts background into the residual); default 0")
+                   help="leave out pixels within PX of the model's silhouette, of an occlusion edge inside it, or of "
+                   "the mask's edge (where a slightly misregistered mesh puts the wrong surface into the residual); "
+                   "default 0")
     p.add_argument("--solver", default="varpro", choices=["varpro", "lm", "dogleg", "gauss-newton"],
                    help="varpro (default): the compiled variable-projection LM; lm, dogleg, gauss-newton: "
                    "optimistix's solver on the same reduced problem")

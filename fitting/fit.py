@@ -95,8 +95,10 @@ def fit(
     code values in [0, 1], decoded to linear values, with clipping decided on the codes and each
     residual weighted by :math:`1/(dL/dv)`, so that the fit measures it in code values (where
     quantisation and the file's noise are uniform; ``noise`` is then in code values too).
-    ``margin``: pixels within this many (8-neighbour steps) of the model's silhouette or of a
-    mask's edge are left out of the fit (a misregistered mesh puts background there).
+    ``margin``: pixels within this many (8-neighbour steps) of the model's silhouette, of an
+    occlusion edge (neighbouring pixels that see triangles sharing no vertex: an ear in front of
+    the head) or of a mask's edge are left out of the fit (a misregistered mesh puts the wrong
+    surface there).
 
     ``mesh.colors`` among ``free`` (per-vertex albedo, with ``opts.vertex_color`` on) fits it as a
     sparse linear block (:mod:`fitting.albedo`), with the smoothness prior

@@ -73,6 +73,53 @@ class View:
     const: np.ndarray  # [H, W, 3] weighted residual of the uncovered pixels (0 on covered ones)
 
 
+def pixel_depths(scene, tri: np.ndarray) -> np.ndarray:
+    """``[H, W]``: the distance along each pixel's ray to the plane of the triangle it sees (inf
+    where it sees none); host-side float64."""
+    o, d = (np.asarray(a, np.float64) for a in scene.camera.pixel_rays(jnp.float64))
+    V = np.asarray(scene.mesh.vertices, np.float64)
+    F = np.asarray(scene.mesh.faces)
+    ok = tri >= 0
+    f = F[np.where(ok, tri, 0)]
+    a, b, c = V[f[..., 0]], V[f[..., 1]], V[f[..., 2]]
+    n = np.cross(b - a, c - a)
+    den = np.einsum("hwk,hwk->hw", d, n)
+    t = np.einsum("hwk,hwk->hw", a - o, n) / np.where(den != 0, den, 1.0)
+    return np.where(ok & (den != 0), np.abs(t), np.inf)
+
+
+def near_edges(depth: np.ndarray, margin: int, ratio: float = 4.0) -> np.ndarray:
+    """``[H, W]`` bool: covered pixels within ``margin`` 8-neighbour steps of an *occlusion edge*
+    inside the object (an ear in front of the head): where the depth jumps between two
+    neighbouring pixels by more than ``ratio`` times its change to the next pixel on either side
+    (a surface's depth changes smoothly from pixel to pixel, an occlusion's does not). Such edges
+    are as sensitive as the silhouette to a slightly misregistered mesh or camera, and to float
+    rounding deciding which surface is in front."""
+    from skimage.morphology import dilation
+
+    D = np.asarray(depth, np.float64)
+    h, w = D.shape
+    cov = np.isfinite(D)
+    Dp = np.pad(np.where(cov, D, np.nan), 2, constant_values=np.nan)
+    edge = np.zeros((h, w), bool)
+    for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        at = lambda k: Dp[2 + k * dy:2 + k * dy + h, 2 + k * dx:2 + k * dx + w]  # noqa: E731
+        p, q, before, after = at(0), at(1), at(-1), at(2)
+        jump = np.abs(q - p)
+        # both surfaces continue a pixel beyond the pair (at the silhouette one does not: that
+        # edge is the erosion's)
+        local = np.maximum(np.abs(p - before), np.abs(after - q))
+        cut = (jump > ratio * local + 1e-6 * p) & np.isfinite(jump) & np.isfinite(local)
+        edge |= cut
+        # the other pixel of the pair
+        sh = np.zeros((h + 4, w + 4), bool)
+        sh[2 + dy:2 + dy + h, 2 + dx:2 + dx + w] = cut
+        edge |= sh[2:2 + h, 2:2 + w]
+    if margin > 1:
+        edge = dilation(edge, np.ones((2 * margin - 1, 2 * margin - 1), bool))
+    return edge & cov
+
+
 def censored_residual(img, t, hi, lo):
     """``I − t``, one-sided where the target is censored."""
     d = img - t
@@ -141,12 +188,13 @@ class Problem:
             if margin:
                 if int(margin) != margin or margin < 0:
                     raise FitError(f"margin must be a whole number of pixels >= 0, got {margin!r}")
+                covered = covered & ~near_edges(pixel_depths(v, ids[0]), int(margin))
                 from skimage.morphology import erosion
 
                 # away from the silhouette and the mask's edge by `margin` 8-neighbour steps (a
                 # square footprint; the image border is not an edge)
-                k = 2 * int(margin) + 1
-                covered = erosion(covered, np.ones((k, k), bool), mode="ignore")
+                side = 2 * int(margin) + 1
+                covered = erosion(covered, np.ones((side, side), bool), mode="ignore")
             rows = np.flatnonzero(covered.reshape(-1))
             n = max(PAD, -(-len(rows) // PAD) * PAD)
             pad = n - len(rows)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import numpy as np
 import pytest
@@ -205,6 +206,35 @@ def test_margin_leaves_out_the_pixels_next_to_the_silhouette_and_the_mask_edge()
     assert expect.sum() < base.sum() - 40  # a ring of two pixels around the sphere and the hole
     with pytest.raises(FitError, match="margin must be a whole number"):
         Problem.build(scene, opts, target, ["material.diffuse"], margin=1.5)
+
+
+def test_margin_also_leaves_out_occlusion_edges_inside_the_object():
+    """A small sheet in front of a large one: the pixels where one meets the other (a jump in
+    depth far larger than the change from pixel to pixel) are an edge like the silhouette; a
+    curved surface seen at any angle (the sphere) has none inside its silhouette."""
+    from fitting.problem import near_edges, pixel_depths
+
+    back = ds.quad((2.0, 2.0), center=(0.0, 0.0, -0.5), divisions=4)
+    front = ds.quad((0.8, 0.8), center=(0.0, 0.0, 0.5), divisions=2)
+    mesh = ds.combine(back, front)
+    scene, opts = small_scene()
+    two = eqx.tree_at(lambda s: (s.mesh, s.materials), scene, (mesh, (scene.material,)))
+    tri = np.asarray(ds.scene_visibility(two, opts)[0])
+    in_front = np.isin(tri, np.flatnonzero(np.asarray(mesh.material_ids) == 1))
+    assert in_front.sum() > 20 and ((tri >= 0) & ~in_front).sum() > 100
+    e1 = near_edges(pixel_depths(two, tri), 1)
+    # exactly the pixels with an 8-neighbour on the other sheet
+    other = np.zeros_like(e1)
+    h, w = tri.shape
+    for y in range(h):
+        for x in range(w):
+            if tri[y, x] >= 0:
+                win = (slice(max(0, y - 1), y + 2), slice(max(0, x - 1), x + 2))
+                other[y, x] = ((in_front[win] != in_front[y, x]) & (tri[win] >= 0)).any()
+    assert np.array_equal(e1, other)
+    assert near_edges(pixel_depths(two, tri), 2).sum() > e1.sum()  # a wider band
+    ids = np.asarray(ds.scene_visibility(scene, opts)[0])
+    assert not near_edges(pixel_depths(scene, ids), 1).any()
 
 
 def test_clamp_falls_back_to_lm_on_all_parameters_and_says_so():

@@ -208,3 +208,14 @@ def test_cli_fits_through_a_calibrated_distorting_camera(tmp_path, capsys):
     rc = main(["fit", str(tmp_path / "start.toml"), str(tmp_path / "photo.png"), "-p", "material.diffuse",
                "--cameras", str(tmp_path / "cam.json"), str(tmp_path / "cam.json"), "-o", str(tmp_path / "o3")])
     assert rc == EXIT_INPUT and "1 target(s) but 2 --cameras file(s)" in capsys.readouterr().err
+
+
+def test_each_view_keeps_its_index_with_a_margin(views):
+    """The compacted data of view k applies view k's own parameters, whatever the options (a
+    margin once renamed the loop's view index)."""
+    from fitting.problem import Problem
+
+    vs, opts, targets = views
+    for margin in (0, 1):
+        prob = Problem.build(vs[0], opts, targets, ["view[*].camera.exposure"], views=vs, margin=margin)
+        assert [vd.index for vd in prob.data] == [0, 1, 2]
