@@ -261,40 +261,55 @@ def fit_albedo(prob: Problem, theta0, *, smoothness: float = 0.0, max_steps: int
         cost = float(r @ r) + (float(np.sum((Lp @ x) ** 2)) if Lp is not None else 0.0)
         return th, r, Jr, cost, A, seen, free, img
 
-    th, r, Jr, cost, A, seen, free, img = reduced(theta)
-    lam, steps, converged = 1e-3, 0, len(ap.other) == 0
-    n_res = max(int(np.count_nonzero(y)) - ap.n_alb - len(ap.other), 1)
-    while not converged and steps < max_steps:
-        steps += 1
-        H, g = Jr.T @ Jr, Jr.T @ r
-        d = np.sqrt(np.maximum(np.diag(H), 1e-300))
-        Hs = H / d[:, None] / d[None, :]
-        gs = g / d
-        gn = -np.linalg.lstsq(Hs, gs, rcond=1e-12)[0] / d
-        # Gauss–Newton's predicted gain below a hundredth of the residual variance: converged
-        if -(g @ gn) < max(1e-2 * cost / n_res, rtol * cost):
-            converged = True
-            break
-        accepted = False
-        for _ in range(12):
-            step = -np.linalg.solve(Hs + lam * np.eye(len(d)), gs) / d
-            cand = th[ap.other] + step
-            cand = np.where(pos, np.maximum(cand, np.maximum(th[ap.other] * 1e-3, 1e-12)), cand)
-            cand = np.clip(cand, lo, hi)
-            t2 = th.copy()
-            t2[ap.other] = cand
-            res = reduced(t2)
-            if res[3] < cost:
-                th, r, Jr, cost, A, seen, free, img = res
-                lam = max(lam / 3, 1e-9)
-                accepted = True
+    def lm(theta, max_steps):
+        """Levenberg–Marquardt on the other parameters of the reduced problem."""
+        th, r, Jr, cost, A, seen, free, img = reduced(theta)
+        lam, steps, converged = 1e-3, 0, len(ap.other) == 0
+        n_res = max(int(np.count_nonzero(y)) - ap.n_alb - len(ap.other), 1)
+        while not converged and steps < max_steps:
+            steps += 1
+            H, g = Jr.T @ Jr, Jr.T @ r
+            d = np.sqrt(np.maximum(np.diag(H), 1e-300))
+            Hs = H / d[:, None] / d[None, :]
+            gs = g / d
+            gn = -np.linalg.lstsq(Hs, gs, rcond=1e-12)[0] / d
+            # Gauss–Newton's predicted gain below a hundredth of the residual variance: converged
+            if -(g @ gn) < max(1e-2 * cost / n_res, rtol * cost):
+                converged = True
                 break
-            lam *= 4
-        if verbose:
-            print(f"albedo LM step {steps}: cost {cost:.6e}, λ {lam:.1e}")
-        if not accepted:
-            converged = True  # no step lowers the cost: at the optimum to float precision
-            break
+            accepted = False
+            for _ in range(12):
+                step = -np.linalg.solve(Hs + lam * np.eye(len(d)), gs) / d
+                cand = th[ap.other] + step
+                cand = np.where(pos, np.maximum(cand, np.maximum(th[ap.other] * 1e-3, 1e-12)), cand)
+                cand = np.clip(cand, lo, hi)
+                t2 = th.copy()
+                t2[ap.other] = cand
+                res = reduced(t2)
+                if res[3] < cost:
+                    th, r, Jr, cost, A, seen, free, img = res
+                    lam = max(lam / 3, 1e-9)
+                    accepted = True
+                    break
+                lam *= 4
+            if verbose:
+                print(f"albedo LM step {steps}: cost {cost:.6e}, λ {lam:.1e}")
+            if not accepted:
+                converged = True  # no step lowers the cost: at the optimum to float precision
+                break
+        return th, r, Jr, cost, A, seen, free, img, steps, converged
+
+    th, r, Jr, cost, A, seen, free, img, steps, converged = lm(theta, max_steps)
+    if prob.encoded:  # residuals in code values, exactly at the model (see Problem.relinearise)
+        from .fit import RELINEARISE_PASSES
+
+        for _ in range(RELINEARISE_PASSES):
+            prob.relinearise(img)
+            y = ap.target()
+            th, r, Jr, cost, A, seen, free, img, k, converged = lm(th, max_steps)
+            steps += k
+        notes.append(f"code values: weights and targets re-taken at the model {RELINEARISE_PASSES}× (Gauss–Newton "
+                     "on the code-value residual)")
     solve_s = time.perf_counter() - t0
 
     # -- the report ------------------------------------------------------------------------------

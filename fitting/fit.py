@@ -199,6 +199,8 @@ def fit(
         attempts += 1
         if (converged and ratio <= noise_ratio_limit(n2)) or attempts > restarts or exclude.all() or len(U) == 1:
             break
+    best, k = _relinearise(prob, ev, red, best, polish_steps, rtol, n2, noise, notes)
+    steps_total += k
     solve_s = time.perf_counter() - t_run
     if history:
         hist = [(0.5 * float(np.sum(ev(t)[0] ** 2)), t) for t in hist]
@@ -241,11 +243,15 @@ class _Evaluator:
     def __init__(self, fn, prob, red, theta_ref):
         self.fn, self.red, self.prob, self.theta_ref = fn, red, prob, theta_ref
         self.n2 = jnp.asarray(prob.counts()[0], prob.dtype)
-        t, w, hi, lo = (np.asarray(a) for a in flat_data(prob.data))
-        self.t, self.w, self.hi, self.lo = t.astype(np.float64), w.astype(np.float64), hi, lo
-        M = len(t)
+        self.refresh()
+        M = len(self.t)
         self.lin_cols = (red.chan[:, np.arange(M) % 3] > 0) if len(red.idx_l) else None
         self.dtype = prob.dtype
+
+    def refresh(self):
+        """Take the problem's targets and weights again (after :meth:`Problem.relinearise`)."""
+        t, w, hi, lo = (np.asarray(a) for a in flat_data(self.prob.data))
+        self.t, self.w, self.hi, self.lo = t.astype(np.float64), w.astype(np.float64), hi, lo
 
     def __call__(self, theta):
         red = self.red
@@ -324,9 +330,31 @@ def _fit_program(prob, red, theta0, *, starts, restarts, max_steps, polish_steps
             exclude |= np.max(np.abs(U - u[None]), axis=1) < 0.25  # the basin just explored
         if (converged and cand["ratio"] <= noise_ratio_limit(n2)) or exclude.all() or len(U) == 1:
             break
+    best, k = _relinearise(prob, ev, red, best, polish_steps, rtol, n2, noise, notes)
+    steps += k
     solve_s = time.perf_counter() - t0
     msg_solver = best["res"]
     return _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2, n_cens, msg_solver)
+
+
+RELINEARISE_PASSES = 2
+
+
+def _relinearise(prob, ev, red, best, polish_steps, rtol, n2, noise, notes):
+    """For encoded targets: residuals in code values, exactly at the model (IRLS passes of
+    :meth:`Problem.relinearise`, each followed by the polish from the current best)."""
+    if not prob.encoded:
+        return best, 0
+    steps = 0
+    for _ in range(RELINEARISE_PASSES):
+        prob.relinearise(best["img"])
+        ev.refresh()
+        theta, r, J, img, fixed, k1, converged = _polish(ev, prob, red, best["theta"], polish_steps, rtol)
+        steps += k1
+        best = _candidate(prob, theta, r, J, img, fixed, best["res"] if not converged else "", converged, k1, n2, noise)
+    notes.append(f"code values: weights and targets re-taken at the model {RELINEARISE_PASSES}× (Gauss–Newton on the "
+                 f"code-value residual); residual {best['ratio']:.3g}× the noise")
+    return best, steps
 
 
 def _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2, n_cens, msg_solver) -> FitResult:
