@@ -217,14 +217,12 @@ def fit_albedo(prob: Problem, theta0, *, smoothness: float = 0.0, max_steps: int
             g = A.T @ (A @ x + b - y)
             return g + (Lp.T @ (Lp @ x) if Lp is not None else 0.0)
 
-        solve = None
         for _ in range(4 * 20):
             free = det & ~at_lo & ~at_hi
             idx = np.flatnonzero(free)
             if len(idx):
-                solve = normal(A, idx)
                 x_new = x.copy()
-                x_new[idx] = x[idx] - solve(grad(x)[idx])
+                x_new[idx] = x[idx] - normal(A, idx)(grad(x)[idx])
             else:
                 x_new = x
             out = free & ((x_new < 0) | (x_new > 1))
@@ -242,8 +240,9 @@ def fit_albedo(prob: Problem, theta0, *, smoothness: float = 0.0, max_steps: int
             at_hi &= ~release
         free = det & ~at_lo & ~at_hi
         idx = np.flatnonzero(free)
+        solve = normal(A, idx) if len(idx) else None  # the factorisation of the final free set
         for _ in range(2):  # iterative refinement: the normal equations lose cond² digits
-            if solve is not None and len(idx):
+            if solve is not None:
                 x[idx] = np.clip(x[idx] - solve(grad(x)[idx]), 0.0, 1.0)
         r = A @ x + b - y
         return x, r, A, Jo, seen, img, free, solve
@@ -269,17 +268,24 @@ def fit_albedo(prob: Problem, theta0, *, smoothness: float = 0.0, max_steps: int
         while not converged and steps < max_steps:
             steps += 1
             H, g = Jr.T @ Jr, Jr.T @ r
+            # a scalar on its bound (a positive one at its floor) whose gradient points out stays
+            # there: the step and the convergence test are over the others (a projected LM)
+            x_o = th[ap.other]
+            low = np.where(pos, np.maximum(x_o * 0 + 1e-12, 0.0), lo)
+            act = ~(((x_o <= low * (1 + 1e-9) + 1e-15) & (g > 0)) | ((x_o >= hi) & (g < 0)))
             d = np.sqrt(np.maximum(np.diag(H), 1e-300))
-            Hs = H / d[:, None] / d[None, :]
-            gs = g / d
-            gn = -np.linalg.lstsq(Hs, gs, rcond=1e-12)[0] / d
+            Hs = (H / d[:, None] / d[None, :])[np.ix_(act, act)]
+            gs = (g / d)[act]
+            gn = np.zeros_like(g)
+            gn[act] = -np.linalg.lstsq(Hs, gs, rcond=1e-12)[0] / d[act]
             # Gauss–Newton's predicted gain below a hundredth of the residual variance: converged
             if -(g @ gn) < max(1e-2 * cost / n_res, rtol * cost):
                 converged = True
                 break
             accepted = False
             for _ in range(12):
-                step = -np.linalg.solve(Hs + lam * np.eye(len(d)), gs) / d
+                step = np.zeros_like(g)
+                step[act] = -np.linalg.solve(Hs + lam * np.eye(int(act.sum())), gs) / d[act]
                 cand = th[ap.other] + step
                 cand = np.where(pos, np.maximum(cand, np.maximum(th[ap.other] * 1e-3, 1e-12)), cand)
                 cand = np.clip(cand, lo, hi)

@@ -10,7 +10,7 @@ import pytest
 
 NB_DIR = Path(__file__).resolve().parent.parent / "notebooks"
 NAMES = ["01_tour_of_terms.ipynb", "02_fitting.ipynb", "03_speed_vs_error.ipynb", "04_transparency_and_shadows.ipynb",
-         "05_mirrors_and_glass.ipynb"]
+         "05_mirrors_and_glass.ipynb", "06_photographs.ipynb"]
 
 
 @pytest.mark.parametrize("name", NAMES)
