@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .problem import FitError, Problem
-from .report import FitResult, image_quality, noise_level, noise_ratio_limit, uncertainty, verdict
+from .report import FitResult, image_quality, noise_level, uncertainty, verdict
 
 
 def vertex_colouring(faces: np.ndarray, n_vertices: int) -> np.ndarray:

@@ -26,6 +26,16 @@ def small_default_scene(width=32, height=32, **render):
     return ds.scene_from_dict(d)
 
 
+def opencv_look_at(eye, target=(0.0, 0.0, 0.0)):
+    """OpenCV pose ``(R, t)`` of a camera at ``eye`` looking at ``target``, image y down."""
+    eye, target = np.asarray(eye, np.float64), np.asarray(target, np.float64)
+    fwd = (target - eye) / np.linalg.norm(target - eye)
+    right = np.cross(fwd, [0.0, 1.0, 0.0])
+    right /= np.linalg.norm(right)
+    R = np.stack([right, np.cross(fwd, right), fwd])
+    return R, -R @ eye
+
+
 @pytest.fixture(scope="session")
 def meshes_dir():
     return shared_mesh_dir()

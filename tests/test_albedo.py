@@ -17,7 +17,6 @@ import diffshade as ds
 from fitting.albedo import AlbedoProblem, vertex_colouring
 from fitting.cli import EXIT_OK, main
 from fitting.fit import fit
-from fitting.params import ParamSet
 from fitting.problem import Problem
 
 SIZE = 40

@@ -16,6 +16,7 @@ import pytest
 from jax.test_util import check_grads
 
 import diffshade as ds
+from conftest import opencv_look_at as _look_at
 from conftest import small_default_scene
 
 
@@ -30,16 +31,6 @@ def _project(X, K, R, t):
     """OpenCV's projectPoints without distortion: pixel (u, v) of world points ``X`` ``[N, 3]``."""
     xc = X @ R.T + t
     return np.stack([K[0, 0] * xc[:, 0] / xc[:, 2] + K[0, 2], K[1, 1] * xc[:, 1] / xc[:, 2] + K[1, 2]], -1)
-
-
-def _look_at(eye):
-    """OpenCV pose ``(R, t)`` of a camera at ``eye`` looking at the origin, image y down."""
-    eye = np.asarray(eye, np.float64)
-    fwd = -eye / np.linalg.norm(eye)
-    right = np.cross(fwd, [0.0, 1.0, 0.0])
-    right /= np.linalg.norm(right)
-    R = np.stack([right, np.cross(fwd, right), fwd])
-    return R, -R @ eye
 
 
 K_OFF = np.array([[61.0, 0.0, 27.3], [0.0, 57.5, 17.8], [0.0, 0.0, 1.0]])  # off-centre principal point, fx != fy

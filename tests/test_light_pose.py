@@ -6,7 +6,6 @@ down is an ordinary start)."""
 from __future__ import annotations
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import diffshade as ds
+from conftest import opencv_look_at as _look_at
 from conftest import small_default_scene
 from fitting.cli import EXIT_INPUT, EXIT_OK, main
 from fitting.fit import fit
@@ -20,15 +21,6 @@ from fitting.params import ParamError, ParamSet
 SIZE = 32
 EYES = [(0.0, 0.0, 3.0), (1.5, 0.5, 2.5), (-1.2, 1.0, 2.6)]
 GAINS = [(1.0, (1.0, 1.0, 1.0)), (1.3, (1.1, 1.0, 0.8)), (0.7, (0.9, 1.0, 1.2))]
-
-
-def _look_at(eye):
-    eye = np.asarray(eye, np.float64)
-    fwd = -eye / np.linalg.norm(eye)
-    right = np.cross(fwd, [0.0, 1.0, 0.0])
-    right /= np.linalg.norm(right)
-    R = np.stack([right, np.cross(fwd, right), fwd])
-    return R, -R @ eye
 
 
 def _K(size, dx=1.5, dy=-2.0):
