@@ -755,7 +755,9 @@ from diffshade import _color
 from fitting.fit import fit
 from fitting.params import ParamSet
 
-spec = importlib.util.spec_from_file_location("make_dataset", Path("..") / "examples" / "photographs" / "make_dataset.py")
+import fitting
+ROOT = Path(fitting.__file__).resolve().parent.parent   # the repository (the examples are not a package)
+spec = importlib.util.spec_from_file_location("make_dataset", ROOT / "examples" / "photographs" / "make_dataset.py")
 M = importlib.util.module_from_spec(spec); spec.loader.exec_module(M)
 M.SIZE = 64 if SMALL else 160
 data = Path(tempfile.mkdtemp())
