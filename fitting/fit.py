@@ -23,6 +23,7 @@ import numpy as np
 
 import diffshade as ds
 
+from .params import ParamSet
 from .problem import FitError, Problem, ViewData, as_list
 from .report import FitResult, float_floor, noise_ratio_limit, image_quality, noise_level, uncertainty, verdict
 from .program import flat_data, make_program, make_search
@@ -68,6 +69,7 @@ def fit(
     encoding=None,
     margin: int = 0,
     albedo_smoothness: float = 0.0,
+    visibility_passes: int = 6,
 ) -> FitResult:
     """Fit the ``free`` parameters of ``scene`` to ``targets``.
 
@@ -103,7 +105,22 @@ def fit(
     ``mesh.colors`` among ``free`` (per-vertex albedo, with ``opts.vertex_color`` on) fits it as a
     sparse linear block (:mod:`fitting.albedo`), with the smoothness prior
     ``albedo_smoothness`` λ (0: none) on the differences across mesh edges.
+
+    A free camera pose (``camera.rvec``, ``camera.tvec``, per view or shared) moves what each
+    pixel sees; the visibility is discrete and has no gradient. The fit is then repeated, up to
+    ``visibility_passes`` times, each time from the last values with the visibility rasterised
+    again, until one pass is successful and moved no pose scalar by more than a tenth of its
+    standard error. The gradient comes from inside the object (its shading and colours moving
+    under the pixels); give ``margin`` so that the silhouette pixels stay out.
     """
+    free = list(free)
+    if visibility_passes > 1 and any(p.path[0] == "camera" and p.path[-1] in ("rvec", "tvec")
+                                     for p in ParamSet(list(free), scene, shared, n_views=len(as_list(targets))).params):
+        return _fit_pose(scene, opts, targets, free, views=views, visibility_passes=visibility_passes, solver=solver,
+                         masks=masks, shared=shared, max_steps=max_steps, rtol=rtol, atol=atol,
+                         saturation=saturation, quantum=quantum, noise=noise, starts=starts, restarts=restarts,
+                         polish_steps=polish_steps, method=method, verbose=verbose, history=history,
+                         encoding=encoding, margin=margin, albedo_smoothness=albedo_smoothness)
     if method not in ("auto", "full"):
         raise FitError(f"unknown method {method!r}; 'auto' or 'full'")
     if solver != "varpro" and solver not in SOLVERS:
@@ -210,6 +227,34 @@ def fit(
     msg_solver = "" if converged else (result_message(best["res"]).splitlines()[0] if best["res"]
                                        else "the polish did not converge")
     return _report(prob, red, best, theta0, notes, hist, steps_total, compile_s, solve_s, n2, n_cens, msg_solver)
+
+
+def _fit_pose(scene, opts, targets, free, *, views, visibility_passes, **kw) -> FitResult:
+    """:func:`fit` repeated with the visibility rasterised again at each pass's values (see
+    ``visibility_passes``)."""
+    targets = as_list(targets)
+    views = list(views) if views is not None else [scene] * len(targets)
+    pset = ParamSet(list(free), scene, kw.get("shared", ()), n_views=len(targets))
+    pose = np.concatenate([np.full(p.size, p.path[0] == "camera" and p.path[-1] in ("rvec", "tvec"))
+                           for p in pset.params])
+    notes, compile_s, solve_s, steps, prev, first_start = [], 0.0, 0.0, 0, None, None
+    for k in range(visibility_passes):
+        r = fit(scene, opts, targets, free, views=views, visibility_passes=1, **kw)
+        first_start = r.start if k == 0 else first_start
+        compile_s, solve_s, steps = compile_s + r.compile_s, solve_s + r.solve_s, steps + r.steps
+        theta = jnp.asarray(r.values, scene.mesh.vertices.dtype)
+        moved = np.abs(r.values - (r.start if prev is None else prev))[pose]
+        se = np.where(np.isfinite(r.stderr[pose]), r.stderr[pose], np.inf)
+        notes.append(f"visibility pass {k + 1}: {r.result or 'successful'}; the pose moved by up to "
+                     f"{np.max(moved / np.maximum(se, 1e-300)):.3g} s.e.")
+        prev = r.values
+        scene = pset.apply(scene, theta)
+        views = [pset.apply(v, theta, i) for i, v in enumerate(views)]
+        if r.successful and np.all(moved <= 0.1 * se):
+            break
+    r.notes = notes + r.notes
+    r.start, r.compile_s, r.solve_s, r.steps = first_start, compile_s, solve_s, steps
+    return r
 
 
 def _limits(max_steps, rtol, dtype):
