@@ -340,7 +340,7 @@ def fit_albedo(prob: Problem, theta0, *, smoothness: float = 0.0, max_steps: int
     # cov_x = M⁻¹ + Z S⁻¹ Zᵀ, M = AᵀA (+ λLᵀL) over the determined scalars, Z = M⁻¹AᵀJ_o,
     # S = J_oᵀJ_o − J_oᵀA Z (the other parameters' information with the albedo projected out);
     # diag(M⁻¹) per channel (M is block diagonal by channel), dense up to 4000 vertices
-    _, Jo_fin = Jr, ap.evaluate(th)[2]
+    Jo_fin = ap.evaluate(th)[2]  # at the final albedo (reduced() took the columns at the incoming one)
     det = seen | (Lp is not None)
     idx_det = np.flatnonzero(det)
     G = (A.T @ A)
