@@ -24,7 +24,7 @@ import numpy as np
 import diffshade as ds
 
 from .params import ParamSet
-from .problem import FitError, Problem, ViewData, as_list
+from .problem import FitError, Problem, as_list, to_host
 from .report import FitResult, float_floor, noise_ratio_limit, image_quality, noise_level, uncertainty, verdict
 from .program import flat_data, make_program, make_search
 from .strategy import SOLVERS, Reduced, candidates, compiled, compiled_all, lm_solve, result_message
@@ -32,16 +32,6 @@ from .strategy import SOLVERS, Reduced, candidates, compiled, compiled_all, lm_s
 __all__ = ["FitError", "FitResult", "fit", "compare_models", "model_variants", "ModelScore"]
 
 SEARCH_PIXELS = 512  # covered pixels per view used to rank the global starts
-
-
-def _subset(vd: ViewData, count: int) -> ViewData:
-    """Every k-th compacted pixel, about ``count`` of them (the ranking of starts needs few)."""
-    n = vd.target.shape[0]
-    step = max(1, n // count)
-    take = lambda a, ax: jax.lax.slice_in_dim(a, 0, n, step, axis=ax)  # noqa: E731
-    return ViewData(scene=vd.scene, ids=take(vd.ids, 2), px=take(vd.px, 1), py=take(vd.py, 1),
-                    target=take(vd.target, 0), weight=take(vd.weight, 0), hi=take(vd.hi, 0), lo=take(vd.lo, 0),
-                    index=vd.index)
 
 
 def fit(
@@ -70,6 +60,7 @@ def fit(
     margin: int = 0,
     albedo_smoothness: float = 0.0,
     visibility_passes: int = 6,
+    devices=None,
 ) -> FitResult:
     """Fit the ``free`` parameters of ``scene`` to ``targets``.
 
@@ -112,6 +103,12 @@ def fit(
     again, until one pass is successful and moved no pose scalar by more than a tenth of its
     standard error. The gradient comes from inside the object (its shading and colours moving
     under the pixels); give ``margin`` so that the silhouette pixels stay out.
+
+    ``devices``: the JAX devices the views are sharded over (None: all of ``jax.devices()``, cut
+    to the largest count that divides the number of views; with several processes under
+    :func:`jax.distributed.initialize`, every process's devices). Views of one structure are
+    stacked and mapped over by one program; sharded, each view's pixels, residuals and Jacobian
+    rows stay on its device and only the reductions over pixels cross devices.
     """
     free = list(free)
     if visibility_passes > 1 and any(p.path[0] == "camera" and p.path[-1] in ("rvec", "tvec")
@@ -120,13 +117,14 @@ def fit(
                          masks=masks, shared=shared, max_steps=max_steps, rtol=rtol, atol=atol,
                          saturation=saturation, quantum=quantum, noise=noise, starts=starts, restarts=restarts,
                          polish_steps=polish_steps, method=method, verbose=verbose, history=history,
-                         encoding=encoding, margin=margin, albedo_smoothness=albedo_smoothness)
+                         encoding=encoding, margin=margin, albedo_smoothness=albedo_smoothness, devices=devices)
     if method not in ("auto", "full"):
         raise FitError(f"unknown method {method!r}; 'auto' or 'full'")
     if solver != "varpro" and solver not in SOLVERS:
         raise FitError(f"unknown solver {solver!r}; 'varpro' or one of {sorted(SOLVERS)}")
     prob = Problem.build(scene, opts, as_list(targets), free, views=views, masks=masks, shared=shared,
-                         saturation=saturation, quantum=quantum, encoding=encoding, margin=margin)
+                         saturation=saturation, quantum=quantum, encoding=encoding, margin=margin,
+                         devices=devices)
     pset, dtype = prob.pset, prob.dtype
     theta0 = pset.theta_of(scene, views)
     pset.check(theta0)
@@ -152,7 +150,7 @@ def fit(
     # has the same optimum as the whole image, on a noisy one a nearby one, which the polish moves
     # to the whole image's.
     U = candidates(red, np.asarray(theta0), starts if len(red.idx_n) else 1)
-    sub = ([_subset(vd, SEARCH_PIXELS) for vd in prob.data], theta_ref)
+    sub = (prob.device_data(SEARCH_PIXELS), theta_ref)
     u_dtype = jnp.result_type(float)
 
     def coarse(Us, exclude, a):
@@ -270,7 +268,7 @@ def _programs(prob, red, U, sub, theta_ref, history=0, verbose=False, search=Tru
     n2, _ = prob.counts()
     z = jnp.zeros(len(red.idx_l) + len(red.idx_n), dtype)
     items = [("program", make_program(red, history=history, verbose=verbose),
-              (z, prob.data, theta_ref, jnp.asarray(n2, dtype), jnp.asarray(0), *_limits(0, 0.0, dtype)),
+              (z, prob.device_data(), theta_ref, jnp.asarray(n2, dtype), jnp.asarray(0), *_limits(0, 0.0, dtype)),
               (history, verbose, red.idx_n.tobytes()))]
     search = search and len(red.idx_n) and len(U) > 1
     if search:
@@ -302,10 +300,10 @@ class _Evaluator:
         red = self.red
         theta = np.asarray(theta, np.float64)
         z = np.concatenate([theta[red.idx_l], theta[red.idx_n]])
-        out = self.fn(jnp.asarray(z, self.dtype), self.prob.data, self.theta_ref, self.n2, jnp.asarray(1),
+        out = self.fn(jnp.asarray(z, self.dtype), self.prob.device_data(), self.theta_ref, self.n2, jnp.asarray(1),
                       *_limits(0, 0.0, self.dtype))
-        img = np.asarray(out["img"], np.float64)
-        T = np.asarray(out["T"])
+        img = to_host(out["img"]).astype(np.float64)
+        T = to_host(out["T"])
         d = img - self.t
         r = np.where(self.hi, np.minimum(d, 0), np.where(self.lo, np.maximum(d, 0), d)) * self.w
         act = ~((self.hi & (d > 0)) | (self.lo & (d < 0)))
@@ -329,7 +327,7 @@ def _fit_program(prob, red, theta0, *, starts, restarts, max_steps, polish_steps
     dtype = prob.dtype
     theta_ref = jnp.asarray(theta0, dtype)
     U = candidates(red, np.asarray(theta0), starts if len(red.idx_n) else 1)
-    sub = [_subset(vd, SEARCH_PIXELS) for vd in prob.data]
+    sub = prob.device_data(SEARCH_PIXELS)
     n2, n_cens = prob.counts()
     # The program runs the global start and the variable-projection LM; the polish runs on the
     # host in float64 on the program's evaluation (float32 normal equations cannot resolve the
@@ -347,7 +345,7 @@ def _fit_program(prob, red, theta0, *, starts, restarts, max_steps, polish_steps
     for attempt in range(restarts + 1):
         b = int(np.argmin(np.where(exclude, np.inf, costs)))
         z0 = np.concatenate([x_start, U[b]])
-        out = fn(jnp.asarray(z0, dtype), prob.data, theta_ref, n2_arr, jnp.asarray(0), *_limits(max_steps, rtol, dtype))
+        out = fn(jnp.asarray(z0, dtype), prob.device_data(), theta_ref, n2_arr, jnp.asarray(0), *_limits(max_steps, rtol, dtype))
         z = np.asarray(out["z"], np.float64)
         k0 = int(out["k"])
         u = z[len(red.idx_l):]

@@ -127,37 +127,49 @@ class Param:
         x = jnp.asarray(self._node(scene))
         return x if self.size == 3 or x.ndim == 0 else jnp.mean(x)
 
-    def set(self, scene: ds.Scene, value, view: int | None = None) -> ds.Scene:
-        """``scene`` with this parameter at ``value`` (unchanged if it is another view's)."""
-        if self.view is not None and view != self.view:
-            return scene
+    def set(self, scene: ds.Scene, value, view=None) -> ds.Scene:
+        """``scene`` with this parameter at ``value`` (unchanged if it is another view's).
+
+        ``view``: which view ``scene`` is: a Python int (another view's parameter is left out of
+        the program), or a traced integer (views stacked and mapped over: a per-view parameter is
+        selected where the index is its view)."""
+        sel = None
+        if self.view is not None:
+            if view is None or isinstance(view, (int, np.integer)):
+                if view != self.view:
+                    return scene
+            else:
+                sel = jnp.asarray(view) == self.view
+        where, new = self._update(scene, value)
+        if sel is not None:
+            new = jnp.where(sel, new, where(scene))
+        return eqx.tree_at(where, scene, new)
+
+    def _update(self, scene, value):
+        """``(where, new)``: the scene leaf this parameter lives in, and that leaf at ``value``."""
         if self.frame is not None:
             value = direction_of(value, self.frame)
         if self.path == ("mesh", "colors"):
-            return eqx.tree_at(lambda s: s.mesh.colors, scene, jnp.asarray(value).reshape(-1, 3).astype(scene.mesh.colors.dtype))
+            return (lambda s: s.mesh.colors), jnp.asarray(value).reshape(-1, 3).astype(scene.mesh.colors.dtype)
         p = self.path
         if p[0] in _KINDS and len(p) == 4:
             kind, i, j, field = p
             arr = getattr(scene.multi_lobe, field)
             new = arr.at[i, j].set(jnp.broadcast_to(value, arr[i, j].shape).astype(arr.dtype))
-            return eqx.tree_at(lambda s: getattr(s.multi_lobe, field), scene, new)
+            return (lambda s: getattr(s.multi_lobe, field)), new
         if p[0] in _KINDS:
             kind, i, field = p
             if field in ("a0", "a1", "a2"):
                 att = getattr(scene, kind).attenuation
-                new = att.at[i, int(field[1])].set(jnp.asarray(value, att.dtype))
-                return eqx.tree_at(lambda s: getattr(s, kind).attenuation, scene, new)
+                return (lambda s: getattr(s, kind).attenuation), att.at[i, int(field[1])].set(jnp.asarray(value, att.dtype))
             if field in _SIZE:
                 size = getattr(scene, kind).size
-                new = size.at[i, _SIZE[field]].set(jnp.asarray(value, size.dtype))
-                return eqx.tree_at(lambda s: getattr(s, kind).size, scene, new)
+                return (lambda s: getattr(s, kind).size), size.at[i, _SIZE[field]].set(jnp.asarray(value, size.dtype))
             arr = getattr(getattr(scene, kind), field)
             new = arr.at[i].set(jnp.broadcast_to(value, arr[i].shape).astype(arr.dtype))
-            return eqx.tree_at(lambda s: getattr(getattr(s, kind), field), scene, new)
+            return (lambda s: getattr(getattr(s, kind), field)), new
         old = self._node(scene)
-        new = jnp.broadcast_to(jnp.asarray(value, old.dtype), old.shape)
-
-        return eqx.tree_at(lambda s: _follow(s, p), scene, new)
+        return (lambda s: _follow(s, p)), jnp.broadcast_to(jnp.asarray(value, old.dtype), old.shape)
 
     # -- reparametrisation -----------------------------------------------------------------
     @property
@@ -405,9 +417,10 @@ class ParamSet:
     def split(self, vec):
         return [vec[a:b] if p.size > 1 else vec[a] for p, a, b in zip(self.params, self.offsets[:-1], self.offsets[1:])]
 
-    def apply(self, scene, theta, view: int | None = None):
+    def apply(self, scene, theta, view=None):
         """``scene`` with the parameters at ``theta``; ``view``: which view ``scene`` is (its
-        own per-view parameters are set, other views' left alone)."""
+        own per-view parameters are set, other views' left alone; an int, or a traced index
+        when the views are stacked)."""
         for p, v in zip(self.params, self.split(theta)):
             scene = p.set(scene, v, view)
         return scene

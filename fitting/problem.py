@@ -14,7 +14,7 @@ and its darkest (0) "at most this dark". Their residuals are one-sided,
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import equinox as eqx
 import jax
@@ -61,7 +61,7 @@ class ViewData(eqx.Module):
     weight: jax.Array  # [N, 3] √mask × the encoding's per-channel weight (0 in padding)
     hi: jax.Array  # [N, 3] bool: censored from above (target at saturation)
     lo: jax.Array  # [N, 3] bool: censored from below (target at 0 of an integer image)
-    index: int = eqx.field(static=True, default=0)  # which view (its own per-view parameters apply)
+    index: jax.Array  # int32: which view (its own per-view parameters apply); data, so stacked views share a program
 
 
 @dataclass
@@ -123,6 +123,74 @@ def near_edges(depth: np.ndarray, margin: int, ratio: float = 4.0) -> np.ndarray
     return edge & cov
 
 
+def subset_view(vd: ViewData, count: int) -> ViewData:
+    """Every k-th compacted pixel of a view, about ``count`` of them."""
+    n = vd.target.shape[0]
+    step = max(1, n // count)
+    take = lambda a, ax: jax.lax.slice_in_dim(a, 0, n, step, axis=ax)  # noqa: E731
+    return ViewData(scene=vd.scene, ids=take(vd.ids, 2), px=take(vd.px, 1), py=take(vd.py, 1),
+                    target=take(vd.target, 0), weight=take(vd.weight, 0), hi=take(vd.hi, 0), lo=take(vd.lo, 0),
+                    index=vd.index)
+
+
+def stack_views(data: list):
+    """The views stacked along a new leading axis (one :class:`ViewData`), or None where their
+    structures or shapes differ. One view stacks too (an axis of one)."""
+    leaves0, tdef = jax.tree.flatten(data[0])
+    sig = [(np.shape(x), jnp.result_type(x)) for x in leaves0]
+    for vd in data[1:]:
+        leaves, td = jax.tree.flatten(vd)
+        if td != tdef or [(np.shape(x), jnp.result_type(x)) for x in leaves] != sig:
+            return None
+    return jax.tree.map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *data)
+
+
+def view_list(data) -> list:
+    """``data`` as a list of views (stacked views taken apart: the optimistix path's loops)."""
+    if isinstance(data, ViewData):
+        return [jax.tree.map(lambda x: x[i], data) for i in range(data.target.shape[0])]
+    return list(data)
+
+
+def view_devices(devices, n_views: int) -> tuple:
+    """The devices ``n_views`` views are sharded over: ``devices`` (None: every device JAX has),
+    cut to the largest count that divides the number of views (each device holds as many)."""
+    devs = list(jax.devices() if devices is None else devices)
+    if not devs:
+        raise FitError("devices: an empty list")
+    d = max(k for k in range(1, len(devs) + 1) if n_views % k == 0)
+    return tuple(devs[:d])
+
+
+def place(tree, devices: tuple):
+    """``tree`` (leaves with a leading view axis) on ``devices``: sharded along that axis over
+    several (through :func:`jax.make_array_from_callback`, so that with several processes each
+    builds only the shards of its own devices), on the default device otherwise."""
+    if len(devices) <= 1:
+        return jax.tree.map(jnp.asarray, tree)
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+    mesh = Mesh(np.asarray(devices), ("views",))
+    sh = NamedSharding(mesh, PartitionSpec("views"))
+
+    def put(x):
+        x = np.asarray(x)
+        return jax.make_array_from_callback(x.shape, sh, lambda idx: x[idx])
+
+    return jax.tree.map(put, tree)
+
+
+def to_host(x) -> np.ndarray:
+    """A program's output on the host: an array sharded over other processes' devices too is
+    gathered from them first (with :func:`jax.distributed` every process holds only its views'
+    rows)."""
+    if isinstance(x, jax.Array) and not x.is_fully_addressable and not x.is_fully_replicated:
+        from jax.experimental import multihost_utils
+
+        return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+    return np.asarray(x)
+
+
 def censored_residual(img, t, hi, lo):
     """``I − t``, one-sided where the target is censored."""
     d = img - t
@@ -141,10 +209,12 @@ class Problem:
     saturation: float | None
     quantum: float | None  # the target's code step (1/255, 1/65535) if it was an integer image
     targets: list  # the full target images (host, float64), for reports
+    devices: tuple = ()  # the devices the views are sharded over (() or one: no sharding)
+    _placed: dict = field(default_factory=dict, repr=False)  # device copies of the data, by what
 
     @classmethod
     def build(cls, scene, opts, targets, free, *, views=None, masks=None, shared=(), saturation=None,
-              quantum=None, lower_censor=None, encoding=None, margin: int = 0):
+              quantum=None, lower_censor=None, encoding=None, margin: int = 0, devices=None):
         targets = as_list(targets)
         encodings = list(encoding) if isinstance(encoding, (list, tuple)) else [encoding] * len(targets)
         if len(encodings) != len(targets):
@@ -160,7 +230,7 @@ class Problem:
         pset = ParamSet(list(free), scene, shared, n_views=len(targets))
         lower = (saturation is not None) if lower_censor is None else lower_censor
         vis = jax.jit(ds.scene_visibility, static_argnums=1)
-        data, books, full = [], [], []
+        data, books, full, covers = [], [], [], []
         for k, (t, v, m, enc) in enumerate(zip(targets, views, masks, encodings)):
             t = np.asarray(check_target(t, v, k), np.float64)
             # an encoded target: clipping is decided on the code values; the residual is taken in
@@ -198,8 +268,12 @@ class Problem:
                 # square footprint; the image border is not an edge)
                 side = 2 * int(margin) + 1
                 covered = erosion(covered, np.ones((side, side), bool), mode="ignore")
+            covers.append((t, v, m, enc, ids, covered, wgt, chan_w, hi, lo))
+        # every view padded to the same count, so that the views stack into one batch
+        n = max(PAD, max(-(-int(c[5].sum()) // PAD) * PAD for c in covers))
+        for k, (t, v, m, enc, ids, covered, wgt, chan_w, hi, lo) in enumerate(covers):
+            h, w = v.camera.resolution
             rows = np.flatnonzero(covered.reshape(-1))
-            n = max(PAD, -(-len(rows) // PAD) * PAD)
             pad = n - len(rows)
             cw = wgt[..., None] * chan_w  # [H, W, 3]
             xs, ys = (np.asarray(c, np.float64) for c in ds.pixel_centres(h, w, np.float64))
@@ -212,7 +286,8 @@ class Problem:
                 scene=v, ids=jnp.asarray(kids),
                 px=jnp.asarray(padn(xs[c_idx], 0.0)[None], dtype), py=jnp.asarray(padn(ys[r_idx], 0.0)[None], dtype),
                 target=jnp.asarray(padn(flat(t), 0.0), dtype), weight=jnp.asarray(padn(flat(cw), 0.0), dtype),
-                hi=jnp.asarray(padn(flat(hi), False)), lo=jnp.asarray(padn(flat(lo), False)), index=k))
+                hi=jnp.asarray(padn(flat(hi), False)), lo=jnp.asarray(padn(flat(lo), False)),
+                index=jnp.asarray(k, jnp.int32)))
             # what the model shows where no surface is (the camera's gain at its start values)
             bg = np.broadcast_to(np.asarray(v.background, np.float64) * np.asarray(v.camera.gain(), np.float64), t.shape)
             d = bg - t
@@ -223,7 +298,7 @@ class Problem:
             books.append(View(rows=rows, shape=(h, w), const=const, encoding=enc if encoded else None,
                               codes=padn(flat(np.asarray(targets[k], np.float64)), 0.0) if encoded else None,
                               sqrt_mask=padn(flat(wgt[..., None]), 0.0) if encoded else None))
-        return cls(pset, opts, data, books, dtype, saturation, quantum, full)
+        return cls(pset, opts, data, books, dtype, saturation, quantum, full, devices=view_devices(devices, len(data)))
 
     @property
     def encoded(self) -> bool:
@@ -254,6 +329,38 @@ class Problem:
             w_new = np.where(cens, np.asarray(vd.weight, np.float64), b.sqrt_mask / slope)
             self.data[k] = eqx.tree_at(lambda d: (d.target, d.weight), vd,
                                        (jnp.asarray(t_new, vd.target.dtype), jnp.asarray(w_new, vd.weight.dtype)))
+        self._placed.clear()
+
+    # -- the views as the compiled programs take them ------------------------------------------
+    def device_data(self, subset: int | None = None):
+        """The views as compiled programs take them: stacked into one :class:`ViewData` whose
+        leaves have a leading view axis (one program maps over the views, so its compile does not
+        grow with their number) and, over several :attr:`devices`, sharded along that axis (each
+        view's pixels, residual and Jacobian rows live on its device; the reductions over pixels
+        are the only communication). A list of views when their structures differ (different
+        light counts, image sizes: each is then its own piece of the program). ``subset``: every
+        k-th pixel, about that many per view (the ranking of starts needs few)."""
+        key = subset
+        if key not in self._placed:
+            data = self.data if subset is None else [subset_view(vd, subset) for vd in self.data]
+            stacked = stack_views(data)
+            if stacked is None:
+                self._placed[key] = data
+            else:
+                self._placed[key] = place(stacked, self.devices)
+        return self._placed[key]
+
+    @property
+    def stacked(self) -> bool:
+        """Whether the compiled programs map over stacked views (see :meth:`device_data`)."""
+        return isinstance(self.device_data(), ViewData)
+
+    def images(self, theta, data):
+        """The model at every view's compacted pixels, flat (view, pixel, channel), for ``data``
+        as :meth:`device_data` gives it."""
+        if isinstance(data, ViewData):
+            return jax.vmap(lambda vd: self.image(vd, theta))(data).reshape(-1)
+        return jnp.concatenate([self.image(vd, theta).reshape(-1) for vd in data])
 
     # -- evaluation ----------------------------------------------------------------------------
     def image(self, vd: ViewData, theta):
@@ -263,6 +370,9 @@ class Problem:
 
     def residual(self, theta, data):
         """Weighted, censored residual of every view's compacted pixels, flat."""
+        if isinstance(data, ViewData):
+            r = jax.vmap(lambda vd: censored_residual(self.image(vd, theta), vd.target, vd.hi, vd.lo) * vd.weight)(data)
+            return r.reshape(-1)
         out = []
         for vd in data:
             r = censored_residual(self.image(vd, theta), vd.target, vd.hi, vd.lo) * vd.weight

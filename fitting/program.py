@@ -31,6 +31,7 @@ import numpy as np
 
 from diffshade._util import keep
 
+from .problem import ViewData
 from .strategy import Reduced, _masked_solve, bounded_lsq
 
 
@@ -45,7 +46,11 @@ def _tangents(red: Reduced):
 
 
 def flat_data(data):
-    """Target, weight and censoring masks of every view's compacted pixels, flat ``[M]``."""
+    """Target, weight and censoring masks of every view's compacted pixels, flat ``[M]`` (``data``
+    a list of views or the views stacked: :meth:`fitting.problem.Problem.device_data`)."""
+    if isinstance(data, ViewData):
+        return (data.target.reshape(-1), jnp.broadcast_to(data.weight, data.target.shape).reshape(-1),
+                data.hi.reshape(-1), data.lo.reshape(-1))
     t = jnp.concatenate([vd.target.reshape(-1) for vd in data])
     w = jnp.concatenate([jnp.broadcast_to(vd.weight, vd.target.shape).reshape(-1) for vd in data])
     hi = jnp.concatenate([vd.hi.reshape(-1) for vd in data])
@@ -104,8 +109,7 @@ def make_search(red: Reduced):
             # ranking only: the unconstrained linear optimum clipped into the bounds (an upper
             # bound of the bounded one; a batched active-set solve costs 2x the compile)
             def f(x):
-                th = red.theta(u, x, theta_ref)
-                return jnp.concatenate([prob.image(vd, th).reshape(-1) for vd in sub])
+                return prob.images(red.theta(u, x, theta_ref), sub)
             imgs = jax.vmap(f)(X)
             r0 = (imgs[0] - ts) * wus
             if not n_l:
@@ -158,8 +162,7 @@ def make_program(red: Reduced, *, history: int = 0, verbose: bool = False):
         def images(z):
             """Flat image and its tangents, one per linear field and one per nonlinear scalar."""
             def f(zz):
-                th = to_theta(zz, ~solve, theta_ref)
-                return jnp.concatenate([prob.image(vd, th).reshape(-1) for vd in data])
+                return prob.images(to_theta(zz, ~solve, theta_ref), data)
             img, T = jax.vmap(lambda e: jax.jvp(f, (z,), (e,)), out_axes=(None, 0))(jnp.asarray(E_all, dt))
             return keep(img, T)
 

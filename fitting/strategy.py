@@ -40,7 +40,7 @@ import optimistix as optx
 from diffshade._util import keep
 
 from .params import Param
-from .problem import Problem
+from .problem import Problem, view_list
 
 _LINEAR_MATERIAL = {"emission", "ambient", "diffuse", "specular", "transmission"}
 # which material fields a light field multiplies (both free: the light's side is nonlinear)
@@ -270,7 +270,7 @@ class Reduced:
         """The bounded linear optimum ``x*`` at ``theta``'s nonlinear values (no gradient), with
         its free mask and the stacked design matrix."""
         As, r0s = [], []
-        for vd in data:
+        for vd in view_list(data):
             A, b = self.design(vd, theta)
             w = vd.weight * ~(vd.hi | vd.lo)
             As.append(A)
@@ -286,12 +286,12 @@ class Reduced:
         theta = self.theta(u_n, theta_ref[self.idx_l], theta_ref)
         if not len(self.idx_l):
             r = jnp.concatenate([((self.prob.image(vd, theta) - vd.target) * vd.weight
-                                  * ~(vd.hi | vd.lo)).reshape(-1) for vd in data])
+                                  * ~(vd.hi | vd.lo)).reshape(-1) for vd in view_list(data)])
             return r.astype(u_n.dtype), jnp.zeros((0,), theta.dtype)
         x, free, A, _ = self.solve_linear(theta, data)
         theta = theta.at[self.idx_l].set(x)
         r = jnp.concatenate([((self.prob.image(vd, theta) - vd.target) * vd.weight
-                              * ~(vd.hi | vd.lo)).reshape(-1) for vd in data])
+                              * ~(vd.hi | vd.lo)).reshape(-1) for vd in view_list(data)])
         # Kaufman: the tangent is projected off the span of the free linear columns
         Af = A * free.astype(A.dtype)
         G = Af.T @ Af
@@ -469,7 +469,7 @@ def _key(prob: Problem, what, *extra, args=()):
     leaves, treedef = jax.tree.flatten(args)
     pset = prob.pset
     return (what, tuple(pset.labels), tuple(p.path for p in pset.params), tuple(pset.sizes), prob.opts, treedef,
-            tuple((x.shape, x.dtype) for x in leaves), *extra)
+            tuple((x.shape, x.dtype, getattr(x, "sharding", None)) for x in leaves), *extra)
 
 
 def compiled(prob: Problem, what: str, fn, *args, extra=()):
