@@ -20,6 +20,7 @@ from ._raster import (
     visibility,
     visibility_passes,
 )
+from ._antialias import antialias, face_adjacency
 from ._render import render, scene_visibility, shade, to_uint8, truncated_pixels
 from ._trace import ray_counts
 from ._scene import (
@@ -43,7 +44,7 @@ from ._shade import blinn_to_phong, phong_to_blinn
 __all__ = [
     "AreaLights", "no_area", "Camera", "OpenCVCamera", "rodrigues", "undistort", "DEFAULT_SCENE", "DirectionalLights", "Fog", "Fragments", "Material", "Mesh", "MeshError", "MultiLobeLights", "no_multi_lobe",
     "PointLights", "RenderOptions", "Scene", "SceneError", "SpotLights", "blinn_to_phong", "default_scene",
-    "fragments", "icosphere", "interpolate", "load_camera", "load_mesh", "load_scene", "mesh_from_arrays", "no_directional",
+    "antialias", "face_adjacency", "fragments", "icosphere", "interpolate", "load_camera", "load_mesh", "load_scene", "mesh_from_arrays", "no_directional",
     "no_point", "no_spot", "phong_to_blinn", "pixel_centres", "rasterize", "render", "scene_from_dict",
     "scene_visibility", "shade", "to_uint8", "visibility", "visibility_passes", "box", "combine", "quad",
     "truncated_pixels",

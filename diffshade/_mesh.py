@@ -32,6 +32,10 @@ class Mesh(eqx.Module):
     :meth:`vertex_normals` returns them, normalised, instead of computing them; they are data
     (they do not follow the vertices in a fit that moves them). ``colors`` (optional, one linear
     RGB per vertex) are per-vertex reflectances, used where ``RenderOptions.vertex_color`` asks.
+    ``adjacency`` (optional, one row per face) is the face across each edge
+    (:func:`diffshade.face_adjacency`), which ``RenderOptions.antialias`` needs: computed from the
+    faces where they are concrete, or beforehand with :meth:`with_adjacency` for a mesh passed
+    into ``jax.jit``.
     """
 
     vertices: Float[Array, "V 3"] = eqx.field(converter=as_float_array)
@@ -39,13 +43,23 @@ class Mesh(eqx.Module):
     material_ids: Int[Array, " F"] | None = eqx.field(converter=_ids, default=None)
     normals: Float[Array, "V 3"] | None = eqx.field(converter=lambda x: None if x is None else as_float_array(x), default=None)
     colors: Float[Array, "V 3"] | None = eqx.field(converter=lambda x: None if x is None else as_float_array(x), default=None)
+    adjacency: Int[Array, "F 3"] | None = eqx.field(converter=_ids, default=None)
 
     def __check_init__(self):
         nv = self.vertices.shape[0]
+        if self.adjacency is not None and self.adjacency.shape != self.faces.shape:
+            raise ValueError(f"Mesh.adjacency must be shaped {self.faces.shape}, one face per edge, got {self.adjacency.shape}")
         for name in ("normals", "colors"):
             x = getattr(self, name)
             if x is not None and x.shape != (nv, 3):
                 raise ValueError(f"Mesh.{name} must be shaped ({nv}, 3), one per vertex, got {x.shape}")
+
+    def with_adjacency(self) -> "Mesh":
+        """This mesh with its :attr:`adjacency` computed (on the host, from the faces)."""
+        from ._antialias import face_adjacency
+
+        return eqx.tree_at(lambda m: m.adjacency, self, jnp.asarray(face_adjacency(np.asarray(self.faces))),
+                           is_leaf=lambda x: x is None)
 
     def face_normals(self, normalize: bool = True) -> Float[Array, "F 3"]:
         r"""Per-face normal :math:`(v_1 - v_0) \times (v_2 - v_0)` (unit length if ``normalize``).

@@ -13,14 +13,16 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Int
 
 from . import _lighting as Lg
 from . import _shade as S
+from ._antialias import antialias, face_adjacency, grid_neighbours
 from ._composite import composite, fog_and_clamp
 from ._lighting import _color_sum, _vertex_clamp, shade_points
 from ._materials import _COMPOSITING_FIELDS, _back_material, _material_at, _select, _used_fields
-from ._raster import _pixel_vertex_ids, fragments, visibility
+from ._raster import _pixel_vertex_ids, fragments, pixel_centres, visibility
 from ._scene import RenderOptions, Scene
 from ._shadow import light_visibility
 from ._trace import trace
@@ -32,6 +34,8 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=No
 
     ``pixels``: optional NDC pixel centres ``(x, y)`` shaped as ``ids[0]``, for ``ids`` gathered
     at a subset of the image's pixels (see :func:`diffshade.fragments`); default the full grid.
+    With ``opts.antialias`` a subset is ``(x, y, right, down)``: also each pixel's right and
+    lower neighbour as a flat index into the subset (-1: none).
 
     Only layer 0 is shaded unless ``opts`` asks for transparency (or absorption): then every
     layer is shaded, fogged, and composited front to back (docs/model.md §5).
@@ -40,7 +44,7 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=No
     layered = opts.layered
     ids = ids if layered else ids[:1]
     clip = cam.world_to_clip(mesh.vertices)
-    frags = fragments(clip, mesh.faces, ids, pixels)
+    frags = fragments(clip, mesh.faces, ids, None if pixels is None else pixels[:2])
     tid = frags.tri_id
     shape = tid.shape  # [K, H, W]
     valid = tid >= 0
@@ -195,7 +199,40 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=No
     else:
         img = composite(color, scene, opts, valid, front, pmat, P, n_px, kay, pix_mid)
     # the camera's gain (exposure and white balance) on everything it sees, background included
-    return img * cam.gain().astype(img.dtype)
+    img = img * cam.gain().astype(img.dtype)
+    if opts.antialias:
+        img = _antialiased(img, mesh, clip, frags, pixels, cam.resolution)
+    return img
+
+
+def _antialiased(img, mesh, clip, frags, pixels, resolution):
+    """:func:`diffshade._antialias.antialias` of the shaded image (the grid's neighbours, or the
+    ``right``/``down`` indices a pixel subset brings)."""
+    shape = img.shape[:-1]
+    adj = mesh.adjacency
+    if adj is None:
+        try:
+            faces = np.asarray(mesh.faces)
+        except jax.errors.TracerArrayConversionError:
+            raise ValueError("RenderOptions.antialias needs the mesh's face adjacency, and the faces are traced here "
+                             "(inside jax.jit): give the scene a mesh with it, scene.mesh.with_adjacency(), "
+                             "before jit") from None
+        adj = jnp.asarray(face_adjacency(faces))
+    if pixels is None:
+        h, w = shape
+        xs, ys = pixel_centres(h, w, img.dtype)
+        x = jnp.broadcast_to(xs[None, :], shape).reshape(-1)
+        y = jnp.broadcast_to(ys[:, None], shape).reshape(-1)
+        right, down = (jnp.asarray(a).reshape(-1) for a in grid_neighbours(h, w))
+    else:
+        if len(pixels) != 4:
+            raise ValueError("RenderOptions.antialias on a pixel subset needs each pixel's right and lower "
+                             "neighbour: pixels=(x, y, right, down)")
+        x, y, right, down = (jnp.asarray(a).reshape(-1) for a in pixels)
+        x, y = x.astype(img.dtype), y.astype(img.dtype)
+    out = antialias(img.reshape(-1, 3), frags.tri_id[0].reshape(-1), frags.w[0].reshape(-1), clip, mesh.faces, adj,
+                    x, y, right, down, resolution)
+    return out.reshape(img.shape)
 
 
 def render(scene: Scene, opts: RenderOptions = RenderOptions(), ids: Int[Array, "K H W"] | None = None,

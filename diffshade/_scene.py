@@ -302,6 +302,11 @@ class RenderOptions:
       (``"ambient_and_diffuse"``), as ``glColorMaterial`` with ``GL_COLOR_MATERIAL`` enabled;
       ``"none"`` (the default) ignores them. Interpolated to the pixel under Phong shading, lit
       at the vertices under Gouraud, averaged over the face (or the provoking vertex's) under flat.
+
+    ``antialias`` (off by default; not an OpenGL option): analytic coverage of silhouette edges
+    between neighbouring pixels (:mod:`diffshade._antialias`, as nvdiffrast's ``antialias``), so
+    that the image is continuous in the camera and the vertices and their gradients see where
+    the silhouette lies; a material-only fit does not need it. The nearest layer only.
     - ``flat_source``: flat shading lights the triangle's ``"centroid"`` with its face normal, or
       its ``"provoking"`` vertex (the last, OpenGL's default) with that vertex's normal.
     - ``viewer``: ``"local"`` (:math:`v` towards the eye from each point) or ``"infinite"``
@@ -346,6 +351,7 @@ class RenderOptions:
     viewer: Viewer = "local"
     color_sum: ColorSum = "single"
     vertex_color: VertexColor = "none"
+    antialias: bool = False
 
     @classmethod
     def opengl(cls, **overrides) -> "RenderOptions":
@@ -382,6 +388,11 @@ class RenderOptions:
             raise ValueError("vertex_color is supported by the rasterized, one-layer render (no ray tracing, "
                              "transparency or absorption yet): a surface point's colour off the first layer is not "
                              "interpolated there")
+        if not isinstance(self.antialias, bool):
+            raise ValueError(f"RenderOptions.antialias must be True or False, got {self.antialias!r}")
+        if self.antialias and self.layered:
+            raise ValueError("RenderOptions.antialias smooths the nearest layer's silhouettes: it does not combine with "
+                             "transparency or absorption (depth layers)")
         if self.shadow_rays and self.shadows:
             raise ValueError("shadows (maps) and shadow_rays are two ways to the same shadows: choose one")
         g = self.area_grid

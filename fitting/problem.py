@@ -61,6 +61,8 @@ class ViewData(eqx.Module):
     weight: jax.Array  # [N, 3] √mask × the encoding's per-channel weight (0 in padding)
     hi: jax.Array  # [N, 3] bool: censored from above (target at saturation)
     lo: jax.Array  # [N, 3] bool: censored from below (target at 0 of an integer image)
+    right: jax.Array  # [1, N] int32: each pixel's right neighbour among the compacted pixels (-1: none)
+    down: jax.Array  # [1, N] int32: its lower neighbour (both for RenderOptions.antialias)
     index: jax.Array  # int32: which view (its own per-view parameters apply); data, so stacked views share a program
 
 
@@ -123,14 +125,27 @@ def near_edges(depth: np.ndarray, margin: int, ratio: float = 4.0) -> np.ndarray
     return edge & cov
 
 
+def compact_neighbours(rows: np.ndarray, h: int, w: int):
+    """``(right, down)`` ``[n]`` int32: for each compacted pixel (flat image index ``rows``) the
+    position of its right and lower neighbour among ``rows``, -1 where that one is not there."""
+    pos = np.full(h * w + 1, -1, np.int64)  # the last slot: past the border
+    pos[rows] = np.arange(len(rows))
+    col, row = rows % w, rows // w
+    right = pos[np.where(col < w - 1, rows + 1, h * w)]
+    down = pos[np.where(row < h - 1, rows + w, h * w)]
+    return right.astype(np.int32), down.astype(np.int32)
+
+
 def subset_view(vd: ViewData, count: int) -> ViewData:
-    """Every k-th compacted pixel of a view, about ``count`` of them."""
+    """Every k-th compacted pixel of a view, about ``count`` of them (neighbours that are not
+    among them dropped)."""
     n = vd.target.shape[0]
     step = max(1, n // count)
     take = lambda a, ax: jax.lax.slice_in_dim(a, 0, n, step, axis=ax)  # noqa: E731
+    keep_nb = lambda a: jnp.where((a >= 0) & (a % step == 0), a // step, -1).astype(a.dtype)  # noqa: E731
     return ViewData(scene=vd.scene, ids=take(vd.ids, 2), px=take(vd.px, 1), py=take(vd.py, 1),
                     target=take(vd.target, 0), weight=take(vd.weight, 0), hi=take(vd.hi, 0), lo=take(vd.lo, 0),
-                    index=vd.index)
+                    right=keep_nb(take(vd.right, 1)), down=keep_nb(take(vd.down, 1)), index=vd.index)
 
 
 def stack_views(data: list):
@@ -268,14 +283,26 @@ class Problem:
                 # square footprint; the image border is not an edge)
                 side = 2 * int(margin) + 1
                 covered = erosion(covered, np.ones((side, side), bool), mode="ignore")
-            covers.append((t, v, m, enc, ids, covered, wgt, chan_w, hi, lo))
+            used = covered
+            if opts.antialias:
+                # the background pixels beside the silhouette depend on the parameters too (the
+                # antialiasing blends the surface into them): they are shaded with the rest and,
+                # without a margin, fitted
+                from skimage.morphology import dilation
+
+                ring = dilation(ids[0] >= 0, np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool)) & (ids[0] < 0)
+                covered = covered | ring | ((ids[0] >= 0) & (wgt > 0))
+                used = used | (ring & (wgt > 0) & (not margin))
+            covers.append((t, v, m, enc, ids, covered, used, wgt, chan_w, hi, lo))
         # every view padded to the same count, so that the views stack into one batch
-        n = max(PAD, max(-(-int(c[5].sum()) // PAD) * PAD for c in covers))
-        for k, (t, v, m, enc, ids, covered, wgt, chan_w, hi, lo) in enumerate(covers):
+        n = max(PAD, max(-(-int(c[5].sum()) // PAD) * PAD for c in covers))  # c[5]: the compacted pixels
+        for k, (t, v, m, enc, ids, covered, used, wgt, chan_w, hi, lo) in enumerate(covers):
             h, w = v.camera.resolution
             rows = np.flatnonzero(covered.reshape(-1))
             pad = n - len(rows)
-            cw = wgt[..., None] * chan_w  # [H, W, 3]
+            cw_all = wgt[..., None] * chan_w  # [H, W, 3]
+            cw = cw_all * used[..., None]  # compacted pixels that are not fitted (antialias ring, masked) weigh 0
+            right, down = compact_neighbours(rows, h, w)
             xs, ys = (np.asarray(c, np.float64) for c in ds.pixel_centres(h, w, np.float64))
             r_idx, c_idx = rows // w, rows % w
             flat = lambda a: a.reshape(h * w, *a.shape[2:])[rows]  # noqa: E731
@@ -287,17 +314,18 @@ class Problem:
                 px=jnp.asarray(padn(xs[c_idx], 0.0)[None], dtype), py=jnp.asarray(padn(ys[r_idx], 0.0)[None], dtype),
                 target=jnp.asarray(padn(flat(t), 0.0), dtype), weight=jnp.asarray(padn(flat(cw), 0.0), dtype),
                 hi=jnp.asarray(padn(flat(hi), False)), lo=jnp.asarray(padn(flat(lo), False)),
+                right=jnp.asarray(padn(right, -1)[None]), down=jnp.asarray(padn(down, -1)[None]),
                 index=jnp.asarray(k, jnp.int32)))
             # what the model shows where no surface is (the camera's gain at its start values)
             bg = np.broadcast_to(np.asarray(v.background, np.float64) * np.asarray(v.camera.gain(), np.float64), t.shape)
             d = bg - t
-            d = np.where(hi, np.minimum(d, 0), np.where(lo, np.maximum(d, 0), d)) * cw
+            d = np.where(hi, np.minimum(d, 0), np.where(lo, np.maximum(d, 0), d)) * cw_all
             unc = ~covered
             const = np.where(unc[..., None], d, 0.0)
             encoded = enc is not None and enc != "linear"
             books.append(View(rows=rows, shape=(h, w), const=const, encoding=enc if encoded else None,
                               codes=padn(flat(np.asarray(targets[k], np.float64)), 0.0) if encoded else None,
-                              sqrt_mask=padn(flat(wgt[..., None]), 0.0) if encoded else None))
+                              sqrt_mask=padn(flat((wgt * used)[..., None]), 0.0) if encoded else None))
         return cls(pset, opts, data, books, dtype, saturation, quantum, full, devices=view_devices(devices, len(data)))
 
     @property
@@ -365,7 +393,8 @@ class Problem:
     # -- evaluation ----------------------------------------------------------------------------
     def image(self, vd: ViewData, theta):
         """The model at a view's compacted pixels, ``[N, 3]``."""
-        img = ds.render(self.pset.apply(vd.scene, theta, vd.index), self.opts, ids=vd.ids, pixels=(vd.px, vd.py))
+        pixels = (vd.px, vd.py, vd.right, vd.down) if self.opts.antialias else (vd.px, vd.py)
+        img = ds.render(self.pset.apply(vd.scene, theta, vd.index), self.opts, ids=vd.ids, pixels=pixels)
         return img[0]
 
     def residual(self, theta, data):
