@@ -387,8 +387,23 @@ class Problem:
         """The model at every view's compacted pixels, flat (view, pixel, channel), for ``data``
         as :meth:`device_data` gives it."""
         if isinstance(data, ViewData):
-            return jax.vmap(lambda vd: self.image(vd, theta))(data).reshape(-1)
+            return self.map_views(self.image, data, theta).reshape(-1)
         return jnp.concatenate([self.image(vd, theta).reshape(-1) for vd in data])
+
+    def map_views(self, fn, data: ViewData, *args):
+        """``fn(view, *args)`` for every stacked view, stacked. One view at a time (``lax.map``):
+        the render's gathers stay one-dimensional, which XLA's CPU backend runs up to 100× faster
+        than the batched gathers ``vmap`` makes of them (measured: a pose fit's evaluation took
+        925 ms mapped, 8 ms one view at a time). Over several devices the loop runs inside
+        ``shard_map``, each device over its own views."""
+        body = lambda d, *a: jax.lax.map(lambda vd: fn(vd, *a), d)  # noqa: E731
+        if len(self.devices) > 1:
+            from jax.sharding import Mesh, PartitionSpec
+
+            mesh = Mesh(np.asarray(self.devices), ("views",))
+            body = jax.shard_map(body, mesh=mesh, in_specs=(PartitionSpec("views"),) + (PartitionSpec(),) * len(args),
+                                 out_specs=PartitionSpec("views"))
+        return body(data, *args)
 
     # -- evaluation ----------------------------------------------------------------------------
     def image(self, vd: ViewData, theta):
@@ -400,7 +415,8 @@ class Problem:
     def residual(self, theta, data):
         """Weighted, censored residual of every view's compacted pixels, flat."""
         if isinstance(data, ViewData):
-            r = jax.vmap(lambda vd: censored_residual(self.image(vd, theta), vd.target, vd.hi, vd.lo) * vd.weight)(data)
+            r = self.map_views(lambda vd, th: censored_residual(self.image(vd, th), vd.target, vd.hi, vd.lo) * vd.weight,
+                               data, theta)
             return r.reshape(-1)
         out = []
         for vd in data:
