@@ -105,29 +105,20 @@ def _edge_table(clip, faces, adjacency, h, w):
 HOPS = 4  # triangles a pixel pair's segment is followed through before its silhouette
 
 
-def antialias(img, tri, depth, clip, faces, adjacency, x, y, right, down, resolution):
-    """The antialiased image (see the module docstring); every argument flat over the pixels.
-
-    ``img`` ``[N, 3]`` the shaded image; ``tri`` ``[N]`` the nearest layer's triangle ids (-1:
-    background); ``depth`` ``[N]`` its clip :math:`w` (only compared; no gradient); ``clip``
-    ``[V, 4]`` the vertices' clip coordinates; ``faces`` and ``adjacency`` ``[F, 3]``; ``x, y``
-    ``[N]`` the pixel centres in NDC; ``right, down`` ``[N]`` each pixel's neighbour (-1: none);
-    ``resolution`` ``(H, W)``.
-
-    The walk (which edge is crossed where) is discrete and evaluated without gradient on a per-
-    face table; the crossing on the silhouette edge it ends at is then evaluated once more,
-    differentiably. (Every gather is one-dimensional and every stage materialised: XLA's CPU
-    backend would otherwise recompute shared producers inside each gather.)"""
-    dt = img.dtype
+def silhouette_edges(tri, depth, clip, faces, adjacency, x, y, right, down, resolution):
+    """The discrete half of :func:`antialias`: for each pixel's pair with its right and its lower
+    neighbour, the silhouette edge the walk ends at, as ``[2, 2, N]`` int32: ``[axis, 0]`` the
+    edge's row (``face * 3 + edge``, -1: no blend) and ``[axis, 1]`` 1 where this pixel is the
+    pair's front one. No gradient: a fit holds it, like the visibility, fixed within a pass."""
+    clip = jax.lax.stop_gradient(clip)
     depth = jax.lax.stop_gradient(depth)
-    n = img.shape[0]
+    dt = clip.dtype
+    n = tri.shape[0]
     h, w = resolution
     idx = jnp.arange(n, dtype=jnp.int32)
-    c_d, ax_d, ay_d, sil_t, acr_h, acr_v = keep(*_edge_table(jax.lax.stop_gradient(clip), faces, adjacency, h, w))
-    c_g, ax_g, ay_g = keep(*_edge_table(clip, faces, adjacency, h, w)[:3])
+    c_d, ax_d, ay_d, sil_t, acr_h, acr_v = keep(*_edge_table(clip, faces, adjacency, h, w))
     adj = adjacency.reshape(-1)
-    chans = [img[:, c] for c in range(3)]
-    delta = [jnp.zeros((n,), dt) for _ in range(3)]
+    out = []
     for acr, nb in ((acr_h, right), (acr_v, down)):
         has = nb >= 0
         q = jnp.where(has, nb, 0)
@@ -145,8 +136,7 @@ def antialias(img, tri, depth, clip, faces, adjacency, x, y, right, down, resolu
         # triangle the back pixel sees (the surface goes on: no silhouette between them).
         cur = jnp.where(act, jnp.where(p_front, tp, tq), 0)
         alive = act
-        found = jnp.zeros((n,), bool)
-        s_row = jnp.zeros((n,), jnp.int32)
+        s_row = jnp.full((n,), -1, jnp.int32)
         for _ in range(HOPS):
             t_exit = jnp.full((n,), jnp.inf, dt)
             r_exit = cur * 3
@@ -162,24 +152,42 @@ def antialias(img, tri, depth, clip, faces, adjacency, x, y, right, down, resolu
                 r_exit = jnp.where(first, r, r_exit)
             alive = alive & (t_exit < 1.0)
             sil = sil_t[r_exit]
-            now = alive & sil & acr[r_exit]
-            s_row = jnp.where(now, r_exit, s_row)
-            found = found | now
+            s_row = jnp.where(alive & sil & acr[r_exit], r_exit, s_row)
             across = adj[r_exit]
             alive = alive & ~sil & (across != t_back)
             cur = jnp.where(alive, across, 0)
-            cur, alive, found, s_row = keep(cur, alive, found, s_row)
+            cur, alive, s_row = keep(cur, alive, s_row)
+        out.append(jnp.stack([s_row, p_front.astype(jnp.int32)]))
+    return jnp.stack(out)
+
+
+def blend(img, clip, faces, adjacency, x, y, right, down, edges, resolution):
+    """The differentiable half of :func:`antialias`: the crossing of each pair's segment with its
+    silhouette edge (``edges`` from :func:`silhouette_edges`), and the blend."""
+    dt = img.dtype
+    n = img.shape[0]
+    h, w = resolution
+    idx = jnp.arange(n, dtype=jnp.int32)
+    c_g, ax_g, ay_g = keep(*_edge_table(clip, faces, adjacency, h, w)[:3])
+    chans = [img[:, c] for c in range(3)]
+    delta = [jnp.zeros((n,), dt) for _ in range(3)]
+    for axis, nb in ((0, right), (1, down)):
+        s_row, p_front = edges[axis, 0], edges[axis, 1] > 0
+        has = nb >= 0
+        q = jnp.where(has, nb, 0)
+        i_front = jnp.where(p_front, idx, q)
+        i_back = jnp.where(p_front, q, idx)
+        xf, yf, xb, yb = x[i_front], y[i_front], x[i_back], y[i_back]
         # the crossing on the silhouette edge, differentiable in the clip coordinates
-        cc, ax, ay = c_g[s_row], ax_g[s_row], ay_g[s_row]
+        r = jnp.maximum(s_row, 0)
+        cc, ax, ay = c_g[r], ax_g[r], ay_g[r]
         e0 = cc + xf * ax + yf * ay
         e1 = cc + xb * ax + yb * ay
-        ok = found & (e1 < e0)
-        t_sil = jnp.where(ok, e0 / jnp.where(ok, e0 - e1, 1.0), 0.0)
-        found = ok
-        t = jnp.clip(t_sil, 0.0, 1.0)
-        wq = jnp.where(found & (t >= 0.5), t - 0.5, 0.0)  # the front surface over the back pixel
-        wp = jnp.where(found & (t < 0.5), 0.5 - t, 0.0)  # the back colour over the front pixel
-        # materialised: XLA would otherwise recompute the whole walk inside every gather below
+        ok = has & (s_row >= 0) & (e1 < e0)
+        t = jnp.clip(jnp.where(ok, e0 / jnp.where(ok, e0 - e1, 1.0), 0.0), 0.0, 1.0)
+        wq = jnp.where(ok & (t >= 0.5), t - 0.5, 0.0)  # the front surface over the back pixel
+        wp = jnp.where(ok & (t < 0.5), 0.5 - t, 0.0)  # the back colour over the front pixel
+        # materialised: XLA would otherwise recompute them inside every gather below
         wq, wp = keep(wq, wp)
         # Each pair's change to its second pixel is gathered there through the inverse neighbour
         # index (integer data: one scatter of indices, not of the differentiated colours)
@@ -193,3 +201,22 @@ def antialias(img, tri, depth, clip, faces, adjacency, x, y, right, down, resolu
             second_px = jnp.where(p_front, change_back, change_front)  # its neighbour's
             delta[c] = delta[c] + first_px + jnp.where(has_prev, second_px[sp], 0.0)
     return img + jnp.stack(delta, axis=-1)
+
+
+def antialias(img, tri, depth, clip, faces, adjacency, x, y, right, down, resolution, edges=None):
+    """The antialiased image (see the module docstring); every argument flat over the pixels.
+
+    ``img`` ``[N, 3]`` the shaded image; ``tri`` ``[N]`` the nearest layer's triangle ids (-1:
+    background); ``depth`` ``[N]`` its clip :math:`w` (only compared; no gradient); ``clip``
+    ``[V, 4]`` the vertices' clip coordinates; ``faces`` and ``adjacency`` ``[F, 3]``; ``x, y``
+    ``[N]`` the pixel centres in NDC; ``right, down`` ``[N]`` each pixel's neighbour (-1: none);
+    ``resolution`` ``(H, W)``; ``edges``: the walk's result held fixed (a fit's pass), else
+    walked here.
+
+    The walk (which edge is crossed, :func:`silhouette_edges`) is discrete and evaluated without
+    gradient on a per-face table; the crossing on the edge it ends at is evaluated differentiably
+    (:func:`blend`). (Every gather is one-dimensional and every stage materialised: XLA's CPU
+    backend would otherwise recompute shared producers inside each gather.)"""
+    if edges is None:
+        edges = silhouette_edges(tri, depth, clip, faces, adjacency, x, y, right, down, resolution)
+    return blend(img, clip, faces, adjacency, x, y, right, down, edges, resolution)

@@ -449,6 +449,8 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
     # A fogged scene shows the fog colour where nothing is drawn, unless told otherwise (docs/model.md §3).
     bg_default = np.asarray(fog.color) if opts.fog != "none" else [0.0, 0.0, 0.0]
     background = v.vec(d, "background", "scene", default=bg_default, lo=0.0, scalar_ok=True)
+    if opts.antialias:
+        mesh = mesh.with_adjacency()  # the silhouette edges' topology, while the faces are concrete
     scene = Scene(
         mesh=mesh, camera=camera, material=material, back_material=back, directional=directional,
         point=point, spot=spot, area=area, multi_lobe=multi, ambient_light=ambient, background=background, fog=fog, materials=extra,

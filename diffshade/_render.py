@@ -218,6 +218,7 @@ def _antialiased(img, mesh, clip, frags, pixels, resolution):
                              "(inside jax.jit): give the scene a mesh with it, scene.mesh.with_adjacency(), "
                              "before jit") from None
         adj = jnp.asarray(face_adjacency(faces))
+    edges = None
     if pixels is None:
         h, w = shape
         xs, ys = pixel_centres(h, w, img.dtype)
@@ -225,13 +226,15 @@ def _antialiased(img, mesh, clip, frags, pixels, resolution):
         y = jnp.broadcast_to(ys[:, None], shape).reshape(-1)
         right, down = (jnp.asarray(a).reshape(-1) for a in grid_neighbours(h, w))
     else:
-        if len(pixels) != 4:
+        if len(pixels) not in (4, 5):
             raise ValueError("RenderOptions.antialias on a pixel subset needs each pixel's right and lower "
-                             "neighbour: pixels=(x, y, right, down)")
-        x, y, right, down = (jnp.asarray(a).reshape(-1) for a in pixels)
+                             "neighbour: pixels=(x, y, right, down) (and optionally the silhouette edges held fixed)")
+        x, y, right, down = (jnp.asarray(a).reshape(-1) for a in pixels[:4])
         x, y = x.astype(img.dtype), y.astype(img.dtype)
+        if len(pixels) == 5:
+            edges = jnp.asarray(pixels[4]).reshape(2, 2, -1)
     out = antialias(img.reshape(-1, 3), frags.tri_id[0].reshape(-1), frags.w[0].reshape(-1), clip, mesh.faces, adj,
-                    x, y, right, down, resolution)
+                    x, y, right, down, resolution, edges)
     return out.reshape(img.shape)
 
 

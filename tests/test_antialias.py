@@ -179,3 +179,28 @@ def test_clear_errors():
     with pytest.raises(ValueError, match="right, down"):
         ds.render(scene, ds.RenderOptions(antialias=True), ids=ids[:, :1, :4],
                   pixels=(jnp.zeros((1, 4)), jnp.zeros((1, 4))))
+
+
+def test_a_material_fit_with_the_stage_on_fits_the_ring_beside_the_silhouette():
+    """With antialias on, the fit shades and fits the background pixels beside the silhouette
+    as well (the blend puts the surface into them) and recovers the material exactly from a
+    target rendered the same way; the scene gets its mesh topology on the way in."""
+    from fitting.fit import fit
+    from fitting.problem import Problem
+
+    scene, opts = small_default_scene(32, 32)
+    aa = opts.replace(antialias=True)
+    assert scene.mesh.adjacency is None
+    target = np.asarray(ds.render(scene, aa))
+    free = ["material.diffuse", "material.shininess"]
+    prob = Problem.build(scene, aa, [target], free)
+    plain = Problem.build(scene, opts, [target], free)
+    ring = len(prob.views[0].rows) - len(plain.views[0].rows)
+    assert ring > 20
+    assert prob.counts()[0] == plain.counts()[0] + 3 * ring
+    start = eqx.tree_at(lambda s: (s.material.diffuse, s.material.shininess), scene,
+                        (scene.material.diffuse * 0.6, scene.material.shininess * 2.0))
+    r = fit(start, aa, target, free)
+    assert r.successful, r.result
+    np.testing.assert_allclose(r.values, np.concatenate([np.asarray(scene.material.diffuse),
+                                                         [float(scene.material.shininess)]]), rtol=1e-6)
