@@ -1,15 +1,26 @@
-"""Many views in one process: time per Levenberg–Marquardt step and memory per view.
+"""Many views: time per Levenberg–Marquardt step over 1, 2, 4 devices, and memory per view.
 
-For ``n`` views of the default scene (cameras around it, the demo's 13 free parameters), one
-evaluation of the fit's residual and Jacobian (what one LM step costs: the compiled program in
-evaluation mode) is timed, and the process's peak resident memory measured, each ``n`` in its
-own process. The memory per view is the slope over ``n``; from it, the number of views of the
-given size one process holds in a budget (24 GiB by default).
+For ``n`` views of the default scene (cameras around it, the demo's 13 free parameters, shared),
+the fit's compiled variable-projection program is timed in its own
+process for each configuration:
 
-    python benchmarks/bench_views.py [--size 256] [--views 1 2 4 8] [--budget-gib 24]
+- **ms per LM step**: the program run for 1 and for 6 steps from a start 30 % off; the
+  difference over the steps between (render, tangents, the bounded linear solve and the
+  normal equations: what one step costs on the devices, nothing sent to the host);
+- **compile** seconds of the program, apart.
 
-One device: the views are evaluated one after another in one program (sharding them over
-devices with jax.sharding is not implemented yet).
+Scaling (``--scaling``): strong (``--views`` views, default 32, on 1, 2 and 4 devices) and weak
+(``--per-device`` views per device, default 8). The devices are XLA host devices
+(``--xla_force_host_platform_device_count``) unless the process has accelerators: on a CPU
+machine they share its cores, so the figure shows what sharding costs or saves there, not what
+separate machines would give (``jax.distributed`` spreads the same program over hosts).
+
+Memory (``--memory``): the process's peak resident memory for ``n`` views of ``--size`` on one
+device; the slope over ``n`` is the memory per view, and from it the number of views one process
+holds in ``--budget-gib`` (24 GiB by default).
+
+    python benchmarks/bench_views.py --scaling [--size 256] [--views 32] [--per-device 8]
+    python benchmarks/bench_views.py --memory [--size 512] [--counts 1 2 4 8]
 """
 
 from __future__ import annotations
@@ -25,19 +36,20 @@ import time
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
-def child(size: int, n: int) -> dict:
+def child(size: int, n: int, devices: int, repeats: int) -> dict:
     import resource
 
     import equinox as eqx
+    import jax
     import jax.numpy as jnp
     import numpy as np
 
     sys.path.insert(0, os.path.join(HERE, ".."))
     import diffshade as ds
     from fitting.cli import DEMO_FREE
-    from fitting.fit import _evaluator
+    from fitting.fit import SEARCH_PIXELS, _limits, _programs
     from fitting.problem import Problem
-    from fitting.strategy import Reduced
+    from fitting.strategy import Reduced, candidates
 
     d = dict(ds.DEFAULT_SCENE)
     d["camera"] = dict(d["camera"], width=size, height=size)
@@ -46,56 +58,104 @@ def child(size: int, n: int) -> dict:
     for k in range(n):
         a = 2 * np.pi * k / max(n, 1)
         c = scene.camera
-        cam = ds.Camera(eye=[3 * np.sin(a), 0.5, 3 * np.cos(a)], target=c.target, up=c.up, fov_y=c.fov_y,
-                        near=c.near, far=c.far, width=size, height=size)
+        cam = ds.Camera(eye=[3 * np.sin(a), 0.5 + 0.3 * np.cos(3 * a), 3 * np.cos(a)], target=c.target, up=c.up,
+                        fov_y=c.fov_y, near=c.near, far=c.far, width=size, height=size, exposure=1.0 + 0.01 * k)
         views.append(eqx.tree_at(lambda s: s.camera, scene, cam))
     targets = [np.asarray(ds.render(v, opts)) for v in views]
     base_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    prob = Problem.build(scene, opts, targets, DEMO_FREE, views=views)
+    free = list(DEMO_FREE)
+    devs = jax.devices()[:devices]
+    prob = Problem.build(scene, opts, targets, free, views=views, devices=devs)
     red = Reduced(prob)
-    theta = np.asarray(prob.pset.theta_of(scene), np.float64)
+    theta0 = np.asarray(prob.pset.theta_of(scene, views), np.float64) * 1.3
+    theta_ref = jnp.asarray(theta0, prob.dtype)
+    U = candidates(red, theta0, 1)
     t0 = time.perf_counter()
-    ev, _ = _evaluator(prob, red, jnp.asarray(theta, prob.dtype))
-    ev(theta)
+    fn, _, _ = _programs(prob, red, U, prob.device_data(SEARCH_PIXELS), theta_ref, search=False)
     compile_s = time.perf_counter() - t0
-    times = []
-    for _ in range(5):
-        t0 = time.perf_counter()
-        ev(theta)
-        times.append(time.perf_counter() - t0)
+    z0 = jnp.asarray(np.concatenate([theta0[red.idx_l], U[0]]), prob.dtype)
+    n2 = jnp.asarray(prob.counts()[0], prob.dtype)
+    data = prob.device_data()
+
+    def run(steps):
+        t = time.perf_counter()
+        out = fn(z0, data, theta_ref, n2, jnp.asarray(0), *_limits(steps, 0.0, prob.dtype))
+        jax.block_until_ready(out["z"])
+        return time.perf_counter() - t, int(out["k"])
+
+    run(1), run(6)  # warm
+    per = []
+    for _ in range(repeats):
+        (t1, k1), (t6, k6) = run(1), run(6)
+        per.append((t6 - t1) / max(k6 - k1, 1))
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
-    return dict(n=n, size=size, ms=1e3 * statistics.median(times), compile_s=compile_s, peak_mib=peak / 1024,
-                before_mib=base_rss / 1024, pixels=int(sum(len(b.rows) for b in prob.views)))
+    return dict(n=n, size=size, devices=len(prob.devices), ms=1e3 * statistics.median(per), compile_s=compile_s,
+                peak_mib=peak / 1024, before_mib=base_rss / 1024, stacked=prob.stacked,
+                pixels=int(sum(len(b.rows) for b in prob.views)), platform=devs[0].platform)
+
+
+def run_child(size, n, devices, repeats):
+    env = dict(os.environ)
+    if devices > 1:
+        env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={devices}").strip()
+    out = subprocess.run([sys.executable, __file__, "--child", f"{size},{n},{devices},{repeats}"],
+                         capture_output=True, text=True, env=env)
+    if out.returncode:
+        raise SystemExit(out.stderr[-3000:])
+    return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--size", type=int, default=256)
-    ap.add_argument("--views", type=int, nargs="+", default=[1, 2, 4, 8])
+    ap.add_argument("--scaling", action="store_true")
+    ap.add_argument("--memory", action="store_true")
+    ap.add_argument("--size", type=int, default=None, help="image side (256 for --scaling, 512 for --memory)")
+    ap.add_argument("--views", type=int, default=32, help="views of the strong-scaling runs")
+    ap.add_argument("--per-device", type=int, default=8, help="views per device of the weak-scaling runs")
+    ap.add_argument("--devices", type=int, nargs="+", default=[1, 2, 4])
+    ap.add_argument("--counts", type=int, nargs="+", default=[1, 2, 4, 8], help="view counts of --memory")
+    ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--budget-gib", type=float, default=24.0)
-    ap.add_argument("--child", type=int, default=0, help=argparse.SUPPRESS)
+    ap.add_argument("--child", default="", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
-        print(json.dumps(child(args.size, args.child)))
+        size, n, devices, repeats = (int(x) for x in args.child.split(","))
+        print(json.dumps(child(size, n, devices, repeats)))
         return
-    rows = []
-    print(f"{args.size}² views, the demo's 13 parameters, one evaluation of residual + Jacobian (one LM step)")
-    print(f"{'views':>5s} {'covered px':>10s} {'ms/step':>8s} {'ms/view':>8s} {'compile s':>9s} {'peak MiB':>9s}")
-    for n in args.views:
-        out = subprocess.run([sys.executable, __file__, "--size", str(args.size), "--child", str(n)],
-                             capture_output=True, text=True, check=True)
-        r = json.loads(out.stdout.strip().splitlines()[-1])
-        rows.append(r)
-        print(f"{n:5d} {r['pixels']:10d} {r['ms']:8.1f} {r['ms'] / n:8.1f} {r['compile_s']:9.1f} {r['peak_mib']:9.0f}")
-    if len(rows) >= 2:
+    if not (args.scaling or args.memory):
+        args.scaling = True
+    if args.scaling:
+        size = args.size or 256
+        head = f"{'views':>5s} {'devices':>7s} {'covered px':>10s} {'ms/step':>8s} {'speed-up':>8s} {'compile s':>9s}"
+        for kind, counts in (("strong", [(args.views, d) for d in args.devices]),
+                             ("weak", [(args.per_device * d, d) for d in args.devices])):
+            print(f"\n{kind} scaling: {size}² views, the demo's 13 parameters; ms per "
+                  "variable-projection LM step (median of the differences of 6- and 1-step runs)")
+            print(head)
+            base = None
+            for n, dv in counts:
+                r = run_child(size, n, dv, args.repeats)
+                base = base or r["ms"]
+                gain = base / r["ms"] if kind == "strong" else base / r["ms"] * 1.0
+                print(f"{n:5d} {r['devices']:7d} {r['pixels']:10d} {r['ms']:8.1f} {gain:8.2f} {r['compile_s']:9.1f}"
+                      f"   ({r['platform']})")
+            print("(speed-up: the one-device time over this one; weak scaling is ideal at 1.00)" if kind == "weak"
+                  else "(speed-up: the one-device time over this one; ideal: the device count)")
+    if args.memory:
         import numpy as np
 
+        size = args.size or 512
+        rows = [run_child(size, n, 1, 1) for n in args.counts]
+        print(f"\nmemory: {size}² views on one device")
+        print(f"{'views':>5s} {'covered px':>10s} {'ms/step':>8s} {'peak MiB':>9s}")
+        for r in rows:
+            print(f"{r['n']:5d} {r['pixels']:10d} {r['ms']:8.1f} {r['peak_mib']:9.0f}")
         n = np.array([r["n"] for r in rows], float)
         m = np.array([r["peak_mib"] for r in rows])
         slope, icpt = np.polyfit(n, m, 1)
         fit_n = int((args.budget_gib * 1024 - icpt) // max(slope, 1e-9))
-        print(f"memory: {slope:.1f} MiB per {args.size}² view (+ {icpt:.0f} MiB); {args.budget_gib:g} GiB hold about "
-              f"{fit_n} such views in one process")
+        print(f"{slope:.1f} MiB per {size}² view (+ {icpt:.0f} MiB); {args.budget_gib:g} GiB hold about {fit_n} such "
+              "views in one process")
 
 
 if __name__ == "__main__":

@@ -204,3 +204,46 @@ def test_a_material_fit_with_the_stage_on_fits_the_ring_beside_the_silhouette():
     assert r.successful, r.result
     np.testing.assert_allclose(r.values, np.concatenate([np.asarray(scene.material.diffuse),
                                                          [float(scene.material.shininess)]]), rtol=1e-6)
+
+
+def test_pose_fit_with_the_silhouette_in_it():
+    """Pose refinement from one 64² view of a per-vertex-coloured sphere with no margin: the
+    silhouette pixels are in the fit. Antialiased, their gradient is right and the camera, 1.97°
+    off, comes back to within the issue's 0.05° (measured 0.019°); without the stage the same fit
+    stops 0.77° off. (The verdict rejects both on this noise-free target: corner pixels and
+    visibility flips between passes leave residuals far above float rounding.)"""
+    import trimesh
+
+    from diffshade._camera import rotation_to_rvec
+    from fitting.fit import fit
+
+    from conftest import opencv_look_at
+
+    size = 64
+    d = {k: v for k, v in ds.DEFAULT_SCENE.items() if k != "fog"}
+    d["render"] = dict(d["render"], fog="none")
+    scene, opts = ds.scene_from_dict(d)
+    opts = opts.replace(vertex_color="diffuse")
+    tm = trimesh.creation.icosphere(3)
+    v = np.asarray(tm.vertices)
+    cols = np.clip(0.5 + 0.35 * np.sin(5 * v[:, 0]) * np.cos(4 * v[:, 1] + 2 * v[:, 2]), 0.05, 0.95)[:, None]
+    scene = eqx.tree_at(lambda s: s.mesh, scene, ds.Mesh(vertices=v, faces=tm.faces, colors=cols * [1.0, 0.8, 0.6]))
+    f = size / 2 / np.tan(np.deg2rad(22.5))
+    K = np.array([[f, 0, (size - 1) / 2], [0, f, (size - 1) / 2], [0, 0, 1]])
+    R, t = opencv_look_at([0.5, 0.4, 3.0])
+    cam = lambda R_, t_: ds.OpenCVCamera.from_opencv(K, R=R_, t=t_, width=size, height=size, near=0.5, far=10.0)  # noqa: E731
+    aa = opts.replace(antialias=True)
+    target = np.asarray(ds.render(eqx.tree_at(lambda s: s.camera, scene, cam(R, t)), aa))
+    dR = np.asarray(ds.rodrigues(jnp.asarray(np.deg2rad([1.5, -1.0, 0.8]))))
+    start = eqx.tree_at(lambda s: s.camera, scene, cam(dR @ R, t + [0.02, -0.01, 0.03]))
+
+    def off_deg(rvec):
+        Rf = np.asarray(ds.rodrigues(jnp.asarray(rvec)))
+        return np.rad2deg(np.linalg.norm(rotation_to_rvec(Rf @ R.T)))
+
+    assert off_deg(start.camera.rvec) > 1.9
+    r = fit(start, aa, target, ["camera.rvec", "camera.tvec"])
+    assert off_deg(r.values[:3]) <= 0.05
+    np.testing.assert_allclose(r.values[3:], t, atol=2e-3)
+    plain = fit(start, opts, target, ["camera.rvec", "camera.tvec"])
+    assert off_deg(plain.values[:3]) > 5 * off_deg(r.values[:3])
