@@ -102,13 +102,14 @@ def fit(
     ``visibility_passes`` times, each time from the last values with the visibility rasterised
     again, until one pass is successful and moved no pose scalar by more than a tenth of its
     standard error. The gradient comes from inside the object (its shading and colours moving
-    under the pixels); give ``margin`` so that the silhouette pixels stay out.
+    under the pixels); give ``margin`` so that the silhouette pixels stay out, or turn on
+    ``opts.antialias`` so that they carry a gradient too (docs/model.md §13).
 
     ``devices``: the JAX devices the views are sharded over (None: all of ``jax.devices()``, cut
     to the largest count that divides the number of views; with several processes under
     :func:`jax.distributed.initialize`, every process's devices). Views of one structure are
-    stacked and mapped over by one program; sharded, each view's pixels, residuals and Jacobian
-    rows stay on its device and only the reductions over pixels cross devices.
+    stacked; sharded, each view's pixels, residuals and Jacobian rows stay on its device and only
+    the reductions over pixels cross devices (docs/model.md §14).
     """
     free = list(free)
     if visibility_passes > 1 and any(p.path[0] == "camera" and p.path[-1] in ("rvec", "tvec")

@@ -328,14 +328,12 @@ class Problem:
             padn = lambda a, val: np.concatenate([a, np.full((pad, *a.shape[1:]), val, a.dtype)])  # noqa: E731
             kids = ids.reshape(ids.shape[0], h * w)[:, rows]
             kids = np.concatenate([kids, np.full((ids.shape[0], pad), -1, kids.dtype)], axis=1)[:, None, :]
-            px_c, py_c = padn(xs[c_idx], 0.0)[None], padn(ys[r_idx], 0.0)[None]
+            px_c, py_c = jnp.asarray(padn(xs[c_idx], 0.0)[None], dtype), jnp.asarray(padn(ys[r_idx], 0.0)[None], dtype)
             right_c, down_c = padn(right, -1)[None], padn(down, -1)[None]
-            edges = (np.asarray(_edges_at(v, jnp.asarray(kids), jnp.asarray(px_c, dtype), jnp.asarray(py_c, dtype),
-                                          jnp.asarray(right_c), jnp.asarray(down_c)))
+            edges = (np.asarray(_edges_at(v, jnp.asarray(kids), px_c, py_c, jnp.asarray(right_c), jnp.asarray(down_c)))
                      if opts.antialias else np.full((2, 2, n), -1, np.int32))
             data.append(ViewData(
-                scene=v, ids=jnp.asarray(kids),
-                px=jnp.asarray(padn(xs[c_idx], 0.0)[None], dtype), py=jnp.asarray(padn(ys[r_idx], 0.0)[None], dtype),
+                scene=v, ids=jnp.asarray(kids), px=px_c, py=py_c,
                 target=jnp.asarray(padn(flat(t), 0.0), dtype), weight=jnp.asarray(padn(flat(cw), 0.0), dtype),
                 hi=jnp.asarray(padn(flat(hi), False)), lo=jnp.asarray(padn(flat(lo), False)),
                 right=jnp.asarray(right_c), down=jnp.asarray(down_c), edges=jnp.asarray(edges),
@@ -386,8 +384,8 @@ class Problem:
     # -- the views as the compiled programs take them ------------------------------------------
     def device_data(self, subset: int | None = None):
         """The views as compiled programs take them: stacked into one :class:`ViewData` whose
-        leaves have a leading view axis (one program maps over the views, so its compile does not
-        grow with their number) and, over several :attr:`devices`, sharded along that axis (each
+        leaves have a leading view axis (:meth:`map_views`) and, over several :attr:`devices`,
+        sharded along that axis (each
         view's pixels, residual and Jacobian rows live on its device; the reductions over pixels
         are the only communication). A list of views when their structures differ (different
         light counts, image sizes: each is then its own piece of the program). ``subset``: every

@@ -36,6 +36,43 @@ def opencv_look_at(eye, target=(0.0, 0.0, 0.0)):
     return R, -R @ eye
 
 
+def pose_problem(size=64, antialias=False):
+    """The pose-refinement set-up: the default scene (no fog) on a per-vertex-coloured icosphere,
+    an OpenCV camera at its truth ``(R, t)`` and a start 1.97° and 3.7 cm off. Returns
+    ``(start, opts, target, R, t, off_deg)``, ``off_deg(rvec)`` the angle from the truth."""
+    import equinox as eqx
+    import jax.numpy as jnp
+    import trimesh
+
+    import diffshade as ds
+    from diffshade._camera import rotation_to_rvec
+
+    d = {k: v for k, v in ds.DEFAULT_SCENE.items() if k != "fog"}
+    d["render"] = dict(d["render"], fog="none")
+    scene, opts = ds.scene_from_dict(d)
+    opts = opts.replace(vertex_color="diffuse", antialias=antialias)
+    tm = trimesh.creation.icosphere(3)
+    v = np.asarray(tm.vertices)
+    cols = np.clip(0.5 + 0.35 * np.sin(5 * v[:, 0]) * np.cos(4 * v[:, 1] + 2 * v[:, 2]), 0.05, 0.95)[:, None]
+    scene = eqx.tree_at(lambda s: s.mesh, scene, ds.Mesh(vertices=v, faces=tm.faces, colors=cols * [1.0, 0.8, 0.6]))
+    f = size / 2 / np.tan(np.deg2rad(22.5))
+    K = np.array([[f, 0, (size - 1) / 2], [0, f, (size - 1) / 2], [0, 0, 1]])
+    R, t = opencv_look_at([0.5, 0.4, 3.0])
+
+    def cam(R_, t_):
+        return ds.OpenCVCamera.from_opencv(K, R=R_, t=t_, width=size, height=size, near=0.5, far=10.0)
+
+    target = np.asarray(ds.render(eqx.tree_at(lambda s: s.camera, scene, cam(R, t)), opts))
+    dR = np.asarray(ds.rodrigues(jnp.asarray(np.deg2rad([1.5, -1.0, 0.8]))))
+    start = eqx.tree_at(lambda s: s.camera, scene, cam(dR @ R, t + [0.02, -0.01, 0.03]))
+
+    def off_deg(rvec):
+        Rf = np.asarray(ds.rodrigues(jnp.asarray(rvec)))
+        return np.rad2deg(np.linalg.norm(rotation_to_rvec(Rf @ R.T)))
+
+    return start, opts, target, R, t, off_deg
+
+
 @pytest.fixture(scope="session")
 def meshes_dir():
     return shared_mesh_dir()

@@ -260,34 +260,11 @@ def test_a_camera_two_degrees_off_is_refined_to_the_truth_from_one_view():
     """Pose refinement from one view of a textured (per-vertex-coloured) sphere: the fit re-
     rasterises the visibility between passes (it has no gradient) and moves the pose by the
     shading and colours inside the silhouette (margin 2 keeps the silhouette out)."""
-    import trimesh
-
-    from diffshade._camera import rotation_to_rvec
     from fitting.fit import fit
 
-    size = 64
-    d = {k: v for k, v in ds.DEFAULT_SCENE.items() if k != "fog"}
-    d["render"] = dict(d["render"], fog="none")
-    scene, opts = ds.scene_from_dict(d)
-    opts = opts.replace(vertex_color="diffuse")
-    tm = trimesh.creation.icosphere(3)
-    v = np.asarray(tm.vertices)
-    cols = np.clip(0.5 + 0.35 * np.sin(5 * v[:, 0]) * np.cos(4 * v[:, 1] + 2 * v[:, 2]), 0.05, 0.95)[:, None]
-    scene = eqx.tree_at(lambda s: s.mesh, scene, ds.Mesh(vertices=v, faces=tm.faces, colors=cols * [1.0, 0.8, 0.6]))
-    f = size / 2 / np.tan(np.deg2rad(22.5))
-    K = np.array([[f, 0, (size - 1) / 2], [0, f, (size - 1) / 2], [0, 0, 1]])
-    R, t = _look_at([0.5, 0.4, 3.0])
-    truth = eqx.tree_at(lambda s: s.camera, scene,
-                        ds.OpenCVCamera.from_opencv(K, R=R, t=t, width=size, height=size, near=0.5, far=10.0))
-    target = np.asarray(ds.render(truth, opts))
-    dR = np.asarray(ds.rodrigues(jnp.asarray(np.deg2rad([1.5, -1.0, 0.8]))))
-    start = eqx.tree_at(lambda s: s.camera, scene, ds.OpenCVCamera.from_opencv(
-        K, R=dR @ R, t=t + [0.02, -0.01, 0.03], width=size, height=size, near=0.5, far=10.0))
+    from conftest import pose_problem
 
-    def off_deg(rvec):
-        Rf = np.asarray(ds.rodrigues(jnp.asarray(rvec)))
-        return np.rad2deg(np.linalg.norm(rotation_to_rvec(Rf @ R.T)))
-
+    start, opts, target, R, t, off_deg = pose_problem()
     assert off_deg(start.camera.rvec) > 1.9
     r = fit(start, opts, target, ["camera.rvec", "camera.tvec"], margin=2)
     assert r.successful, r.result
