@@ -61,15 +61,17 @@ def face_adjacency(faces) -> np.ndarray:
     return out.reshape(3, n).T.astype(np.int32)
 
 
-def grid_neighbours(h: int, w: int):
-    """``(right, down)`` ``[H, W]`` int32: the flat index of each pixel's right and lower
-    neighbour in an ``H × W`` image, -1 past the border."""
-    idx = np.arange(h * w, dtype=np.int32).reshape(h, w)
-    right = np.full((h, w), -1, np.int32)
-    down = np.full((h, w), -1, np.int32)
-    right[:, :-1] = idx[:, 1:]
-    down[:-1] = idx[1:]
-    return right, down
+def pixel_neighbours(rows, h: int, w: int):
+    """``(right, down)`` ``[n]`` int32: for pixels at flat indices ``rows`` of an ``H × W``
+    image, the position among ``rows`` of each one's right and lower neighbour, -1 where that
+    one is not among them or lies past the border (``rows = arange(H * W)``: the whole grid)."""
+    rows = np.asarray(rows, np.int64)
+    pos = np.full(h * w + 1, -1, np.int64)  # the last slot: past the border
+    pos[rows] = np.arange(len(rows))
+    col, row = rows % w, rows // w
+    right = pos[np.where(col < w - 1, rows + 1, h * w)]
+    down = pos[np.where(row < h - 1, rows + w, h * w)]
+    return right.astype(np.int32), down.astype(np.int32)
 
 
 def _edge_table(clip, faces, adjacency, h, w):

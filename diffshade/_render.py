@@ -18,7 +18,7 @@ from jaxtyping import Array, Float, Int
 
 from . import _lighting as Lg
 from . import _shade as S
-from ._antialias import antialias, face_adjacency, grid_neighbours
+from ._antialias import antialias, face_adjacency, pixel_neighbours
 from ._composite import composite, fog_and_clamp
 from ._lighting import _color_sum, _vertex_clamp, shade_points
 from ._materials import _COMPOSITING_FIELDS, _back_material, _material_at, _select, _used_fields
@@ -224,7 +224,7 @@ def _antialiased(img, mesh, clip, frags, pixels, resolution):
         xs, ys = pixel_centres(h, w, img.dtype)
         x = jnp.broadcast_to(xs[None, :], shape).reshape(-1)
         y = jnp.broadcast_to(ys[:, None], shape).reshape(-1)
-        right, down = (jnp.asarray(a).reshape(-1) for a in grid_neighbours(h, w))
+        right, down = (jnp.asarray(a) for a in pixel_neighbours(np.arange(h * w), h, w))
     else:
         if len(pixels) not in (4, 5):
             raise ValueError("RenderOptions.antialias on a pixel subset needs each pixel's right and lower "

@@ -23,6 +23,7 @@ import numpy as np
 
 import diffshade as ds
 from diffshade import _color
+from diffshade._antialias import pixel_neighbours
 
 from .params import ParamSet
 
@@ -138,17 +139,6 @@ def _edges_at(scene, ids, px, py, right, down):
     flat = lambda a: a.reshape(-1)  # noqa: E731
     return silhouette_edges(flat(frags.tri_id[0]), flat(frags.w[0]), clip, scene.mesh.faces, scene.mesh.adjacency,
                             flat(px), flat(py), flat(right), flat(down), scene.camera.resolution)
-
-
-def compact_neighbours(rows: np.ndarray, h: int, w: int):
-    """``(right, down)`` ``[n]`` int32: for each compacted pixel (flat image index ``rows``) the
-    position of its right and lower neighbour among ``rows``, -1 where that one is not there."""
-    pos = np.full(h * w + 1, -1, np.int64)  # the last slot: past the border
-    pos[rows] = np.arange(len(rows))
-    col, row = rows % w, rows // w
-    right = pos[np.where(col < w - 1, rows + 1, h * w)]
-    down = pos[np.where(row < h - 1, rows + w, h * w)]
-    return right.astype(np.int32), down.astype(np.int32)
 
 
 def subset_view(vd: ViewData, count: int) -> ViewData:
@@ -321,7 +311,7 @@ class Problem:
             pad = n - len(rows)
             cw_all = wgt[..., None] * chan_w  # [H, W, 3]
             cw = cw_all * used[..., None]  # compacted pixels that are not fitted (antialias ring, masked) weigh 0
-            right, down = compact_neighbours(rows, h, w)
+            right, down = pixel_neighbours(rows, h, w)
             xs, ys = (np.asarray(c, np.float64) for c in ds.pixel_centres(h, w, np.float64))
             r_idx, c_idx = rows // w, rows % w
             flat = lambda a: a.reshape(h * w, *a.shape[2:])[rows]  # noqa: E731
