@@ -135,6 +135,7 @@ def main():
     ap.add_argument("--bunny", default=None, help="path of a scanned mesh (e.g. the Stanford bunny PLY)")
     ap.add_argument("--noisy-only", action="store_true")
     ap.add_argument("--clean-only", action="store_true")
+    ap.add_argument("--starts", type=int, default=None, help="fit(starts=...): the global search's start count")
     args = ap.parse_args()
     render = jax.jit(ds.render, static_argnames="opts")
     rows = []
@@ -154,6 +155,8 @@ def main():
             else:
                 tgt, kw = clean, {}
             t0 = time.perf_counter()
+            if args.starts is not None:
+                kw["starts"] = args.starts
             r = fit(s0, opts, tgt, free, **kw)
             wall = time.perf_counter() - t0
             det = np.array([n not in r.undetermined for n in r.names])

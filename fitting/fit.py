@@ -26,7 +26,7 @@ import diffshade as ds
 from .params import ParamSet
 from .problem import FitError, Problem, as_list, to_host
 from .report import FitResult, float_floor, noise_ratio_limit, image_quality, noise_level, uncertainty, verdict
-from .program import flat_data, make_program, make_search
+from .program import flat_data, make_program
 from .strategy import SOLVERS, Reduced, candidates, compiled, compiled_all, lm_solve, result_message
 
 __all__ = ["FitError", "FitResult", "fit", "compare_models", "model_variants", "ModelScore"]
@@ -261,21 +261,45 @@ def _limits(max_steps, rtol, dtype):
     return jnp.asarray(max_steps, jnp.int32), jnp.asarray(rtol, dtype)
 
 
-def _programs(prob, red, U, sub, theta_ref, history=0, verbose=False, search=True):
-    """The compiled search and solve programs (:mod:`fitting.program`) for these shapes (the
-    search ``None`` when there is nothing to rank), and the seconds their compile took (0 when
-    cached). ``history``: the capacity of the recorded path (0: none)."""
+def _program(prob, red, U, theta_ref, history=0, verbose=False):
+    """The compiled program (:mod:`fitting.program`) for these shapes (``U``: the candidate
+    starts, ``[C, n_nonlinear]``) and the seconds its compile took (0 when cached).
+    ``history``: the capacity of the recorded path (0: none)."""
     dtype = prob.dtype
     n2, _ = prob.counts()
     z = jnp.zeros(len(red.idx_l) + len(red.idx_n), dtype)
-    items = [("program", make_program(red, history=history, verbose=verbose),
-              (z, prob.device_data(), theta_ref, jnp.asarray(n2, dtype), jnp.asarray(0), *_limits(0, 0.0, dtype)),
-              (history, verbose, red.idx_n.tobytes()))]
-    search = search and len(red.idx_n) and len(U) > 1
-    if search:
-        items.append(("search", make_search(red), (jnp.asarray(U, dtype), sub, theta_ref), (red.idx_n.tobytes(),)))
-    fns, c = compiled_all(prob, items)
-    return fns[0], (fns[1] if search else None), c
+    args = (z, prob.device_data(), theta_ref, jnp.asarray(n2, dtype), jnp.asarray(0), *_limits(0, 0.0, dtype),
+            jnp.asarray(U, dtype))
+    return compiled(prob, "program", make_program(red, history=history, verbose=verbose), *args,
+                    extra=(history, verbose, red.idx_n.tobytes()))
+
+
+class _Program:
+    """The compiled program's three modes, called with the problem's data."""
+
+    def __init__(self, fn, prob, red, theta_ref, U):
+        self.fn, self.prob, self.red, self.theta_ref = fn, prob, red, theta_ref
+        self.dtype = prob.dtype
+        self.U = jnp.asarray(U, self.dtype)
+        self.n2 = jnp.asarray(prob.counts()[0], self.dtype)
+
+    def _call(self, z, mode, max_steps=0, rtol=0.0):
+        return self.fn(jnp.asarray(z, self.dtype), self.prob.device_data(), self.theta_ref, self.n2,
+                       jnp.asarray(mode), *_limits(max_steps, rtol, self.dtype), self.U)
+
+    def solve(self, z0, max_steps, rtol):
+        """Variable-projection LM from ``z0 = (x, u)``."""
+        return self._call(z0, 0, max_steps, rtol)
+
+    def evaluate(self, z):
+        """Image and tangents at ``z`` in natural units."""
+        return self._call(z, 1)
+
+    def rank(self, x0):
+        """The reduced cost of every candidate start (``x0``: the linear block's warm start)."""
+        z = np.concatenate([np.asarray(x0, np.float64), np.zeros(len(self.red.idx_n))])
+        costs = np.asarray(self._call(z, 2)["costs"], np.float64)
+        return np.where(np.isfinite(costs), costs, np.inf)
 
 
 class _Evaluator:
@@ -284,9 +308,9 @@ class _Evaluator:
     parameters (censored entries that agree with the clipping have zero rows) and ``img`` the
     model there."""
 
-    def __init__(self, fn, prob, red, theta_ref):
-        self.fn, self.red, self.prob, self.theta_ref = fn, red, prob, theta_ref
-        self.n2 = jnp.asarray(prob.counts()[0], prob.dtype)
+    def __init__(self, program: _Program):
+        self.program, self.red, self.prob = program, program.red, program.prob
+        red, prob = self.red, self.prob
         self.refresh()
         M = len(self.t)
         self.lin_cols = (red.chan[:, np.arange(M) % 3] > 0) if len(red.idx_l) else None
@@ -301,8 +325,7 @@ class _Evaluator:
         red = self.red
         theta = np.asarray(theta, np.float64)
         z = np.concatenate([theta[red.idx_l], theta[red.idx_n]])
-        out = self.fn(jnp.asarray(z, self.dtype), self.prob.device_data(), self.theta_ref, self.n2, jnp.asarray(1),
-                      *_limits(0, 0.0, self.dtype))
+        out = self.program.evaluate(z)
         img = to_host(out["img"]).astype(np.float64)
         T = to_host(out["T"])
         d = img - self.t
@@ -317,36 +340,34 @@ class _Evaluator:
 
 
 def _evaluator(prob, red, theta_ref):
-    fn, _, c = _programs(prob, red, None, None, theta_ref, search=False)
-    return _Evaluator(fn, prob, red, theta_ref), c
+    U = candidates(red, np.asarray(theta_ref, np.float64), 1)
+    fn, c = _program(prob, red, U, theta_ref)
+    return _Evaluator(_Program(fn, prob, red, theta_ref, U)), c
 
 
 def _fit_program(prob, red, theta0, *, starts, restarts, max_steps, polish_steps, rtol, noise, history, verbose):
-    """The default path: the global start and variable projection as one compiled program
-    (:mod:`fitting.program`), then the polish; again from the next start while the verdict
-    rejects the result."""
+    """The default path: variable projection from the given start (:mod:`fitting.program`), then
+    the polish; if the verdict rejects the result, the global start's candidates are ranked and
+    the fit runs again from the best of them not yet explored, up to ``restarts`` times."""
     dtype = prob.dtype
     theta_ref = jnp.asarray(theta0, dtype)
     U = candidates(red, np.asarray(theta0), starts if len(red.idx_n) else 1)
-    sub = prob.device_data(SEARCH_PIXELS)
     n2, n_cens = prob.counts()
-    # The program runs the global start and the variable-projection LM; the polish runs on the
-    # host in float64 on the program's evaluation (float32 normal equations cannot resolve the
-    # weakly determined directions the polish must still move: measured, noisy fits stopped
-    # short with |z| up to 70).
-    fn, search, compile_s = _programs(prob, red, U, sub, theta_ref, max_steps + 1 if history else 0, verbose)
-    ev = _Evaluator(fn, prob, red, theta_ref)
-    n2_arr = jnp.asarray(n2, dtype)
+    # One program runs the variable-projection LM, ranks the starts and evaluates for the polish,
+    # which runs on the host in float64 (float32 normal equations cannot resolve the weakly
+    # determined directions the polish must still move: measured, noisy fits stopped short with
+    # |z| up to 70).
+    fn, compile_s = _program(prob, red, U, theta_ref, max_steps + 1 if history else 0, verbose)
+    program = _Program(fn, prob, red, theta_ref, U)
+    ev = _Evaluator(program)
     notes, hist = [], []
     exclude = np.zeros(len(U), bool)
-    best, steps = None, 0
+    best, steps, costs = None, 0, None
     t0 = time.perf_counter()
-    costs = np.asarray(search(jnp.asarray(U, dtype), sub, theta_ref), np.float64) if search else np.zeros(len(U))
     x_start = np.asarray(theta0, np.float64)[red.idx_l]
+    b = 0  # the given start first: ranking the others costs a render each, and is needed rarely
     for attempt in range(restarts + 1):
-        b = int(np.argmin(np.where(exclude, np.inf, costs)))
-        z0 = np.concatenate([x_start, U[b]])
-        out = fn(jnp.asarray(z0, dtype), prob.device_data(), theta_ref, n2_arr, jnp.asarray(0), *_limits(max_steps, rtol, dtype))
+        out = program.solve(np.concatenate([x_start, U[b]]), max_steps, rtol)
         z = np.asarray(out["z"], np.float64)
         k0 = int(out["k"])
         u = z[len(red.idx_l):]
@@ -357,13 +378,10 @@ def _fit_program(prob, red, theta0, *, starts, restarts, max_steps, polish_steps
                f"the polish did not converge in {polish_steps} steps"
                + (f" (variable-projection LM reached its step limit, max_steps={max_steps})" if k0 >= max_steps else ""))
         cand = _candidate(prob, theta, r, J, img, fixed, why, converged, k1, n2, noise)
-        if attempt == 0 and len(U) > 1:
-            rank = int(np.flatnonzero(np.argsort(costs, kind="stable") == 0)[0]) + 1
-            notes.append(f"global start: {len(U)} starts ranked on {SEARCH_PIXELS} pixels per view "
-                         f"(the given start ranked {rank})")
-        notes.append(f"attempt {attempt + 1}: from start {b + 1}: {k0} variable-projection LM evaluations"
-                     f"{'' if bool(out['conv']) else ' (not converged)'}, {k1} of the polish on the whole image"
-                     f"{' (converged)' if converged else ' (not converged)'}; residual {cand['ratio']:.3g}× the noise")
+        notes.append(f"attempt {attempt + 1}: from {'the given start' if b == 0 else f'start {b + 1}'}: {k0} "
+                     f"variable-projection LM evaluations{'' if bool(out['conv']) else ' (not converged)'}, {k1} of "
+                     f"the polish on the whole image{' (converged)' if converged else ' (not converged)'}; "
+                     f"residual {cand['ratio']:.3g}× the noise")
         if history:
             for th, cc in zip(np.asarray(out["hz"])[:int(out["nh"])], np.asarray(out["hc"])[:int(out["nh"])]):
                 hist.append((0.5 * float(cc), np.asarray(th, np.float64)))
@@ -374,6 +392,11 @@ def _fit_program(prob, red, theta0, *, starts, restarts, max_steps, polish_steps
             exclude |= np.max(np.abs(U - u[None]), axis=1) < 0.25  # the basin just explored
         if (converged and cand["ratio"] <= noise_ratio_limit(n2)) or exclude.all() or len(U) == 1:
             break
+        if costs is None:
+            costs = program.rank(x_start)
+            notes.append(f"global start: the given start was rejected; {len(U) - 1} further starts ranked by the "
+                         f"reduced cost over the whole image")
+        b = int(np.argmin(np.where(exclude, np.inf, costs)))
     best, k = _relinearise(prob, ev, red, best, polish_steps, rtol, n2, noise, notes)
     steps += k
     solve_s = time.perf_counter() - t0
@@ -501,7 +524,8 @@ def _polish(ev, prob, red, theta, steps, rtol):
         n_ev += 1
         c2 = float(r2 @ r2)
         if np.isfinite(c2) and c2 <= cost:
-            moved = np.max(np.abs(new - theta) / np.maximum(np.abs(theta), 1e-3))
+            with np.errstate(over="ignore", invalid="ignore"):  # a far step is simply not converged
+                moved = np.max(np.abs(new - theta) / np.maximum(np.abs(theta), 1e-3))
             stalled = stalled + 1 if cost - c2 <= len(theta) * floor_var else 0
             damped = lam > 1e-3  # a step shortened by damping says nothing about convergence
             theta, r, J, img, cost, lam = new, r2, J2, img2, c2, max(lam / 10, 1e-9)

@@ -110,3 +110,36 @@ def test_bounded_lsq_keeps_the_start_of_a_column_the_image_does_not_show():
                           jnp.asarray([0.2, 0.7]))
     np.testing.assert_allclose(np.asarray(x), [0.5, 0.7], atol=1e-12)
     assert list(np.asarray(free)) == [True, False]
+
+
+def test_the_program_ranks_the_starts_by_their_reduced_cost_and_is_the_only_program_a_fit_compiles():
+    """Mode 2 of the one compiled program gives every candidate start's reduced cost (the bounded
+    linear block projected out): against :meth:`Reduced.cost`, an independent path (a design matrix
+    per view and a bounded solve). A fit of the same structure then compiles nothing more: the
+    render is compiled once per fit, for the solve, the ranking and the polish alike."""
+    from fitting import strategy
+    from fitting.fit import _Program, _program, fit
+    from fitting.strategy import candidates
+
+    scene, opts = small()
+    free = ["material.ambient", "material.diffuse", "material.specular", "material.shininess", "point[0].a1"]
+    target = np.asarray(jax.jit(ds.render, static_argnames="opts")(scene, opts))
+    ps = ParamSet(free, scene)
+    start = ps.theta_of(scene) * jnp.asarray([1.0] * 9 + [2.0, 3.0])
+    s0 = ps.apply(scene, start)
+    prob = Problem.build(s0, opts, [target], free)
+    red = Reduced(prob)
+    theta0 = np.asarray(prob.pset.theta_of(s0), np.float64)
+    theta_ref = jnp.asarray(theta0, prob.dtype)
+    U = candidates(red, theta0, 6)
+    before = len(strategy._CACHE)
+    fn, compile_s = _program(prob, red, U, theta_ref)
+    assert compile_s > 0 and len(strategy._CACHE) == before + 1
+    costs = _Program(fn, prob, red, theta_ref, U).rank(theta0[red.idx_l])
+    cost = jax.jit(red.cost)
+    want = np.array([float(cost(jnp.asarray(u), (prob.data, theta_ref))) for u in U])
+    np.testing.assert_allclose(costs, want, rtol=1e-8, atol=1e-20)
+    assert len(set(np.argsort(costs)[:3])) == 3 and np.ptp(costs) > 0  # the starts differ
+    r = fit(s0, opts, target, free, starts=6)
+    assert r.compile_s == 0.0 and len(strategy._CACHE) == before + 1
+    assert r.successful, (r.result, r.notes)
