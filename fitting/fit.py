@@ -23,6 +23,7 @@ import numpy as np
 
 import diffshade as ds
 
+from .intervals import profile_intervals
 from .params import ParamSet
 from .problem import FitError, Problem, as_list, to_host
 from .report import FitResult, float_floor, noise_ratio_limit, image_quality, noise_level, uncertainty, verdict
@@ -61,6 +62,7 @@ def fit(
     albedo_smoothness: float = 0.0,
     visibility_passes: int = 6,
     devices=None,
+    intervals: bool = True,
 ) -> FitResult:
     """Fit the ``free`` parameters of ``scene`` to ``targets``.
 
@@ -110,6 +112,11 @@ def fit(
     :func:`jax.distributed.initialize`, every process's devices). Views of one structure are
     stacked; sharded, each view's pixels, residuals and Jacobian rows stay on its device and only
     the reductions over pixels cross devices (docs/model.md §14).
+
+    ``intervals``: with a successful fit, also the profile-likelihood interval of every determined
+    scalar at Δχ² = 9 (``FitResult.interval``; :mod:`fitting.intervals`): the others re-fitted,
+    so a trade-off that bends (a faceted highlight's k_s and m) widens it where ±3 standard
+    errors would not. A few evaluations per scalar; ``FitResult.interval_s`` says how long.
     """
     free = list(free)
     if visibility_passes > 1 and any(p.path[0] == "camera" and p.path[-1] in ("rvec", "tvec")
@@ -118,7 +125,8 @@ def fit(
                          masks=masks, shared=shared, max_steps=max_steps, rtol=rtol, atol=atol,
                          saturation=saturation, quantum=quantum, noise=noise, starts=starts, restarts=restarts,
                          polish_steps=polish_steps, method=method, verbose=verbose, history=history,
-                         encoding=encoding, margin=margin, albedo_smoothness=albedo_smoothness, devices=devices)
+                         encoding=encoding, margin=margin, albedo_smoothness=albedo_smoothness, devices=devices,
+                         intervals=intervals)
     if method not in ("auto", "full"):
         raise FitError(f"unknown method {method!r}; 'auto' or 'full'")
     if solver != "varpro" and solver not in SOLVERS:
@@ -143,7 +151,8 @@ def fit(
     notes, compile_s = [], 0.0
     if solver == "varpro":
         return _fit_program(prob, red, theta0, starts=starts, restarts=restarts, max_steps=max_steps,
-                            polish_steps=polish_steps, rtol=rtol, noise=noise, history=history, verbose=verbose)
+                            polish_steps=polish_steps, rtol=rtol, noise=noise, history=history, verbose=verbose,
+                            intervals=intervals)
 
     # -- optimistix on the reduced problem: global start and LM on a pixel subset ------------------
     # The starts are ranked by the reduced cost on about SEARCH_PIXELS covered pixels per view, and
@@ -225,7 +234,8 @@ def fit(
     converged = best["converged"]
     msg_solver = "" if converged else (result_message(best["res"]).splitlines()[0] if best["res"]
                                        else "the polish did not converge")
-    return _report(prob, red, best, theta0, notes, hist, steps_total, compile_s, solve_s, n2, n_cens, msg_solver)
+    return _report(prob, red, best, theta0, notes, hist, steps_total, compile_s, solve_s, n2, n_cens, msg_solver, ev,
+                   intervals)
 
 
 def _fit_pose(scene, opts, targets, free, *, views, visibility_passes, **kw) -> FitResult:
@@ -345,7 +355,8 @@ def _evaluator(prob, red, theta_ref):
     return _Evaluator(_Program(fn, prob, red, theta_ref, U)), c
 
 
-def _fit_program(prob, red, theta0, *, starts, restarts, max_steps, polish_steps, rtol, noise, history, verbose):
+def _fit_program(prob, red, theta0, *, starts, restarts, max_steps, polish_steps, rtol, noise, history, verbose,
+                 intervals=True):
     """The default path: variable projection from the given start (:mod:`fitting.program`), then
     the polish; if the verdict rejects the result, the global start's candidates are ranked and
     the fit runs again from the best of them not yet explored, up to ``restarts`` times."""
@@ -401,7 +412,8 @@ def _fit_program(prob, red, theta0, *, starts, restarts, max_steps, polish_steps
     steps += k
     solve_s = time.perf_counter() - t0
     msg_solver = best["res"]
-    return _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2, n_cens, msg_solver)
+    return _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2, n_cens, msg_solver, ev,
+                   intervals)
 
 
 RELINEARISE_PASSES = 2
@@ -424,23 +436,50 @@ def _relinearise(prob, ev, red, best, polish_steps, rtol, n2, noise, notes):
     return best, steps
 
 
-def _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2, n_cens, msg_solver) -> FitResult:
+def _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2, n_cens, msg_solver, ev=None,
+            intervals=True) -> FitResult:
     pset = prob.pset
     theta, r, J, fixed = best["theta"], best["r"], best["J"], best["fixed"]
     labels = pset.labels
-    stderr, undetermined, gauges, _ = uncertainty(J, r, n2, labels, best["sigma"])
+    stderr, undetermined, gauges, s2 = uncertainty(J, r, n2, labels, best["sigma"])
     successful, msg = verdict(best["converged"], msg_solver, best["ratio"], best["sigma"], best["source"], n2)
     on_bound = [f"{labels[i]} = {theta[i]:.6g} ({'lower' if theta[i] <= lo else 'upper'} bound)"
                 for i, lo in _bounded_fixed(prob, theta, fixed)]
     psnr, ssim = image_quality(prob.full_images(best["img"])[0], prob.targets[0])
+    interval, interval_s = None, 0.0
+    if intervals and successful and ev is not None:
+        t0 = time.perf_counter()
+        lo, hi, _ = _box(prob, theta)
+        interval, n_ev = profile_intervals(ev, theta, r, J, s2, stderr, lo, hi, k=INTERVAL_LEVEL)
+        interval_s = time.perf_counter() - t0
+        wide = [labels[i] for i in range(len(theta)) if np.isfinite(stderr[i])
+                and max(theta[i] - interval[i, 0], interval[i, 1] - theta[i]) > 1.2 * INTERVAL_LEVEL * stderr[i]]
+        notes.append(f"profile-likelihood intervals (Δχ² = {INTERVAL_LEVEL ** 2:g}): {n_ev} evaluations, "
+                     f"{interval_s:.3g} s" + (f"; wider than ±{INTERVAL_LEVEL:g} s.e. (the model bends there): "
+                                              f"{', '.join(wide)}" if wide else ""))
     return FitResult(
         names=labels, values=theta, start=np.asarray(theta0, np.float64), stderr=stderr, result=msg,
         successful=successful, steps=steps, compile_s=compile_s, solve_s=solve_s,
         rms=float(np.sqrt(best["rss"] / max(n2, 1))), psnr=psnr, ssim=ssim, rss=best["rss"], n_residuals=n2,
         undetermined=undetermined, gauges=gauges, history=hist, notes=notes, method=red.method, noise=best["sigma"],
         noise_source=best["source"], noise_ratio=best["ratio"], converged=best["converged"],
-        stderr_meaningful=successful, on_bound=on_bound, censored=n_cens,
+        stderr_meaningful=successful, on_bound=on_bound, censored=n_cens, interval=interval,
+        interval_level=INTERVAL_LEVEL, interval_s=interval_s,
     )
+
+
+INTERVAL_LEVEL = 3.0  # the profile intervals' level, in standard errors of a linear model (Δχ² = 9)
+
+
+def _box(prob, theta):
+    """``(lo, hi, pos)``: every scalar's bounds, a nonlinear positive one's lower bound a hair
+    above 0 (``pos`` marks those)."""
+    pset = prob.pset
+    lo = np.concatenate([np.full(p.size, p.box[0]) for p in pset.params])
+    hi = np.concatenate([np.full(p.size, p.box[1]) for p in pset.params])
+    pos = np.concatenate([np.full(p.size, p.domain == "positive" and p.path[-1] not in
+                                  ("color", "ambient", "emission")) for p in pset.params])
+    return np.where(pos, np.maximum(np.abs(theta) * 1e-6, 1e-12), lo), hi, pos
 
 
 def _better(cand, best, n2) -> bool:
@@ -478,12 +517,9 @@ def _polish(ev, prob, red, theta, steps, rtol):
     points outside stay there. Returns ``(θ, r, J, img, fixed, evaluations, converged)``."""
     pset, dt = prob.pset, prob.dtype
     lo = np.concatenate([np.full(p.size, p.box[0]) for p in pset.params])
-    hi = np.concatenate([np.full(p.size, p.box[1]) for p in pset.params])
-    pos = np.concatenate([np.full(p.size, p.domain == "positive" and p.path[-1] not in
-                                  ("color", "ambient", "emission")) for p in pset.params])
+    floor, hi, pos = _box(prob, theta)  # a nonlinear positive stays > 0
     lin = np.zeros(len(theta), bool)
     lin[red.idx_l] = True
-    floor = np.where(pos, np.maximum(np.abs(theta) * 1e-6, 1e-12), lo)  # a nonlinear positive stays > 0
 
     r, J, img = ev(theta)
     cost, lam, n_ev, conv = float(r @ r), 1e-3, 1, False

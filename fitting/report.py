@@ -71,11 +71,30 @@ class FitResult:
     stderr_meaningful: bool = True  # False when the data reject the fitted model
     on_bound: list[str] = field(default_factory=list)  # labels fitted exactly on a bound
     censored: int = 0  # censored residual entries (clipped target channels)
+    interval: np.ndarray | None = None  # [p, 2] profile-likelihood interval at Δχ² = interval_level² (NaN: none)
+    interval_level: float = 3.0
+    interval_s: float = 0.0  # seconds the intervals took (after the solve, not in solve_s)
+
+    def within(self, values, k: float | None = None) -> np.ndarray:
+        """Whether each of ``values`` (the truth, in a test) lies within the reported uncertainty:
+        the profile-likelihood interval where there is one, else ±k standard errors (k defaults
+        to the interval's level)."""
+        k = self.interval_level if k is None else k
+        v = np.asarray(values, np.float64)
+        wald = np.abs(v - self.values) <= k * self.stderr
+        if self.interval is None or k != self.interval_level:
+            return wald
+        have = np.all(np.isfinite(self.interval) | np.isinf(self.interval), axis=1) & ~np.isnan(self.interval).any(axis=1)
+        prof = (v >= self.interval[:, 0]) & (v <= self.interval[:, 1])
+        return np.where(have, prof, wald)
 
     def as_dict(self) -> dict:
         return {
-            "parameters": {n: {"value": float(v), "stderr": float(e), "start": float(s)}
-                           for n, v, e, s in zip(self.names, self.values, self.stderr, self.start)},
+            "parameters": {n: {"value": float(v), "stderr": float(e), "start": float(s),
+                               **({"interval": [float(self.interval[i, 0]), float(self.interval[i, 1])]}
+                                  if self.interval is not None else {})}
+                           for i, (n, v, e, s) in enumerate(zip(self.names, self.values, self.stderr, self.start))},
+            "interval_level": self.interval_level,
             "result": self.result or "successful", "successful": self.successful, "converged": self.converged,
             "method": self.method, "steps": self.steps, "compile_s": self.compile_s, "solve_s": self.solve_s,
             "rms": self.rms, "rss": self.rss, "n_residuals": self.n_residuals, "censored": self.censored,
