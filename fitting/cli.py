@@ -270,14 +270,17 @@ FIT_OUTPUTS = ("fit.json", "material.mtl", "fit.png", "report.txt")
 def _report_table(r) -> list[str]:
     import numpy as np
 
-    lines = [f"{'parameter':26s} {'start':>11s} {'fitted':>11s} {'std. error':>11s} {'rel. s.e.':>10s}"]
+    iv = r.interval is not None
+    lines = [f"{'parameter':26s} {'start':>11s} {'fitted':>11s} {'std. error':>11s} {'rel. s.e.':>10s}"
+             + (f"  {'3σ profile interval':>25s}" if iv else "")]
     albedo = [i for i, n in enumerate(r.names) if n.startswith("mesh.colors[")]
     skip = set(albedo)
     for i, (n, s_, v, se) in enumerate(zip(r.names, r.start, r.values, r.stderr)):
         if i in skip:
             continue
         rel = se / abs(v) if v != 0 else float("inf")
-        lines.append(f"{n:26s} {s_:11.5g} {v:11.5g} {se:11.3g} {rel:10.2e}")
+        lines.append(f"{n:26s} {s_:11.5g} {v:11.5g} {se:11.3g} {rel:10.2e}"
+                     + (f"  [{r.interval[i, 0]:11.5g}, {r.interval[i, 1]:11.5g}]" if iv else ""))
     if albedo:  # thousands of scalars: a summary here, every value in fit.json
         se = r.stderr[albedo]
         fin = np.isfinite(se)

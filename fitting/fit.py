@@ -8,7 +8,8 @@
    linear in, a global start for the nonlinear few, optimistix's Levenberg–Marquardt, restarts
    from the next start when the verdict rejects a result, and a polish on the full problem;
 3. the **report** (:mod:`fitting.report`): the verdict (converged *and* explained by the noise),
-   standard errors, identifiability, parameters on a bound, image quality.
+   standard errors, profile-likelihood intervals (:mod:`fitting.intervals`), identifiability,
+   parameters on a bound, image quality.
 """
 
 from __future__ import annotations
@@ -446,6 +447,12 @@ def _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2,
     on_bound = [f"{labels[i]} = {theta[i]:.6g} ({'lower' if theta[i] <= lo else 'upper'} bound)"
                 for i, lo in _bounded_fixed(prob, theta, fixed)]
     psnr, ssim = image_quality(prob.full_images(best["img"])[0], prob.targets[0])
+    if successful and best["source"].startswith("float rounding") and prob.dtype == jnp.float32:
+        rel = stderr / np.maximum(np.abs(theta), 1e-300)
+        coarse = [f"{labels[i]} ({rel[i]:.1e})" for i in np.flatnonzero(np.isfinite(rel) & (rel > FLOAT32_NOTE))]
+        if coarse:  # measured: a1 1e-4 off in float32 where the same fit in float64 reached 5e-14
+            notes.append("float32 limits the relative precision of " + ", ".join(coarse) + " (the standard error "
+                         "at the float floor); render in float64 (jax_enable_x64) to resolve them further")
     interval, interval_s = None, 0.0
     if intervals and successful and ev is not None:
         t0 = time.perf_counter()
@@ -468,6 +475,7 @@ def _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2,
     )
 
 
+FLOAT32_NOTE = 1e-4  # relative s.e. at the float floor above which a float32 fit says float32 limits it
 INTERVAL_LEVEL = 3.0  # the profile intervals' level, in standard errors of a linear model (Δχ² = 9)
 
 

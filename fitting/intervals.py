@@ -37,7 +37,8 @@ from __future__ import annotations
 import numpy as np
 
 T_MAX = 30.0  # standard errors: an end further out is reported as unbounded
-SCREEN_TOL = 0.1  # relative: a Δχ² this close to k² is the interval's end
+SCREEN_TOL = 0.1  # relative: a Δχ² in [k², (1 + this)·k²] is the interval's end
+WALD_TOL = 0.02  # relative: Wald's end stands where the refitted Δχ² is within this of k² or above
 REFIT_STEPS = 5  # projected LM steps re-fitting the other scalars at each trial value
 MAX_TRIALS = 10  # trial values per end
 REFIT_GAIN = 0.1  # a refit ends when a step gains (or would gain) less than this much Δχ²
@@ -117,7 +118,7 @@ def profile_intervals(ev, theta, r, J, s2, stderr, lo, hi, k: float = 3.0):
             # end kept. The interval never narrows: a refit that misses the conditional minimum
             # overstates Δχ², and only an interval too narrow would follow from that.
             f = dchi2(k)
-            if f >= (1 - SCREEN_TOL) * k * k:
+            if f >= (1 - WALD_TOL) * k * k:
                 out[i, side] = theta[i] + sign * k * se
                 continue
             a, ga, b = k, np.sqrt(max(f, 0.0)) - k, None
@@ -127,14 +128,15 @@ def profile_intervals(ev, theta, r, J, s2, stderr, lo, hi, k: float = 3.0):
                     if a >= far:  # still below k² at the bound or at T_MAX
                         end = room if room <= T_MAX else np.inf
                         break
-                    t = float(min(max(a - ga * a / (ga + k), 1.2 * a), far))  # secant through (0, -k)
+                    rise = ga + k  # sqrt(Δχ²) at a: the secant through (0, -k) has slope rise / a
+                    t = float(min(max(a - ga * a / rise, 1.2 * a) if rise > 1e-9 else 4 * a, far))
                 elif b - a <= 0.05 * b:
                     break
                 else:
                     t = 0.5 * (a + b)
                 f = dchi2(t)
                 g = np.sqrt(max(f, 0.0)) - k
-                if abs(f - k * k) <= SCREEN_TOL * k * k:
+                if k * k <= f <= (1 + SCREEN_TOL) * k * k:  # at or just past k²: conservative
                     end = t
                     break
                 if g < 0:

@@ -14,10 +14,11 @@ Levenberg–Marquardt moves only :math:`\theta` on the reduced residual
 (:math:`A_f` the columns of the variables not on a bound).
 
 **Global start.** With :math:`x` projected out, each evaluation of the reduced cost is one render
-with a few tangents; on a subset of the covered pixels a quasi-random (Halton) set of starts over
-each nonlinear parameter's plausible range (log scale for positive ones) plus the user's start is
-ranked, and LM runs from the best; if its result is rejected by the verdict (residual above the
-noise), from the next distinct one.
+with a few tangents. LM runs from the user's start first; if the verdict rejects its result
+(not converged, or a residual above the noise), a quasi-random (Halton) set of starts over each
+nonlinear parameter's plausible range (log scale for positive ones) is ranked by that cost over
+the whole image (the program's mode 2: :mod:`fitting.program`), and LM runs again from the best
+start outside the basins already explored.
 
 **Polish.** Censored (clipped) pixels make the image non-linear in :math:`x` (the VarPro stage
 leaves them out), so the last stage is a projected Gauss–Newton on all parameters in their natural
