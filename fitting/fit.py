@@ -29,7 +29,7 @@ from .params import ParamSet
 from .problem import FitError, Problem, as_list, to_host
 from .report import FitResult, float_floor, noise_ratio_limit, image_quality, noise_level, uncertainty, verdict
 from .program import flat_data, make_program
-from .strategy import SOLVERS, Reduced, candidates, compiled, compiled_all, lm_solve, result_message
+from .strategy import SOLVERS, Reduced, candidates, compiled, lm_solve, result_message
 
 __all__ = ["FitError", "FitResult", "fit", "compare_models", "model_variants", "ModelScore"]
 

@@ -117,7 +117,6 @@ def make_program(red: Reduced, *, history: int = 0, verbose: bool = False):
         wu = w * ~(hi | lo)
         M = t.shape[0]
         float_var = (eps * jnp.max(jnp.abs(t) * (w > 0))) ** 2  # rounding of one residual entry, squared
-        solve = mode == 0
         natural = mode == 1
         rank = mode == 2
         z0 = z0.astype(dt)

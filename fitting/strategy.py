@@ -476,25 +476,15 @@ def _key(prob: Problem, what, *extra, args=()):
 def compiled(prob: Problem, what: str, fn, *args, extra=()):
     """``jax.jit(fn).lower(*args).compile()``, cached on the problem's structure; returns
     ``(compiled, compile_seconds)`` (0 when cached)."""
-    (c,), dt = compiled_all(prob, [(what, fn, args, extra)])
-    return c, dt
-
-
-def compiled_all(prob: Problem, items):
-    """:func:`compiled` of several ``(what, fn, args, extra)``; returns ``([compiled, ...],
-    seconds)``. (Compiling them in threads gained nothing on two cores: XLA's CPU compiler
-    already uses both.)"""
+    key = _key(prob, what, *extra, args=args)
+    if key in _CACHE:
+        return _CACHE[key], 0.0
     t0 = time.perf_counter()
-    keys = [_key(prob, what, *extra, args=args) for what, _, args, extra in items]
-    new = False
-    for key, (what, fn, args, extra) in zip(keys, items):
-        if key not in _CACHE:
-            _CACHE[key] = jax.jit(fn).lower(*args).compile()
-            new = True
-    dt = time.perf_counter() - t0 if new else 0.0
-    if _VERBOSE_COMPILE and new:
-        print(f"compiled {', '.join(w for w, *_ in items)} in {dt:.2f} s")
-    return [_CACHE[k] for k in keys], dt
+    _CACHE[key] = jax.jit(fn).lower(*args).compile()
+    dt = time.perf_counter() - t0
+    if _VERBOSE_COMPILE:
+        print(f"compiled {what} in {dt:.2f} s")
+    return _CACHE[key], dt
 
 
 _VERBOSE_COMPILE = False
