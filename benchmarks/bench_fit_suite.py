@@ -169,10 +169,12 @@ def main():
             r = fit(s0, opts, tgt, free, **kw)
             wall = time.perf_counter() - t0
             det = np.array([n not in r.undetermined for n in r.names])
-            wald3 = True
+            wald3, outside = True, 0
             if noisy:
                 z = np.abs(r.values - true) / np.where(r.stderr > 0, r.stderr, np.inf)
-                right = bool(np.all(r.within(true)[det]))  # the profile interval where there is one
+                inside = r.within(true)[det]  # the profile interval where there is one
+                right = bool(np.all(inside))
+                outside = int(np.sum(~inside))
                 wald3 = bool(np.all(z[det] <= 3))
                 within1 = int(np.sum(z[det] <= 1))
                 err_s = f"max |z| {np.max(z[det]):6.2f}" + ("" if right == wald3 else
@@ -186,7 +188,7 @@ def main():
             verdict = "ok" if (r.successful and right) else ("FALSE SUCCESS" if r.successful else
                                                              ("honest fail" if not right else "fail (right)"))
             rows.append(dict(case=case, noisy=noisy, ok=r.successful and right, false=r.successful and not right,
-                             false_wald=r.successful and not wald3, interval_s=r.interval_s,
+                             false_wald=r.successful and not wald3, interval_s=r.interval_s, outside=outside,
                              solve=r.solve_s, compile=r.compile_s, steps=r.steps, within1=within1,
                              ndet=int(det.sum()), wall=wall, honest=bool(np.all(z[det] <= 3))))
             print(f"{case:3d} {'8-bit' if noisy else ('f64' if args.x64 else 'f32')} {name:48s} {verdict:13s} {err_s} ratio {r.noise_ratio:7.3g} "
@@ -213,6 +215,9 @@ def main():
             # make it likelier): the per-parameter criterion itself fails that many by chance
             chance = sum(1.0 - math.erf(3 / math.sqrt(2)) ** r["ndet"] for r in sel)
             fw = sum(r["false_wald"] for r in sel)
+            nd = sum(r["ndet"] for r in sel)
+            line += (f", determined parameters outside their 3σ interval {sum(r['outside'] for r in sel)} of {nd} "
+                     f"(expected {nd * (1 - math.erf(3 / math.sqrt(2))):.1f})")
             line += (f", 1-σ coverage {100 * w1:.1f} %; said successful with a parameter beyond ±3 s.e.: {fw} "
                      f"(expected by chance alone with calibrated standard errors: {chance:.2f})")
         ivs = [r["interval_s"] for r in sel if r["interval_s"] > 0]
