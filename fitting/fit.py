@@ -114,7 +114,8 @@ def fit(
     stacked; sharded, each view's pixels, residuals and Jacobian rows stay on its device and only
     the reductions over pixels cross devices (docs/model.md §14).
 
-    ``intervals``: with a successful fit, also the profile-likelihood interval of every determined
+    ``intervals``: with a successful fit to a target with noise (not a noise-free float one, whose
+    σ is the float floor), also the profile-likelihood interval of every determined
     scalar at Δχ² = 9 (``FitResult.interval``; :mod:`fitting.intervals`): the others re-fitted,
     so a trade-off that bends (a faceted highlight's k_s and m) widens it where ±3 standard
     errors would not. A few evaluations per scalar; ``FitResult.interval_s`` says how long.
@@ -454,7 +455,11 @@ def _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2,
             notes.append("float32 limits the relative precision of " + ", ".join(coarse) + " (the standard error "
                          "at the float floor); render in float64 (jax_enable_x64) to resolve them further")
     interval, interval_s = None, 0.0
-    if intervals and successful and ev is not None:
+    float_floor_only = best["source"].startswith("float rounding")
+    if intervals and successful and ev is not None and float_floor_only:
+        notes.append("no profile-likelihood intervals: the target is noise-free (σ is the float floor), so the "
+                     "standard errors are bounds from rounding, not from noise")
+    elif intervals and successful and ev is not None:
         t0 = time.perf_counter()
         lo, hi, _ = _box(prob, theta)
         interval, n_ev = profile_intervals(ev, theta, r, J, s2, stderr, lo, hi, k=INTERVAL_LEVEL)
