@@ -322,11 +322,9 @@ class _Evaluator:
 
     def __init__(self, program: _Program):
         self.program, self.red, self.prob = program, program.red, program.prob
-        red, prob = self.red, self.prob
         self.refresh()
         M = len(self.t)
-        self.lin_cols = (red.chan[:, np.arange(M) % 3] > 0) if len(red.idx_l) else None
-        self.dtype = prob.dtype
+        self.lin_cols = (self.red.chan[:, np.arange(M) % 3] > 0) if len(self.red.idx_l) else None
 
     def refresh(self):
         """Take the problem's targets and weights again (after :meth:`Problem.relinearise`)."""
@@ -448,21 +446,21 @@ def _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2,
     on_bound = [f"{labels[i]} = {theta[i]:.6g} ({'lower' if theta[i] <= lo else 'upper'} bound)"
                 for i, lo in _bounded_fixed(prob, theta, fixed)]
     psnr, ssim = image_quality(prob.full_images(best["img"])[0], prob.targets[0])
-    if successful and best["source"].startswith("float rounding") and prob.dtype == jnp.float32:
+    float_floor_only = best["source"].startswith("float rounding")  # a noise-free float target
+    if successful and float_floor_only and prob.dtype == jnp.float32:
         rel = stderr / np.maximum(np.abs(theta), 1e-300)
         coarse = [f"{labels[i]} ({rel[i]:.1e})" for i in np.flatnonzero(np.isfinite(rel) & (rel > FLOAT32_NOTE))]
         if coarse:  # measured: a1 1e-4 off in float32 where the same fit in float64 reached 5e-14
             notes.append("float32 limits the relative precision of " + ", ".join(coarse) + " (the standard error "
                          "at the float floor); render in float64 (jax_enable_x64) to resolve them further")
     interval, interval_s = None, 0.0
-    float_floor_only = best["source"].startswith("float rounding")
     if intervals and successful and ev is not None and float_floor_only:
         notes.append("no profile-likelihood intervals: the target is noise-free (σ is the float floor), so the "
                      "standard errors are bounds from rounding, not from noise")
     elif intervals and successful and ev is not None:
         t0 = time.perf_counter()
-        lo, hi, _ = _box(prob, theta)
-        interval, n_ev = profile_intervals(ev, theta, r, J, s2, stderr, lo, hi, k=INTERVAL_LEVEL)
+        _, floor, hi, _ = _box(prob, theta)
+        interval, n_ev = profile_intervals(ev, theta, r, J, s2, stderr, floor, hi, k=INTERVAL_LEVEL)
         interval_s = time.perf_counter() - t0
         wide = [labels[i] for i in range(len(theta)) if np.isfinite(stderr[i])
                 and max(theta[i] - interval[i, 0], interval[i, 1] - theta[i]) > 1.2 * INTERVAL_LEVEL * stderr[i]]
@@ -485,14 +483,14 @@ INTERVAL_LEVEL = 3.0  # the profile intervals' level, in standard errors of a li
 
 
 def _box(prob, theta):
-    """``(lo, hi, pos)``: every scalar's bounds, a nonlinear positive one's lower bound a hair
-    above 0 (``pos`` marks those)."""
+    """``(lo, floor, hi, pos)``: every scalar's bounds, and as ``floor`` the lower bounds with a
+    nonlinear positive one's a hair above 0 (``pos`` marks those: it must stay > 0)."""
     pset = prob.pset
     lo = np.concatenate([np.full(p.size, p.box[0]) for p in pset.params])
     hi = np.concatenate([np.full(p.size, p.box[1]) for p in pset.params])
     pos = np.concatenate([np.full(p.size, p.domain == "positive" and p.path[-1] not in
                                   ("color", "ambient", "emission")) for p in pset.params])
-    return np.where(pos, np.maximum(np.abs(theta) * 1e-6, 1e-12), lo), hi, pos
+    return lo, np.where(pos, np.maximum(np.abs(theta) * 1e-6, 1e-12), lo), hi, pos
 
 
 def _better(cand, best, n2) -> bool:
@@ -528,9 +526,8 @@ def _polish(ev, prob, red, theta, steps, rtol):
     """Projected Levenberg–Marquardt on all parameters in natural units with the full (censored)
     residual, in float64 on the program's evaluation ``ev``. Scalars on a bound whose gradient
     points outside stay there. Returns ``(θ, r, J, img, fixed, evaluations, converged)``."""
-    pset, dt = prob.pset, prob.dtype
-    lo = np.concatenate([np.full(p.size, p.box[0]) for p in pset.params])
-    floor, hi, pos = _box(prob, theta)  # a nonlinear positive stays > 0
+    dt = prob.dtype
+    lo, floor, hi, pos = _box(prob, theta)
     lin = np.zeros(len(theta), bool)
     lin[red.idx_l] = True
 

@@ -37,7 +37,7 @@ from __future__ import annotations
 import numpy as np
 
 T_MAX = 30.0  # standard errors: an end further out is reported as unbounded
-SCREEN_TOL = 0.1  # relative: a Δχ² in [k², (1 + this)·k²] is the interval's end
+END_TOL = 0.1  # relative: a Δχ² in [k², (1 + this)·k²] is the interval's end
 WALD_TOL = 0.02  # relative: Wald's end stands where the refitted Δχ² is within this of k² or above
 REFIT_STEPS = 5  # projected LM steps re-fitting the other scalars at each trial value
 MAX_TRIALS = 10  # trial values per end
@@ -96,7 +96,11 @@ def profile_intervals(ev, theta, r, J, s2, stderr, lo, hi, k: float = 3.0):
         for side, sign in ((0, -1.0), (1, 1.0)):
             bound = lo[i] if sign < 0 else hi[i]
             room = abs(bound - theta[i]) / se  # standard errors to the bound
+            if room <= k:  # Wald's end is outside the domain: the bound
+                out[i, side] = bound
+                continue
             far = min(T_MAX, room)
+            outer = room if room <= T_MAX else np.inf  # the end where Δχ² never reaches k²
             known = [(0.0, theta)]  # refitted profile points (t, θ): warm starts along the curve
 
             def dchi2(t):
@@ -110,9 +114,6 @@ def profile_intervals(ev, theta, r, J, s2, stderr, lo, hi, k: float = 3.0):
                 known.append((t, th))
                 return (c - cost0) / s2
 
-            if room <= k:  # Wald's end is outside the domain: the bound
-                out[i, side] = bound
-                continue
             # Wald's end stands unless the profile is still below k² there; then outward: secant
             # steps through (0, -k) on sqrt(Δχ²) until past k², then bisection to 5 %, the outer
             # end kept. The interval never narrows: a refit that misses the conditional minimum
@@ -126,7 +127,7 @@ def profile_intervals(ev, theta, r, J, s2, stderr, lo, hi, k: float = 3.0):
             for _ in range(MAX_TRIALS):
                 if b is None:
                     if a >= far:  # still below k² at the bound or at T_MAX
-                        end = room if room <= T_MAX else np.inf
+                        end = outer
                         break
                     rise = ga + k  # sqrt(Δχ²) at a: the secant through (0, -k) has slope rise / a
                     t = float(min(max(a - ga * a / rise, 1.2 * a) if rise > 1e-9 else 4 * a, far))
@@ -136,7 +137,7 @@ def profile_intervals(ev, theta, r, J, s2, stderr, lo, hi, k: float = 3.0):
                     t = 0.5 * (a + b)
                 f = dchi2(t)
                 g = np.sqrt(max(f, 0.0)) - k
-                if k * k <= f <= (1 + SCREEN_TOL) * k * k:  # at or just past k²: conservative
+                if k * k <= f <= (1 + END_TOL) * k * k:  # at or just past k²: conservative
                     end = t
                     break
                 if g < 0:
@@ -144,7 +145,7 @@ def profile_intervals(ev, theta, r, J, s2, stderr, lo, hi, k: float = 3.0):
                 else:
                     b = t
             if end is None:
-                end = b if b is not None else (room if room <= T_MAX else np.inf)
+                end = b if b is not None else outer
             if end >= room:
                 out[i, side] = bound
             else:

@@ -84,7 +84,7 @@ class FitResult:
         wald = np.abs(v - self.values) <= k * self.stderr
         if self.interval is None or k != self.interval_level:
             return wald
-        have = np.all(np.isfinite(self.interval) | np.isinf(self.interval), axis=1) & ~np.isnan(self.interval).any(axis=1)
+        have = ~np.isnan(self.interval).any(axis=1)
         prof = (v >= self.interval[:, 0]) & (v <= self.interval[:, 1])
         return np.where(have, prof, wald)
 
