@@ -250,7 +250,11 @@ def _fit_pose(scene, opts, targets, free, *, views, visibility_passes, **kw) -> 
                            for p in pset.params])
     notes, compile_s, solve_s, steps, prev, first_start = [], 0.0, 0.0, 0, None, None
     for k in range(visibility_passes):
-        r = fit(scene, opts, targets, free, views=views, visibility_passes=1, **kw)
+        # a pass before the last is judged at a stale visibility, so its verdict is no reason to
+        # try other starts: the global search runs in the last pass only (measured: the two pose
+        # fits of tests/test_antialias.py took 81 s with restarts in every pass, 46 s without)
+        last = k == visibility_passes - 1
+        r = fit(scene, opts, targets, free, views=views, visibility_passes=1, **dict(kw, restarts=kw["restarts"] if last else 0))
         first_start = r.start if k == 0 else first_start
         compile_s, solve_s, steps = compile_s + r.compile_s, solve_s + r.solve_s, steps + r.steps
         theta = jnp.asarray(r.values, scene.mesh.vertices.dtype)
@@ -447,12 +451,15 @@ def _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2,
                 for i, lo in _bounded_fixed(prob, theta, fixed)]
     psnr, ssim = image_quality(prob.full_images(best["img"])[0], prob.targets[0])
     float_floor_only = best["source"].startswith("float rounding")  # a noise-free float target
+    float_limited = []
     if successful and float_floor_only and prob.dtype == jnp.float32:
         rel = stderr / np.maximum(np.abs(theta), 1e-300)
-        coarse = [f"{labels[i]} ({rel[i]:.1e})" for i in np.flatnonzero(np.isfinite(rel) & (rel > FLOAT32_NOTE))]
-        if coarse:  # measured: a1 1e-4 off in float32 where the same fit in float64 reached 5e-14
-            notes.append("float32 limits the relative precision of " + ", ".join(coarse) + " (the standard error "
-                         "at the float floor); render in float64 (jax_enable_x64) to resolve them further")
+        coarse = np.flatnonzero(np.isfinite(rel) & (rel > FLOAT32_NOTE))
+        float_limited = [labels[i] for i in coarse]
+        if float_limited:  # measured: a1 1e-4 off in float32 where the same fit in float64 reached 5e-14
+            notes.append("float32 limits the relative precision of " + ", ".join(f"{labels[i]} ({rel[i]:.1e})" for i in coarse)
+                         + " (the standard error at the float floor); render in float64 (jax_enable_x64) to "
+                         "resolve them further")
     interval, interval_s = None, 0.0
     if intervals and successful and ev is not None and float_floor_only:
         notes.append("no profile-likelihood intervals: the target is noise-free (σ is the float floor), so the "
@@ -474,7 +481,7 @@ def _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2,
         undetermined=undetermined, gauges=gauges, history=hist, notes=notes, method=red.method, noise=best["sigma"],
         noise_source=best["source"], noise_ratio=best["ratio"], converged=best["converged"],
         stderr_meaningful=successful, on_bound=on_bound, censored=n_cens, interval=interval,
-        interval_level=INTERVAL_LEVEL, interval_s=interval_s,
+        interval_level=INTERVAL_LEVEL, interval_s=interval_s, float_limited=float_limited,
     )
 
 

@@ -74,6 +74,9 @@ class FitResult:
     interval: np.ndarray | None = None  # [p, 2] profile-likelihood interval at Δχ² = interval_level² (NaN: none)
     interval_level: float = 3.0
     interval_s: float = 0.0  # seconds the intervals took (after the solve, not in solve_s)
+    # labels a float32 fit of a noise-free float target resolves only to a relative standard error
+    # above 1e-4 at the float floor (the image's own rounding): their precision is that s.e.
+    float_limited: list[str] = field(default_factory=list)
 
     def within(self, values, k: float | None = None) -> np.ndarray:
         """Whether each of ``values`` (the truth, in a test) lies within the reported uncertainty:
@@ -100,7 +103,8 @@ class FitResult:
             "rms": self.rms, "rss": self.rss, "n_residuals": self.n_residuals, "censored": self.censored,
             "noise": self.noise, "noise_source": self.noise_source, "noise_ratio": self.noise_ratio,
             "stderr_meaningful": self.stderr_meaningful, "on_bound": self.on_bound, "psnr": self.psnr,
-            "ssim": self.ssim, "undetermined": self.undetermined, "gauges": self.gauges, "notes": self.notes,
+            "ssim": self.ssim, "undetermined": self.undetermined, "gauges": self.gauges,
+            "float_limited": self.float_limited, "notes": self.notes,
         }
 
 

@@ -72,6 +72,28 @@ def test_float32_scene_fits_in_a_float64_session():
     np.testing.assert_allclose(r.values, np.asarray(ps.theta_of(scene)), rtol=1e-5)
 
 
+def test_a_float32_fit_names_what_float32_resolves_only_coarsely():
+    """A noise-free float32 target at 16²: the attenuation a1, a2 trade off against each other,
+    and the image's own rounding (the float floor) determines them only to ~2e-4 relative. The
+    fit says so in ``float_limited`` (and its notes), is within 3 of those standard errors, and
+    resolves the diffuse colour, which float32 does determine, to 1e-4."""
+    scene, opts = small_default_scene(16, 16)
+    scene = jax.tree.map(lambda x: x.astype(np.float32) if np.issubdtype(x.dtype, np.floating) else x, scene)
+    target = jax.jit(ds.render, static_argnames="opts")(scene, opts)
+    free = ["material.diffuse", "point[0].a1", "point[0].a2"]
+    ps = ParamSet(free, scene)
+    true = np.asarray(ps.theta_of(scene), np.float64)
+    r = fit(ps.apply(scene, ps.theta_of(scene) * 1.3), opts, target, free)
+    assert r.successful, r.result
+    assert r.float_limited == ["point[0].a1", "point[0].a2"]
+    assert any("float32 limits" in n and "point[0].a1" in n for n in r.notes)
+    rel_se = r.stderr / np.abs(true)
+    lim = np.array([n in r.float_limited for n in r.names])
+    assert np.all(rel_se[lim] > 1e-4) and np.all(rel_se[~lim] <= 1e-4)
+    assert np.all(np.abs(r.values - true)[lim] <= 3 * r.stderr[lim])
+    np.testing.assert_allclose(r.values[~lim], true[~lim], rtol=1e-4)
+
+
 def test_highlight_switched_off_is_found_or_honestly_reported():
     # A start with m = 1e6: (v.r)^m underflows almost everywhere, so m has (nearly) a zero
     # gradient there. From that start alone the fit either finds m or says it failed — never a
