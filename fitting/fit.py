@@ -503,12 +503,15 @@ def _box(prob, theta):
 def _better(cand, best, n2) -> bool:
     """Whether ``cand`` replaces ``best``: a lower residual, or one the verdict accepts (converged,
     explained by the noise) against one it does not whose residual is lower by less than one
-    unit of χ² (no evidence that its extra descent means anything)."""
+    unit of χ² (no evidence that its extra descent means anything) or is, like its own, below the
+    float floor of a noise-free target (rounding: measured in float64, an unconverged polish at
+    0.007× the floor was kept over a converged fit at 0.24× it, and the fit called a failure)."""
     if best is None:
         return True
     ok = lambda c: c["converged"] and c["ratio"] <= noise_ratio_limit(n2)  # noqa: E731
     if ok(cand) and not ok(best):
-        return cand["rss"] <= best["rss"] * (1.0 + 1.0 / max(n2 - len(best["theta"]), 1))
+        rounding = best["source"].startswith("float rounding") and best["ratio"] <= 1.0
+        return rounding or cand["rss"] <= best["rss"] * (1.0 + 1.0 / max(n2 - len(best["theta"]), 1))
     return cand["rss"] < best["rss"]
 
 

@@ -313,3 +313,25 @@ def test_recovers_transparency_absorption_transmission_and_kay():
     err = np.abs(np.asarray(r.values) - theta) / theta
     assert err.max() < 1e-4, dict(zip(ps.labels, err))
     assert not r.undetermined
+
+
+def test_a_converged_fit_replaces_an_unconverged_one_when_both_are_below_the_float_floor():
+    """Which of two attempts a fit keeps: below the float floor of a noise-free target the
+    residuals are rounding, so the converged attempt wins even with a larger one (measured in
+    float64: an unconverged polish at 0.007× the floor against a converged fit at 0.24× it);
+    with noise, a converged attempt whose residual is larger by more than one unit of χ² does
+    not replace a lower one."""
+    from fitting.fit import _better
+
+    theta = np.zeros(5)
+    n2 = 10_000
+
+    def cand(converged, ratio, rss, source):
+        return dict(converged=converged, ratio=ratio, rss=rss, source=source, theta=theta)
+
+    floor = "float rounding of the target"
+    assert _better(cand(True, 0.24, 1e-24, floor), cand(False, 0.007, 1e-27, floor), n2)
+    assert not _better(cand(False, 0.24, 1e-24, floor), cand(False, 0.007, 1e-27, floor), n2)
+    noisy = "white part of the residual"
+    assert not _better(cand(True, 1.0, 1.1, noisy), cand(False, 0.99, 1.0, noisy), n2)
+    assert _better(cand(True, 1.0, 1.00005, noisy), cand(False, 0.99, 1.0, noisy), n2)
