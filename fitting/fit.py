@@ -253,8 +253,8 @@ def _fit_pose(scene, opts, targets, free, *, views, visibility_passes, **kw) -> 
         # a pass before the last is judged at a stale visibility, so its verdict is no reason to
         # try other starts: the global search runs in the last pass only (measured: the two pose
         # fits of tests/test_antialias.py took 81 s with restarts in every pass, 46 s without)
-        last = k == visibility_passes - 1
-        r = fit(scene, opts, targets, free, views=views, visibility_passes=1, **dict(kw, restarts=kw["restarts"] if last else 0))
+        restarts = kw["restarts"] if k == visibility_passes - 1 else 0
+        r = fit(scene, opts, targets, free, views=views, visibility_passes=1, **dict(kw, restarts=restarts))
         first_start = r.start if k == 0 else first_start
         compile_s, solve_s, steps = compile_s + r.compile_s, solve_s + r.solve_s, steps + r.steps
         theta = jnp.asarray(r.values, scene.mesh.vertices.dtype)
