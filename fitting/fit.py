@@ -27,7 +27,7 @@ import diffshade as ds
 from .intervals import profile_intervals
 from .params import ParamSet
 from .problem import FitError, Problem, as_list, to_host
-from .report import FitResult, float_floor, noise_ratio_limit, image_quality, noise_level, uncertainty, verdict
+from .report import FLOAT_FLOOR_SOURCE, FitResult, float_floor, noise_ratio_limit, image_quality, noise_level, uncertainty, verdict
 from .program import flat_data, make_program
 from .strategy import SOLVERS, Reduced, candidates, compiled, lm_solve, result_message
 
@@ -450,16 +450,16 @@ def _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2,
     on_bound = [f"{labels[i]} = {theta[i]:.6g} ({'lower' if theta[i] <= lo else 'upper'} bound)"
                 for i, lo in _bounded_fixed(prob, theta, fixed)]
     psnr, ssim = image_quality(prob.full_images(best["img"])[0], prob.targets[0])
-    float_floor_only = best["source"].startswith("float rounding")  # a noise-free float target
+    float_floor_only = best["source"] == FLOAT_FLOOR_SOURCE  # a noise-free float target
     float_limited = []
     if successful and float_floor_only and prob.dtype == jnp.float32:
         rel = stderr / np.maximum(np.abs(theta), 1e-300)
         coarse = np.flatnonzero(np.isfinite(rel) & (rel > FLOAT32_NOTE))
         float_limited = [labels[i] for i in coarse]
         if float_limited:  # measured: a1 1e-4 off in float32 where the same fit in float64 reached 5e-14
-            notes.append("float32 limits the relative precision of " + ", ".join(f"{labels[i]} ({rel[i]:.1e})" for i in coarse)
-                         + " (the standard error at the float floor); render in float64 (jax_enable_x64) to "
-                         "resolve them further")
+            listed = ", ".join(f"{labels[i]} ({rel[i]:.1e})" for i in coarse)
+            notes.append(f"float32 limits the relative precision of {listed} (the standard error at the float "
+                         "floor); render in float64 (jax_enable_x64) to resolve them further")
     interval, interval_s = None, 0.0
     if intervals and successful and ev is not None and float_floor_only:
         notes.append("no profile-likelihood intervals: the target is noise-free (σ is the float floor), so the "
@@ -510,7 +510,7 @@ def _better(cand, best, n2) -> bool:
         return True
     ok = lambda c: c["converged"] and c["ratio"] <= noise_ratio_limit(n2)  # noqa: E731
     if ok(cand) and not ok(best):
-        rounding = best["source"].startswith("float rounding") and best["ratio"] <= 1.0
+        rounding = best["source"] == FLOAT_FLOOR_SOURCE and best["ratio"] <= 1.0
         return rounding or cand["rss"] <= best["rss"] * (1.0 + 1.0 / max(n2 - len(best["theta"]), 1))
     return cand["rss"] < best["rss"]
 

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 FLOAT_ROUNDING = 30  # the render's own rounding, in units of ε·max|y| (measured)
+FLOAT_FLOOR_SOURCE = "float rounding of the target"  # the noise source of a noise-free float target
 
 
 def float_floor(dtype, tmax: float) -> float:
@@ -150,7 +151,7 @@ def noise_level(prob, res_images, noise=None) -> tuple[float, str]:
         cands.append((prob.quantum / np.sqrt(12.0), f"quantisation of {round(1 / prob.quantum) + 1}-level codes"))
     else:
         tmax = max(float(np.max(np.abs(np.asarray(vd.target)))) for vd in prob.data)
-        cands.append((float_floor(prob.dtype, tmax), "float rounding of the target"))
+        cands.append((float_floor(prob.dtype, tmax), FLOAT_FLOOR_SOURCE))
     return max(cands, key=lambda c: c[0])
 
 

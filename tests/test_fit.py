@@ -329,7 +329,7 @@ def test_a_converged_fit_replaces_an_unconverged_one_when_both_are_below_the_flo
     def cand(converged, ratio, rss, source):
         return dict(converged=converged, ratio=ratio, rss=rss, source=source, theta=theta)
 
-    floor = "float rounding of the target"
+    from fitting.report import FLOAT_FLOOR_SOURCE as floor
     assert _better(cand(True, 0.24, 1e-24, floor), cand(False, 0.007, 1e-27, floor), n2)
     assert not _better(cand(False, 0.24, 1e-24, floor), cand(False, 0.007, 1e-27, floor), n2)
     noisy = "white part of the residual"
