@@ -132,14 +132,39 @@ def test_the_program_ranks_the_starts_by_their_reduced_cost_and_is_the_only_prog
     theta0 = np.asarray(prob.pset.theta_of(s0), np.float64)
     theta_ref = jnp.asarray(theta0, prob.dtype)
     U = candidates(red, theta0, 6)
-    before = len(strategy._CACHE)
+    before = strategy.cache_info()["misses"]
     fn, compile_s = _program(prob, red, U, theta_ref)
-    assert compile_s > 0 and len(strategy._CACHE) == before + 1
+    assert compile_s > 0 and strategy.cache_info()["misses"] == before + 1
     costs = _Program(fn, prob, red, theta_ref, U).rank(theta0[red.idx_l])
     cost = jax.jit(red.cost)
     want = np.array([float(cost(jnp.asarray(u), (prob.data, theta_ref))) for u in U])
     np.testing.assert_allclose(costs, want, rtol=1e-8, atol=1e-20)
     assert len(set(np.argsort(costs)[:3])) == 3 and np.ptp(costs) > 0  # the starts differ
     r = fit(s0, opts, target, free, starts=6)
-    assert r.compile_s == 0.0 and len(strategy._CACHE) == before + 1
+    assert r.compile_s == 0.0 and strategy.cache_info()["misses"] == before + 1
     assert r.successful, (r.result, r.notes)
+
+
+def test_the_compiled_program_cache_keeps_only_the_most_recently_used(monkeypatch):
+    # every compiled program keeps its machine code mapped, and a process may hold only 65,530
+    # mappings: a session that fitted ~80 structures died in LLVM before the cache was bounded
+    from fitting import strategy
+
+    monkeypatch.setattr(strategy, "CACHE_SIZE", 3)
+    monkeypatch.setattr(strategy, "_CACHE", type(strategy._CACHE)())
+    scene, opts = small()
+    prob = Problem.build(scene, opts, [np.zeros((20, 24, 3))], ["material.diffuse"])
+    x = jnp.ones(2)
+
+    def get(i):
+        return strategy.compiled(prob, f"probe {i}", lambda v: v * (i + 1), x)
+
+    assert all(get(i)[1] > 0 for i in range(3))
+    assert get(0)[1] == 0.0  # a hit, and now the most recent
+    assert get(3)[1] > 0  # compiles, and evicts the least recently used: probe 1
+    assert len(strategy._CACHE) == 3
+    assert get(0)[1] == 0.0 and get(2)[1] == 0.0 and get(3)[1] == 0.0
+    exe, dt = get(1)
+    assert dt > 0 and float(exe(x)[0]) == 2.0
+    info = strategy.cache_info()
+    assert info["size"] == 3 and info["capacity"] == 3
