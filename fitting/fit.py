@@ -546,6 +546,30 @@ def _squared(prob) -> np.ndarray:
     return out
 
 
+def _bounded_step(H, g, free, v, lo, hi, lam):
+    """The Gauss–Newton step for the model cost ``c + 2 g·s + s·H s`` (Marquardt-damped by ``lam``;
+    0: the pseudo-inverse) over the ``free`` variables, with every variable it would carry across
+    ``[lo, hi]`` held at that bound and the others solved again. Returns the step and the cost it
+    gains on the model. (A step clipped afterwards is no descent step in general: measured, an
+    attenuation heading for 0 was clipped, rejected and damped evaluation after evaluation, and
+    the polish ran out of its budget 3 χ² units from its optimum.)"""
+    d = np.diag(H)
+    held, s = np.zeros(len(v), bool), np.zeros(len(v))
+    for _ in range(len(v)):
+        f = free & ~held
+        if not f.any():
+            break
+        rhs = -(g[f] + H[np.ix_(f, held)] @ s[held])
+        s[f] = (np.linalg.lstsq(H[np.ix_(f, f)], rhs, rcond=None)[0] if lam == 0 else
+                np.linalg.solve(H[np.ix_(f, f)] + lam * np.diag(d[f]), rhs))
+        below, above = f & (v + s < lo), f & (v + s > hi)
+        if not (below | above).any():
+            break
+        held |= below | above
+        s = np.where(below, lo - v, np.where(above, hi - v, s))
+    return s, -(2.0 * float(g @ s) + float(s @ H @ s))
+
+
 def _polish(ev, prob, red, theta, steps, rtol):
     """Projected Levenberg–Marquardt on all parameters in natural units with the full (censored)
     residual, in float64 on the program's evaluation ``ev``; the scalars of :func:`_squared` by
@@ -564,7 +588,7 @@ def _polish(ev, prob, red, theta, steps, rtol):
     theta = np.where(sq, np.maximum(theta, floor), theta)
 
     r, J, img = ev(theta)
-    cost, lam, n_ev, conv = float(r @ r), 1e-3, 1, False
+    cost, lam, nu, n_ev, conv = float(r @ r), 1e-3, 2.0, 1, False
     n_res = max(int(np.count_nonzero(r)) - len(theta), 1)
     tol = max(rtol, 10 * float(np.finfo(dt).eps))
     # Float rounding of one residual entry, squared: at most ε·max|y| and at most the residual's own
@@ -589,16 +613,14 @@ def _polish(ev, prob, red, theta, steps, rtol):
             break
         # Converged when even the undamped Gauss–Newton step would lower the cost by less than a
         # hundredth of the residual variance (Δχ² = 0.01) or float rounding of the residual.
-        gn = np.linalg.lstsq(H[np.ix_(free, free)], -g[free], rcond=None)[0]
-        gain = -float(g[free] @ gn)
+        _, gain = _bounded_step(H, g, free, v, floor_v, hi_v, 0.0)
         s2 = cost / n_res
         if gain <= 1e-2 * s2 + len(theta) * (10 * floor_var if stalled >= 3 else min(s2, float_var)):
             conv = True
             break
-        Hf = H[np.ix_(free, free)] + lam * np.diag(d[free])
-        step = np.zeros_like(theta)
-        step[free] = np.linalg.solve(Hf, -g[free])
-        new = from_v(np.clip(v + step, floor_v, hi_v))
+        step, pred = _bounded_step(H, g, free, v, floor_v, hi_v, lam)
+        v_new = np.clip(v + step, floor_v, hi_v)
+        new = from_v(v_new)
         r2, J2, img2 = ev(new)
         n_ev += 1
         c2 = float(r2 @ r2)
@@ -607,12 +629,18 @@ def _polish(ev, prob, red, theta, steps, rtol):
                 moved = np.max(np.abs(new - theta) / np.maximum(np.abs(theta), 1e-3))
             stalled = stalled + 1 if cost - c2 <= len(theta) * floor_var else 0
             damped = lam > 1e-3  # a step shortened by damping says nothing about convergence
-            theta, r, J, img, cost, lam = new, r2, J2, img2, c2, max(lam / 10, 1e-9)
+            # Nielsen's update: the damping follows how well the quadratic model predicted the
+            # gain (Marquardt's /10 after every success went back to a step that failed, and
+            # spent every other evaluation of a curved valley on a rejected trial)
+            rho = (cost - c2) / pred if pred > 0 else 1.0
+            lam, nu = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), 1e-9), 2.0
+            theta, r, J, img, cost = new, r2, J2, img2, c2
             if moved <= tol and not damped:
                 conv = True
                 break
         else:
-            lam *= 10
+            lam *= nu
+            nu *= 2.0
             stalled += 1
     g = J.T @ r
     fixed = ((theta <= lo) & (g >= 0) & ~pos) | (theta >= hi)

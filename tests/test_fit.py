@@ -367,3 +367,32 @@ def test_the_polish_leaves_an_exp2_fog_density_of_zero_that_the_image_does_not_w
     assert converged and abs(theta[-1] / truth[-1] - 1) < 0.05, theta[-1]
     assert float(r @ r) < 0.8 * stuck
     np.testing.assert_allclose(theta, at_truth[0], rtol=1e-3)
+
+
+def test_a_polish_step_that_would_cross_a_bound_holds_that_variable_there():
+    """A narrow valley (correlation 0.999) whose floor leaves the domain: the unconstrained
+    optimum has a1 = -1, so the constrained one is a1 at its bound and a2 = 2 - 0.999. A step
+    clipped after it was solved is no descent step there: the polish used to reject, damp and
+    crawl (20 evaluations without converging from two of these starts); holding a1 at the
+    bound and solving for a2 again reaches the optimum in a few."""
+    from fitting.fit import _polish
+    from fitting.problem import Problem
+    from fitting.strategy import Reduced
+
+    scene, opts = small_default_scene(8, 8)
+    prob = Problem.build(scene, opts, [np.zeros((8, 8, 3))], ["point[0].a1", "point[0].a2"])
+    H = np.array([[1.0, 0.999], [0.999, 1.0]])
+    L = np.linalg.cholesky(H).T
+    x_free = np.array([-1.0, 2.0])
+    noise = np.random.default_rng(0).normal(0, 0.01, 300)  # a residual the parameters cannot explain
+
+    def ev(theta):
+        r = np.r_[L @ (theta - x_free), noise]
+        J = np.zeros((len(r), 2))
+        J[:2] = L
+        return r, J, r
+
+    for start in ([1.0, 0.1], [0.5, 0.5], [2.0, 0.3]):
+        theta, _, _, _, _, evaluations, converged = _polish(ev, prob, Reduced(prob), np.array(start), 20, 1e-8)
+        assert converged and evaluations <= 5, (start, evaluations)
+        assert theta[0] <= 1e-5 and abs(theta[1] - 1.001) < 2e-3, (start, theta)
