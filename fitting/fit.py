@@ -447,8 +447,9 @@ def _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2,
     labels = pset.labels
     stderr, undetermined, gauges, s2 = uncertainty(J, r, n2, labels, best["sigma"])
     successful, msg = verdict(best["converged"], msg_solver, best["ratio"], best["sigma"], best["source"], n2)
-    on_bound = [f"{labels[i]} = {theta[i]:.6g} ({'lower' if theta[i] <= lo else 'upper'} bound)"
-                for i, lo in _bounded_fixed(prob, theta, fixed)]
+    hi = _box(prob, theta)[2]
+    on_bound = [f"{labels[i]} = {theta[i]:.6g} ({'upper' if theta[i] >= hi[i] else 'lower'} bound)"
+                for i in np.flatnonzero(fixed)]
     psnr, ssim = image_quality(prob.full_images(best["img"])[0], prob.targets[0])
     float_floor_only = best["source"] == FLOAT_FLOOR_SOURCE  # a noise-free float target
     float_limited = []
@@ -524,14 +525,6 @@ def _candidate(prob, theta, r, J, img, fixed, res, converged, p_steps, n2, noise
                 polish=p_steps)
 
 
-def _bounded_fixed(prob, theta, fixed):
-    out = []
-    for i in np.flatnonzero(fixed):
-        p = prob.pset.params[np.searchsorted(prob.pset.offsets, i, side="right") - 1]
-        out.append((i, p.box[0]))
-    return out
-
-
 def _squared(prob) -> np.ndarray:
     """The scalars the image depends on through their square: an exp² fog's density
     (:math:`f = e^{-(d z)^2}`). At 0 their column vanishes, so in natural units 0 is a stationary
@@ -549,12 +542,12 @@ def _squared(prob) -> np.ndarray:
 def _bounded_step(H, g, free, v, lo, hi, lam):
     """The Gauss–Newton step for the model cost ``c + 2 g·s + s·H s`` (Marquardt-damped by ``lam``;
     0: the pseudo-inverse) over the ``free`` variables, with every variable it would carry across
-    ``[lo, hi]`` held at that bound and the others solved again. Returns the step and the cost it
-    gains on the model. (A step clipped afterwards is no descent step in general: measured, an
+    ``[lo, hi]`` held at that bound and the others solved again. Returns the new point and the cost
+    it gains on the model. (A step clipped afterwards is no descent step in general: measured, an
     attenuation heading for 0 was clipped, rejected and damped evaluation after evaluation, and
     the polish ran out of its budget 3 χ² units from its optimum.)"""
     d = np.diag(H)
-    held, s = np.zeros(len(v), bool), np.zeros(len(v))
+    held, s, at = np.zeros(len(v), bool), np.zeros(len(v)), v.copy()
     for _ in range(len(v)):
         f = free & ~held
         if not f.any():
@@ -566,8 +559,10 @@ def _bounded_step(H, g, free, v, lo, hi, lam):
         if not (below | above).any():
             break
         held |= below | above
-        s = np.where(below, lo - v, np.where(above, hi - v, s))
-    return s, -(2.0 * float(g @ s) + float(s @ H @ s))
+        at = np.where(below, lo, np.where(above, hi, at))
+        s = np.where(held, at - v, s)
+    # the new point, exactly on the bounds it holds (v + (lo - v) need not round to lo)
+    return np.where(held, at, v + s), -(2.0 * float(g @ s) + float(s @ H @ s))
 
 
 def _polish(ev, prob, red, theta, steps, rtol):
@@ -618,8 +613,8 @@ def _polish(ev, prob, red, theta, steps, rtol):
         if gain <= 1e-2 * s2 + len(theta) * (10 * floor_var if stalled >= 3 else min(s2, float_var)):
             conv = True
             break
-        step, pred = _bounded_step(H, g, free, v, floor_v, hi_v, lam)
-        v_new = np.clip(v + step, floor_v, hi_v)
+        v_new, pred = _bounded_step(H, g, free, v, floor_v, hi_v, lam)
+        v_new = np.clip(v_new, floor_v, hi_v)
         new = from_v(v_new)
         r2, J2, img2 = ev(new)
         n_ev += 1
@@ -643,8 +638,10 @@ def _polish(ev, prob, red, theta, steps, rtol):
             nu *= 2.0
             stalled += 1
     g = J.T @ r
-    fixed = ((theta <= lo) & (g >= 0) & ~pos) | (theta >= hi)
-    fixed &= lin | np.isfinite(hi)
+    # on a bound: at it with the gradient pointing outside (a positive nonlinear scalar at its
+    # floor, a hair above 0, is on its bound 0)
+    fixed = ((theta <= floor) & (g >= 0)) | (theta >= hi)
+    fixed &= lin | np.isfinite(hi) | pos
     return theta, r, J, img, fixed, n_ev, conv
 
 

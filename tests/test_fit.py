@@ -374,7 +374,7 @@ def test_a_polish_step_that_would_cross_a_bound_holds_that_variable_there():
     optimum has a1 = -1, so the constrained one is a1 at its bound and a2 = 2 - 0.999. A step
     clipped after it was solved is no descent step there: the polish used to reject, damp and
     crawl (20 evaluations without converging from two of these starts); holding a1 at the
-    bound and solving for a2 again reaches the optimum in a few."""
+    bound and solving for a2 again reaches the optimum in a few, and a1 is reported on its bound."""
     from fitting.fit import _polish
     from fitting.problem import Problem
     from fitting.strategy import Reduced
@@ -393,6 +393,8 @@ def test_a_polish_step_that_would_cross_a_bound_holds_that_variable_there():
         return r, J, r
 
     for start in ([1.0, 0.1], [0.5, 0.5], [2.0, 0.3]):
-        theta, _, _, _, _, evaluations, converged = _polish(ev, prob, Reduced(prob), np.array(start), 20, 1e-8)
+        theta, _, _, _, on_bound, evaluations, converged = _polish(ev, prob, Reduced(prob), np.array(start), 20, 1e-8)
         assert converged and evaluations <= 5, (start, evaluations)
         assert theta[0] <= 1e-5 and abs(theta[1] - 1.001) < 2e-3, (start, theta)
+        # a1 (domain a1 > 0) ends a hair above 0 and is reported on its bound; a2 is not
+        assert on_bound.tolist() == [True, False]
