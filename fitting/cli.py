@@ -303,6 +303,10 @@ def _report_table(r) -> list[str]:
             und + ([f"the albedo of {n_v} vertices (seen by no view, or unlit where seen)"] if n_v else [])))
     for g in r.gauges:
         lines.append("near-gauge (the images barely constrain this combination): " + g)
+    if r.ambiguous:
+        alt = dict(zip(r.names, r.alternative))
+        lines.append("AMBIGUOUS: a second solution explains the images as well; the intervals cover both: " + ", ".join(
+            f"{n} {r.values[r.names.index(n)]:.5g} or {alt[n]:.5g}" for n in r.ambiguous))
     return lines
 
 

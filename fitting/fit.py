@@ -29,7 +29,7 @@ from .params import ParamSet
 from .problem import FitError, Problem, as_list, to_host
 from .report import FLOAT_FLOOR_SOURCE, FitResult, float_floor, noise_ratio_limit, image_quality, noise_level, uncertainty, verdict
 from .program import flat_data, make_program
-from .strategy import SOLVERS, Reduced, candidates, compiled, lm_solve, result_message
+from .strategy import SOLVERS, Reduced, candidates, compiled, inside, lm_solve, result_message, search_ranges
 
 __all__ = ["FitError", "FitResult", "fit", "compare_models", "model_variants", "ModelScore"]
 
@@ -118,7 +118,10 @@ def fit(
     σ is the float floor), also the profile-likelihood interval of every determined
     scalar at Δχ² = 9 (``FitResult.interval``; :mod:`fitting.intervals`): the others re-fitted,
     so a trade-off that bends (a faceted highlight's k_s and m) widens it where ±3 standard
-    errors would not. A few evaluations per scalar; ``FitResult.interval_s`` says how long.
+    errors would not. Before them, a scan for other basins along each nonlinear scalar
+    (:func:`_other_basins`): a lower solution replaces the fit's, one within Δχ² = 9 is reported
+    (``FitResult.ambiguous``, ``FitResult.alternative``) and covered by the intervals. A few
+    evaluations per scalar; ``FitResult.interval_s`` says how long.
     """
     free = list(free)
     if visibility_passes > 1 and any(p.path[0] == "camera" and p.path[-1] in ("rvec", "tvec")
@@ -311,10 +314,20 @@ class _Program:
         """Image and tangents at ``z`` in natural units."""
         return self._call(z, 1)
 
-    def rank(self, x0):
-        """The reduced cost of every candidate start (``x0``: the linear block's warm start)."""
+    def rank(self, x0, rows=None):
+        """The reduced cost of every candidate start (``x0``: the linear block's warm start), or of
+        the given ``rows`` of ``u`` (at most as many as the candidates: the program's shape)."""
         z = np.concatenate([np.asarray(x0, np.float64), np.zeros(len(self.red.idx_n))])
-        costs = np.asarray(self._call(z, 2)["costs"], np.float64)
+        if rows is None:
+            costs = np.asarray(self._call(z, 2)["costs"], np.float64)
+        else:
+            n = len(rows)
+            pad = np.concatenate([rows, np.repeat(rows[:1], len(self.U) - n, axis=0)])
+            U, self.U = self.U, jnp.asarray(pad, self.dtype)
+            try:
+                costs = np.asarray(self._call(z, 2)["costs"], np.float64)[:n]
+            finally:
+                self.U = U
         return np.where(np.isfinite(costs), costs, np.inf)
 
 
@@ -415,9 +428,81 @@ def _fit_program(prob, red, theta0, *, starts, restarts, max_steps, polish_steps
     best, k = _relinearise(prob, ev, red, best, polish_steps, rtol, n2, noise, notes)
     steps += k
     solve_s = time.perf_counter() - t0
+    alternative, scan_s = None, 0.0
+    if intervals and len(U) > 1:
+        t1 = time.perf_counter()
+        best, alternative, k = _other_basins(program, ev, prob, red, best, theta0, n2, noise, polish_steps,
+                                             max_steps, rtol, notes)
+        steps += k
+        scan_s = time.perf_counter() - t1
     msg_solver = best["res"]
     return _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2, n_cens, msg_solver, ev,
-                   intervals)
+                   intervals, alternative, scan_s)
+
+
+def _other_basins(program, ev, prob, red, best, theta0, n2, noise, polish_steps, max_steps, rtol, notes):
+    """Is there another solution the images cannot tell from this one? For a fit the verdict
+    accepts on a target with noise: the reduced cost (the linear block re-solved) along a grid over
+    each nonlinear scalar's search range, the others at the solution, one call of the program's
+    ranking mode; from the grid point of least Δχ² below the interval level, variable projection
+    and the polish again. A solution lower by more than one unit of χ² replaces the fit's (the
+    verdict cannot see a local minimum whose excess is within the noise); one within Δχ² = 9 of it
+    is returned as the alternative whose values the intervals must cover. Measured on the suite's
+    case 137 (Gouraud, m = 107): the fit stopped at k_s = 0.005 ± 0.002, m = 0.33, with the truth
+    161 s.e. away; the highlight at m ≈ 87, k_s ≈ 0.2 had Δχ² = 0.7 more: the images cannot tell.
+    Returns ``(best, alternative or None, evaluations)``."""
+    n_n = len(red.idx_n)
+    C = len(program.U)
+    ok = best["converged"] and best["ratio"] <= noise_ratio_limit(n2)
+    if not n_n or C < 2 * n_n + 1 or not ok or best["source"] == FLOAT_FLOOR_SOURCE:
+        return best, None, 0
+    pset = prob.pset
+    theta = best["theta"]
+    u_sol = pset.u_from_theta_np(inside(pset, theta))[red.idx_n]
+    G = min((C - 1) // n_n, SCAN_POINTS)
+    rows, axis = [u_sol], []
+    for k, (scale, lo, hi) in enumerate(search_ranges(red, theta0)):
+        vals = np.exp(np.linspace(np.log(lo), np.log(hi), G)) if scale == "log" else np.linspace(lo, hi, G)
+        full = np.tile(inside(pset, theta), (G, 1))
+        full[:, red.idx_n[k]] = vals
+        u = pset.u_from_theta_np(full)[:, red.idx_n]
+        far = np.abs(u[:, k] - u_sol[k]) >= 0.25  # outside the basin the fit is in (the restarts' rule)
+        rows.extend(u[far])
+        axis.extend([k] * int(far.sum()))
+    if len(rows) == 1:
+        return best, None, 0
+    costs = program.rank(theta[red.idx_l], np.asarray(rows))
+    s2 = best["sigma"] ** 2
+    dchi2 = (costs[1:] - costs[0]) / s2
+    i = int(np.argmin(dchi2))
+    label = pset.labels[red.idx_n[axis[i]]]
+    if not dchi2[i] < INTERVAL_LEVEL ** 2:
+        notes.append(f"other basins: none within Δχ² = {INTERVAL_LEVEL ** 2:g} along any nonlinear parameter "
+                     f"({len(rows) - 1} points, the others at the solution; least Δχ² {dchi2[i]:.3g}, {label})")
+        return best, None, 1
+    out = program.solve(np.concatenate([theta[red.idx_l], rows[1 + i]]), max_steps, rtol)
+    k0 = int(out["k"])
+    th2, r, J, img, fixed, k1, converged = _polish(ev, prob, red, np.asarray(out["theta"], np.float64),
+                                                   polish_steps, rtol)
+    cand = _candidate(prob, th2, r, J, img, fixed, "" if converged else
+                      f"the polish did not converge in {polish_steps} steps", converged, k1, n2, noise)
+    d = (cand["rss"] - best["rss"]) / s2
+    u2 = pset.u_from_theta_np(inside(pset, th2))[red.idx_n]
+    start = f"from the grid point on {label} with Δχ² {dchi2[i]:.3g}"
+    if np.max(np.abs(u2 - u_sol)) < 0.25 and d > -1.0:
+        notes.append(f"other basins: {start}, variable projection and the polish came back to this solution")
+        return best, None, 1 + k0 + k1
+    if d < -1.0 and cand["converged"]:
+        notes.append(f"other basins: {start}, a solution with Δχ² {d:.3g} (lower) replaced the one found first")
+        return cand, None, 1 + k0 + k1
+    if d <= INTERVAL_LEVEL ** 2 and cand["converged"]:
+        return best, dict(cand, dchi2=d, start=start), 1 + k0 + k1
+    notes.append(f"other basins: {start}, variable projection and the polish reached Δχ² {d:.3g}"
+                 + ("" if cand["converged"] else " (not converged)"))
+    return best, None, 1 + k0 + k1
+
+
+SCAN_POINTS = 8  # grid points per nonlinear scalar in the search for other basins (at most)
 
 
 RELINEARISE_PASSES = 2
@@ -441,7 +526,7 @@ def _relinearise(prob, ev, red, best, polish_steps, rtol, n2, noise, notes):
 
 
 def _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2, n_cens, msg_solver, ev=None,
-            intervals=True) -> FitResult:
+            intervals=True, alternative=None, scan_s=0.0) -> FitResult:
     pset = prob.pset
     theta, r, J, fixed = best["theta"], best["r"], best["J"], best["fixed"]
     labels = pset.labels
@@ -461,7 +546,7 @@ def _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2,
             listed = ", ".join(f"{labels[i]} ({rel[i]:.1e})" for i in coarse)
             notes.append(f"float32 limits the relative precision of {listed} (the standard error at the float "
                          "floor); render in float64 (jax_enable_x64) to resolve them further")
-    interval, interval_s = None, 0.0
+    interval, interval_s, ambiguous = None, 0.0, []
     if intervals and successful and ev is not None and float_floor_only:
         notes.append("no profile-likelihood intervals: the target is noise-free (σ is the float floor), so the "
                      "standard errors are bounds from rounding, not from noise")
@@ -469,9 +554,15 @@ def _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2,
         t0 = time.perf_counter()
         _, floor, hi, _ = _box(prob, theta)
         interval, n_ev = profile_intervals(ev, theta, r, J, s2, stderr, floor, hi, k=INTERVAL_LEVEL)
-        interval_s = time.perf_counter() - t0
         wide = [labels[i] for i in range(len(theta)) if np.isfinite(stderr[i])
                 and max(theta[i] - interval[i, 0], interval[i, 1] - theta[i]) > 1.2 * INTERVAL_LEVEL * stderr[i]]
+        if alternative is not None:
+            interval, ambiguous = _cover(interval, alternative, n2, labels, floor, hi)
+            notes.append(f"other basins: {alternative['start']}, a second solution explains the images as well "
+                         f"(Δχ² {alternative['dchi2']:+.3g}): the images cannot tell them apart in "
+                         + ", ".join(f"{labels[i]} ({theta[i]:.4g} or {alternative['theta'][i]:.4g})" for i in ambiguous)
+                         + "; the intervals cover both")
+        interval_s = time.perf_counter() - t0 + scan_s
         notes.append(f"profile-likelihood intervals (Δχ² = {INTERVAL_LEVEL ** 2:g}): {n_ev} evaluations, "
                      f"{interval_s:.3g} s" + (f"; wider than ±{INTERVAL_LEVEL:g} s.e. (the model bends there): "
                                               f"{', '.join(wide)}" if wide else ""))
@@ -483,7 +574,23 @@ def _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2,
         noise_source=best["source"], noise_ratio=best["ratio"], converged=best["converged"],
         stderr_meaningful=successful, on_bound=on_bound, censored=n_cens, interval=interval,
         interval_level=INTERVAL_LEVEL, interval_s=interval_s, float_limited=float_limited,
+        ambiguous=[labels[i] for i in ambiguous], alternative=None if not ambiguous else alternative["theta"],
     )
+
+
+def _cover(interval, alternative, n2, labels, lo, hi):
+    """The intervals widened to hold the alternative solution with its own ±k standard errors, and
+    the scalars whose alternative value lay outside them."""
+    th2 = alternative["theta"]
+    se2 = uncertainty(alternative["J"], alternative["r"], n2, labels, alternative["sigma"])[0]
+    se2 = np.where(np.isfinite(se2), se2, 0.0)
+    out = interval.copy()
+    ambiguous = [i for i in range(len(th2)) if np.isfinite(interval[i]).all()
+                 and not interval[i, 0] <= th2[i] <= interval[i, 1]]
+    for i in ambiguous:
+        out[i, 0] = max(min(interval[i, 0], th2[i] - INTERVAL_LEVEL * se2[i]), lo[i])
+        out[i, 1] = min(max(interval[i, 1], th2[i] + INTERVAL_LEVEL * se2[i]), hi[i])
+    return out, ambiguous
 
 
 FLOAT32_NOTE = 1e-4  # relative s.e. at the float floor above which a float32 fit says float32 limits it

@@ -75,6 +75,10 @@ class FitResult:
     interval: np.ndarray | None = None  # [p, 2] profile-likelihood interval at Δχ² = interval_level² (NaN: none)
     interval_level: float = 3.0
     interval_s: float = 0.0  # seconds the intervals took (after the solve, not in solve_s)
+    # labels a second solution, within Δχ² = interval_level² of this one, puts elsewhere: the images
+    # cannot tell the two apart, and the intervals cover both (``alternative``: its values)
+    ambiguous: list[str] = field(default_factory=list)
+    alternative: np.ndarray | None = None
     # labels a float32 fit of a noise-free float target resolves only to a relative standard error
     # above 1e-4 at the float floor (the image's own rounding): their precision is that s.e.
     float_limited: list[str] = field(default_factory=list)
@@ -105,7 +109,9 @@ class FitResult:
             "noise": self.noise, "noise_source": self.noise_source, "noise_ratio": self.noise_ratio,
             "stderr_meaningful": self.stderr_meaningful, "on_bound": self.on_bound, "psnr": self.psnr,
             "ssim": self.ssim, "undetermined": self.undetermined, "gauges": self.gauges,
-            "float_limited": self.float_limited, "notes": self.notes,
+            "float_limited": self.float_limited, "ambiguous": self.ambiguous,
+            **({"alternative": dict(zip(self.names, map(float, self.alternative)))} if self.alternative is not None else {}),
+            "notes": self.notes,
         }
 
 
