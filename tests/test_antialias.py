@@ -6,11 +6,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jax.test_util import check_grads
 
 import diffshade as ds
 
-from conftest import small_default_scene
+from conftest import check_grads, small_default_scene
 
 H = W = 24
 COLOR = np.array([0.8, 0.5, 0.3])

@@ -6,10 +6,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jax.test_util import check_grads
 
 import diffshade as ds
 import diffshade._lighting as R
+
+from conftest import check_grads
 
 
 def _scene(area, dtype=jnp.float64):

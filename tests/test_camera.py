@@ -13,10 +13,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jax.test_util import check_grads
 
 import diffshade as ds
-from conftest import opencv_look_at as _look_at
+from conftest import check_grads, opencv_look_at as _look_at
 from conftest import small_default_scene
 
 

@@ -9,11 +9,12 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jax.test_util import check_grads
 
 import diffshade as ds
 from fitting.fit import fit
 from fitting.params import ParamError, ParamSet, direction_frame, direction_of, tilt_of
+
+from conftest import check_grads
 
 
 def _angle_deg(a, b):

@@ -81,7 +81,7 @@ def test_scan_over_lights_equals_the_unrolled_sum_values_and_tangents(shading):
 
 
 def test_scanned_lights_gradients_match_finite_differences():
-    from jax.test_util import check_grads
+    from conftest import check_grads
 
     scene, opts = many_lights_scene(6, 0, 0, size=8)
     ids = ds.scene_visibility(scene, opts)

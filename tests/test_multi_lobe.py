@@ -6,11 +6,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jax.test_util import check_grads
 
 import diffshade as ds
 import diffshade._lighting as R
 from diffshade._shadow import light_visibility
+
+from conftest import check_grads
 
 LOBES = [
     {"axis": [0.2, -0.4, -1.0], "cutoff": 35.0, "exponent": 3.0, "edge": 8.0, "color": [0.9, 0.3, 0.2], "ambient": [0.05, 0.0, 0.1]},

@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jax.test_util import check_grads
+from jax import test_util
 
 import diffshade as ds
 from diffshade import _shade as S
@@ -187,14 +187,20 @@ def test_every_parameter_gradient_matches_finite_differences(case, shading, grou
         assert all(float(jnp.abs(x).max()) == 0 for x in jax.tree.leaves(g)), "unused back material has a gradient"
         return
     assert any(float(jnp.abs(x).max()) > 0 for x in jax.tree.leaves(g)), "gradient identically zero"
-    check_grads(loss, (params,), order=1, modes=("fwd",), eps=1e-6, atol=1e-5, rtol=1e-5)
-    # reverse mode: the gradient along random directions against central differences of the
-    # (already compiled) loss; check_grads' own reverse check would compile a third program
+    # forward mode (check_grads' check) against central differences of the JVP program's own
+    # primal, and reverse mode: the gradient along random directions against the same
+    # differences; two compiled programs in all (the gradient and the JVP)
+    push = jax.jit(lambda p, t: jax.jvp(loss, (p,), (t,)))
+
+    def value(p):
+        return push(p, jax.tree.map(jnp.zeros_like, p))[0]
+
+    test_util.check_jvp(value, lambda a, t: push(a[0], t[0]), (params,), eps=1e-6, atol=1e-5, rtol=1e-5)
     rng = np.random.default_rng(11)
     for _ in range(3):
         v = jax.tree.map(lambda a: jnp.asarray(rng.normal(size=a.shape), a.dtype), params)
         step = lambda h: jax.tree.map(lambda a, b: a + h * b, params, v)  # noqa: E731
-        fd = (float(loss(step(1e-6))) - float(loss(step(-1e-6)))) / 2e-6
+        fd = (float(value(step(1e-6))) - float(value(step(-1e-6)))) / 2e-6
         dot = sum(float(jnp.vdot(a, b)) for a, b in zip(jax.tree.leaves(g), jax.tree.leaves(v)))
         np.testing.assert_allclose(dot, fd, rtol=1e-5, atol=1e-5)
 
@@ -231,3 +237,27 @@ def test_only_the_terms_a_scene_uses_are_compiled():
     assert count(a_txt, "exponential") >= 3
     ops = lambda t: sum(1 for line in t.splitlines() if " = " in line)  # noqa: E731
     assert ops(a_txt) > 1.5 * ops(d_txt), (ops(a_txt), ops(d_txt))
+
+
+def test_the_gradient_check_with_shared_programs_catches_a_wrong_jvp_and_a_wrong_vjp():
+    # conftest.check_grads compiles two programs instead of jax's four: it must still fail on a
+    # wrong forward rule and on a wrong reverse rule (each alone), and pass on a right one
+    from conftest import check_grads
+
+    @jax.custom_jvp
+    def bad_jvp(x):
+        return jnp.sin(x)
+
+    bad_jvp.defjvp(lambda p, t: (jnp.sin(p[0]), 1.01 * jnp.cos(p[0]) * t[0]))
+
+    @jax.custom_vjp
+    def bad_vjp(x):
+        return jnp.sin(x)
+
+    bad_vjp.defvjp(lambda x: (jnp.sin(x), x), lambda x, g: (1.01 * jnp.cos(x) * g,))
+    x = (jnp.linspace(0.1, 1.0, 5),)
+    check_grads(lambda v: jnp.sin(v) * v, x, modes=("fwd", "rev"), eps=1e-6, atol=1e-7, rtol=1e-7)
+    with pytest.raises(AssertionError):
+        check_grads(bad_jvp, x, modes=("fwd",), eps=1e-6, atol=1e-7, rtol=1e-7)
+    with pytest.raises(AssertionError):
+        check_grads(bad_vjp, x, modes=("rev",), eps=1e-6, atol=1e-7, rtol=1e-7)

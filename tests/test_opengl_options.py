@@ -9,10 +9,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jax.test_util import check_grads
 
 import diffshade as ds
 from test_shading import make_scene
+
+from conftest import check_grads
 
 
 @pytest.mark.parametrize("config,shading", [("opengl-separate-specular", "gouraud"), ("opengl-specular-colours", "flat"),

@@ -7,11 +7,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import trimesh
-from jax.test_util import check_grads
 
 import diffshade as ds
 from diffshade import _native
-from conftest import shared_mesh_dir
+from conftest import check_grads, shared_mesh_dir
 from reference import brute_force
 
 BACKENDS = ["jax", pytest.param("native", marks=pytest.mark.skipif(not _native.available(), reason="native kernel unavailable: no C++ compiler, or JAX's default device is not the CPU"))]

@@ -8,10 +8,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jax.test_util import check_grads
 
 import diffshade as ds
 from diffshade import _rays
+
+from conftest import check_grads
 
 EMBREE = pytest.mark.skipif(not _rays.embree_available(), reason="embreex is not installed")
 

@@ -14,7 +14,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 
 import diffshade as ds
 from fitting.problem import Problem, ViewData, stack_views, view_devices

@@ -7,10 +7,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jax.test_util import check_grads
 
 import diffshade as ds
 from diffshade import _rays
+
+from conftest import check_grads
 
 _render = jax.jit(ds.render, static_argnames="opts")
 
