@@ -200,7 +200,11 @@ class Param:
         if self.domain == "real":
             return u
         if self.bounds is None:
-            return jnp.exp(u)
+            # capped where θ² still fits the float type: measured, the float32 LM walked a
+            # shininess whose specular term had left the image to u > 89 and handed θ = inf on
+            # (beyond the cap θ is constant, a flat direction the solver leaves alone)
+            u = jnp.asarray(u)
+            return jnp.exp(jnp.minimum(u, 0.5 * np.log(np.finfo(u.dtype).max)))
         lo, hi = self.bounds
         return lo + (hi - lo) * jax.nn.sigmoid(u)
 

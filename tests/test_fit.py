@@ -35,6 +35,23 @@ def test_parameter_names_and_domains():
         fit(bad, ds.RenderOptions(), np.zeros((32, 32, 3)), ["material.diffuse"])
 
 
+def test_a_positive_scalar_far_out_on_its_log_scale_stays_finite_and_flat():
+    """The solver's log scale for a positive scalar (the exponent m) is capped where θ² still fits
+    the float type: a float32 LM that walked m's u past 89 (its specular term gone from the
+    image) handed θ = inf to the polish."""
+    scene, _ = small_scene()
+    ps = ParamSet(["material.shininess"], scene)
+    for dt in (np.float32, np.float64):
+        u = jax.numpy.asarray([10.0, 1e3, 1e30], dt)
+        theta = np.asarray(ps.theta_from_u(u))
+        assert np.isfinite(theta).all() and np.isfinite(theta.astype(np.float64) ** 2).all(), (dt, theta)
+        np.testing.assert_allclose(theta[0], np.exp(10.0), rtol=1e-6)
+        grad = np.asarray(jax.vmap(jax.grad(lambda v: ps.theta_from_u(v[None])[0]))(u))
+        tangent = jax.jvp(ps.theta_from_u, (u,), (jax.numpy.ones_like(u),))[1]
+        assert np.isfinite(grad).all() and grad[0] > 0 and (grad[1:] == 0).all(), grad
+        assert np.isfinite(np.asarray(tangent)).all()
+
+
 def test_bad_targets_are_named():
     scene, opts = small_scene()
     with pytest.raises(FitError, match="image is 16x16 but the camera renders 32x32"):
