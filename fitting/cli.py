@@ -305,7 +305,8 @@ def _report_table(r) -> list[str]:
         lines.append("near-gauge (the images barely constrain this combination): " + g)
     if r.ambiguous:
         alt = dict(zip(r.names, r.alternative))
-        lines.append("AMBIGUOUS: a second solution explains the images as well; the intervals cover both: " + ", ".join(
+        lines.append("AMBIGUOUS: the images cannot tell these values apart (within Δχ² = 9); the intervals "
+                     "cover both: " + ", ".join(
             f"{n} {r.values[r.names.index(n)]:.5g} or {alt[n]:.5g}" for n in r.ambiguous))
     return lines
 

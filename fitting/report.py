@@ -75,8 +75,9 @@ class FitResult:
     interval: np.ndarray | None = None  # [p, 2] profile-likelihood interval at Δχ² = interval_level² (NaN: none)
     interval_level: float = 3.0
     interval_s: float = 0.0  # seconds the intervals took (after the solve, not in solve_s)
-    # labels a second solution, within Δχ² = interval_level² of this one, puts elsewhere: the images
-    # cannot tell the two apart, and the intervals cover both (``alternative``: its values)
+    # labels whose intervals were widened to hold a second solution within Δχ² = interval_level²
+    # of this one, or a point of the scan for other basins within it: the images cannot tell
+    # those values apart (``alternative``: the second solution's values, or the point's)
     ambiguous: list[str] = field(default_factory=list)
     alternative: np.ndarray | None = None
     # labels a float32 fit of a noise-free float target resolves only to a relative standard error
