@@ -121,7 +121,8 @@ def fit(
     errors would not. Before them, a scan for other basins along each nonlinear scalar
     (:func:`_other_basins`): a lower solution replaces the fit's, one within Δχ² = 9 is reported
     (``FitResult.ambiguous``, ``FitResult.alternative``) and covered by the intervals, and so are
-    the scan's grid points within Δχ² = 9, the linear block solved there. A few
+    the scan's grid points within Δχ² = 9, the linear block solved there, and how far each
+    linear scalar reaches from those beyond the intervals (:func:`_linear_reach`). A few
     evaluations per scalar; ``FitResult.interval_s`` says how long.
     """
     free = list(free)
@@ -580,7 +581,9 @@ def _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2,
                          f"(Δχ² {alternative['dchi2']:+.3g}): the images cannot tell them apart in "
                          + ", ".join(f"{labels[i]} ({theta[i]:.4g} or {alternative['theta'][i]:.4g})" for i in ambiguous)
                          + "; the intervals cover both")
-        interval, grown, best_point = _cover_points(interval, points)
+        far = [(d, th) for d, th in points if ((th < interval[:, 0]) | (th > interval[:, 1])).any()]
+        interval, grown, best_point = _cover_points(
+            interval, points + _linear_reach(ev, red, far, interval, r, s2, floor, hi))
         if grown:
             ambiguous = sorted(set(ambiguous) | set(grown))
             alt_theta = best_point if alt_theta is None else alt_theta
@@ -616,6 +619,62 @@ def _cover_points(interval, points):
             out[below, 0], out[above, 1] = th[below], th[above]
             grown |= set(np.flatnonzero(below | above).tolist())
     return out, sorted(grown), best
+
+
+def _linear_reach(ev, red, points, interval, r_best, s2, lo, hi, halvings=3):
+    """Points within Δχ² = 9 that reach past the intervals along each linear scalar from the given
+    points ``(Δχ², θ)`` (grid points beyond the intervals, the linear block solved there): with
+    the nonlinear scalars held there, the image is linear in the linear block, so moving one linear
+    scalar by δ and the others (not on a bound) by their least-squares response changes χ² by a
+    quadratic in δ. The δ where that reaches the level (less 0.01), within the box, is proposed; each proposal
+    is evaluated (one render) and kept only if its Δχ², computed exactly (censoring included), is
+    within the level, else δ is halved. A scalar whose column vanishes there (a highlight no pixel
+    sees at m = 10⁴) reaches across its box. Returns the kept ``(Δχ², θ)``."""
+    level, idx_l = INTERVAL_LEVEL ** 2, red.idx_l
+    base = float(r_best @ r_best)
+    out = []
+    for _, th in points:
+        rp, Jp, _ = ev(th)
+        d0 = (float(rp @ rp) - base) / s2
+        if not d0 < level:
+            continue
+        tol = 1e-9 * np.maximum(np.where(np.isfinite(hi[idx_l]), hi[idx_l] - lo[idx_l], 0.0), np.abs(th[idx_l]))
+        held = (th[idx_l] <= lo[idx_l] + tol) | (th[idx_l] >= hi[idx_l] - tol)
+        for a, i in enumerate(idx_l):
+            if not np.isfinite(interval[i]).all():
+                continue
+            O = idx_l[~held & (np.arange(len(idx_l)) != a)]
+            e = np.zeros(len(th))
+            e[i] = 1.0
+            if len(O):
+                e[O] = -np.linalg.lstsq(Jp[:, O], Jp[:, i], rcond=None)[0]
+            je = Jp @ e
+            b, g = float(je @ je), float(rp @ je)
+            with np.errstate(divide="ignore", invalid="ignore"):  # where e is 0 the box does not bind
+                to_hi = np.where(e > 0, (hi - th) / e, np.where(e < 0, (lo - th) / e, np.inf))
+                to_lo = np.where(e > 0, (lo - th) / e, np.where(e < 0, (hi - th) / e, -np.inf))
+            box_hi, box_lo = float(np.min(to_hi)), float(np.max(to_lo))
+            disc = g * g + b * s2 * (level - 0.01 - d0)  # aimed a hair inside: rounding at the level
+            for sign, limit, end in ((1.0, box_hi, 1), (-1.0, box_lo, 0)):
+                if b > 0:
+                    delta = (-g + sign * np.sqrt(disc)) / b
+                    delta = min(delta, limit) if sign > 0 else max(delta, limit)
+                else:
+                    delta = limit
+                if not np.isfinite(delta) or sign * delta <= 0:
+                    continue
+                for _ in range(halvings + 1):
+                    cand = th + delta * e
+                    if (cand[i] > interval[i, 1]) if end else (cand[i] < interval[i, 0]):
+                        rc = ev(cand)[0]
+                        dc = (float(rc @ rc) - base) / s2
+                        if dc < level:
+                            out.append((dc, cand))
+                            break
+                    else:
+                        break
+                    delta *= 0.5
+    return out
 
 
 def _cover(interval, alternative, n2, labels, lo, hi):

@@ -461,14 +461,56 @@ def test_grid_points_within_the_level_widen_the_intervals_however_far_from_the_s
     r, truth, ps, scene, opts, noisy = _gouraud_highlight(3000.0)
     assert r.successful, r.result
     assert r.values[9] < 100 and r.interval[9, 1] >= 3000.0, (r.values, r.interval)
-    assert {"material.specular[r]", "material.specular[b]"} <= set(r.ambiguous), r.ambiguous
-    for i in (6, 8):  # k_s red and blue: the truth is inside now
+    assert {"material.specular[r]", "material.specular[g]", "material.specular[b]"} <= set(r.ambiguous), r.ambiguous
+    # k_s in all three channels: the truth is inside now (green, 0 at the grid point, through the
+    # linear reach there: at m = 10⁴ no pixel sees the highlight, so k_s is free across its box)
+    for i in (6, 7, 8):
         assert r.interval[i, 0] <= truth[i] <= r.interval[i, 1], r.interval[i]
     # what the note claims, checked on renders of its own: the point is within Δχ² = 9 of the fit
     render = jax.jit(ds.render, static_argnames="opts")
     rss = [float(np.sum((np.asarray(render(ps.apply(scene, jnp.asarray(th)), opts)) - noisy) ** 2))
            for th in (r.values, r.alternative)]
     assert 0.0 < (rss[1] - rss[0]) / r.noise ** 2 < 9.0, rss
+
+
+def test_the_linear_reach_from_a_point_ends_at_the_level_inside_the_box():
+    # a linear model r(θ) = A θ - t with the nonlinear scalar (index 3) not in it: from a point
+    # with scalar 1 held on its bound 0 and scalar 0 re-solved there, the reach along scalar 0
+    # ends where Δχ² reaches 9 (the model is quadratic there: to the 0.01 it aims inside), scalar 1 reaches inward
+    # only, and scalar 2, whose column vanishes, across its box; each point is within the level
+    import types
+
+    from fitting.fit import _linear_reach
+
+    rng = np.random.default_rng(1)
+    A = np.zeros((300, 4))
+    A[:, 0] = rng.normal(size=300)
+    A[:, 1] = 0.02 * rng.normal(size=300) + 0.01 * A[:, 0]  # weakly seen, correlated with 0
+    sigma = 0.05
+    t = A @ np.array([0.5, 0.2, 0.3, 7.0]) + rng.normal(0, sigma, 300)
+    x = np.linalg.lstsq(A[:, :2], t, rcond=None)[0]
+    r_best = A[:, :2] @ x - t
+    point = np.array([np.linalg.lstsq(A[:, :1], t, rcond=None)[0][0], 0.0, 0.3, 7.0])
+    ev = lambda th: (A @ th - t, A, A @ th)  # noqa: E731
+    d = lambda th: (np.sum(ev(th)[0] ** 2) - r_best @ r_best) / sigma ** 2  # noqa: E731
+    assert 0.0 < d(point) < 9.0 and x[1] > 0.0
+    lo, hi = np.zeros(4), np.array([1.0, 1.0, 1.0, np.inf])
+    red = types.SimpleNamespace(idx_l=np.array([0, 1, 2]))
+    tight = np.stack([point, point], axis=1)
+    out = _linear_reach(ev, red, [(d(point), point)], tight, r_best, sigma ** 2, lo, hi)
+    for dc, th in out:
+        assert dc < 9.0 and abs(dc - d(th)) < 1e-9 and np.all(th >= lo) and np.all(th <= hi), (dc, th)
+    along = {k: [th for _, th in out if th[k] != point[k] and all(th[j] == point[j] for j in (1, 2) if j != k)]
+             for k in (1, 2)}
+    along[0] = [th for _, th in out if th[1] == point[1] and th[2] == point[2]]
+    assert sorted(np.sign(th[0] - point[0]) for th in along[0]) == [-1, 1]
+    for th in along[0]:  # scalar 1 is held: the quadratic in scalar 0 alone reaches the level
+        assert 8.98 < d(th) < 9.0, d(th)
+    assert len(along[1]) == 1 and along[1][0][1] > 0.0  # inward from its bound only
+    assert sorted(th[2] for th in along[2]) == [0.0, 1.0]  # unseen: across its box
+    # a point beyond the level reaches nothing
+    far = point + np.array([1.0, 0, 0, 0])
+    assert d(far) > 9.0 and _linear_reach(ev, red, [(0.0, far)], tight, r_best, sigma ** 2, lo, hi) == []
 
 
 def test_points_within_the_level_join_the_intervals():
