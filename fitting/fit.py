@@ -588,7 +588,8 @@ def _report(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s, n2,
             ambiguous = sorted(set(ambiguous) | set(grown))
             alt_theta = best_point if alt_theta is None else alt_theta
             notes.append("other basins: the scan met points within Δχ² = "
-                         f"{INTERVAL_LEVEL ** 2:g} beyond the intervals (the linear block solved there), so the "
+                         f"{INTERVAL_LEVEL ** 2:g} beyond the intervals (the linear block solved there, or moved from "
+                         "there), so the "
                          "images do not tell these apart: " + ", ".join(
                              f"{labels[i]} [{interval[i, 0]:.4g}, {interval[i, 1]:.4g}]" for i in grown)
                          + " now cover them")
@@ -626,9 +627,9 @@ def _linear_reach(ev, red, points, interval, r_best, s2, lo, hi, halvings=3):
     points ``(Δχ², θ)`` (grid points beyond the intervals, the linear block solved there): with
     the nonlinear scalars held there, the image is linear in the linear block, so moving one linear
     scalar by δ and the others (not on a bound) by their least-squares response changes χ² by a
-    quadratic in δ. The δ where that reaches the level (less 0.01), within the box, is proposed; each proposal
-    is evaluated (one render) and kept only if its Δχ², computed exactly (censoring included), is
-    within the level, else δ is halved. A scalar whose column vanishes there (a highlight no pixel
+    quadratic in δ. The δ where that reaches the level (less 0.01), within the box, is proposed;
+    each proposal is evaluated (one render) and kept only if its Δχ², computed exactly (censoring
+    included), is within the level, else δ is halved. A scalar whose column vanishes there (a highlight no pixel
     sees at m = 10⁴) reaches across its box. Returns the kept ``(Δχ², θ)``."""
     level, idx_l = INTERVAL_LEVEL ** 2, red.idx_l
     base = float(r_best @ r_best)
@@ -655,6 +656,8 @@ def _linear_reach(ev, red, points, interval, r_best, s2, lo, hi, halvings=3):
                 to_lo = np.where(e > 0, (lo - th) / e, np.where(e < 0, (hi - th) / e, -np.inf))
             box_hi, box_lo = float(np.min(to_hi)), float(np.max(to_lo))
             disc = g * g + b * s2 * (level - 0.01 - d0)  # aimed a hair inside: rounding at the level
+            if disc < 0:  # the point itself is within that hair of the level
+                continue
             for sign, limit, end in ((1.0, box_hi, 1), (-1.0, box_lo, 0)):
                 if b > 0:
                     delta = (-g + sign * np.sqrt(disc)) / b
