@@ -492,9 +492,11 @@ def _other_basins(program, ev, prob, red, best, theta0, n2, noise, polish_steps,
         return best, None, [], 1
     # the extreme grid points inside the Δχ² level along each scalar, the linear block solved there
     near = np.flatnonzero(dchi2 < INTERVAL_LEVEL ** 2)
-    ends = {j for k in set(axis) for pick in (min, max)
-            for j in [pick((j for j in near if axis[j] == k), key=lambda j: rows[1 + j][axis[j]], default=None)]
-            if j is not None}
+    ends = set()
+    for k in set(axis):
+        on_k = [j for j in near if axis[j] == k]
+        if on_k:
+            ends |= {min(on_k, key=lambda j: rows[1 + j][k]), max(on_k, key=lambda j: rows[1 + j][k])}
     points = [(float(dchi2[j]), np.asarray(program.solve(np.concatenate([theta[red.idx_l], rows[1 + j]]), 1, rtol)["theta"],
                                           np.float64)) for j in sorted(ends)]
     out = program.solve(np.concatenate([theta[red.idx_l], rows[1 + i]]), max_steps, rtol)

@@ -476,8 +476,9 @@ def test_grid_points_within_the_level_widen_the_intervals_however_far_from_the_s
 def test_the_linear_reach_from_a_point_ends_at_the_level_inside_the_box():
     # a linear model r(θ) = A θ - t with the nonlinear scalar (index 3) not in it: from a point
     # with scalar 1 held on its bound 0 and scalar 0 re-solved there, the reach along scalar 0
-    # ends where Δχ² reaches 9 (the model is quadratic there: to the 0.01 it aims inside), scalar 1 reaches inward
-    # only, and scalar 2, whose column vanishes, across its box; each point is within the level
+    # ends where Δχ² reaches 9 (the model is quadratic there: to the 0.01 it aims inside), scalar 1
+    # reaches inward only, and scalar 2, whose column vanishes, across its box; each point is
+    # within the level
     import types
 
     from fitting.fit import _linear_reach
@@ -500,9 +501,10 @@ def test_the_linear_reach_from_a_point_ends_at_the_level_inside_the_box():
     out = _linear_reach(ev, red, [(d(point), point)], tight, r_best, sigma ** 2, lo, hi)
     for dc, th in out:
         assert dc < 9.0 and abs(dc - d(th)) < 1e-9 and np.all(th >= lo) and np.all(th <= hi), (dc, th)
-    along = {k: [th for _, th in out if th[k] != point[k] and all(th[j] == point[j] for j in (1, 2) if j != k)]
-             for k in (1, 2)}
-    along[0] = [th for _, th in out if th[1] == point[1] and th[2] == point[2]]
+    along = {0: [], 1: [], 2: []}  # by the scalar moved: 0 alone moves nothing else of 1 and 2
+    for _, th in out:
+        moved = [k for k in (1, 2) if th[k] != point[k]]
+        along[moved[0] if moved else 0].append(th)
     assert sorted(np.sign(th[0] - point[0]) for th in along[0]) == [-1, 1]
     for th in along[0]:  # scalar 1 is held: the quadratic in scalar 0 alone reaches the level
         assert 8.98 < d(th) < 9.0, d(th)
