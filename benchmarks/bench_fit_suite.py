@@ -1,7 +1,8 @@
 """Randomised fitting suite: does a fit find the truth from any start on any scene, or say it did not?
 
-Each case draws (from its own seed) a mesh (icosphere, torus, or the scanned bunny when
-``--bunny PATH`` is given), shading (flat / Gouraud / Phong / Blinn), 1–3 lights of mixed kinds,
+Each case draws (from its own seed) a mesh (icosphere, torus, or the scanned Stanford bunny of
+``tests/data/meshes``; ``--bunny PATH`` takes another scanned mesh, ``--no-bunny`` leaves it
+out), shading (flat / Gouraud / Phong / Blinn), 1–3 lights of mixed kinds,
 fog (none / linear / exp / exp²), a material, and a start: every free parameter anywhere in its
 search domain, a quarter of them exactly on a bound. Free: k_a and k_d (RGB), k_s, m, the
 attenuation a1, a2 of every point and spot light, and the fog's density (exp, exp²) or end
@@ -27,7 +28,7 @@ Scoring:
 attenuation coefficient traded against the others) only to its float floor, which the fit's
 standard errors and notes report; in float64 the same fits reach ~1e-13.
 
-    python benchmarks/bench_fit_suite.py [--cases 20] [--size 64] [--seed0 0] [--bunny PATH] [--x64]
+    python benchmarks/bench_fit_suite.py [--cases 20] [--size 64] [--seed0 0] [--bunny PATH | --no-bunny] [--x64]
 """
 
 from __future__ import annotations
@@ -48,6 +49,9 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 import diffshade as ds  # noqa: E402
 from fitting.fit import fit  # noqa: E402
 from fitting.params import ParamSet  # noqa: E402
+
+
+BUNNY = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests", "data", "meshes", "bunny.ply")
 
 
 def make_case(seed: int, size: int, bunny: str | None):
@@ -141,7 +145,8 @@ def main():
     ap.add_argument("--cases", type=int, default=20)
     ap.add_argument("--size", type=int, default=64)
     ap.add_argument("--seed0", type=int, default=0)
-    ap.add_argument("--bunny", default=None, help="path of a scanned mesh (e.g. the Stanford bunny PLY)")
+    ap.add_argument("--bunny", default=BUNNY, help="path of the scanned mesh (default: the Stanford bunny in tests/data)")
+    ap.add_argument("--no-bunny", action="store_true", help="icosphere and torus only (the suite before the bunny joined)")
     ap.add_argument("--noisy-only", action="store_true")
     ap.add_argument("--clean-only", action="store_true")
     ap.add_argument("--starts", type=int, default=None, help="fit(starts=...): the global search's start count")
@@ -152,7 +157,7 @@ def main():
     render = jax.jit(ds.render, static_argnames="opts")
     rows = []
     for case in range(args.seed0, args.seed0 + args.cases):
-        scene, opts, free, name, rng = make_case(case, args.size, args.bunny)
+        scene, opts, free, name, rng = make_case(case, args.size, None if args.no_bunny else args.bunny)
         pset = ParamSet(free, scene)
         true = np.asarray(pset.theta_of(scene), np.float64)
         clean = np.asarray(render(scene, opts))

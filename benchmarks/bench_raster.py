@@ -25,7 +25,7 @@ import diffshade as ds
 from diffshade import _native
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-BUNNY = os.path.join(HERE, "..", "..", "shared", "meshes", "bunny.ply")
+BUNNY = os.path.join(HERE, "..", "tests", "data", "meshes", "bunny.ply")
 
 
 def timed(fn, *args, repeats):
