@@ -47,7 +47,7 @@ def child(size: int, n: int, devices: int, repeats: int) -> dict:
     sys.path.insert(0, os.path.join(HERE, ".."))
     import diffshade as ds
     from fitting.cli import DEMO_FREE
-    from fitting.fit import _limits, _program
+    from fitting.solve import compiled_program, limits
     from fitting.problem import Problem
     from fitting.strategy import Reduced, candidates
 
@@ -71,7 +71,7 @@ def child(size: int, n: int, devices: int, repeats: int) -> dict:
     theta_ref = jnp.asarray(theta0, prob.dtype)
     U = candidates(red, theta0, 1)
     t0 = time.perf_counter()
-    fn, _ = _program(prob, red, U, theta_ref)
+    fn, _ = compiled_program(prob, red, U, theta_ref)
     compile_s = time.perf_counter() - t0
     z0 = jnp.asarray(np.concatenate([theta0[red.idx_l], U[0]]), prob.dtype)
     n2 = jnp.asarray(prob.counts()[0], prob.dtype)
@@ -79,7 +79,7 @@ def child(size: int, n: int, devices: int, repeats: int) -> dict:
 
     def run(steps):
         t = time.perf_counter()
-        out = fn(z0, data, theta_ref, n2, jnp.asarray(0), *_limits(steps, 0.0, prob.dtype), jnp.asarray(U, prob.dtype))
+        out = fn(z0, data, theta_ref, n2, jnp.asarray(0), *limits(steps, 0.0, prob.dtype), jnp.asarray(U, prob.dtype))
         jax.block_until_ready(out["z"])
         return time.perf_counter() - t, int(out["k"])
 

@@ -307,7 +307,7 @@ def fit_albedo(prob: Problem, theta0, *, smoothness: float = 0.0, max_steps: int
 
     th, r, Jr, cost, A, seen, free, img, steps, converged = lm(theta, max_steps)
     if prob.encoded:  # residuals in code values, exactly at the model (see Problem.relinearise)
-        from .fit import RELINEARISE_PASSES
+        from .solve import RELINEARISE_PASSES
 
         for _ in range(RELINEARISE_PASSES):
             prob.relinearise(img)

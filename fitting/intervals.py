@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import numpy as np
 
+INTERVAL_LEVEL = 3.0  # the fit's intervals' level, in standard errors of a linear model (Δχ² = 9)
 T_MAX = 30.0  # standard errors: an end further out is reported as unbounded
 END_TOL = 0.1  # relative: a Δχ² in [k², (1 + this)·k²] is the interval's end
 WALD_TOL = 0.02  # relative: Wald's end stands where the refitted Δχ² is within this of k² or above
@@ -151,3 +152,92 @@ def profile_intervals(ev, theta, r, J, s2, stderr, lo, hi, k: float = 3.0):
             else:
                 out[i, side] = theta[i] + sign * end * se if np.isfinite(end) else sign * np.inf
     return out, evals
+
+
+# ------------------------------------------------------------------------------------------
+# Points known to lie within the level widen the intervals (fitting.basins)
+# ------------------------------------------------------------------------------------------
+
+
+def cover_points(interval, points):
+    """The intervals widened to hold points ``(Δχ², θ)`` known to lie within their level, the
+    scalars widened, and the θ of least Δχ² among the points that widened one (None if none)."""
+    out, grown, best = interval.copy(), set(), None
+    for d, th in sorted(points, key=lambda p: p[0]):
+        below, above = th < out[:, 0], th > out[:, 1]  # (NaN intervals compare False: left alone)
+        if (below | above).any():
+            best = th if best is None else best
+            out[below, 0], out[above, 1] = th[below], th[above]
+            grown |= set(np.flatnonzero(below | above).tolist())
+    return out, sorted(grown), best
+
+
+def linear_reach(ev, red, points, interval, r_best, s2, lo, hi, halvings=3):
+    """Points within Δχ² = 9 that reach past the intervals along each linear scalar from the given
+    points ``(Δχ², θ)`` (grid points beyond the intervals, the linear block solved there): with
+    the nonlinear scalars held there, the image is linear in the linear block, so moving one linear
+    scalar by δ and the others (not on a bound) by their least-squares response changes χ² by a
+    quadratic in δ. The δ where that reaches the level (less 0.01), within the box, is proposed;
+    each proposal is evaluated (one render) and kept only if its Δχ², computed exactly (censoring
+    included), is within the level, else δ is halved. A scalar whose column vanishes there (a highlight no pixel
+    sees at m = 10⁴) reaches across its box. Returns the kept ``(Δχ², θ)``."""
+    level, idx_l = INTERVAL_LEVEL ** 2, red.idx_l
+    base = float(r_best @ r_best)
+    out = []
+    for _, th in points:
+        rp, Jp, _ = ev(th)
+        d0 = (float(rp @ rp) - base) / s2
+        if not d0 < level:
+            continue
+        tol = 1e-9 * np.maximum(np.where(np.isfinite(hi[idx_l]), hi[idx_l] - lo[idx_l], 0.0), np.abs(th[idx_l]))
+        held = (th[idx_l] <= lo[idx_l] + tol) | (th[idx_l] >= hi[idx_l] - tol)
+        for a, i in enumerate(idx_l):
+            if not np.isfinite(interval[i]).all():
+                continue
+            O = idx_l[~held & (np.arange(len(idx_l)) != a)]
+            e = np.zeros(len(th))
+            e[i] = 1.0
+            if len(O):
+                e[O] = -np.linalg.lstsq(Jp[:, O], Jp[:, i], rcond=None)[0]
+            je = Jp @ e
+            b, g = float(je @ je), float(rp @ je)
+            with np.errstate(divide="ignore", invalid="ignore"):  # where e is 0 the box does not bind
+                to_hi = np.where(e > 0, (hi - th) / e, np.where(e < 0, (lo - th) / e, np.inf))
+                to_lo = np.where(e > 0, (lo - th) / e, np.where(e < 0, (hi - th) / e, -np.inf))
+            box_hi, box_lo = float(np.min(to_hi)), float(np.max(to_lo))
+            disc = g * g + b * s2 * (level - 0.01 - d0)  # aimed a hair inside: rounding at the level
+            if disc < 0:  # the point itself is within that hair of the level
+                continue
+            for sign, limit, end in ((1.0, box_hi, 1), (-1.0, box_lo, 0)):
+                if b > 0:
+                    delta = (-g + sign * np.sqrt(disc)) / b
+                    delta = min(delta, limit) if sign > 0 else max(delta, limit)
+                else:
+                    delta = limit
+                if not np.isfinite(delta) or sign * delta <= 0:
+                    continue
+                for _ in range(halvings + 1):
+                    cand = th + delta * e
+                    if (cand[i] > interval[i, 1]) if end else (cand[i] < interval[i, 0]):
+                        rc = ev(cand)[0]
+                        dc = (float(rc @ rc) - base) / s2
+                        if dc < level:
+                            out.append((dc, cand))
+                            break
+                    else:
+                        break
+                    delta *= 0.5
+    return out
+
+
+def cover_alternative(interval, th2, se2, lo, hi):
+    """The intervals widened to hold an alternative solution ``th2`` with its own ±k standard
+    errors ``se2``, and the scalars whose alternative value lay outside them."""
+    se2 = np.where(np.isfinite(se2), se2, 0.0)
+    out = interval.copy()
+    ambiguous = [i for i in range(len(th2)) if np.isfinite(interval[i]).all()
+                 and not interval[i, 0] <= th2[i] <= interval[i, 1]]
+    for i in ambiguous:
+        out[i, 0] = max(min(interval[i, 0], th2[i] - INTERVAL_LEVEL * se2[i]), lo[i])
+        out[i, 1] = min(max(interval[i, 1], th2[i] + INTERVAL_LEVEL * se2[i]), hi[i])
+    return out, ambiguous

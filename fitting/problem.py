@@ -440,6 +440,16 @@ class Problem:
         return jnp.concatenate(out)
 
     # -- host-side summaries --------------------------------------------------------------------
+    def bounds(self, theta):
+        """``(lo, floor, hi, pos)``: every scalar's bounds, and as ``floor`` the lower bounds with a
+        nonlinear positive one's a hair above 0 (``pos`` marks those: it must stay > 0)."""
+        pset = self.pset
+        lo = np.concatenate([np.full(p.size, p.box[0]) for p in pset.params])
+        hi = np.concatenate([np.full(p.size, p.box[1]) for p in pset.params])
+        pos = np.concatenate([np.full(p.size, p.domain == "positive" and p.path[-1] not in
+                                      ("color", "ambient", "emission")) for p in pset.params])
+        return lo, np.where(pos, np.maximum(np.abs(theta) * 1e-6, 1e-12), lo), hi, pos
+
     def counts(self):
         """``(n_two_sided, n_censored)``: residual entries with non-zero weight on covered pixels
         (the uncovered ones do not depend on the parameters and are left out of the statistics)."""

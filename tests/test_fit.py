@@ -338,7 +338,7 @@ def test_a_converged_fit_replaces_an_unconverged_one_when_both_are_below_the_flo
     float64: an unconverged polish at 0.007× the floor against a converged fit at 0.24× it);
     with noise, a converged attempt whose residual is larger by more than one unit of χ² does
     not replace a lower one."""
-    from fitting.fit import _better
+    from fitting.report import better
 
     theta = np.zeros(5)
     n2 = 10_000
@@ -347,11 +347,11 @@ def test_a_converged_fit_replaces_an_unconverged_one_when_both_are_below_the_flo
         return dict(converged=converged, ratio=ratio, rss=rss, source=source, theta=theta)
 
     from fitting.report import FLOAT_FLOOR_SOURCE as floor
-    assert _better(cand(True, 0.24, 1e-24, floor), cand(False, 0.007, 1e-27, floor), n2)
-    assert not _better(cand(False, 0.24, 1e-24, floor), cand(False, 0.007, 1e-27, floor), n2)
+    assert better(cand(True, 0.24, 1e-24, floor), cand(False, 0.007, 1e-27, floor), n2)
+    assert not better(cand(False, 0.24, 1e-24, floor), cand(False, 0.007, 1e-27, floor), n2)
     noisy = "white part of the residual"
-    assert not _better(cand(True, 1.0, 1.1, noisy), cand(False, 0.99, 1.0, noisy), n2)
-    assert _better(cand(True, 1.0, 1.00005, noisy), cand(False, 0.99, 1.0, noisy), n2)
+    assert not better(cand(True, 1.0, 1.1, noisy), cand(False, 0.99, 1.0, noisy), n2)
+    assert better(cand(True, 1.0, 1.00005, noisy), cand(False, 0.99, 1.0, noisy), n2)
 
 
 def test_the_polish_leaves_an_exp2_fog_density_of_zero_that_the_image_does_not_want():
@@ -361,7 +361,8 @@ def test_the_polish_leaves_an_exp2_fog_density_of_zero_that_the_image_does_not_w
     truth, 0.061 ± 0.005, had Δχ² = 33 less) with the reflectances compensating, called it a
     success and put k_a 26 s.e. from the truth. From that kind of point — density ~0, the
     reflectances at their best for it — the polish must find the fog again."""
-    from fitting.fit import _evaluator, _polish
+    from fitting.polish import polish
+    from fitting.solve import evaluator
     from fitting.problem import Problem
     from fitting.strategy import Reduced
 
@@ -372,15 +373,15 @@ def test_the_polish_leaves_an_exp2_fog_density_of_zero_that_the_image_does_not_w
                          saturation=1.0, quantum=1 / 255)
     red = Reduced(prob)
     truth = np.asarray(prob.pset.theta_of(scene), np.float64)
-    ev, _ = _evaluator(prob, red, truth)
+    ev, _ = evaluator(prob, red, truth)
     start = truth.copy()
     start[-1] = 1e-18
     for _ in range(3):  # the reflectances at their least squares for density ~0
         r, J, _ = ev(start)
         start[:-1] = np.clip(start[:-1] - np.linalg.lstsq(J[:, :-1], r, rcond=None)[0], 0, 1)
     stuck = float(r @ r)
-    theta, r, J, _, _, _, converged = _polish(ev, prob, red, start, 30, 1e-6)
-    at_truth = _polish(ev, prob, red, truth, 30, 1e-6)
+    theta, r, J, _, _, _, converged = polish(ev, prob, red, start, 30, 1e-6)
+    at_truth = polish(ev, prob, red, truth, 30, 1e-6)
     assert converged and abs(theta[-1] / truth[-1] - 1) < 0.05, theta[-1]
     assert float(r @ r) < 0.8 * stuck
     np.testing.assert_allclose(theta, at_truth[0], rtol=1e-3)
@@ -392,7 +393,7 @@ def test_a_polish_step_that_would_cross_a_bound_holds_that_variable_there():
     clipped after it was solved is no descent step there: the polish used to reject, damp and
     crawl (20 evaluations without converging from two of these starts); holding a1 at the
     bound and solving for a2 again reaches the optimum in a few, and a1 is reported on its bound."""
-    from fitting.fit import _polish
+    from fitting.polish import polish
     from fitting.problem import Problem
     from fitting.strategy import Reduced
 
@@ -410,7 +411,7 @@ def test_a_polish_step_that_would_cross_a_bound_holds_that_variable_there():
         return r, J, r
 
     for start in ([1.0, 0.1], [0.5, 0.5], [2.0, 0.3]):
-        theta, _, _, _, on_bound, evaluations, converged = _polish(ev, prob, Reduced(prob), np.array(start), 20, 1e-8)
+        theta, _, _, _, on_bound, evaluations, converged = polish(ev, prob, Reduced(prob), np.array(start), 20, 1e-8)
         assert converged and evaluations <= 5, (start, evaluations)
         assert theta[0] <= 1e-5 and abs(theta[1] - 1.001) < 2e-3, (start, theta)
         # a1 (domain a1 > 0) ends a hair above 0 and is reported on its bound; a2 is not
@@ -481,7 +482,7 @@ def test_the_linear_reach_from_a_point_ends_at_the_level_inside_the_box():
     # within the level
     import types
 
-    from fitting.fit import _linear_reach
+    from fitting.intervals import linear_reach
 
     rng = np.random.default_rng(1)
     A = np.zeros((300, 4))
@@ -498,7 +499,7 @@ def test_the_linear_reach_from_a_point_ends_at_the_level_inside_the_box():
     lo, hi = np.zeros(4), np.array([1.0, 1.0, 1.0, np.inf])
     red = types.SimpleNamespace(idx_l=np.array([0, 1, 2]))
     tight = np.stack([point, point], axis=1)
-    out = _linear_reach(ev, red, [(d(point), point)], tight, r_best, sigma ** 2, lo, hi)
+    out = linear_reach(ev, red, [(d(point), point)], tight, r_best, sigma ** 2, lo, hi)
     for dc, th in out:
         assert dc < 9.0 and abs(dc - d(th)) < 1e-9 and np.all(th >= lo) and np.all(th <= hi), (dc, th)
     along = {0: [], 1: [], 2: []}  # by the scalar moved: 0 alone moves nothing else of 1 and 2
@@ -512,32 +513,34 @@ def test_the_linear_reach_from_a_point_ends_at_the_level_inside_the_box():
     assert sorted(th[2] for th in along[2]) == [0.0, 1.0]  # unseen: across its box
     # a point beyond the level reaches nothing
     far = point + np.array([1.0, 0, 0, 0])
-    assert d(far) > 9.0 and _linear_reach(ev, red, [(0.0, far)], tight, r_best, sigma ** 2, lo, hi) == []
+    assert d(far) > 9.0 and linear_reach(ev, red, [(0.0, far)], tight, r_best, sigma ** 2, lo, hi) == []
 
 
 def test_points_within_the_level_join_the_intervals():
-    from fitting.fit import _cover_points
+    from fitting.intervals import cover_points
 
     interval = np.array([[0.0, 0.02], [1.0, 30.0], [np.nan, np.nan]])
     points = [(4.0, np.array([0.01, 50.0, 3.0])), (0.5, np.array([0.9, 20.0, 3.0])), (8.0, np.array([0.01, 10.0, 0.0]))]
-    out, grown, best = _cover_points(interval, points)
+    out, grown, best = cover_points(interval, points)
     assert grown == [0, 1]  # the NaN interval (an undetermined scalar) is left alone
     np.testing.assert_array_equal(out, [[0.0, 0.9], [1.0, 50.0], [np.nan, np.nan]])
     np.testing.assert_array_equal(best, points[1][1])  # the least Δχ² of those that widened one
-    assert _cover_points(interval, [(1.0, np.array([0.01, 2.0, 0.0]))])[1:] == ([], None)
+    assert cover_points(interval, [(1.0, np.array([0.01, 2.0, 0.0]))])[1:] == ([], None)
 
 
 def test_intervals_cover_a_second_solution_the_images_cannot_tell_apart():
     # the alternative's values and its own ±3 s.e. join the intervals of the scalars it moves;
     # the others are left alone, and the domain still bounds them
-    from fitting.fit import _cover
+    from fitting.intervals import cover_alternative
+    from fitting.report import uncertainty
 
     labels = ["k_s", "m", "a1"]
     interval = np.array([[0.0, 0.02], [0.1, 0.6], [0.05, 0.15]])
     rng = np.random.default_rng(0)
     J = rng.normal(size=(200, 3))
     alternative = dict(theta=np.array([0.2, 87.0, 0.1]), J=J, r=rng.normal(0, 0.01, 200), sigma=0.01)
-    out, ambiguous = _cover(interval, alternative, 200, labels, np.zeros(3), np.array([1.0, np.inf, np.inf]))
+    se2 = uncertainty(alternative["J"], alternative["r"], 200, labels, alternative["sigma"])[0]
+    out, ambiguous = cover_alternative(interval, alternative["theta"], se2, np.zeros(3), np.array([1.0, np.inf, np.inf]))
     assert ambiguous == [0, 1]
     assert out[0, 0] == 0.0 and 0.2 < out[0, 1] <= 1.0 and out[1, 0] == 0.1 and out[1, 1] > 87.0
     np.testing.assert_array_equal(out[2], interval[2])

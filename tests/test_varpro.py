@@ -118,7 +118,8 @@ def test_the_program_ranks_the_starts_by_their_reduced_cost_and_is_the_only_prog
     per view and a bounded solve). A fit of the same structure then compiles nothing more: the
     render is compiled once per fit, for the solve, the ranking and the polish alike."""
     from fitting import strategy
-    from fitting.fit import _Program, _program, fit
+    from fitting.fit import fit
+    from fitting.solve import Program, compiled_program
     from fitting.strategy import candidates
 
     scene, opts = small()
@@ -133,9 +134,9 @@ def test_the_program_ranks_the_starts_by_their_reduced_cost_and_is_the_only_prog
     theta_ref = jnp.asarray(theta0, prob.dtype)
     U = candidates(red, theta0, 6)
     before = strategy.cache_info()["misses"]
-    fn, compile_s = _program(prob, red, U, theta_ref)
+    fn, compile_s = compiled_program(prob, red, U, theta_ref)
     assert compile_s > 0 and strategy.cache_info()["misses"] == before + 1
-    costs = _Program(fn, prob, red, theta_ref, U).rank(theta0[red.idx_l])
+    costs = Program(fn, prob, red, theta_ref, U).rank(theta0[red.idx_l])
     cost = jax.jit(red.cost)
     want = np.array([float(cost(jnp.asarray(u), (prob.data, theta_ref))) for u in U])
     np.testing.assert_allclose(costs, want, rtol=1e-8, atol=1e-20)
