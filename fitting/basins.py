@@ -17,7 +17,6 @@ from .polish import polish
 from .report import FLOAT_FLOOR_SOURCE, candidate, noise_ratio_limit
 from .strategy import inside, search_ranges
 
-
 SCAN_POINTS = 16  # grid points per nonlinear scalar in the search for other basins (at most)
 SCAN_WIDEN = 10.0  # the scan's log ranges: the search ranges widened by this factor each way
 
@@ -88,14 +87,15 @@ def other_basins(program, ev, prob, red, best, theta0, n2, noise, polish_steps, 
     d = (cand["rss"] - best["rss"]) / s2
     u2 = pset.u_from_theta_np(inside(pset, th2))[red.idx_n]
     start = f"from the grid point on {label} with Δχ² {dchi2[i]:.3g}"
+    evals = 1 + k0 + k1 + len(points)  # the ranking, the solve and polish, and the grid points' solves
     if np.max(np.abs(u2 - u_sol)) < 0.25 and d > -1.0:
         notes.append(f"other basins: {start}, variable projection and the polish came back to this solution")
-        return best, None, points, 1 + k0 + k1 + len(points)
+        return best, None, points, evals
     if d < -1.0 and cand["converged"]:
         notes.append(f"other basins: {start}, a solution with Δχ² {d:.3g} (lower) replaced the one found first")
-        return cand, None, [], 1 + k0 + k1 + len(points)
+        return cand, None, [], evals
     if d <= INTERVAL_LEVEL ** 2 and cand["converged"]:
-        return best, dict(cand, dchi2=d, start=start), points, 1 + k0 + k1 + len(points)
+        return best, dict(cand, dchi2=d, start=start), points, evals
     notes.append(f"other basins: {start}, variable projection and the polish reached Δχ² {d:.3g}"
                  + ("" if cand["converged"] else " (not converged)"))
-    return best, None, points, 1 + k0 + k1 + len(points)
+    return best, None, points, evals

@@ -275,7 +275,7 @@ def build_result(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s
     labels = pset.labels
     stderr, undetermined, gauges, s2 = uncertainty(J, r, n2, labels, best["sigma"])
     successful, msg = verdict(best["converged"], msg_solver, best["ratio"], best["sigma"], best["source"], n2)
-    hi = prob.bounds(theta)[2]
+    _, floor, hi, _ = prob.bounds(theta)
     on_bound = [f"{labels[i]} = {theta[i]:.6g} ({'upper' if theta[i] >= hi[i] else 'lower'} bound)"
                 for i in np.flatnonzero(fixed)]
     psnr, ssim = image_quality(prob.full_images(best["img"])[0], prob.targets[0])
@@ -295,7 +295,6 @@ def build_result(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s
                      "standard errors are bounds from rounding, not from noise")
     elif intervals and successful and ev is not None:
         t0 = time.perf_counter()
-        _, floor, hi, _ = prob.bounds(theta)
         interval, n_ev = profile_intervals(ev, theta, r, J, s2, stderr, floor, hi, k=INTERVAL_LEVEL)
         wide = [labels[i] for i in range(len(theta)) if np.isfinite(stderr[i])
                 and max(theta[i] - interval[i, 0], interval[i, 1] - theta[i]) > 1.2 * INTERVAL_LEVEL * stderr[i]]

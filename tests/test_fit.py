@@ -362,8 +362,8 @@ def test_the_polish_leaves_an_exp2_fog_density_of_zero_that_the_image_does_not_w
     success and put k_a 26 s.e. from the truth. From that kind of point — density ~0, the
     reflectances at their best for it — the polish must find the fog again."""
     from fitting.polish import polish
-    from fitting.solve import evaluator
     from fitting.problem import Problem
+    from fitting.solve import evaluator
     from fitting.strategy import Reduced
 
     scene, opts = small_default_scene(32, 32, fog="exp2")
