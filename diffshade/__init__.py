@@ -20,7 +20,9 @@ from ._raster import (
     visibility,
     visibility_passes,
 )
-from ._antialias import antialias, face_adjacency
+from . import color
+from ._antialias import antialias, face_adjacency, pixel_neighbours, silhouette_edges
+from ._util import keep
 from ._render import render, scene_visibility, shade, to_uint8, truncated_pixels
 from ._trace import ray_counts
 from ._scene import (
@@ -48,5 +50,5 @@ __all__ = [
     "no_point", "no_spot", "phong_to_blinn", "pixel_centres", "rasterize", "render", "scene_from_dict",
     "scene_visibility", "shade", "to_uint8", "visibility", "visibility_passes", "box", "combine", "quad",
     "truncated_pixels",
-    "ray_counts",
+    "ray_counts", "color", "keep", "pixel_neighbours", "silhouette_edges",
 ]

@@ -145,7 +145,7 @@ def _file_colors(parts, path, encoding: str):
     c = c / 255.0 if np.issubdtype(cols[0].dtype, np.integer) else c
     if not np.isfinite(c).all() or (c < 0).any() or (c > 1).any():
         raise MeshError(f"{path}: vertex colours must be finite and in [0, 1]")
-    from ._color import decode
+    from .color import decode
 
     return np.asarray(decode(c, encoding), np.float64)
 

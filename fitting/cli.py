@@ -43,7 +43,7 @@ def load_target(path: Path, resolution: tuple[int, int], with_quantum: bool = Fa
     and its alpha channel (in [0, 1], never decoded) returned last, None for RGB."""
     import numpy as np
 
-    from diffshade import _color
+    from diffshade import color as _color
 
     if not path.exists():
         raise InputError(f"{path}: target image not found")
@@ -151,7 +151,7 @@ def _write_text(text: str, out: Path) -> None:
 def _write_png(image, out: Path, overwrite: bool, encoding: str = "linear") -> None:
     """``image`` (linear) as an 8-bit PNG encoded as ``encoding``, its chunks declaring it
     (``gAMA`` 1.0 for linear, ``sRGB`` for sRGB), written through a temporary file."""
-    from diffshade import _color
+    from diffshade import color as _color
 
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out}: exists; pass --overwrite to replace it")
@@ -204,7 +204,7 @@ def cmd_render(args) -> int:
 
 
 def _check_encoding(name: str) -> str:
-    from diffshade import _color
+    from diffshade import color as _color
 
     try:
         _color.parse_encoding(name)
@@ -317,7 +317,7 @@ def cmd_fit(args) -> int:
     import numpy as np
 
     import diffshade as ds
-    from diffshade import _color
+    from diffshade import color as _color
 
     from .fit import compare_models, fit
     from .params import ParamSet

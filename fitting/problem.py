@@ -22,8 +22,8 @@ import jax.numpy as jnp
 import numpy as np
 
 import diffshade as ds
-from diffshade import _color
-from diffshade._antialias import pixel_neighbours
+from diffshade import color as _color
+from diffshade import pixel_neighbours
 
 from .params import ParamSet
 
@@ -132,7 +132,7 @@ def _edges_at(scene, ids, px, py, right, down):
     """The antialiasing's silhouette edges of a view's compacted pixels at its scene's values
     (:func:`diffshade._antialias.silhouette_edges`): held fixed through a fit's pass, as the
     visibility is."""
-    from diffshade._antialias import silhouette_edges
+    from diffshade import silhouette_edges
 
     clip = scene.camera.world_to_clip(scene.mesh.vertices)
     frags = ds.fragments(clip, scene.mesh.faces, ids[:1], (px, py))

@@ -45,7 +45,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffshade._util import keep
+from diffshade import keep
 
 from .problem import ViewData
 from .strategy import Reduced, _masked_solve, bounded_lsq

@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from diffshade._util import keep
+from diffshade import keep
 
 from .params import Param
 from .problem import Problem, view_list

@@ -755,7 +755,7 @@ The fit frees:
     ("code", SETUP + """
 import importlib.util, json, tempfile
 from pathlib import Path
-from diffshade import _color
+from diffshade import color as _color
 from fitting.fit import fit
 from fitting.params import ParamSet
 

@@ -175,7 +175,7 @@ def test_clipped_target_is_censored_not_fitted_to_the_clip():
 def test_targets_are_decoded_as_their_files_declare(files, tmp_path, capsys):
     # render --encoding srgb writes sRGB codes and says so in the file; load_target decodes them
     # (16-bit ones with all their bits); --encoding overrides a declaration
-    from diffshade import _color
+    from diffshade import color as _color
     from fitting.cli import load_target
 
     scene, opts = ds.load_scene(files / "true.toml")

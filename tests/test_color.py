@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffshade import _color as C
+from diffshade import color as C
 
 
 def test_srgb_transfer_function_closed_forms():

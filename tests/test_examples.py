@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 import diffshade as ds
-from diffshade import _color
+from diffshade import color as _color
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 

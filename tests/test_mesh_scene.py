@@ -307,7 +307,7 @@ def test_cli_demo_and_errors(tmp_path):
 def test_vertex_colours_are_read_decoded_and_merged(tmp_path):
     import trimesh
 
-    from diffshade._color import decode
+    from diffshade.color import decode
 
     tm = trimesh.creation.icosphere(subdivisions=1)
     codes = np.random.default_rng(2).integers(0, 256, (len(tm.vertices), 3))

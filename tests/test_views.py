@@ -169,7 +169,7 @@ def test_cli_fits_through_a_calibrated_distorting_camera(tmp_path, capsys):
                         ds.OpenCVCamera.from_opencv(K, R=R, t=t, width=CLI_SIZE, height=CLI_SIZE, near=0.5, far=10.0))
     pinhole = np.asarray(ds.render(scene, opts), np.float64)
     photo = _distort_image(pinhole, K, DIST)
-    from diffshade import _color
+    from diffshade import color as _color
 
     # an 8-bit sRGB photograph with sensor noise of 2 codes: above the resampling's own error
     # (double bilinear interpolation on a 40-pixel sphere: 1.4e-3 RMS in linear values)
@@ -217,7 +217,7 @@ def test_relinearised_residuals_are_the_code_value_residuals(views):
     """After Problem.relinearise at a model image, the weighted linear residual (I − t')·w equals
     the residual in code values, encode(I) − v, at every uncensored entry (the first pass's
     weights, taken at the noisy code, only agree to first order)."""
-    from diffshade import _color
+    from diffshade import color as _color
     from fitting.problem import Problem
 
     vs, opts, targets = views

@@ -29,7 +29,7 @@ import numpy as np
 import trimesh
 
 import diffshade as ds
-from diffshade import _color
+from diffshade import color as _color
 
 HERE = Path(__file__).resolve().parent
 MESH = HERE.parent.parent / "tests" / "data" / "meshes" / "rabbit.obj"
