@@ -1,11 +1,15 @@
-"""diffshade: a differentiable rasterize-and-shade pipeline for the classic local illumination model.
+"""diffshade: a differentiable rasterize-and-shade pipeline for the classic illumination model.
 
-Pipeline (each stage a function of its own)::
+The render is a chain of stages, each a public function (what :func:`shade` calls)::
 
-    clip = camera.world_to_clip(mesh.vertices)
-    ids = visibility(clip, mesh.faces, camera.resolution, layers)   # discrete, cached for fixed geometry
-    frags = fragments(clip, mesh.faces, ids)                         # differentiable barycentrics/depth
-    image = shade(scene, ids, options)                               # terms of docs/model.md, fog
+    clip = scene.camera.world_to_clip(scene.mesh.vertices)
+    ids = visibility(clip, scene.mesh.faces, scene.camera.resolution, opts.layers)  # discrete
+    frags = fragments(clip, scene.mesh.faces, ids)              # differentiable barycentrics, depth
+    surface = surface_points(scene, frags, opts.raster)         # flat / Gouraud / Phong sites
+    vis = light_visibility(scene, surface, opts.shadows)        # None, shadow maps or rays
+    color = illuminate(scene, surface, opts.lighting, vis, opts.output)
+    color = secondary_rays(scene, surface, color, opts)         # mirrors and glass (depth 0: none)
+    image = composite(scene, surface, color, opts.fog, opts.transparency, opts.output)
 """
 
 from ._camera import Camera, OpenCVCamera, rodrigues, undistort
@@ -23,8 +27,22 @@ from ._raster import (
 from . import color
 from ._antialias import antialias, face_adjacency, pixel_neighbours, silhouette_edges
 from ._util import keep
-from ._render import render, scene_visibility, shade, to_uint8, truncated_pixels
-from ._trace import ray_counts
+from ._composite import composite
+from ._lighting import LightVisibility, illuminate
+from ._options import (
+    FogModel,
+    Lighting,
+    Output,
+    Raster,
+    Rays,
+    RenderOptions,
+    ShadowMaps,
+    ShadowRays,
+    Transparency,
+)
+from ._render import light_visibility, ray_counts, render, scene_visibility, shade, to_uint8, truncated_pixels
+from ._surface import Needs, Sites, Surface, needs, surface_points
+from ._trace import secondary_rays
 from ._scene import (
     AreaLights,
     DirectionalLights,
@@ -32,7 +50,6 @@ from ._scene import (
     Material,
     MultiLobeLights,
     PointLights,
-    RenderOptions,
     Scene,
     SpotLights,
     no_area,
@@ -51,4 +68,7 @@ __all__ = [
     "scene_visibility", "shade", "to_uint8", "visibility", "visibility_passes", "box", "combine", "quad",
     "truncated_pixels",
     "ray_counts", "color", "keep", "pixel_neighbours", "silhouette_edges",
+    "Raster", "Lighting", "ShadowMaps", "ShadowRays", "Rays", "FogModel", "Transparency", "Output",
+    "Surface", "Sites", "Needs", "needs", "surface_points", "light_visibility", "LightVisibility", "illuminate",
+    "secondary_rays", "composite",
 ]

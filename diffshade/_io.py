@@ -8,7 +8,7 @@ A scene file::
     [camera]
     eye = [0, 0, 3]; target = [0, 0, 0]; up = [0, 1, 0]
     fov_y = 45.0; near = 0.1; far = 100.0; width = 256; height = 256
-    [render]                    # static options (RenderOptions)
+    [render]                    # static options (RenderOptions.from_keys: flat keys)
     shading = "phong"; specular = "phong"; fog = "exp"; layers = 1
     [material]
     ambient = [0.1, 0.1, 0.1]; diffuse = [0.7, 0.2, 0.2]; specular = 0.5; shininess = 40
@@ -69,6 +69,7 @@ from typing import Any
 import numpy as np
 
 from ._camera import Camera, OpenCVCamera
+from ._options import RenderOptions, ShadowMaps, ShadowRays
 from ._mesh import COLOR_MODES, VERTEX_MODES, Mesh, MeshError, box, combine, icosphere, load_mesh, quad
 from ._scene import (
     AreaLights,
@@ -77,7 +78,6 @@ from ._scene import (
     Material,
     MultiLobeLights,
     PointLights,
-    RenderOptions,
     Scene,
     SpotLights,
     no_area,
@@ -156,11 +156,16 @@ class _V:
             self.fail(where, f"unknown field(s) {extra}; allowed: {sorted(allowed)}")
 
 
-def _options(v: _V, r: dict) -> RenderOptions:
-    import dataclasses
+def _key_defaults() -> dict:
+    """Every flat ``[render]`` key with a value of its type (each group switched on)."""
+    on = RenderOptions.from_keys(shadows=True, transparency=True, clamp=True, fog="exp").keys()
+    return {**on, "shadow_ray_crossings": ShadowRays().crossings}
 
-    fields = {f.name: f for f in dataclasses.fields(RenderOptions)}
-    v.unknown(r, (*fields, "compat"), "render")
+
+def _options(v: _V, r: dict) -> RenderOptions:
+    defaults = _key_defaults()
+    # back_material: a [back_material] table decides (the key is accepted, and read as that)
+    v.unknown(r, (*defaults, "compat", "back_material"), "render")
     compat = r.get("compat", "diffshade")
     if compat not in ("diffshade", "opengl"):
         v.fail("render.compat", f"must be 'diffshade' (the defaults) or 'opengl' (OpenGL's fixed-function choices), got {compat!r}")
@@ -168,7 +173,7 @@ def _options(v: _V, r: dict) -> RenderOptions:
     for k, x in r.items():
         if k == "compat":
             continue
-        default = fields[k].default
+        default = defaults.get(k, False)
         if isinstance(default, bool):
             if not isinstance(x, bool):
                 v.fail(f"render.{k}", f"must be true or false, got {x!r}")
@@ -180,9 +185,10 @@ def _options(v: _V, r: dict) -> RenderOptions:
             lowest = 0 if k in ("ray_depth", "shadow_ray_crossings", "ray_capacity") else 1
             if isinstance(x, bool) or not isinstance(x, int) or x < lowest:
                 v.fail(f"render.{k}", f"must be an integer >= {lowest}, got {x!r}")
-        kw[k] = x
+        if k != "back_material":
+            kw[k] = x
     try:
-        return RenderOptions.opengl(**kw) if compat == "opengl" else RenderOptions(**kw)
+        return RenderOptions.opengl(**kw) if compat == "opengl" else RenderOptions.from_keys(kw)
     except ValueError as exc:
         v.fail("render", str(exc).replace("RenderOptions.", ""))
 
@@ -414,8 +420,8 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
         mesh = parts[0][0] if len(parts) == 1 else combine(*(p[0] for p in parts))
     except ValueError as exc:
         v.fail("object", str(exc))
-    if opts.vertex_color != "none" and mesh.colors is None:
-        v.fail("render.vertex_color", f"is {opts.vertex_color!r} but the mesh has no vertex colours (a PLY with red "
+    if opts.raster.vertex_color != "none" and mesh.colors is None:
+        v.fail("render.vertex_color", f"is {opts.raster.vertex_color!r} but the mesh has no vertex colours (a PLY with red "
                                       "green blue, an OBJ with v x y z r g b)")
     material, extra = parts[0][1], tuple(p[1] for p in parts[1:])
 
@@ -426,10 +432,8 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
         v.fail("back_material", "applies to a one-material scene; give each object its own material instead")
     sh = v.table(d, "shadow")
     v.unknown(sh, ("bias", "slope_bias"), "shadow")
-    if sh and not opts.shadows:
+    if sh and not isinstance(opts.shadows, ShadowMaps):
         v.fail("render.shadows", "a [shadow] section is given but render.shadows is false")
-    if back is not None and not opts.back_material:
-        opts = opts.replace(back_material=True)
     directional, point, spot, area, multi = _lights(v, d.get("light", []))
 
     f = v.table(d, "fog")
@@ -443,13 +447,13 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
         end=end,
         density=v.num(f, "density", "fog", default=float(fog_default.density), lo=0.0),
     )
-    if f and opts.fog == "none":
+    if f and opts.fog is None:
         v.fail("render.fog", "a [fog] section is given but render.fog is 'none'; set it to 'linear', 'exp' or 'exp2'")
     ambient = v.vec(d, "ambient_light", "scene", default=[0.2, 0.2, 0.2], lo=0.0, scalar_ok=True)
     # A fogged scene shows the fog colour where nothing is drawn, unless told otherwise (docs/model.md §3).
-    bg_default = np.asarray(fog.color) if opts.fog != "none" else [0.0, 0.0, 0.0]
+    bg_default = np.asarray(fog.color) if opts.fog is not None else [0.0, 0.0, 0.0]
     background = v.vec(d, "background", "scene", default=bg_default, lo=0.0, scalar_ok=True)
-    if opts.antialias:
+    if opts.output.antialias:
         mesh = mesh.with_adjacency()  # the silhouette edges' topology, while the faces are concrete
     scene = Scene(
         mesh=mesh, camera=camera, material=material, back_material=back, directional=directional,

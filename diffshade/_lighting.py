@@ -1,8 +1,8 @@
 r"""Lighting at surface points (docs/model.md §1–2): every light kind, the surface terms, the
 per-light ambient, shadows applied light by light, and OpenGL's colour-sum stage.
 
-Shared by every way of finding surface points: the rasterizer's fragments (Phong: at each pixel;
-Gouraud: at the vertices; flat: once per triangle) and, later, ray hits.
+Shared by every way of finding surface points: the rasterizer's (Phong: at each pixel; Gouraud:
+at the vertices; flat: once per triangle, :mod:`diffshade._surface`) and the rays' hits.
 
 .. math:: I = I_{surf} + k_a I_a + \sum_i f_{rad,i} f_{ang,i} \big(k_a I_{a,i} + S_i (I_{p,i}(k_d (n\cdot l_i)^+ + k_t\,\mathrm{trans}_i) + I_{s,i} k_s\,\mathrm{spec}_i)\big)
 
@@ -12,11 +12,15 @@ shadow visibility, :mod:`diffshade._shadow`).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import jax
 import jax.numpy as jnp
 
 from . import _shade as S
-from ._scene import Lights, Material, RenderOptions, Scene
+from ._materials import _select
+from ._options import Lighting, Output
+from ._scene import Lights, Material, Scene
 from ._util import keep as _keep
 
 
@@ -25,120 +29,119 @@ def _rgb(c):
     return (c[..., 0], c[..., 1], c[..., 2])
 
 
-def _light_sum(P, n, v, mat: Material, scene: Scene, opts: RenderOptions, back: bool = False, shadow=None, post=None):
+@dataclass(frozen=True)
+class LightVisibility:
+    """What each light sees of the points (docs/model.md §2, :math:`S_i`): per light kind
+    (``"directional"``, ``"point"``, ``"spot"``, ``"multi_lobe"``, ``"area"``: the area lights'
+    emitters) an ``[N, ...]`` array in [0, 1], or with ``rgb`` ``[N, ..., 3]``, a coloured
+    transmittance (shadow rays through glass)."""
+
+    kinds: dict
+    rgb: bool = False
+
+
+def _direct(ndl, n, l, v, mat: Material, lt: Lighting, back: bool):
+    """The scalar factors of one light at the points: diffuse :math:`(n\cdot l)^+`, specular
+    (Fresnel-weighted where asked) and directed transmission, each ``None`` where off."""
+    dif = S.lambert(ndl) if lt.diffuse else None
+    spec = None
+    if lt.specular != "none":
+        spec = (S.phong_specular if lt.specular == "phong" else S.blinn_specular)(n, l, v, mat.shininess)
+        if lt.fresnel != "none":
+            spec = (S.fresnel_schlick if lt.fresnel == "schlick" else S.fresnel_dielectric)(ndl, mat.ior) * spec
+    trans = S.directed_transmission(n, l, v, mat.shininess, mat.ior, back, lt.fresnel) if lt.transmission else None
+    return dif, spec, trans
+
+
+def _terms(n, v, l, att, color, amb, spec_color, mat: Material, lt: Lighting, back: bool, separate: bool):
+    """One light's direct terms (3 components; 6 with the specular ones apart, for
+    ``color_sum = "separate"``) and its per-light ambient term (``None`` when off)."""
+    kd, ks, ka, kt = _rgb(mat.diffuse), _rgb(mat.specular), _rgb(mat.ambient), _rgb(mat.transmission)
+    dif, spec, trans = _direct(S.dot(n, l), n, l, v, mat, lt, back)
+    # the shared scalar factors materialised once per point, not per channel
+    factors = [x for x in (att, dif, spec, trans) if x is not None and not isinstance(x, float)]
+    kept = iter(_keep(*factors)) if factors else iter(())
+    att, dif, spec, trans = (next(kept) if x is not None and not isinstance(x, float) else x
+                             for x in (att, dif, spec, trans))
+    acc = [0.0, 0.0, 0.0]  # terms lit by the diffuse colour
+    if dif is not None:
+        acc = [acc[c] + kd[c] * dif for c in range(3)]
+    if trans is not None:
+        acc = [acc[c] + kt[c] * trans for c in range(3)]
+    sacc = None  # the specular terms
+    if spec is not None:
+        ws = ks if lt.fresnel == "none" else (1.0, 1.0, 1.0)
+        sacc = [ws[c] * spec for c in range(3)]
+    if spec_color is None and not separate:
+        if sacc is not None:
+            acc = [acc[c] + sacc[c] for c in range(3)]
+        direct = [att * (acc[c] * color[c]) for c in range(3)]
+    else:
+        sc = color if spec_color is None else spec_color
+        d = [att * (acc[c] * color[c]) for c in range(3)]
+        sd = [att * (sacc[c] * sc[c]) for c in range(3)] if sacc is not None else [0.0, 0.0, 0.0]
+        direct = d + sd if separate else [d[c] + sd[c] for c in range(3)]
+    ambient = [att * (ka[c] * amb[c]) for c in range(3)] if lt.per_light_ambient else None
+    return direct, ambient
+
+
+def _incident(kind: str, li, P, lt: Lighting):
+    """One light at points ``P``: the unit vector to it, its attenuation (radial, spot, emitter
+    directivity), its colour, per-light ambient and separate specular colour (or ``None``)."""
+    spec = getattr(li, "specular", None)
+    spec = None if spec is None else _rgb(spec)
+    if kind == "directional":
+        return S.neg(S.normalize(_rgb(li.direction))), 1.0, _rgb(li.color), _rgb(li.ambient), spec
+    L = S.sub(_rgb(li.position), P)
+    l = S.normalize(L)
+    att = S.radial_attenuation(S.norm(L), _rgb(li.attenuation))
+    smooth = lt.spot_edge == "smooth"
+    if kind == "spot":
+        att = att * S.spot_factor(l, _rgb(li.axis), li.cutoff, li.exponent, li.edge, smooth)
+    elif kind == "area":  # a directed point emitter of an area light: no light behind it (docs/model.md §1)
+        att = att * jnp.maximum(-S.dot(l, _rgb(li.normal)), 0.0)
+        spec = None
+    elif kind == "multi_lobe":  # one position, several spot lobes: the colour depends on the direction
+        color, amb = [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
+        for j in range(li.color.shape[0]):
+            f = S.spot_factor(l, _rgb(li.axis[j]), li.cutoff[j], li.exponent[j], li.edge[j], smooth)
+            color = [color[c] + f * li.color[j, c] for c in range(3)]
+            if lt.per_light_ambient:
+                amb = [amb[c] + f * li.ambient[j, c] for c in range(3)]
+        return l, att, color, amb, None
+    return l, att, _rgb(li.color), _rgb(li.ambient), spec
+
+
+def light_kinds(scene: Scene, lt: Lighting):
+    """``(kind, lights)`` for every light kind the scene has (area lights as their emitters)."""
+    kinds = [(k, getattr(scene, k)) for k in ("directional", "point", "spot", "multi_lobe")]
+    if scene.area.count:
+        kinds.append(("area", area_emitters(scene.area, lt.area_grid)))
+    return [(k, lights) for k, lights in kinds if lights.count]
+
+
+def _light_sum(P, n, v, mat: Material, scene: Scene, lt: Lighting, back: bool = False,
+               shadow: LightVisibility | None = None, post=None, separate: bool = False):
     """Over every light (directional, point, spot, multi-lobe, area emitters), the sum of the
     attenuated direct terms (diffuse, specular, transmission) and the sum of the per-light ambient
     terms at points ``P`` with unit normals ``n`` (component tuples), as two colour tuples (the
     ambient one None where ``per_light_ambient`` is off).
 
     ``post`` maps one light's direct terms at the points to other points (Gouraud and flat
-    interpolate them to the pixels) before ``shadow`` (per kind, ``[N, ...]`` visibilities at
-    those points) multiplies them: the sum is then at ``post``'s points. A kind with more than
-    :data:`LIGHTS_UNROLLED` lights is summed by a scan over its light axis."""
-    smooth = opts.spot_edge == "smooth"
-    kd, ks, ka, kt = _rgb(mat.diffuse), _rgb(mat.specular), _rgb(mat.ambient), _rgb(mat.transmission)
-
-    separate = opts.clamp and opts.clamp_at == "vertex" and opts.color_sum == "separate"
-
-    def terms(l, att, color, amb, spec_color=None):
-        """One light's direct terms (3 components; 6 with the specular ones apart, for
-        ``color_sum = "separate"``) and per-light ambient term."""
-        ndl = S.dot(n, l)
-        # Scalar factors shared by the three channels, computed once per point.
-        dif = S.lambert(ndl) if opts.diffuse else None
-        spec = None
-        if opts.specular != "none":
-            if opts.specular == "phong":
-                spec = S.phong_specular(n, l, v, mat.shininess)
-            else:
-                spec = S.blinn_specular(n, l, v, mat.shininess)
-            if opts.fresnel != "none":
-                fres = S.fresnel_schlick if opts.fresnel == "schlick" else S.fresnel_dielectric
-                spec = fres(ndl, mat.ior) * spec
-        trans = None
-        if opts.transmission:
-            trans = S.directed_transmission(n, l, v, mat.shininess, mat.ior, back, opts.fresnel)
-        factors = [x for x in (att, dif, spec, trans) if x is not None and not isinstance(x, float)]
-        kept = iter(_keep(*factors)) if factors else iter(())
-        att = next(kept) if not isinstance(att, float) else att
-        dif = next(kept) if dif is not None else None
-        spec = next(kept) if spec is not None else None
-        trans = next(kept) if trans is not None else None
-        acc = [0.0, 0.0, 0.0]  # terms lit by the diffuse colour
-        if dif is not None:
-            acc = [acc[c] + kd[c] * dif for c in range(3)]
-        if trans is not None:
-            acc = [acc[c] + kt[c] * trans for c in range(3)]
-        sacc = None  # the specular terms
-        if spec is not None:
-            ws = ks if opts.fresnel == "none" else (1.0, 1.0, 1.0)
-            sacc = [ws[c] * spec for c in range(3)]
-        if spec_color is None and not separate:
-            if sacc is not None:
-                acc = [acc[c] + sacc[c] for c in range(3)]
-            direct = [att * (acc[c] * color[c]) for c in range(3)]
-        else:
-            sc = color if spec_color is None else spec_color
-            d = [att * (acc[c] * color[c]) for c in range(3)]
-            sd = [att * (sacc[c] * sc[c]) for c in range(3)] if sacc is not None else [0.0, 0.0, 0.0]
-            direct = d + sd if separate else [d[c] + sd[c] for c in range(3)]
-        ambient = [att * (ka[c] * amb[c]) for c in range(3)] if opts.per_light_ambient else None
-        return direct, ambient
-
-    def spec_of(li):
-        sp = getattr(li, "specular", None)
-        return None if sp is None else _rgb(sp)
-
-    def directional(li):
-        l = S.neg(S.normalize(_rgb(li.direction)))
-        return terms(l, 1.0, _rgb(li.color), _rgb(li.ambient), spec_of(li))
-
-    def positional(li, is_spot):
-        L = S.sub(_rgb(li.position), P)
-        l = S.normalize(L)
-        att = S.radial_attenuation(S.norm(L), _rgb(li.attenuation))
-        if is_spot:
-            att = att * S.spot_factor(l, _rgb(li.axis), li.cutoff, li.exponent, li.edge, smooth)
-        return terms(l, att, _rgb(li.color), _rgb(li.ambient), spec_of(li))
-
-    def emitter(li):
-        # a directed point emitter of an area light: no light behind it (docs/model.md §1)
-        L = S.sub(_rgb(li.position), P)
-        l = S.normalize(L)
-        att = S.radial_attenuation(S.norm(L), _rgb(li.attenuation))
-        att = att * jnp.maximum(-S.dot(l, _rgb(li.normal)), 0.0)
-        return terms(l, att, _rgb(li.color), _rgb(li.ambient))
-
-    def multi_lobe(li):
-        # one position, several spot lobes: the colour depends on the direction (docs/model.md §1)
-        L = S.sub(_rgb(li.position), P)
-        l = S.normalize(L)
-        att = S.radial_attenuation(S.norm(L), _rgb(li.attenuation))
-        color, amb = [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
-        for j in range(li.color.shape[0]):
-            f = S.spot_factor(l, _rgb(li.axis[j]), li.cutoff[j], li.exponent[j], li.edge[j], smooth)
-            color = [color[c] + f * li.color[j, c] for c in range(3)]
-            if opts.per_light_ambient:
-                amb = [amb[c] + f * li.ambient[j, c] for c in range(3)]
-        return terms(l, att, color, amb)
-
-    kinds = [("directional", scene.directional, directional), ("point", scene.point, lambda li: positional(li, False)),
-             ("spot", scene.spot, lambda li: positional(li, True)), ("multi_lobe", scene.multi_lobe, multi_lobe)]
-    if scene.area.count:
-        kinds.append(("area", area_emitters(scene.area, opts.area_grid), emitter))
+    interpolate them to the pixels) before ``shadow`` multiplies them: the sum is then at
+    ``post``'s points. A kind with more than :data:`LIGHTS_UNROLLED` lights is summed by a scan
+    over its light axis."""
     direct, ambient = [], []
-    for name, lights, fn in kinds:
-        if not lights.count:
-            continue
-        vis = shadow.get(name) if shadow is not None else None
+    for kind, lights in light_kinds(scene, lt):
+        vis = shadow.kinds.get(kind) if shadow is not None else None
 
-        def one(li, s_i, fn=fn):
-            d, a = fn(li)
+        def one(li, s_i, kind=kind):
+            l, att, color, amb, spec_color = _incident(kind, li, P, lt)
+            d, a = _terms(n, v, l, att, color, amb, spec_color, mat, lt, back, separate)
             if post is not None:
                 d = post(d)
             if s_i is not None:  # S_i, or with coloured shadow rays its RGB transmittance
-                coloured = opts.shadow_rays and opts.shadow_ray_crossings > 0
-                d = [(s_i[..., c % 3] if coloured else s_i) * x for c, x in enumerate(d)]
+                d = [(s_i[..., c % 3] if shadow.rgb else s_i) * x for c, x in enumerate(d)]
             return d, a
 
         if lights.count > LIGHTS_UNROLLED:
@@ -150,7 +153,7 @@ def _light_sum(P, n, v, mat: Material, scene: Scene, opts: RenderOptions, back: 
                 d, a = one(jax.tree.map(lambda x: x[i], lights), None if vis is None else vis[i])
                 direct.append(d)
                 ambient.append(a)
-    amb = _sum(ambient) if opts.per_light_ambient and ambient else None
+    amb = _sum(ambient) if lt.per_light_ambient and ambient else None
     return _sum(direct, 6 if separate else 3), amb
 
 
@@ -214,28 +217,28 @@ def _sum(cols, width: int = 3):
     return acc if acc is not None else [0.0] * width
 
 
-def shade_points(P, n, eye, mat: Material, scene: Scene, opts: RenderOptions, back: bool = False, shadow=None, post=None,
-                 view=None):
+def shade_points(P, n, eye, mat: Material, scene: Scene, lighting: Lighting, back: bool = False,
+                 shadow: LightVisibility | None = None, post=None, view=None, separate: bool = False):
     """Unfogged colour (tuple of 3 arrays) of surface points ``P`` with unit normals ``n``
-    (component tuples) seen from ``eye``. ``shadow`` (per light kind, ``[N, ...]`` visibilities
-    :math:`S_i`) multiplies each light's direct terms. With ``post`` (a map of one light's direct
-    terms to other points, applied before ``shadow``) the result is ``(base, direct)``: the
-    unshadowed part at ``P`` and the lights' shadowed direct terms at ``post``'s points.
-    ``back`` marks back-facing fragments (the viewer inside the material, for refraction).
-    ``view`` (unit vectors towards the viewer, component tuple) replaces ``eye`` for points seen
-    along a ray. With ``color_sum = "separate"`` and ``clamp_at = "vertex"`` the colour has 6 components:
-    the primary colour (all but specular) and the secondary (specular) one."""
+    (component tuples) seen from ``eye``. ``shadow`` (:math:`S_i` per light) multiplies each
+    light's direct terms. With ``post`` (a map of one light's direct terms to other points,
+    applied before ``shadow``) the result is ``(base, direct)``: the unshadowed part at ``P`` and
+    the lights' shadowed direct terms at ``post``'s points. ``back`` marks back-facing fragments
+    (the viewer inside the material, for refraction). ``view`` (unit vectors towards the viewer,
+    component tuple) replaces ``eye`` for points seen along a ray. With ``separate``
+    (``color_sum = "separate"`` with ``clamp = "vertex"``) the colour has 6 components: the
+    primary colour (all but specular) and the secondary (specular) one."""
     if view is not None:  # a ray's point: the unit vector back along the incoming ray
         v = view
-    elif opts.viewer == "infinite":  # the eye-space +z axis, in world coordinates
+    elif lighting.viewer == "infinite":  # the eye-space +z axis, in world coordinates
         v = tuple(jnp.broadcast_to(c, jnp.shape(P[0])) for c in _rgb(scene.camera.view_matrix()[2, :3]))
     else:
         v = S.normalize(S.sub(_rgb(eye), P))
-    direct, ambient = _light_sum(P, n, v, mat, scene, opts, back, shadow, post)
+    direct, ambient = _light_sum(P, n, v, mat, scene, lighting, back, shadow, post, separate)
     base = ambient if ambient is not None else [0.0, 0.0, 0.0]
-    if opts.ambient:
+    if lighting.ambient:
         base = [base[k] + mat.ambient[..., k] * scene.ambient_light[k] for k in range(3)]
-    if opts.emission:
+    if lighting.emission:
         base = [base[k] + mat.emission[..., k] for k in range(3)]
     shape = jnp.shape(P[0])
 
@@ -247,9 +250,44 @@ def shade_points(P, n, eye, mat: Material, scene: Scene, opts: RenderOptions, ba
     return full([base[k] + direct[k] for k in range(3)] + list(direct[3:]))
 
 
-def _vertex_clamp(col, opts: RenderOptions):
-    """``col`` clamped to [0, 1] where ``clamp_at = "vertex"`` asks for it (before interpolation)."""
-    if opts.clamp and opts.clamp_at == "vertex":
+def illuminate(scene: Scene, surface, lighting: Lighting = Lighting(), visibility: LightVisibility | None = None,
+               output: Output = Output()):
+    r"""The lit, unfogged colour at the pixels (``[K, H, W]`` component tuple) of a
+    :class:`diffshade.Surface`: every term of ``lighting`` at its sites, both sides where
+    ``lighting.two_sided`` (the back lit with the reversed normal and the back material).
+
+    The combine contract: a light's direct terms reach the pixels, and are multiplied there by its
+    visibility :math:`S_i`, one light at a time (``shadows × direct``), while the unshadowed rest
+    (ambient, emission, per-light ambient) reaches them once; without shadows the whole sum
+    reaches them once. Colours are clamped at the sites where ``output.clamp = "vertex"``
+    (OpenGL), and with ``output.color_sum = "separate"`` the specular sum is clamped apart."""
+    sites = surface.sites
+    eye = scene.camera.eye
+    separate = output.clamp == "vertex" and output.color_sum == "separate"
+    to_px = sites.to_pixels
+
+    def side(normal, mat, back):
+        if to_px is None:  # the sites are the pixels
+            return shade_points(sites.points, normal, eye, mat, scene, lighting, back, visibility, separate=separate)
+        if visibility is None:
+            lit = _vertex_clamp(shade_points(sites.points, normal, eye, mat, scene, lighting, back,
+                                             separate=separate), output)
+            return _color_sum(to_px(lit))
+        base, direct = shade_points(sites.points, normal, eye, mat, scene, lighting, back, visibility, to_px,
+                                    separate=separate)
+        return tuple(b + d for b, d in zip(to_px(base), direct))
+
+    color = side(sites.normal, sites.material, False)
+    if lighting.two_sided:
+        color = _select(surface.front, color, side(S.neg(sites.normal), sites.back_material, True))
+    if to_px is None:
+        color = _color_sum(_vertex_clamp(color, output))
+    return color
+
+
+def _vertex_clamp(col, output: Output):
+    """``col`` clamped to [0, 1] where ``clamp = "vertex"`` asks for it (before interpolation)."""
+    if output.clamp == "vertex":
         return tuple(jnp.clip(c, 0.0, 1.0) for c in col)
     return tuple(col)
 

@@ -1,15 +1,10 @@
-"""Materials per surface point: which fields a render reads, and each point's material (by the
-face's material id), the back material of two-sided lighting."""
+"""Materials per surface point: each point's material (by the face's material id)."""
 
 from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ._scene import Material, RenderOptions, Scene
-
-
-def _back_material(scene: Scene, opts: RenderOptions) -> Material:
-    return scene.back_material if (opts.back_material and scene.back_material is not None) else scene.material
+from ._scene import Material
 
 
 def _select(front, a, b):
@@ -18,28 +13,6 @@ def _select(front, a, b):
 
 _MATERIAL_FIELDS = ("emission", "ambient", "diffuse", "specular", "shininess", "ior", "opacity", "kay_min",
                     "kay_max", "kay_power", "transmission", "absorption", "mirror", "refraction")
-
-
-def _used_fields(opts: RenderOptions) -> set[str]:
-    """The material fields a render with ``opts`` reads."""
-    used = set()
-    if opts.emission:
-        used.add("emission")
-    if opts.ambient or opts.per_light_ambient:
-        used.add("ambient")
-    if opts.diffuse:
-        used.add("diffuse")
-    if opts.specular != "none":
-        used |= {"specular", "shininess"} | ({"ior"} if opts.fresnel != "none" else set())
-    if opts.transmission:
-        used |= {"transmission", "shininess", "ior"}
-    if opts.transparency:
-        used |= {"opacity", "kay_min", "kay_max", "kay_power"}
-    if opts.absorption:
-        used.add("absorption")
-    if opts.ray_depth:
-        used |= {"mirror", "refraction", "ior", "absorption"}
-    return used
 
 
 _COMPOSITING_FIELDS = {"opacity", "kay_min", "kay_max", "kay_power", "absorption"}

@@ -518,14 +518,18 @@ def rasterize(
     return fragments(clip, faces, ids)
 
 
-def interpolate(attr: Float[Array, "V C"], faces: Int[Array, "F 3"], frags: Fragments) -> Float[Array, "K H W C"]:
-    """Perspective-correct interpolation of per-vertex attributes; zeros on empty pixels."""
+def interpolate(attr, faces: Int[Array, "F 3"], frags: Fragments):
+    r"""Perspective-correct interpolation of per-vertex attributes, :math:`\sum_j b_j a_{v_j}`;
+    zeros on empty pixels.
+
+    ``attr``: ``[V, C]`` (returns ``[K, H, W, C]``), or a tuple of ``[V]`` components (returns a
+    tuple of ``[K, H, W]``, the form the shading stages work in). ``faces`` index ``attr``'s rows:
+    per-corner attributes (``[3F]``, face-major) are interpolated with
+    ``faces = arange(3F).reshape(F, 3)``."""
     valid = frags.tri_id >= 0
     vid = _pixel_vertex_ids(faces, frags.tri_id, valid)
-    at = attr.T
     shape = frags.tri_id.shape
-    out = []
-    for c in range(attr.shape[-1]):
-        acc = sum(frags.bary[..., j] * at[c][vid[j]].reshape(shape) for j in range(3))
-        out.append(jnp.where(valid, acc, 0.0))
-    return jnp.stack(out, axis=-1)
+    comps = attr if isinstance(attr, tuple) else tuple(jnp.asarray(attr).T)
+    bary = [frags.bary[..., j] for j in range(3)]
+    out = tuple(jnp.where(valid, sum(bary[j] * a[vid[j]].reshape(shape) for j in range(3)), 0.0) for a in comps)
+    return out if isinstance(attr, tuple) else jnp.stack(out, axis=-1)

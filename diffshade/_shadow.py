@@ -1,7 +1,7 @@
 r"""Shadow maps (docs/model.md §2: the visibility :math:`S_i \in [0, 1]` of light :math:`i`).
 
 Each light sees the scene through one or more *views*, rasterized with the same rasterizer as the
-camera (exact visibility, ``RenderOptions.shadow_resolution`` texels square, one depth layer):
+camera (exact visibility, ``ShadowMaps.resolution`` texels square, one depth layer):
 
 - directional: one orthographic view along the light's direction, framing the bounding sphere of
   the mesh;
@@ -267,11 +267,12 @@ def _lookup(vw: _Views, ids, planes, P, ng, bias, slope_bias, R: int, pcf: int, 
     return jnp.where(inside, frac, 1.0)
 
 
-def light_visibility(scene, opts, P, ng, unrolled: int) -> dict:
+def shadow_map_visibility(scene, maps, P, ng, unrolled: int, backend: str = "auto") -> dict:
     """:math:`S_i` of every light at points ``P`` with face normals ``ng`` (component tuples of
     equally shaped arrays), no gradient: per kind of :data:`SHADOW_KINDS` that the scene has, an
     array ``[N, *P[0].shape]``. A kind with more than ``unrolled`` lights is mapped over its
-    light axis (``lax.map``: one copy of the map and lookup in the program, whatever the count)."""
+    light axis (``lax.map``: one copy of the map and lookup in the program, whatever the count).
+    ``maps``: the :class:`diffshade.ShadowMaps` options; ``backend``: the rasterizer's."""
     P = jax.lax.stop_gradient(P)
     ng = jax.lax.stop_gradient(ng)
     X = jax.lax.stop_gradient(scene.mesh.vertices)
@@ -280,7 +281,7 @@ def light_visibility(scene, opts, P, ng, unrolled: int) -> dict:
     planes = _face_planes(scene.mesh)
     bias = jax.lax.stop_gradient(scene.shadow_bias)
     slope = jax.lax.stop_gradient(scene.shadow_slope_bias)
-    R, pcf = opts.shadow_resolution, opts.shadow_pcf
+    R, pcf = maps.resolution, maps.pcf
     lookups = int(np.prod(P[0].shape)) * pcf * pcf
     out = {}
     for kind in SHADOW_KINDS:
@@ -290,7 +291,7 @@ def light_visibility(scene, opts, P, ng, unrolled: int) -> dict:
 
         def one(li, kind=kind):
             vw = _views(kind, li, c, r)
-            ids = jax.vmap(lambda cl: visibility(cl, faces, (R, R), 1, opts.backend)[0])(vw.clip(X))
+            ids = jax.vmap(lambda cl: visibility(cl, faces, (R, R), 1, backend)[0])(vw.clip(X))
             return _lookup(vw, ids, planes, P, ng, bias, slope, R, pcf, eager=lookups > vw.count * R * R)
 
         if lights.count > unrolled:

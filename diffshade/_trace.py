@@ -34,10 +34,12 @@ import jax.numpy as jnp
 
 from . import _lighting as Lg
 from . import _shade as S
-from ._lighting import _rgb, shade_points
-from ._materials import _material_at, _used_fields
+from ._lighting import LightVisibility, _rgb, shade_points
+from ._materials import _material_at
+from ._options import RenderOptions, ShadowRays
 from ._rays import first_hits, intersect
-from ._scene import RenderOptions, Scene
+from ._scene import Scene
+from ._surface import Surface, needs
 from ._shadow import SHADOW_KINDS
 
 # Secondary rays start this far (relative to the scene's size) along themselves, and skip the
@@ -59,18 +61,19 @@ def _light_rays(kind, li, Pa):
     return L / jnp.maximum(far, 1e-30)[..., None], far
 
 
-def shadow_ray_visibility(scene: Scene, opts: RenderOptions, P, tri):
+def shadow_ray_visibility(scene: Scene, rays: ShadowRays, P, tri, area_grid=(4, 4), backend: str = "auto"):
     r"""Visibility of every light at points ``P`` (component tuples) on triangles ``tri``, by a
     straight ray to the light: per kind (those of :data:`diffshade._shadow.SHADOW_KINDS` and the
     area lights' emitters), ``[N, ...]`` in {0, 1} (``shadow_ray_crossings = 0``: every surface
     blocks; no gradient) or ``[N, ..., 3]``, the light's RGB transmittance through up to
-    ``shadow_ray_crossings`` transparent surfaces (``refraction > 0``): :math:`k_{rt}` per surface
-    and :math:`e^{-\mu\ell}` per path inside, differentiable in both and in the geometry."""
+    ``rays.crossings`` transparent surfaces (``refraction > 0``): :math:`k_{rt}` per surface
+    and :math:`e^{-\mu\ell}` per path inside, differentiable in both and in the geometry.
+    ``area_grid``: the area lights' emitters; ``backend``: the ray engine."""
     mesh = scene.mesh
     Pa = jnp.stack(P, -1)
     eps = _T_MIN * _scale(scene)
     X = jax.lax.stop_gradient(mesh.vertices)
-    K = opts.shadow_ray_crossings
+    K = rays.crossings
     mats = scene.all_materials()
     multi = len(mats) > 1 and mesh.material_ids is not None
     mid = lambda f: mesh.material_ids[jnp.where(f >= 0, f, 0)] if multi else jnp.zeros_like(f)  # noqa: E731
@@ -86,7 +89,7 @@ def shadow_ray_visibility(scene: Scene, opts: RenderOptions, P, tri):
 
     def opaque(kind, li):
         d, far = _light_rays(kind, jax.lax.stop_gradient(li), jax.lax.stop_gradient(Pa))
-        hit = first_hits(jax.lax.stop_gradient(Pa), d, X, faces, tmin=eps, skip=tri, backend=opts.ray_backend)
+        hit = first_hits(jax.lax.stop_gradient(Pa), d, X, faces, tmin=eps, skip=tri, backend=backend)
         t, _, _, ok = intersect(jax.lax.stop_gradient(Pa), d, X, faces, hit)
         return jnp.where(ok & (t < far - eps), 0.0, 1.0).astype(Pa.dtype)
 
@@ -101,7 +104,7 @@ def shadow_ray_visibility(scene: Scene, opts: RenderOptions, P, tri):
         active = jnp.ones(Pa.shape[:-1], bool)
         for k in range(K + 1):
             hit = first_hits(jax.lax.stop_gradient(o), dn, X, faces, tmin=eps, skip=skip, active=active,
-                             backend=opts.ray_backend)
+                             backend=backend)
             t, _, _, ok = intersect(o, d, mesh.vertices, faces, hit)
             block = active & ok & (t < left - eps)
             seg = jnp.where(block, t, jnp.where(active & jnp.isfinite(left), left, 0.0))
@@ -124,7 +127,7 @@ def shadow_ray_visibility(scene: Scene, opts: RenderOptions, P, tri):
     out = {}
     kinds = [(k, getattr(scene, k)) for k in SHADOW_KINDS]
     if scene.area.count:
-        kinds.append(("area", Lg.area_emitters(scene.area, opts.area_grid)))
+        kinds.append(("area", Lg.area_emitters(scene.area, area_grid)))
     for kind, lights in kinds:
         if not lights.count:
             continue
@@ -134,7 +137,7 @@ def shadow_ray_visibility(scene: Scene, opts: RenderOptions, P, tri):
             out[kind] = jax.lax.map(one, lights)
         else:
             out[kind] = jnp.stack([one(jax.tree.map(lambda x: x[i], lights)) for i in range(lights.count)])
-    return out
+    return LightVisibility(out, rgb=K > 0)
 
 
 def _surface(scene: Scene, mats, used, o, d, ids):
@@ -155,9 +158,9 @@ def _surface(scene: Scene, mats, used, o, d, ids):
     return P, n, front, mat, t, valid
 
 
-def _fresnel(opts, cos_i, eta_rel, ior):
+def _fresnel(fresnel: str, cos_i, eta_rel, ior):
     """Reflected fraction at an interface (cosine on the incoming side, relative index)."""
-    if opts.fresnel == "dielectric":
+    if fresnel == "dielectric":
         return S.fresnel_dielectric(cos_i, eta_rel)
     return S.fresnel_schlick(cos_i, ior)
 
@@ -182,29 +185,32 @@ def refracted_direction(n, v, ratio):
     return tuple(jnp.where(tir, r, t) for r, t in zip(R, T)), tir
 
 
-def ray_weights(opts: RenderOptions, kr, kt, cos1, eta_rel, ior, tir):
+def ray_weights(fresnel: str, kr, kt, cos1, eta_rel, ior, tir):
     r"""The mirror and refracted rays' weights (colour tuples): ``kr`` and ``kt``, or with a
     Fresnel option ``kr + kt F`` and ``kt (1 - F)`` (``F`` of the relative index ``eta_rel``
     :math:`= \eta_2/\eta_1`); total internal reflection gives the refracted weight to the mirror."""
-    if opts.fresnel != "none":
-        F = jnp.where(tir, 1.0, _fresnel(opts, cos1, eta_rel, ior))
+    if fresnel != "none":
+        F = jnp.where(tir, 1.0, _fresnel(fresnel, cos1, eta_rel, ior))
         return [kr[c] + kt[c] * F for c in range(3)], [kt[c] * (1.0 - F) for c in range(3)]
     return ([kr[c] + jnp.where(tir, kt[c], 0.0) for c in range(3)], [jnp.where(tir, 0.0, kt[c]) for c in range(3)])
 
 
-def _local(scene, opts, P, n, front, mat, back_mat, tri, eye, view):
-    """Local terms at surface points with mesh normals ``n`` (as the rasterizer's Phong shading
-    has them, two-sided or not, with shadow rays when on), and the normals facing the viewer."""
-    shadow = shadow_ray_visibility(scene, opts, P, tri) if opts.shadow_rays else None
+def _local(scene, opts: RenderOptions, P, n, front, mat, back_mat, tri, view):
+    """Local terms at a ray's hit points with mesh normals ``n`` (as the rasterizer's Phong
+    shading has them, two-sided or not, with shadow rays when on), and the normals facing the
+    viewer."""
+    lt, sr = opts.lighting, opts.shadows
+    shadow = (shadow_ray_visibility(scene, sr, P, tri, lt.area_grid, opts.rays.backend)
+              if isinstance(sr, ShadowRays) else None)
     n_face = tuple(jnp.where(front, c, -c) for c in n)
-    if opts.two_sided:
-        fr = shade_points(P, n_face, eye, mat, scene, opts, shadow=shadow, view=view)
-        bk = shade_points(P, n_face, eye, back_mat, scene, opts, True, shadow=shadow, view=view)
+    if lt.two_sided:
+        fr = shade_points(P, n_face, None, mat, scene, lt, shadow=shadow, view=view)
+        bk = shade_points(P, n_face, None, back_mat, scene, lt, True, shadow=shadow, view=view)
         return tuple(jnp.where(front, a, b) for a, b in zip(fr, bk)), n_face
-    return shade_points(P, n, eye, mat, scene, opts, shadow=shadow, view=view), n_face
+    return shade_points(P, n, None, mat, scene, lt, shadow=shadow, view=view), n_face
 
 
-def _children(opts, mat, n_face, v, front):
+def _children(fresnel: str, mat, n_face, v, front):
     """The mirror and refracted directions at surface points (normals facing ``v``) and their
     weights, ``[..., 3]``; and the absorption of the refracted ray's medium (the material's when
     it enters through a front face, none when it leaves)."""
@@ -213,7 +219,7 @@ def _children(opts, mat, n_face, v, front):
     ior = jnp.broadcast_to(mat.ior, shape)
     R = mirror_direction(n_face, v)
     T, tir = refracted_direction(n_face, v, jnp.where(front, 1.0 / ior, ior))
-    w_r, w_t = ray_weights(opts, rgb(mat.mirror), rgb(mat.refraction), S.dot(n_face, v), jnp.where(front, ior, 1.0 / ior),
+    w_r, w_t = ray_weights(fresnel, rgb(mat.mirror), rgb(mat.refraction), S.dot(n_face, v), jnp.where(front, ior, 1.0 / ior),
                            ior, tir)
     mu_t = jnp.where(front[..., None], jnp.broadcast_to(mat.absorption, shape + (3,)), 0.0)
     return jnp.stack(R, -1), jnp.stack(T, -1), jnp.stack(w_r, -1), jnp.stack(w_t, -1), mu_t
@@ -238,35 +244,30 @@ def _compact(rays, capacity: int, n_pixels: int):
     return out
 
 
-_COUNTS = []  # set by ray_counts(): the live rays of each generation are appended here
-
-
-def _shoot(scene, opts, mats, used, rays, spawn: bool):
+def _shoot(scene, opts: RenderOptions, mats, used, rays, spawn: bool):
     """One generation of secondary rays: the colour each brings to its pixel (its weight times
     what it meets, shaded and fogged by its length and absorbed by its medium, or the background)
     and, when ``spawn``, the next generation (a mirror and a refracted ray from each hit)."""
     o, d = rays["o"], _unit(rays["d"])
     live = jnp.any(rays["w"] != 0, -1)
-    if _COUNTS:
-        _COUNTS[-1].append(jnp.sum(live))
     mesh = scene.mesh
     ids = first_hits(o, d, mesh.vertices, mesh.faces, tmin=_T_MIN * _scale(scene), skip=rays["skip"], active=live,
-                     backend=opts.ray_backend)
+                     backend=opts.rays.backend)
     P, n, front, mat, t, valid = _surface(scene, mats, used, o, d, ids)
     multi = len(mats) > 1 and mesh.material_ids is not None
-    back_mat = scene.back_material if (opts.back_material and scene.back_material is not None and not multi) else mat
+    back_mat = scene.back_material if (scene.back_material is not None and not multi) else mat
     v = S.vec(-d)
-    local, n_face = _local(scene, opts, P, n, front, mat, back_mat, ids, None, v)
+    local, n_face = _local(scene, opts, P, n, front, mat, back_mat, ids, v)
     col = jnp.stack(local, -1)
     w = rays["w"] * jnp.exp(-rays["mu"] * jnp.where(valid, t, 0.0)[..., None])  # Bouguer over the segment
     f = None
-    if opts.fog != "none":  # every segment fogged by its length
-        f = S.fog_factor(t, opts.fog, scene.fog.start, scene.fog.end, scene.fog.density)[..., None]
+    if opts.fog is not None:  # every segment fogged by its length
+        f = S.fog_factor(t, opts.fog.mode, scene.fog.start, scene.fog.end, scene.fog.density)[..., None]
         col = f * col + (1.0 - f) * scene.fog.color
     c = w * jnp.where(valid[..., None], col, scene.background)
     if not spawn:
         return c, None
-    R, T, w_r, w_t, mu_t = _children(opts, mat, n_face, v, front)
+    R, T, w_r, w_t, mu_t = _children(opts.lighting.fresnel, mat, n_face, v, front)
     wf = jnp.where(valid[..., None], w if f is None else w * f, 0.0)
     Pa = jnp.stack(P, -1)
     kids = dict(o=jnp.concatenate([Pa, Pa]), d=jnp.concatenate([R, T]), w=jnp.concatenate([wf * w_r, wf * w_t]),
@@ -275,57 +276,60 @@ def _shoot(scene, opts, mats, used, rays, spawn: bool):
     return c, kids
 
 
-def trace(scene: Scene, opts: RenderOptions, P, n, front, pmat, tri, back_mat):
-    """Colour (unfogged, unclamped) at the rasterizer's primary surface points ``P`` with
-    interpolated mesh normals ``n``, on triangles ``tri`` (``-1``: none; ``front``: their front
-    faces are seen): local terms with shadow rays, plus ``opts.ray_depth`` generations of mirror
-    and refracted rays, traced breadth first. Everything after the primary hit is linear in what
-    the rays meet, so each ray carries its weight (the product of the weights, absorptions and
-    fog factors on its path) and adds its colour to its pixel."""
-    local, n_face = _local(scene, opts, P, n, front, pmat, back_mat, tri, scene.camera.eye, None)
-    if opts.ray_depth == 0:
-        return local
-    shape = front.shape
-    N = front.size
-    mats = scene.all_materials()
-    used = _used_fields(opts)
+def _primary_rays(scene: Scene, surface: Surface, fresnel: str):
+    """The first generation: a mirror and a refracted ray from every pixel's surface point, in
+    two blocks of the pixels in order."""
+    P, front, tri = surface.position, surface.front, surface.frags.tri_id
+    n_face = tuple(jnp.where(front, c, -c) for c in surface.normal)
     v = S.normalize(S.sub(_rgb(scene.camera.eye), P))
-    R, T, w_r, w_t, mu_t = _children(opts, pmat, n_face, v, front)
-    flat = lambda a: a.reshape((N,) + a.shape[len(shape):])  # noqa: E731
+    R, T, w_r, w_t, mu_t = _children(fresnel, surface.material, n_face, v, front)
+    N = front.size
+    flat = lambda a: a.reshape((N,) + a.shape[front.ndim:])  # noqa: E731
     seen = flat(tri >= 0)[:, None]
     Pa = flat(jnp.stack(P, -1))
     pix = jnp.arange(N)
-    rays = dict(o=jnp.concatenate([Pa, Pa]), d=jnp.concatenate([flat(R), flat(T)]),
+    return dict(o=jnp.concatenate([Pa, Pa]), d=jnp.concatenate([flat(R), flat(T)]),
                 w=jnp.concatenate([jnp.where(seen, flat(w_r), 0.0), jnp.where(seen, flat(w_t), 0.0)]),
                 mu=jnp.concatenate([jnp.zeros_like(Pa), flat(mu_t)]), pix=jnp.concatenate([pix, pix]),
                 skip=jnp.concatenate([flat(tri), flat(tri)]))
-    acc = jnp.zeros((N, 3), Pa.dtype)
-    for level in range(1, opts.ray_depth + 1):
+
+
+def generations(scene: Scene, surface: Surface, opts: RenderOptions):
+    """Each generation of secondary rays (1 to ``opts.rays.depth``): the colour its rays bring
+    (``[R, 3]``), the pixel of each ray (a flat index; or ``None``: blocks of every pixel's rays
+    in pixel order), and the number of its live rays (non-zero weight)."""
+    N = surface.front.size
+    mats = scene.all_materials()
+    used = needs(opts).fields
+    rays = _primary_rays(scene, surface, opts.lighting.fresnel)
+    depth, capacity = opts.rays.depth, opts.rays.capacity
+    for level in range(1, depth + 1):
+        live = jnp.sum(jnp.any(rays["w"] != 0, -1))
         # (once compacted, every later generation is: it has twice the rays)
-        compacted = 0 < opts.ray_capacity < rays["w"].shape[0]
+        compacted = 0 < capacity < rays["w"].shape[0]
         if compacted:
-            rays = _compact(rays, opts.ray_capacity, N)
+            rays = _compact(rays, capacity, N)
         to = rays["pix"]
-        c, rays = _shoot(scene, opts, mats, used, rays, spawn=level < opts.ray_depth)
-        if compacted:
+        c, rays = _shoot(scene, opts, mats, used, rays, spawn=level < depth)
+        yield c, (to if compacted else None), live
+
+
+def secondary_rays(scene: Scene, surface: Surface, color, opts: RenderOptions):
+    """``color`` (the lit colour at the pixels, a component tuple) plus ``opts.rays.depth``
+    generations of mirror and refracted rays from the surface's points, traced breadth first
+    (docs/model.md §6); ``color`` itself without rays. Everything after the primary hit is
+    linear in what the rays meet, so each ray carries its weight (the product of the weights,
+    absorptions and fog factors on its path) and adds its colour to its pixel. A hit is shaded
+    with ``opts.lighting`` (and shadow rays where ``opts.shadows`` is :class:`ShadowRays`) and
+    fogged by its segment's length with ``opts.fog``."""
+    if opts.rays.depth == 0:
+        return color
+    shape = surface.front.shape
+    N = surface.front.size
+    acc = jnp.zeros((N, 3), surface.position[0].dtype)
+    for c, to, _ in generations(scene, surface, opts):
+        if to is not None:
             acc = acc.at[to].add(c, mode="drop")  # scattered to their pixels
         else:  # blocks of every pixel's rays in pixel order: a reshape and a sum
             acc = acc + c.reshape(-1, N, 3).sum(0)
-    return tuple(local[k] + acc[:, k].reshape(shape) for k in range(3))
-
-
-def ray_counts(scene: Scene, opts: RenderOptions) -> list[int]:
-    """How many secondary rays each generation (1 to ``opts.ray_depth``) of a render of ``scene``
-    traces: the rays of non-zero weight, without any capacity. A ``ray_capacity`` below the
-    largest of them drops rays (their light is missing from the image)."""
-    from ._render import render
-
-    def counts(s):
-        _COUNTS.append([])
-        try:
-            render(s, opts.replace(ray_capacity=0))  # traced for the counts only (the image is unused)
-            return _COUNTS[-1]
-        finally:
-            _COUNTS.pop()
-
-    return [int(x) for x in jax.jit(counts)(scene)]
+    return tuple(color[k] + acc[:, k].reshape(shape) for k in range(3))

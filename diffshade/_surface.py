@@ -1,0 +1,225 @@
+r"""Surface points: what the rasterizer's fragments are, as points to light (docs/model.md §4).
+
+The one stage where flat, Gouraud and Phong shading differ. Each gives the lighting its *sites*
+— the points where the terms are evaluated, with their unit normals and materials — and the map
+from the sites back to the pixels:
+
+- Phong: the sites are the pixels (positions and normals interpolated, :func:`interpolate`);
+- Gouraud: the vertices (each face's corners when faces have different materials), their colours
+  interpolated to the pixels;
+- flat: one site per triangle (its centroid with the face normal, or its provoking vertex with
+  that vertex's normal), gathered to the pixels.
+
+Per pixel the surface also carries what compositing needs: coverage, facing, the pixel's
+material, and (where asked) its position and normal.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, Int
+
+from . import _shade as S
+from ._materials import _COMPOSITING_FIELDS, _MATERIAL_FIELDS, _material_at
+from ._options import Raster, RenderOptions
+from ._raster import Fragments, _pixel_vertex_ids, interpolate
+from ._scene import Material, Scene
+from ._util import keep
+
+Components = tuple  # a vector or colour as a tuple of same-shaped arrays, one per component
+
+
+@dataclass(frozen=True)
+class Needs:
+    """What later stages read of the surface: the material ``fields``, pixel ``positions``
+    (shadows, absorption, Euclidean fog, Phong), and pixel normals for Kay's opacity (``kay``)."""
+
+    fields: frozenset = frozenset(_MATERIAL_FIELDS)
+    positions: bool = True
+    kay: bool = True
+
+
+def needs(opts: RenderOptions) -> Needs:
+    """What a render with ``opts`` reads of the surface (the smallest :class:`Needs`)."""
+    lt, tr = opts.lighting, opts.transparency
+    used = set()
+    if lt.emission:
+        used.add("emission")
+    if lt.ambient or lt.per_light_ambient:
+        used.add("ambient")
+    if lt.diffuse:
+        used.add("diffuse")
+    if lt.specular != "none":
+        used |= {"specular", "shininess"} | ({"ior"} if lt.fresnel != "none" else set())
+    if lt.transmission:
+        used |= {"transmission", "shininess", "ior"}
+    if tr is not None:
+        used |= {"opacity", "kay_min", "kay_max", "kay_power"} | ({"absorption"} if tr.absorption else set())
+    if opts.rays.depth:
+        used |= {"mirror", "refraction", "ior", "absorption"}
+    euclidean_fog = opts.fog is not None and opts.fog.distance == "euclidean"
+    positions = (opts.raster.shading == "phong" or opts.shadows is not None
+                 or (tr is not None and tr.absorption) or euclidean_fog)
+    return Needs(frozenset(used), positions, tr is not None)
+
+
+@dataclass(frozen=True)
+class Sites:
+    """Where the lighting is evaluated: ``points`` with unit ``normal`` (front side; the back
+    side is lit with the reversed normal), their front and back materials, and ``to_pixels``, the
+    linear map of a colour at the sites to the pixels (``None``: the sites are the pixels)."""
+
+    points: Components
+    normal: Components
+    material: Material
+    back_material: Material
+    to_pixels: Callable[[Components], Components] | None
+
+
+@dataclass(frozen=True)
+class Surface:
+    """The visible surface per pixel and depth layer (``[K, H, W]``), and its lighting sites.
+
+    ``frags``: the fragments (barycentrics as interpolated); ``valid``: covered; ``front``: the
+    front face is seen; ``position`` and ``normal`` (unit, the mesh's, not facing-corrected):
+    component tuples at the pixels, ``None`` where no stage needs them; ``material``: each
+    pixel's material (the fields compositing and per-pixel shading read); ``material_ids``: each
+    pixel's material id (``None`` for a one-material scene); ``kay``: per material, whether it
+    uses Kay's opacity (static); ``clip``: the clip-space vertices."""
+
+    frags: Fragments
+    valid: Bool[Array, "K H W"]
+    front: Bool[Array, "K H W"]
+    position: Components | None
+    normal: Components | None
+    material: Material
+    material_ids: Int[Array, "K H W"] | None
+    kay: tuple[bool, ...]
+    clip: Float[Array, "V 4"]
+    sites: Sites
+
+
+def _affine(frags: Fragments, clip, faces) -> Fragments:
+    """The fragments with screen-space weights :math:`\\lambda_i = b_i w_i / \\sum_j b_j w_j` (what
+    perspective-correct interpolation undoes; :math:`w_i` the clip w of the triangle's vertices)."""
+    tid = frags.tri_id
+    vid = _pixel_vertex_ids(faces, tid, tid >= 0)
+    wv = [clip[:, 3][vid[j]].reshape(tid.shape) * frags.bary[..., j] for j in range(3)]
+    sw = wv[0] + wv[1] + wv[2]
+    ok = sw != 0
+    inv = 1.0 / jnp.where(ok, sw, 1.0)
+    return eqx.tree_at(lambda f: f.bary, frags, jnp.stack([jnp.where(ok, wv[j] * inv, 0.0) for j in range(3)], -1))
+
+
+def _lerp(frags: Fragments, faces) -> Callable[[Components], Components]:
+    """Interpolation of per-vertex components to the fragments' pixels (materialised)."""
+    return lambda attr: keep(*interpolate(tuple(attr), faces, frags))
+
+
+def _vertex_colored(mat: Material, col, mode: str) -> Material:
+    """``glColorMaterial``: the colours ``col`` take the place of k_d (and k_a)."""
+    fields = ("diffuse",) if mode == "diffuse" else ("ambient", "diffuse")
+    return eqx.tree_at(lambda m: tuple(getattr(m, f) for f in fields), mat, (col,) * len(fields))
+
+
+def surface_points(scene: Scene, frags: Fragments, raster: Raster = Raster(), need: Needs = Needs(),
+                   clip: Float[Array, "V 4"] | None = None) -> Surface:
+    """The surface the fragments ``frags`` see, and where ``raster.shading`` lights it.
+
+    ``need`` (default: everything) says what later stages read (:func:`needs` of the options);
+    ``clip``: the clip-space vertices if already computed."""
+    mesh = scene.mesh
+    clip = scene.camera.world_to_clip(mesh.vertices) if clip is None else clip
+    if raster.interpolation == "affine":
+        frags = _affine(frags, clip, mesh.faces)
+    frags = eqx.tree_at(lambda f: f.bary, frags, jnp.stack(keep(*(frags.bary[..., j] for j in range(3))), -1))
+    tid = frags.tri_id
+    valid = tid >= 0
+    safe_tid = jnp.where(valid, tid, 0)
+    mats = scene.all_materials()
+    multi = len(mats) > 1 and mesh.material_ids is not None
+    if multi and scene.back_material is not None:
+        raise ValueError("a back material applies to a one-material scene; give each object's material instead")
+    if raster.vertex_color != "none" and mesh.colors is None:
+        raise ValueError(f"Raster.vertex_color is {raster.vertex_color!r} but the mesh has no colours")
+
+    lerp = _lerp(frags, mesh.faces)
+    pix_mid = mesh.material_ids[safe_tid] if multi else None
+    pixel_fields = need.fields if raster.shading == "phong" else need.fields & _COMPOSITING_FIELDS
+    pmat = _material_at(mats, pix_mid, pixel_fields) if multi else scene.material
+    back = pmat if multi else (scene.back_material if scene.back_material is not None else scene.material)
+    position = lerp(S.vec(mesh.vertices)) if need.positions or raster.shading == "phong" else None
+    kay = tuple(bool(m.kay) for m in mats) if multi else (bool(scene.material.kay),)
+    need = Needs(need.fields, need.positions, need.kay and any(kay))
+    build = {"phong": _phong_sites, "gouraud": _gouraud_sites, "flat": _flat_sites}[raster.shading]
+    sites, normal, pmat = build(scene, raster, need, frags, multi, pmat, back, position)
+    return Surface(frags=frags, valid=valid, front=frags.front, position=position, normal=normal, material=pmat,
+                   material_ids=pix_mid, kay=kay, clip=clip, sites=sites)
+
+
+def _phong_sites(scene, raster, need, frags, multi, pmat, back, position):
+    """Phong: every pixel is a site, with the interpolated unit normal."""
+    mesh = scene.mesh
+    lerp = _lerp(frags, mesh.faces)
+    if raster.vertex_color != "none":  # interpolated to the pixel
+        col = jnp.stack(lerp(tuple(mesh.colors[:, c] for c in range(3))), axis=-1)
+        pmat, back = _vertex_colored(pmat, col, raster.vertex_color), _vertex_colored(back, col, raster.vertex_color)
+    n = keep(*S.normalize(lerp(S.vec(mesh.vertex_normals()))))
+    return Sites(position, n, pmat, back, None), n, pmat
+
+
+def _gouraud_sites(scene, raster, need, frags, multi, pmat, back, position):
+    """Gouraud: the vertices are the sites (the face corners with several materials); their
+    colours are interpolated to the pixels."""
+    mesh = scene.mesh
+    lerp = _lerp(frags, mesh.faces)
+    vn = mesh.vertex_normals()
+    mode = raster.vertex_color
+    if multi:
+        corners = mesh.faces.reshape(-1)
+        corner_faces = jnp.arange(corners.shape[0], dtype=mesh.faces.dtype).reshape(-1, 3)
+        frags_faces = corner_faces
+        pts, nrm = S.vec(mesh.vertices[corners]), S.vec(vn[corners])
+        vmat = _material_at(scene.all_materials(), jnp.repeat(mesh.material_ids, 3), need.fields)
+        if mode != "none":  # lit at the vertices with their own colours
+            vmat = _vertex_colored(vmat, mesh.colors[corners], mode)
+        vback = vmat
+    else:
+        frags_faces = mesh.faces
+        pts, nrm = S.vec(mesh.vertices), S.vec(vn)
+        vmat, vback = scene.material, back
+        if mode != "none":
+            vmat, vback = _vertex_colored(vmat, mesh.colors, mode), _vertex_colored(vback, mesh.colors, mode)
+    def to_pixels(col: Components) -> Components:
+        return keep(*interpolate(tuple(keep(*col)), frags_faces, frags))
+
+    normal = S.normalize(lerp(S.vec(vn))) if need.kay else None
+    return Sites(pts, keep(*nrm), vmat, vback, to_pixels), normal, pmat
+
+
+def _flat_sites(scene, raster, need, frags, multi, pmat, back, position):
+    """Flat: one site per triangle (centroid and face normal, or the provoking vertex and its
+    normal), gathered to the pixels."""
+    mesh = scene.mesh
+    safe_tid = jnp.where(frags.tri_id >= 0, frags.tri_id, 0)
+    if raster.flat_source == "provoking":
+        last = mesh.faces[:, 2]
+        pts, nrm = S.vec(mesh.vertices[last]), keep(*S.vec(mesh.vertex_normals()[last]))
+    else:
+        pts, nrm = S.vec(jnp.mean(mesh.vertices[mesh.faces], axis=1)), S.vec(mesh.face_normals())
+    fmat = _material_at(scene.all_materials(), mesh.material_ids, need.fields) if multi else scene.material
+    fback = fmat if multi else back
+    if raster.vertex_color != "none":  # the face's colour: its provoking vertex's, or the mean of its three
+        fcol = (mesh.colors[mesh.faces[:, 2]] if raster.flat_source == "provoking"
+                else jnp.mean(mesh.colors[mesh.faces], axis=1))
+        fmat, fback = (_vertex_colored(m, fcol, raster.vertex_color) for m in (fmat, fback))
+
+    def to_pixels(col: Components) -> Components:
+        return tuple(c[safe_tid] for c in keep(*col))
+
+    normal = tuple(c[safe_tid] for c in S.vec(mesh.face_normals())) if need.kay else None
+    return Sites(pts, nrm, fmat, fback, to_pixels), normal, pmat
