@@ -111,7 +111,7 @@ def make_case(seed: int, size: int, bunny: str | None):
                   density=float(rng.uniform(0.05, 0.3)))
     scene = ds.Scene(mesh=mesh, camera=cam, material=mat, point=point, directional=directional, spot=spot,
                      ambient_light=0.3, fog=fogp, background=(0.0, 0.0, 0.0))
-    opts = ds.RenderOptions(shading=shading, specular=specular, fog=fog)
+    opts = ds.RenderOptions.from_keys(shading=shading, specular=specular, fog=fog)
     free = ["material.ambient", "material.diffuse", "material.specular", "material.shininess"]
     free += [f"point[{i}].{a}" for i in range(len(pts)) for a in ("a1", "a2")]
     free += [f"spot[{i}].{a}" for i in range(len(spots)) for a in ("a1", "a2")]

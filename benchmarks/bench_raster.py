@@ -112,7 +112,7 @@ def main():
             scene, opts = ds.default_scene()
             scene = ds.Scene(mesh=ds.Mesh(vertices=v, faces=f), camera=cam, material=scene.material,
                              point=scene.point, directional=scene.directional, ambient_light=scene.ambient_light)
-            opts = opts.replace(fog="none", shading="phong")
+            opts = opts.with_keys(fog="none", shading="phong")
             c, t = timed(jax.jit(lambda s: ds.render(s, opts)), scene, repeats=args.repeats)
             print(f"{name:18s} {res:4d}² full Phong render (auto backend): compile {c:6.2f} s  {t:8.2f} ms", flush=True)
     print("\n| scene | size | backend | compile s | visibility ms | + fragments ms | DEODR ms | ratio |")

@@ -47,15 +47,16 @@ def make_scene(v, f, res, terms):
     base = dict(mesh=ds.Mesh(vertices=v, faces=f), camera=cam, material=mat, ambient_light=[0.3, 0.3, 0.3])
     if terms == "diffuse":
         scene = ds.Scene(**base, directional=dirl)
-        opts = ds.RenderOptions(shading="phong", specular="none", ambient=False)
+        opts = ds.RenderOptions(lighting=ds.Lighting(specular="none", ambient=False))
     elif terms == "phong":
         scene = ds.Scene(**base, directional=dirl, point=point)
-        opts = ds.RenderOptions(shading="phong", specular="phong")
+        opts = ds.RenderOptions(lighting=ds.Lighting(specular="phong"))
     else:
         scene = ds.Scene(**base, directional=dirl, point=point, spot=spot, back_material=mat,
                          fog=ds.Fog(color=[0.55, 0.6, 0.7], density=0.12), background=[0.55, 0.6, 0.7])
-        opts = ds.RenderOptions(shading="phong", specular="blinn", fresnel="dielectric", emission=True,
-                                per_light_ambient=True, back_material=True, spot_edge="smooth", fog="exp2")
+        opts = ds.RenderOptions(lighting=ds.Lighting(specular="blinn", fresnel="dielectric", emission=True,
+                                                     per_light_ambient=True, spot_edge="smooth"),
+                                fog=ds.FogModel("exp2"))
     return scene, opts
 
 

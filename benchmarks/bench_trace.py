@@ -70,7 +70,7 @@ def measure(size, subdiv, depth, engine, shadow_rays, compact=True):
     scene, opts = scene_with(size, subdiv, depth, engine, shadow_rays)
     counts = ds.ray_counts(scene, opts) if depth else []
     if compact and depth:
-        opts = opts.replace(ray_capacity=max(counts))
+        opts = opts.with_keys(ray_capacity=max(counts))
     ids = ds.scene_visibility(scene, opts)
     mat = scene.material
     x0 = jnp.concatenate([mat.diffuse, mat.specular, mat.absorption, mat.refraction[:1], mat.mirror[:1], mat.ior[None]])

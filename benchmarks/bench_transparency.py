@@ -85,9 +85,11 @@ def main():
     for res in (int(x) for x in args.sizes.split(",")):
         scene = make_scene(res)
         configs = [("opaque K=1 (baseline)", ds.RenderOptions()),
-                   ("transparent K=1", ds.RenderOptions(transparency=True, transmission=True, layers=1))]
-        configs += [(f"transparent K={k}", ds.RenderOptions(transparency=True, absorption=True, transmission=True,
-                                                            layers=k)) for k in (2, 4)]
+                   ("transparent K=1", ds.RenderOptions(transparency=ds.Transparency(layers=1),
+                                                        lighting=ds.Lighting(transmission=True)))]
+        configs += [(f"transparent K={k}", ds.RenderOptions(
+                        transparency=ds.Transparency(layers=k, absorption=True), lighting=ds.Lighting(transmission=True)))
+                    for k in (2, 4)]
         base = None  # (full ms of the opaque render, jvp ms of transparent K=1)
         for label, opts in configs:
             full = jax.jit(lambda s, o=opts: ds.render(s, o))
@@ -106,8 +108,8 @@ def main():
             one = make_scene(res, (kind,))
             times = {}
             for label, opts in (("off", ds.RenderOptions()),
-                                ("pcf1", ds.RenderOptions(shadows=True, shadow_resolution=args.map)),
-                                ("pcf3", ds.RenderOptions(shadows=True, shadow_resolution=args.map, shadow_pcf=3))):
+                                ("pcf1", ds.RenderOptions(shadows=ds.ShadowMaps(resolution=args.map))),
+                                ("pcf3", ds.RenderOptions(shadows=ds.ShadowMaps(resolution=args.map, pcf=3)))):
                 f = jax.jit(lambda s, o=opts: ds.render(s, o))
                 times[label] = timed(f, one, repeats=args.repeats)
             off = times["off"][1]

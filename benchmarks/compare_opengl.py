@@ -43,7 +43,7 @@ def main():
     for name, make in T.SCENES.items():
         variants = [("", lambda s, o: (s, o))]
         if args.also_default_clamp and "gouraud" in name:
-            variants.append((" [clamp per pixel]", lambda s, o: (s, o.replace(clamp_at="pixel"))))
+            variants.append((" [clamp per pixel]", lambda s, o: (s, o.with_keys(clamp_at="pixel"))))
         for suffix, change in variants:
             scene, opts = make()
             scene = T._f32(scene)

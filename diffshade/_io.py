@@ -193,11 +193,13 @@ def _options(v: _V, r: dict) -> RenderOptions:
         v.fail("render", str(exc).replace("RenderOptions.", ""))
 
 
-def _material(v: _V, m: dict, where: str) -> Material:
+def _material(v: _V, m: dict, where: str, gl: bool = False) -> Material:
+    """A material table; with ``gl`` (``render.compat = "opengl"``) the values left out are
+    OpenGL's defaults, and shininess 0 is allowed (as in ``glMaterial``)."""
     keys = ("emission", "ambient", "diffuse", "specular", "shininess", "ior", "opacity", "kay", "kay_min", "kay_max",
             "kay_power", "transmission", "absorption", "mirror", "refraction", "casts_shadow")
     v.unknown(m, keys, where)
-    d = Material()
+    d = Material.opengl() if gl else Material()
     flags = {}
     for k, default in (("kay", False), ("casts_shadow", True)):
         flags[k] = m.get(k, default)
@@ -219,7 +221,7 @@ def _material(v: _V, m: dict, where: str) -> Material:
         ambient=v.vec(m, "ambient", where, default=np.asarray(d.ambient), lo=0.0, hi=1.0, scalar_ok=True),
         diffuse=v.vec(m, "diffuse", where, default=np.asarray(d.diffuse), lo=0.0, hi=1.0, scalar_ok=True),
         specular=v.vec(m, "specular", where, default=np.asarray(d.specular), lo=0.0, hi=1.0, scalar_ok=True),
-        shininess=v.num(m, "shininess", where, default=float(d.shininess), lo=0.0, lo_open=True),
+        shininess=v.num(m, "shininess", where, default=float(d.shininess), lo=0.0, lo_open=not gl),
         ior=v.num(m, "ior", where, default=float(d.ior), lo=0.0, lo_open=True),
     )
 
@@ -391,6 +393,7 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
     v.unknown(d, ("mesh", "camera", "render", "material", "back_material", "light", "fog", "ambient_light", "background",
                   "object", "shadow"), "scene")
     opts = _options(v, v.table(d, "render"))
+    gl = v.table(d, "render").get("compat") == "opengl"
 
     objects = d.get("object", [])
     if not isinstance(objects, list) or not all(isinstance(o, dict) for o in objects):
@@ -399,7 +402,7 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
     parts = []
     if "mesh" in d or not objects:
         parts.append((_mesh(v, v.table(d, "mesh", required=True), "mesh", base),
-                      _material(v, v.table(d, "material"), "material")))
+                      _material(v, v.table(d, "material"), "material", gl)))
     elif "material" in d:
         v.fail("material", "with [[object]] and no [mesh], give each object its own [object.material]")
     for i, o in enumerate(objects):
@@ -415,7 +418,7 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
             v.fail(f"{w}.material", "must be a table")
         nrm = None if m.normals is None else np.asarray(m.normals) / scale  # normals transform by the inverse
         parts.append((Mesh(vertices=np.asarray(m.vertices) * scale + shift, faces=m.faces, normals=nrm, colors=m.colors),
-                      _material(v, mo, f"{w}.material")))
+                      _material(v, mo, f"{w}.material", gl)))
     try:
         mesh = parts[0][0] if len(parts) == 1 else combine(*(p[0] for p in parts))
     except ValueError as exc:
@@ -427,7 +430,7 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
 
     camera = _camera(v, v.table(d, "camera", required=True), "camera")
 
-    back = _material(v, d["back_material"], "back_material") if "back_material" in d else None
+    back = _material(v, d["back_material"], "back_material", gl) if "back_material" in d else None
     if back is not None and extra:
         v.fail("back_material", "applies to a one-material scene; give each object its own material instead")
     sh = v.table(d, "shadow")
@@ -438,7 +441,7 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
 
     f = v.table(d, "fog")
     v.unknown(f, ("color", "start", "end", "density"), "fog")
-    fog_default = Fog()
+    fog_default = Fog.opengl() if gl else Fog()
     start = v.num(f, "start", "fog", default=float(fog_default.start), lo=0.0)
     end = v.num(f, "end", "fog", default=max(float(fog_default.end), start), lo=start)
     fog = Fog(

@@ -41,7 +41,7 @@ class LightVisibility:
 
 
 def _direct(ndl, n, l, v, mat: Material, lt: Lighting, back: bool):
-    """The scalar factors of one light at the points: diffuse :math:`(n\cdot l)^+`, specular
+    r"""The scalar factors of one light at the points: diffuse :math:`(n\cdot l)^+`, specular
     (Fresnel-weighted where asked) and directed transmission, each ``None`` where off."""
     dif = S.lambert(ndl) if lt.diffuse else None
     spec = None

@@ -82,6 +82,13 @@ class Material(eqx.Module):
     kay: bool = eqx.field(static=True, default=False)
     casts_shadow: bool = eqx.field(static=True, default=True)
 
+    @classmethod
+    def opengl(cls, **fields) -> Material:
+        """OpenGL's default material (``glMaterial``): ambient 0.2, diffuse 0.8, specular 0,
+        emission 0, shininess 0; ``fields`` change any of them."""
+        gl = dict(ambient=0.2, diffuse=0.8, specular=0.0, emission=0.0, shininess=0.0)
+        return cls(**{**gl, **fields})
+
 
 def _opt_rows(x):
     return None if x is None else _rows(3)(x)
@@ -220,6 +227,12 @@ class Fog(eqx.Module):
     start: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.0)
     end: Float[Array, ""] = eqx.field(converter=as_float_array, default=10.0)
     density: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.1)
+
+    @classmethod
+    def opengl(cls, **fields) -> Fog:
+        """OpenGL's default fog (``glFog``): colour black, start 0, end 1, density 1; ``fields``
+        change any of them."""
+        return cls(**{**dict(color=0.0, start=0.0, end=1.0, density=1.0), **fields})
 
 
 class Scene(eqx.Module):

@@ -72,12 +72,12 @@ scene, opts = scene_with(SIZE, fog=None, background=[0, 0, 0])
 print(opts)"""),
     ("md", "## The terms one at a time, and their sum\n\nThe image is linear in the terms: ambient + diffuse + specular rendered separately add up to the full render (checked below)."),
     ("code", """\
-nofog = opts.replace(fog="none")
+nofog = opts.with_keys(fog="none")
 parts = {
-    "ambient k_a I_a": nofog.replace(diffuse=False, specular="none"),
-    "Lambert k_d (n·l)": nofog.replace(ambient=False, specular="none"),
-    "Phong k_s (v·r)^m": nofog.replace(ambient=False, diffuse=False),
-    "Blinn k_s (n·h)^4m": nofog.replace(ambient=False, diffuse=False, specular="blinn"),
+    "ambient k_a I_a": nofog.with_keys(diffuse=False, specular="none"),
+    "Lambert k_d (n·l)": nofog.with_keys(ambient=False, specular="none"),
+    "Phong k_s (v·r)^m": nofog.with_keys(ambient=False, diffuse=False),
+    "Blinn k_s (n·h)^4m": nofog.with_keys(ambient=False, diffuse=False, specular="blinn"),
 }
 imgs = {k: render(with_blinn(scene) if "Blinn" in k else scene, o) for k, o in parts.items()}
 full = render(scene, nofog)
@@ -142,9 +142,9 @@ show(out, names, cols=3)"""),
     ("code", """\
 s, _ = scene_with(SIZE)
 s_all = eqx.tree_at(lambda x: x.back_material, s, s.material, is_leaf=lambda x: x is None)
-diffuse_only = ds.RenderOptions(specular="none", ambient=False, fog="none")
-all_terms = ds.RenderOptions(specular="blinn", fresnel="dielectric", emission=True, per_light_ambient=True,
-                             back_material=True, fog="exp2")
+diffuse_only = ds.RenderOptions(lighting=ds.Lighting(specular="none", ambient=False))
+all_terms = ds.RenderOptions(lighting=ds.Lighting(specular="blinn", fresnel="dielectric", emission=True,
+                                                 per_light_ambient=True), fog=ds.FogModel("exp2"))
 sizes = {}
 for name, o in (("diffuse only", diffuse_only), ("all terms", all_terms)):
     sizes[name] = render.lower(s_all, o).compile().as_text().count("\\n")
@@ -294,7 +294,7 @@ for mode in ("flat", "gouraud", "phong"):
     for sub in subs:
         for ss in sss:
             s, o = scene_at(SIZE * ss, sub)
-            o = o.replace(shading=mode)
+            o = o.with_keys(shading=mode)
             fn = jax.jit(lambda s, o=o, ss=ss: ds.render(s, o).reshape(SIZE, ss, SIZE, ss, 3).mean(axis=(1, 3)))
             img = np.asarray(fn(s), np.float64)
             rows.append((mode, sub, ss, timed(fn, s), float(np.sqrt(np.mean((img - reference) ** 2)))))
@@ -386,7 +386,7 @@ scene = eqx.tree_at(lambda s: s.camera, scene, ds.Camera(
     eye=scene.camera.eye, target=scene.camera.target, up=scene.camera.up, fov_y=scene.camera.fov_y,
     near=scene.camera.near, far=scene.camera.far, width=SIZE, height=SIZE))
 if SMALL:
-    opts = opts.replace(shadow_resolution=128)
+    opts = opts.with_keys(shadow_resolution=128)
 print(opts)
 print(len(scene.all_materials()), "materials,", scene.mesh.faces.shape[0], "faces")"""),
     ("md", """\
@@ -397,13 +397,13 @@ replaced by the background (the light left over, `Π(1 − t_k)`, comes from it)
 `ds.truncated_pixels` counts the pixels where that happens: here the floor seen through both walls
 of the box and both sides of the ball needs `K = 5`."""),
     ("code", """\
-images, titles = [render(scene, opts.replace(transparency=False, absorption=False, transmission=False))], ["opaque"]
+images, titles = [render(scene, opts.with_keys(transparency=False, absorption=False, transmission=False))], ["opaque"]
 for K in ((1, 5) if SMALL else (1, 2, 3, 5)):
-    o = opts.replace(layers=K, absorption=K >= 2)
+    o = opts.with_keys(layers=K, absorption=K >= 2)
     images.append(render(scene, o))
     titles.append(f"K = {K}: {ds.truncated_pixels(scene, o)} px truncated")
 show(images, titles, cols=5)
-assert ds.truncated_pixels(scene, opts.replace(layers=5)) == 0"""),
+assert ds.truncated_pixels(scene, opts.with_keys(layers=5)) == 0"""),
     ("md", """\
 ## Kay's opacity
 
@@ -439,7 +439,8 @@ def slab(mu, size=32):
     return ds.Scene(mesh=ds.combine(ds.quad((6, 6), (0, 0, -1)), ds.box((2, 2, 0.6), (0, 0, 0.5))), camera=cam,
                     material=mats[0], materials=mats[1:], directional=ds.DirectionalLights(
                         color=[1.0, 1.0, 1.0], direction=[0, 0, -1], ambient=[0, 0, 0]), ambient_light=1.0)
-slab_opts = ds.RenderOptions(transparency=True, absorption=True, layers=3, specular="none")
+slab_opts = ds.RenderOptions(transparency=ds.Transparency(layers=3, absorption=True),
+                             lighting=ds.Lighting(specular="none"))
 mus = np.linspace(0, 4, 9)
 centre = np.array([np.asarray(render(slab(np.full(3, m)), slab_opts))[16, 16] for m in mus])
 d = np.array([0.5 / 32 * np.tan(np.deg2rad(10)) * 2, 0.5 / 32 * np.tan(np.deg2rad(10)) * 2, -1.0])  # pixel (16, 16)
@@ -489,7 +490,7 @@ def timed(fn, *args, repeats=3 if SMALL else 10):
     return 1e3 * np.median(ts)
 
 images, titles = [], []
-plain = opts.replace(transparency=False, absorption=False, transmission=False)
+plain = opts.with_keys(transparency=False, absorption=False, transmission=False)
 for kind in ("directional", "point", "spot"):
     one = scene
     for other in ("directional", "point", "spot"):
@@ -497,11 +498,11 @@ for kind in ("directional", "point", "spot"):
             one = eqx.tree_at(lambda s: getattr(s, other), one, {"directional": ds.no_directional,
                               "point": ds.no_point, "spot": ds.no_spot}[other]())
     for pcf in ((3,) if SMALL else (1, 3)):
-        o = plain.replace(shadow_pcf=pcf)
+        o = plain.with_keys(shadow_pcf=pcf)
         f = jax.jit(lambda s, o=o: ds.render(s, o))
         images.append(f(one)); titles.append(f"{kind}, PCF {pcf}: {timed(f, one):.0f} ms")
     if not SMALL:  # (the test suite skips the timing without shadows)
-        off = jax.jit(lambda s: ds.render(s, plain.replace(shadows=False)))
+        off = jax.jit(lambda s: ds.render(s, plain.with_keys(shadows=False)))
         print(f"{kind:11s} without shadows {timed(off, one):6.1f} ms")
 show(images, titles, cols=6, scale=2.4)"""),
     ("md", """\
@@ -519,7 +520,7 @@ from fitting.fit import fit
 from fitting.params import ParamSet
 names = ["material[1].opacity", "material[1].absorption", "material[1].transmission",
          "material[2].kay_min", "material[2].kay_max", "material[2].kay_power"]
-fopts = opts.replace(layers=5, shadows=False)
+fopts = opts.with_keys(layers=5, shadows=False)
 
 def fit_glass(scene):
     target = render(scene, fopts)
@@ -634,12 +635,12 @@ def timed(fn, *args, repeats=3 if SMALL else 9):
 
 REF = 3 if SMALL else 7
 base, bopts = glass_scene(SIZE, render={"fresnel": "dielectric"})
-counts = ds.ray_counts(base, bopts.replace(ray_depth=REF))
+counts = ds.ray_counts(base, bopts.with_keys(ray_depth=REF))
 print("live rays per generation:", counts, f"(the image has {SIZE * SIZE} pixels)")
-reference = np.asarray(render(base, bopts.replace(ray_depth=REF, ray_capacity=max(counts))))
+reference = np.asarray(render(base, bopts.with_keys(ray_depth=REF, ray_capacity=max(counts))))
 rows = []
 for depth in range(0, REF - 1 if SMALL else REF):
-    o = bopts.replace(ray_depth=depth, ray_capacity=max(counts[:depth], default=0))
+    o = bopts.with_keys(ray_depth=depth, ray_capacity=max(counts[:depth], default=0))
     img = np.asarray(render(base, o))
     rows.append((depth, timed(render, base, o), float(np.sqrt(np.mean((img - reference) ** 2)))))
 for depth, ms, err in rows:
@@ -661,11 +662,11 @@ differs from the exact one, and the frame time."""),
     ("code", """\
 opaque = dict(refraction=0.0, mirror=0.0, diffuse=[0.7, 0.3, 0.2], absorption=[0.0, 0.0, 0.0])
 s_op, o_op = glass_scene(SIZE, ball=opaque)
-exact = np.asarray(render(s_op, o_op.replace(shadow_rays=True)))
+exact = np.asarray(render(s_op, o_op.with_keys(shadow_rays=True)))
 floor = np.asarray(ds.scene_visibility(s_op, o_op)[0]) >= 320
-images, titles = [exact], [f"shadow rays: {timed(render, s_op, o_op.replace(shadow_rays=True)):.1f} ms"]
+images, titles = [exact], [f"shadow rays: {timed(render, s_op, o_op.with_keys(shadow_rays=True)):.1f} ms"]
 for res, pcf in ((512, 3),) if SMALL else ((128, 1), (512, 1), (2048, 1), (512, 3)):
-    o = o_op.replace(shadows=True, shadow_resolution=res, shadow_pcf=pcf)
+    o = o_op.with_keys(shadows=True, shadow_resolution=res, shadow_pcf=pcf)
     img = np.asarray(render(s_op, o))
     wrong = float(np.mean(np.abs(img - exact).max(-1)[floor] > 0.02))
     images.append(img)
@@ -677,8 +678,8 @@ Through glass, a straight shadow ray is multiplied by `k_rt` at each surface it 
     ("code", """\
 s_g, o_g = glass_scene(SIZE, render={"fresnel": "dielectric"})
 DEPTH = 1 if SMALL else 4
-img_g = render(s_g, o_g.replace(ray_depth=DEPTH, shadow_rays=True))
-img_b = render(s_g, o_g.replace(ray_depth=DEPTH, shadow_rays=True, shadow_ray_crossings=0))
+img_g = render(s_g, o_g.with_keys(ray_depth=DEPTH, shadow_rays=True))
+img_b = render(s_g, o_g.with_keys(ray_depth=DEPTH, shadow_rays=True, shadow_ray_crossings=0))
 show([img_b, img_g], ["glass as an opaque occluder", "coloured shadow (k_rt e^{−μℓ})"], cols=2, scale=3.6)
 assert float(jnp.abs(img_g - img_b).max()) > 0.05"""),
     ("md", """\
@@ -819,13 +820,13 @@ zcol = np.where(det[:, None], cmap(np.clip(np.nan_to_num(zv) / 4, 0, 1))[:, :3],
 c = views[0].camera
 look = ds.Camera(eye=[3.0, 4.0, 6.0], target=[0.0, 2.0, 0.0], up=[0, 1, 0], fov_y=40.0, near=0.5, far=50.0,
                  width=c.width, height=c.height)
-flat_light = opts.replace(specular="none")
+flat_light = opts.with_keys(specular="none")
 def on_mesh(colors):
     s = eqx.tree_at(lambda x: (x.camera, x.mesh.colors, x.ambient_light), views[0],
                     (look, jnp.asarray(colors, views[0].mesh.vertices.dtype), jnp.ones(3)))
     s = eqx.tree_at(lambda x: x.point.color, s, jnp.zeros_like(s.point.color))
     s = eqx.tree_at(lambda x: x.material.ambient, s, jnp.zeros(3))
-    return render(s, flat_light.replace(vertex_color="ambient_and_diffuse"))
+    return render(s, flat_light.with_keys(vertex_color="ambient_and_diffuse"))
 show([on_mesh(true_alb), on_mesh(alb), on_mesh(zcol)], ["true albedo", "fitted albedo", "|error| / s.e. (0 → 4), grey: undetermined"], cols=3, scale=3.2)
 assert np.mean(zv[det] < 3) > 0.9"""),
     ("md", """\
