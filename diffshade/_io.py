@@ -226,10 +226,14 @@ def _material(v: _V, m: dict, where: str, gl: bool = False) -> Material:
     )
 
 
+_LIGHT_KINDS = ("directional", "point", "spot", "area", "multi_lobe")
+
+
 def _lights(v: _V, lights: list):
+    """The ``[[light]]`` tables as structures of arrays, one per kind (in the file's order)."""
     if not isinstance(lights, list):
         v.fail("light", "must be an array of tables ([[light]])")
-    groups: dict[str, list] = {"directional": [], "point": [], "spot": [], "area": [], "multi_lobe": []}
+    groups: dict[str, list] = {k: [] for k in _LIGHT_KINDS}
     # separate specular colours (OpenGL's GL_SPECULAR) by kind and row; ``color`` sets both otherwise
     specular: dict[str, dict[int, np.ndarray]] = {"directional": {}, "point": {}, "spot": {}}
     for i, l in enumerate(lights):
@@ -238,49 +242,61 @@ def _lights(v: _V, lights: list):
             v.fail(w, "must be a table")
         kind = l.get("type")
         if kind not in groups:
-            v.fail(f"{w}.type", f"must be one of 'directional', 'point', 'spot', 'area', 'multi_lobe', got {kind!r}")
-        common = ("type", "color", "ambient") + (("specular",) if kind in ("directional", "point", "spot") else ())
-        if kind == "multi_lobe":
-            v.unknown(l, ("type", "position", "attenuation", "lobes"), w)
-            pos = v.vec(l, "position", w)
-            att = v.vec(l, "attenuation", w, default=[1.0, 0.0, 0.0], lo=0.0)
-            if not np.any(att):
-                v.fail(f"{w}.attenuation", "a0, a1, a2 must not all be 0")
-            lobes = l.get("lobes")
-            if not isinstance(lobes, list) or not lobes or not all(isinstance(b, dict) for b in lobes):
-                v.fail(f"{w}.lobes", "must be a non-empty array of tables (axis, cutoff, exponent, edge, color, ambient)")
-            groups[kind].append((pos, att, [_spot_lobe(v, b, f"{w}.lobes[{j}]", lobe=True) for j, b in enumerate(lobes)]))
-            continue
-        color = v.vec(l, "color", w, default=[1.0, 1.0, 1.0], lo=0.0, scalar_ok=True)
-        amb = v.vec(l, "ambient", w, default=[0.0, 0.0, 0.0], lo=0.0, scalar_ok=True)
-        if "specular" in l and kind in ("directional", "point", "spot"):
+            v.fail(f"{w}.type", f"must be one of {', '.join(repr(k) for k in _LIGHT_KINDS)}, got {kind!r}")
+        if "specular" in l and kind in specular:
             specular[kind][len(groups[kind])] = v.vec(l, "specular", w, lo=0.0, scalar_ok=True)
-        if kind == "directional":
-            v.unknown(l, common + ("direction",), w)
-            groups[kind].append((color, v.vec(l, "direction", w, nonzero=True), amb))
-            continue
-        pos = v.vec(l, "position", w)
-        # an area light is physical by default: inverse-square falloff from each emitter
-        att = v.vec(l, "attenuation", w, default=[0.0, 0.0, 1.0] if kind == "area" else [1.0, 0.0, 0.0], lo=0.0)
-        if not np.any(att):
-            v.fail(f"{w}.attenuation", "a0, a1, a2 must not all be 0")
-        if kind == "point":
-            v.unknown(l, common + ("position", "attenuation"), w)
-            groups[kind].append((color, pos, att, amb))
-        elif kind == "area":
-            v.unknown(l, common + ("position", "attenuation", "normal", "up", "size"), w)
-            normal = v.vec(l, "normal", w, nonzero=True)
-            up = v.vec(l, "up", w, default=[0.0, 1.0, 0.0], nonzero=True)
-            cr = np.cross(normal / np.linalg.norm(normal), up / np.linalg.norm(up))
-            if np.linalg.norm(cr) < 1e-6:
-                v.fail(f"{w}.up", "must not be parallel to the normal (it orients the rectangle's height)")
-            size = v.vec(l, "size", w, n=2, lo=0.0)
-            if not np.all(size > 0):
-                v.fail(f"{w}.size", f"width and height must be > 0, got {size.tolist()}")
-            groups[kind].append((color, pos, att, amb, normal, up, size))
-        else:
-            v.unknown(l, common + ("position", "attenuation", "axis", "cutoff", "exponent", "edge"), w)
-            groups[kind].append((color, pos, att, amb, *_spot_lobe(v, l, w)[2:]))
+        groups[kind].append(_multi_lobe_row(v, l, w) if kind == "multi_lobe" else _light_row(v, l, w, kind))
+    return _stack_lights(groups, specular)
+
+
+def _attenuation(v: _V, l: dict, w: str, default):
+    att = v.vec(l, "attenuation", w, default=default, lo=0.0)
+    if not np.any(att):
+        v.fail(f"{w}.attenuation", "a0, a1, a2 must not all be 0")
+    return att
+
+
+def _multi_lobe_row(v: _V, l: dict, w: str):
+    """``(position, attenuation, lobes)`` of a multi-lobe light table."""
+    v.unknown(l, ("type", "position", "attenuation", "lobes"), w)
+    pos = v.vec(l, "position", w)
+    att = _attenuation(v, l, w, [1.0, 0.0, 0.0])
+    lobes = l.get("lobes")
+    if not isinstance(lobes, list) or not lobes or not all(isinstance(b, dict) for b in lobes):
+        v.fail(f"{w}.lobes", "must be a non-empty array of tables (axis, cutoff, exponent, edge, color, ambient)")
+    return pos, att, [_spot_lobe(v, b, f"{w}.lobes[{j}]", lobe=True) for j, b in enumerate(lobes)]
+
+
+def _light_row(v: _V, l: dict, w: str, kind: str):
+    """One directional, point, spot or area light table as its kind's row (colour first)."""
+    common = ("type", "color", "ambient") + (("specular",) if kind != "area" else ())
+    color = v.vec(l, "color", w, default=[1.0, 1.0, 1.0], lo=0.0, scalar_ok=True)
+    amb = v.vec(l, "ambient", w, default=[0.0, 0.0, 0.0], lo=0.0, scalar_ok=True)
+    if kind == "directional":
+        v.unknown(l, common + ("direction",), w)
+        return color, v.vec(l, "direction", w, nonzero=True), amb
+    pos = v.vec(l, "position", w)
+    # an area light is physical by default: inverse-square falloff from each emitter
+    att = _attenuation(v, l, w, [0.0, 0.0, 1.0] if kind == "area" else [1.0, 0.0, 0.0])
+    if kind == "point":
+        v.unknown(l, common + ("position", "attenuation"), w)
+        return color, pos, att, amb
+    if kind == "spot":
+        v.unknown(l, common + ("position", "attenuation", "axis", "cutoff", "exponent", "edge"), w)
+        return (color, pos, att, amb, *_spot_lobe(v, l, w)[2:])
+    v.unknown(l, common + ("position", "attenuation", "normal", "up", "size"), w)
+    normal = v.vec(l, "normal", w, nonzero=True)
+    up = v.vec(l, "up", w, default=[0.0, 1.0, 0.0], nonzero=True)
+    if np.linalg.norm(np.cross(normal / np.linalg.norm(normal), up / np.linalg.norm(up))) < 1e-6:
+        v.fail(f"{w}.up", "must not be parallel to the normal (it orients the rectangle's height)")
+    size = v.vec(l, "size", w, n=2, lo=0.0)
+    if not np.all(size > 0):
+        v.fail(f"{w}.size", f"width and height must be > 0, got {size.tolist()}")
+    return color, pos, att, amb, normal, up, size
+
+
+def _stack_lights(groups: dict, specular: dict):
+    """The rows of each kind stacked into its structure of arrays (an empty one where none)."""
 
     def stack(rows, k):
         return np.stack([r[k] for r in rows]) if rows else np.zeros((0, 3))
@@ -291,34 +307,27 @@ def _lights(v: _V, lights: list):
         return np.stack([given.get(i, r[0]) for i, r in enumerate(groups[kind])]) if given else None
 
     g = groups["directional"]
-    directional = (DirectionalLights(color=stack(g, 0), direction=stack(g, 1), ambient=stack(g, 2), specular=spec("directional"))
-                   if g else no_directional())
+    directional = (DirectionalLights(color=stack(g, 0), direction=stack(g, 1), ambient=stack(g, 2),
+                                     specular=spec("directional")) if g else no_directional())
     g = groups["point"]
-    point = (PointLights(color=stack(g, 0), position=stack(g, 1), attenuation=stack(g, 2), ambient=stack(g, 3), specular=spec("point"))
-             if g else no_point())
+    point = (PointLights(color=stack(g, 0), position=stack(g, 1), attenuation=stack(g, 2), ambient=stack(g, 3),
+                         specular=spec("point")) if g else no_point())
     g = groups["spot"]
-    spot = (
-        SpotLights(
-            color=stack(g, 0), position=stack(g, 1), attenuation=stack(g, 2), ambient=stack(g, 3), axis=stack(g, 4),
-            cutoff=np.array([r[5] for r in g]), exponent=np.array([r[6] for r in g]), edge=np.array([r[7] for r in g]),
-            specular=spec("spot"),
-        )
-        if g
-        else no_spot()
-    )
+    spot = (SpotLights(color=stack(g, 0), position=stack(g, 1), attenuation=stack(g, 2), ambient=stack(g, 3),
+                       axis=stack(g, 4), cutoff=np.array([r[5] for r in g]), exponent=np.array([r[6] for r in g]),
+                       edge=np.array([r[7] for r in g]), specular=spec("spot")) if g else no_spot())
     g = groups["area"]
     area = (AreaLights(color=stack(g, 0), position=stack(g, 1), attenuation=stack(g, 2), ambient=stack(g, 3),
                        normal=stack(g, 4), up=stack(g, 5), size=np.stack([r[6] for r in g])) if g else no_area())
     g = groups["multi_lobe"]
-    if g:
-        L = max(len(r[2]) for r in g)
-        dark = (np.zeros(3), np.zeros(3), np.array([0.0, 0.0, -1.0]), 90.0, 0.0, 0.0)  # padding: emits nothing
-        lob = [r[2] + [dark] * (L - len(r[2])) for r in g]
-        field = lambda k: np.array([[b[k] for b in row] for row in lob])  # noqa: E731
-        multi = MultiLobeLights(position=stack(g, 0), attenuation=stack(g, 1), color=field(0), ambient=field(1),
-                                axis=field(2), cutoff=field(3), exponent=field(4), edge=field(5))
-    else:
-        multi = no_multi_lobe()
+    if not g:
+        return directional, point, spot, area, no_multi_lobe()
+    L = max(len(r[2]) for r in g)
+    dark = (np.zeros(3), np.zeros(3), np.array([0.0, 0.0, -1.0]), 90.0, 0.0, 0.0)  # padding: emits nothing
+    lob = [r[2] + [dark] * (L - len(r[2])) for r in g]
+    field = lambda k: np.array([[b[k] for b in row] for row in lob])  # noqa: E731
+    multi = MultiLobeLights(position=stack(g, 0), attenuation=stack(g, 1), color=field(0), ambient=field(1),
+                            axis=field(2), cutoff=field(3), exponent=field(4), edge=field(5))
     return directional, point, spot, area, multi
 
 

@@ -180,23 +180,22 @@ def _depth_maps(vw: _Views, ids, planes, R: int, dtype):
     return jnp.where(seen & ok, s, jnp.finfo(dtype).max).reshape(-1)
 
 
-def _lookup(vw: _Views, ids, planes, P, ng, bias, slope_bias, R: int, pcf: int, eager: bool):
-    """Fraction of the PCF kernel that is lit for points ``P`` with face normals ``ng``
-    (component tuples) in one light's views. ``eager``: read depths from maps computed for
-    every texel (cheaper when there are more lookups than texels), else from the planes of the
-    triangles the looked-up texels see."""
-    dtype = P[0].dtype
-    o = S.vec(vw.o)
-    d = S.sub(P, o)
+def _frame_at(vw: _Views, d):
+    """The view frame ``(a, u, v)`` (component tuples) for points at offsets ``d`` from the
+    light, and the cube face of each (``None`` for a single view): the face of the major axis."""
     if vw.count == 1:
-        a, u, v = S.vec(vw.a[0]), S.vec(vw.u[0]), S.vec(vw.v[0])
-        face = None
-    else:  # cube: the face of the major axis
-        ad = [jnp.abs(x) for x in d]
-        axis = jnp.where((ad[0] >= ad[1]) & (ad[0] >= ad[2]), 0, jnp.where(ad[1] >= ad[2], 1, 2))
-        comp = jnp.where(axis == 0, d[0], jnp.where(axis == 1, d[1], d[2]))
-        face = 2 * axis + jnp.where(comp >= 0, 0, 1)
-        a, u, v = (tuple(tab[:, c][face] for c in range(3)) for tab in (vw.a, vw.u, vw.v))
+        return S.vec(vw.a[0]), S.vec(vw.u[0]), S.vec(vw.v[0]), None
+    ad = [jnp.abs(x) for x in d]
+    axis = jnp.where((ad[0] >= ad[1]) & (ad[0] >= ad[2]), 0, jnp.where(ad[1] >= ad[2], 1, 2))
+    comp = jnp.where(axis == 0, d[0], jnp.where(axis == 1, d[1], d[2]))
+    face = 2 * axis + jnp.where(comp >= 0, 0, 1)
+    a, u, v = (tuple(tab[:, c][face] for c in range(3)) for tab in (vw.a, vw.u, vw.v))
+    return a, u, v, face
+
+
+def _project(vw: _Views, d, a, u, v, R: int):
+    """Depth ``s`` along the view axis, the world size of a texel there, whether the point is
+    inside the view, and its texel ``(ix0, iy0)``."""
     s = S.dot(d, a)
     xe, ye = S.dot(d, u), S.dot(d, v)
     if vw.ortho:
@@ -214,6 +213,31 @@ def _lookup(vw: _Views, ids, planes, P, ng, bias, slope_bias, R: int, pcf: int, 
     inside = inside & (fx >= 0) & (fx < R) & (fy >= 0) & (fy < R)
     ix0 = jnp.clip(jnp.floor(jnp.where(inside, fx, 0.0)), 0, R - 1).astype(jnp.int32)
     iy0 = jnp.clip(jnp.floor(jnp.where(inside, fy, 0.0)), 0, R - 1).astype(jnp.int32)
+    return s, texel, inside, ix0, iy0
+
+
+def _occluder_tables(vw: _Views, planes, o, a, u, v, face):
+    """Per triangle (per cube face and triangle, ``[6 F]``), its plane in the view's frame: what
+    :func:`_plane_depth` reads for the occluder a texel sees."""
+    pn, pd = planes
+    po = pd - S.dot(pn, o)
+    if face is None:
+        return po, S.dot(pn, a), S.dot(pn, u), S.dot(pn, v)
+    return tuple(jnp.concatenate(t) for t in zip(*(
+        (po, S.dot(pn, S.vec(vw.a[f])), S.dot(pn, S.vec(vw.u[f])), S.dot(pn, S.vec(vw.v[f])))
+        for f in range(vw.count))))
+
+
+def _lookup(vw: _Views, ids, planes, P, ng, bias, slope_bias, R: int, pcf: int, eager: bool):
+    """Fraction of the PCF kernel that is lit for points ``P`` with face normals ``ng``
+    (component tuples) in one light's views. ``eager``: read depths from maps computed for
+    every texel (cheaper when there are more lookups than texels), else from the planes of the
+    triangles the looked-up texels see."""
+    dtype = P[0].dtype
+    o = S.vec(vw.o)
+    d = S.sub(P, o)
+    a, u, v, face = _frame_at(vw, d)
+    s, texel, inside, ix0, iy0 = _project(vw, d, a, u, v, R)
     base = jnp.zeros((), jnp.int32) if face is None else face * (R * R)
     tol = bias + slope_bias * texel
     # The receiver's plane (through P, face normal ng) in this view's frame.
@@ -224,15 +248,8 @@ def _lookup(vw: _Views, ids, planes, P, ng, bias, slope_bias, R: int, pcf: int, 
         depth = _depth_maps(vw, ids, planes, R, dtype)
     else:
         flat = ids.reshape(-1)
-        pn, pd = planes
-        po = pd - S.dot(pn, o)
-        if face is None:
-            occ_tabs = (po, S.dot(pn, a), S.dot(pn, u), S.dot(pn, v))
-        else:  # per cube face: [6 * F]
-            occ_tabs = tuple(jnp.concatenate(t) for t in zip(*(
-                (po, S.dot(pn, S.vec(vw.a[f])), S.dot(pn, S.vec(vw.u[f])), S.dot(pn, S.vec(vw.v[f])))
-                for f in range(vw.count))))
-        nf = pd.shape[0]
+        occ_tabs = _occluder_tables(vw, planes, o, a, u, v, face)
+        nf = planes[1].shape[0]
     lit = jnp.zeros(s.shape, dtype)
     rad = pcf // 2
     for dy in range(-rad, rad + 1):
@@ -251,20 +268,17 @@ def _lookup(vw: _Views, ids, planes, P, ng, bias, slope_bias, R: int, pcf: int, 
             s_recv = jnp.where(ok, jnp.clip(s_recv, s - reach, s + reach), s)
             idx = base + jnp.clip(iy, 0, R - 1) * R + jnp.clip(ix, 0, R - 1)
             if eager:
-                s_occ = depth[idx]
-                blocked = on_map & (s_occ < s_recv - tol)
+                blocked = on_map & (depth[idx] < s_recv - tol)
             else:
                 tri = flat[idx]
                 seen = on_map & (tri >= 0)
                 t = jnp.where(seen, tri, 0)
                 if face is not None:
                     t = t + face * nf
-                occ = keep(*(tab[t] for tab in occ_tabs))
-                s_occ, ok_occ = _plane_depth(*occ, xc, yc, vw.h, vw.ortho)
+                s_occ, ok_occ = _plane_depth(*keep(*(tab[t] for tab in occ_tabs)), xc, yc, vw.h, vw.ortho)
                 blocked = seen & ok_occ & (s_occ < s_recv - tol)
             lit = lit + jnp.where(blocked, 0.0, 1.0)
-    frac = lit / float(pcf * pcf)
-    return jnp.where(inside, frac, 1.0)
+    return jnp.where(inside, lit / float(pcf * pcf), 1.0)
 
 
 def shadow_map_visibility(scene, maps, P, ng, unrolled: int, backend: str = "auto") -> dict:
