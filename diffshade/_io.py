@@ -403,11 +403,40 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
                   "object", "shadow"), "scene")
     opts = _options(v, v.table(d, "render"))
     gl = v.table(d, "render").get("compat") == "opengl"
+    mesh, materials = _objects(v, d, base, gl)
+    if opts.raster.vertex_color != "none" and mesh.colors is None:
+        v.fail("render.vertex_color", f"is {opts.raster.vertex_color!r} but the mesh has no vertex colours (a PLY "
+                                      "with red green blue, an OBJ with v x y z r g b)")
+    camera = _camera(v, v.table(d, "camera", required=True), "camera")
+    back = _material(v, d["back_material"], "back_material", gl) if "back_material" in d else None
+    if back is not None and len(materials) > 1:
+        v.fail("back_material", "applies to a one-material scene; give each object its own material instead")
+    sh = v.table(d, "shadow")
+    v.unknown(sh, ("bias", "slope_bias"), "shadow")
+    if sh and not isinstance(opts.shadows, ShadowMaps):
+        v.fail("render.shadows", "a [shadow] section is given but render.shadows is false")
+    directional, point, spot, area, multi = _lights(v, d.get("light", []))
+    fog = _fog(v, v.table(d, "fog"), gl, opts)
+    ambient = v.vec(d, "ambient_light", "scene", default=[0.2, 0.2, 0.2], lo=0.0, scalar_ok=True)
+    # A fogged scene shows the fog colour where nothing is drawn, unless told otherwise (docs/model.md §3).
+    bg_default = np.asarray(fog.color) if opts.fog is not None else [0.0, 0.0, 0.0]
+    background = v.vec(d, "background", "scene", default=bg_default, lo=0.0, scalar_ok=True)
+    if opts.output.antialias:
+        mesh = mesh.with_adjacency()  # the silhouette edges' topology, while the faces are concrete
+    scene = Scene(
+        mesh=mesh, camera=camera, material=materials[0], back_material=back, directional=directional, point=point,
+        spot=spot, area=area, multi_lobe=multi, ambient_light=ambient, background=background, fog=fog,
+        materials=materials[1:], **{f"shadow_{k}": v.num(sh, k, "shadow", lo=0.0) for k in sh},  # absent: defaults
+    )
+    return scene, opts
 
+
+def _objects(v: _V, d: dict, base: Path | None, gl: bool) -> tuple[Mesh, tuple[Material, ...]]:
+    """The scene's mesh (its objects combined) and their materials by id: a ``[mesh]`` with
+    ``[material]``, if given, is object 0, then each ``[[object]]`` in order."""
     objects = d.get("object", [])
     if not isinstance(objects, list) or not all(isinstance(o, dict) for o in objects):
         v.fail("object", "must be an array of tables ([[object]])")
-    # (mesh, material) per object, material ids in order; a [mesh] with [material] is object 0.
     parts = []
     if "mesh" in d or not objects:
         parts.append((_mesh(v, v.table(d, "mesh", required=True), "mesh", base),
@@ -432,23 +461,11 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
         mesh = parts[0][0] if len(parts) == 1 else combine(*(p[0] for p in parts))
     except ValueError as exc:
         v.fail("object", str(exc))
-    if opts.raster.vertex_color != "none" and mesh.colors is None:
-        v.fail("render.vertex_color", f"is {opts.raster.vertex_color!r} but the mesh has no vertex colours (a PLY with red "
-                                      "green blue, an OBJ with v x y z r g b)")
-    material, extra = parts[0][1], tuple(p[1] for p in parts[1:])
+    return mesh, tuple(p[1] for p in parts)
 
-    camera = _camera(v, v.table(d, "camera", required=True), "camera")
 
-    back = _material(v, d["back_material"], "back_material", gl) if "back_material" in d else None
-    if back is not None and extra:
-        v.fail("back_material", "applies to a one-material scene; give each object its own material instead")
-    sh = v.table(d, "shadow")
-    v.unknown(sh, ("bias", "slope_bias"), "shadow")
-    if sh and not isinstance(opts.shadows, ShadowMaps):
-        v.fail("render.shadows", "a [shadow] section is given but render.shadows is false")
-    directional, point, spot, area, multi = _lights(v, d.get("light", []))
-
-    f = v.table(d, "fog")
+def _fog(v: _V, f: dict, gl: bool, opts: RenderOptions) -> Fog:
+    """The ``[fog]`` table (OpenGL's defaults with ``gl``); a table without a fog mode is an error."""
     v.unknown(f, ("color", "start", "end", "density"), "fog")
     fog_default = Fog.opengl() if gl else Fog()
     start = v.num(f, "start", "fog", default=float(fog_default.start), lo=0.0)
@@ -461,18 +478,7 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
     )
     if f and opts.fog is None:
         v.fail("render.fog", "a [fog] section is given but render.fog is 'none'; set it to 'linear', 'exp' or 'exp2'")
-    ambient = v.vec(d, "ambient_light", "scene", default=[0.2, 0.2, 0.2], lo=0.0, scalar_ok=True)
-    # A fogged scene shows the fog colour where nothing is drawn, unless told otherwise (docs/model.md §3).
-    bg_default = np.asarray(fog.color) if opts.fog is not None else [0.0, 0.0, 0.0]
-    background = v.vec(d, "background", "scene", default=bg_default, lo=0.0, scalar_ok=True)
-    if opts.output.antialias:
-        mesh = mesh.with_adjacency()  # the silhouette edges' topology, while the faces are concrete
-    scene = Scene(
-        mesh=mesh, camera=camera, material=material, back_material=back, directional=directional,
-        point=point, spot=spot, area=area, multi_lobe=multi, ambient_light=ambient, background=background, fog=fog, materials=extra,
-        **{f"shadow_{k}": v.num(sh, k, "shadow", lo=0.0) for k in sh},  # absent: the Scene defaults
-    )
-    return scene, opts
+    return fog
 
 
 _GL_CAMERA = ("eye", "target", "up", "fov_y")
