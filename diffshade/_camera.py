@@ -184,7 +184,7 @@ class OpenCVCamera(_Pinhole):
     far: Float[Array, ""] = eqx.field(converter=as_float_array, default=100.0)
     exposure: Float[Array, ""] = eqx.field(converter=as_float_array, default=1.0)
     white_balance: Float[Array, "3"] = eqx.field(converter=rgb_array, default=(1.0, 1.0, 1.0))
-    distortion: Float[Array, "D"] = eqx.field(converter=as_float_array, default=(0.0, 0.0, 0.0, 0.0, 0.0))
+    distortion: Float[Array, " D"] = eqx.field(converter=as_float_array, default=(0.0, 0.0, 0.0, 0.0, 0.0))
 
     def __check_init__(self):
         for name in ("rvec", "tvec"):
