@@ -12,23 +12,13 @@ The render is a chain of stages, each a public function (what :func:`shade` call
     image = composite(scene, surface, color, opts.fog, opts.transparency, opts.output)
 """
 
-from ._camera import Camera, OpenCVCamera, rodrigues, undistort
-from ._io import DEFAULT_SCENE, SceneError, default_scene, load_camera, load_scene, scene_from_dict
-from ._mesh import Mesh, MeshError, box, combine, icosphere, load_mesh, mesh_from_arrays, quad
-from ._raster import (
-    Fragments,
-    fragments,
-    interpolate,
-    pixel_centres,
-    rasterize,
-    visibility,
-    visibility_passes,
-)
 from . import color
 from ._antialias import antialias, face_adjacency, pixel_neighbours, silhouette_edges
-from ._util import keep
+from ._camera import Camera, OpenCVCamera, rodrigues, undistort
 from ._composite import composite
+from ._io import DEFAULT_SCENE, SceneError, default_scene, load_camera, load_scene, scene_from_dict
 from ._lighting import LightVisibility, illuminate
+from ._mesh import Mesh, MeshError, box, combine, icosphere, load_mesh, mesh_from_arrays, quad
 from ._options import (
     FogModel,
     Lighting,
@@ -40,9 +30,16 @@ from ._options import (
     ShadowRays,
     Transparency,
 )
+from ._raster import (
+    Fragments,
+    fragments,
+    interpolate,
+    pixel_centres,
+    rasterize,
+    visibility,
+    visibility_passes,
+)
 from ._render import light_visibility, ray_counts, render, scene_visibility, shade, to_uint8, truncated_pixels
-from ._surface import Needs, Sites, Surface, needs, surface_points
-from ._trace import secondary_rays
 from ._scene import (
     AreaLights,
     DirectionalLights,
@@ -59,6 +56,9 @@ from ._scene import (
     no_spot,
 )
 from ._shade import blinn_to_phong, phong_to_blinn
+from ._surface import Needs, Sites, Surface, needs, surface_points
+from ._trace import secondary_rays
+from ._util import keep
 
 __all__ = [
     "AreaLights", "no_area", "Camera", "OpenCVCamera", "rodrigues", "undistort", "DEFAULT_SCENE", "DirectionalLights", "Fog", "Fragments", "Material", "Mesh", "MeshError", "MultiLobeLights", "no_multi_lobe",

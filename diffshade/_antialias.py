@@ -35,11 +35,12 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._util import keep
 
 
-def face_adjacency(faces) -> np.ndarray:
+def face_adjacency(faces: Int[ArrayLike, "F 3"]) -> np.ndarray:
     """``[F, 3]`` int32: the face across edge ``i`` of each face (the edge opposite its vertex
     ``i``, from vertex ``i+1`` to ``i+2``), -1 where none does (a boundary) or where more than
     one does (a non-manifold edge: treated as a boundary)."""
@@ -61,7 +62,7 @@ def face_adjacency(faces) -> np.ndarray:
     return out.reshape(3, n).T.astype(np.int32)
 
 
-def pixel_neighbours(rows, h: int, w: int):
+def pixel_neighbours(rows: Int[ArrayLike, " N"], h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
     """``(right, down)`` ``[n]`` int32: for pixels at flat indices ``rows`` of an ``H × W``
     image, the position among ``rows`` of each one's right and lower neighbour, -1 where that
     one is not among them or lies past the border (``rows = arange(H * W)``: the whole grid)."""
@@ -107,7 +108,10 @@ def _edge_table(clip, faces, adjacency, h, w):
 HOPS = 4  # triangles a pixel pair's segment is followed through before its silhouette
 
 
-def silhouette_edges(tri, depth, clip, faces, adjacency, x, y, right, down, resolution):
+def silhouette_edges(tri: Int[Array, " N"], depth: Float[Array, " N"], clip: Float[Array, "V 4"],
+                     faces: Int[Array, "F 3"], adjacency: Int[Array, "F 3"], x: Float[Array, " N"],
+                     y: Float[Array, " N"], right: Int[Array, " N"], down: Int[Array, " N"],
+                     resolution: tuple[int, int]) -> Int[Array, "2 2 N"]:
     """The discrete half of :func:`antialias`: for each pixel's pair with its right and its lower
     neighbour, the silhouette edge the walk ends at, as ``[2, 2, N]`` int32: ``[axis, 0]`` the
     edge's row (``face * 3 + edge``, -1: no blend) and ``[axis, 1]`` 1 where this pixel is the
@@ -205,7 +209,10 @@ def blend(img, clip, faces, adjacency, x, y, right, down, edges, resolution):
     return img + jnp.stack(delta, axis=-1)
 
 
-def antialias(img, tri, depth, clip, faces, adjacency, x, y, right, down, resolution, edges=None):
+def antialias(img: Float[Array, "N 3"], tri: Int[Array, " N"], depth: Float[Array, " N"], clip: Float[Array, "V 4"],
+              faces: Int[Array, "F 3"], adjacency: Int[Array, "F 3"], x: Float[Array, " N"], y: Float[Array, " N"],
+              right: Int[Array, " N"], down: Int[Array, " N"], resolution: tuple[int, int],
+              edges: Int[Array, "2 2 N"] | None = None) -> Float[Array, "N 3"]:
     """The antialiased image (see the module docstring); every argument flat over the pixels.
 
     ``img`` ``[N, 3]`` the shaded image; ``tri`` ``[N]`` the nearest layer's triangle ids (-1:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from ._util import as_float_array, rgb_array
 
@@ -282,7 +282,8 @@ def distort_points(x, y, dist):
             y * rho + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)
 
 
-def undistort(image, K, dist, *, order: int = 1, saturation: float | None = None):
+def undistort(image: ArrayLike, K: ArrayLike, dist: ArrayLike, *, order: int = 1,
+              saturation: float | None = None) -> np.ndarray:
     """A photograph as the ideal pinhole camera ``K`` would have taken it (OpenCV's ``undistort``
     with the same ``K``): each output pixel's centre is carried through the lens model
     (:func:`distort_points`) to where the lens put it, and the photograph is sampled there

@@ -14,12 +14,12 @@ from ._lighting import _rgb
 from ._options import FogModel, Output, Transparency
 from ._raster import pixel_centres
 from ._scene import Scene
-from ._surface import Surface
+from ._surface import Components, Surface
 
 
-def composite(scene: Scene, surface: Surface, color, fog: FogModel | None = None,
+def composite(scene: Scene, surface: Surface, color: Components, fog: FogModel | None = None,
               transparency: Transparency | None = None, output: Output = Output(),
-              pixels=None) -> Float[Array, "H W 3"]:
+              pixels: tuple | None = None) -> Float[Array, "H W 3"]:
     """The image from the lit colour at the pixels (``[K, H, W]`` component tuple): clamped and
     fogged (:func:`fog_and_clamp`), the layers composited front to back over the background
     (with ``transparency``; else the nearest layer over it), times the camera's gain (exposure

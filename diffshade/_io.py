@@ -69,8 +69,8 @@ from typing import Any
 import numpy as np
 
 from ._camera import Camera, OpenCVCamera
-from ._options import RenderOptions, ShadowMaps, ShadowRays
 from ._mesh import COLOR_MODES, VERTEX_MODES, Mesh, MeshError, box, combine, icosphere, load_mesh, quad
+from ._options import RenderOptions, ShadowMaps, ShadowRays
 from ._scene import (
     AreaLights,
     DirectionalLights,
@@ -557,7 +557,7 @@ def _camera(v: _V, c: dict, w: str):
     return Camera(eye=eye, target=target, up=up, fov_y=fov, near=near, far=far, **size, **gain)
 
 
-def load_camera(path: str | Path):
+def load_camera(path: str | Path) -> Camera | OpenCVCamera:
     """A camera from a JSON or TOML file with the keys of a scene file's ``[camera]`` table (an
     OpenCV calibration: ``K``, ``R``/``rvec``, ``t``/``tvec``, ``distortion``, ``width``,
     ``height``; or OpenGL's ``eye``, ``target``, ``up``, ``fov_y``)."""

@@ -21,6 +21,7 @@ from . import _shade as S
 from ._materials import _select
 from ._options import Lighting, Output
 from ._scene import Lights, Material, Scene
+from ._surface import Components, Surface
 from ._util import keep as _keep
 
 
@@ -250,8 +251,8 @@ def shade_points(P, n, eye, mat: Material, scene: Scene, lighting: Lighting, bac
     return full([base[k] + direct[k] for k in range(3)] + list(direct[3:]))
 
 
-def illuminate(scene: Scene, surface, lighting: Lighting = Lighting(), visibility: LightVisibility | None = None,
-               output: Output = Output()):
+def illuminate(scene: Scene, surface: Surface, lighting: Lighting = Lighting(),
+               visibility: LightVisibility | None = None, output: Output = Output()) -> Components:
     r"""The lit, unfogged colour at the pixels (``[K, H, W]`` component tuple) of a
     :class:`diffshade.Surface`: every term of ``lighting`` at its sites, both sides where
     ``lighting.two_sided`` (the back lit with the reversed normal and the back material).

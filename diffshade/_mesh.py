@@ -10,7 +10,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._util import as_float_array, safe_normalize
 
@@ -112,7 +112,7 @@ _FACE_LINE = re.compile(r"^\s*f\s+(.*)$")
 
 def _check_obj_faces(path: Path) -> None:
     # trimesh silently drops OBJ face lines with fewer than three indices; we report them.
-    with open(path, "r", errors="replace") as fh:
+    with open(path, errors="replace") as fh:
         for lineno, line in enumerate(fh, 1):
             m = _FACE_LINE.match(line)
             if m and len(m.group(1).split()) < 3:
@@ -239,7 +239,7 @@ def icosphere(subdivisions: int = 3, radius: float = 1.0) -> Mesh:
     return Mesh(vertices=np.asarray(tm.vertices), faces=np.asarray(tm.faces))
 
 
-def mesh_from_arrays(vertices, faces, name: str = "mesh") -> Mesh:
+def mesh_from_arrays(vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"], name: str = "mesh") -> Mesh:
     """A :class:`Mesh` from arrays, validated on the host."""
     if isinstance(vertices, jax.core.Tracer):
         return Mesh(vertices=vertices, faces=faces)
@@ -269,7 +269,8 @@ def combine(*meshes: Mesh) -> Mesh:
                 normals=normals, colors=colors)
 
 
-def box(extents=(1.0, 1.0, 1.0), center=(0.0, 0.0, 0.0)) -> Mesh:
+def box(extents: tuple[float, float, float] = (1.0, 1.0, 1.0),
+        center: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Mesh:
     """A closed axis-aligned box (12 outward-facing triangles), ``trimesh.creation.box``."""
     import trimesh
 
@@ -277,7 +278,8 @@ def box(extents=(1.0, 1.0, 1.0), center=(0.0, 0.0, 0.0)) -> Mesh:
     return Mesh(vertices=np.asarray(tm.vertices) + np.asarray(center, float), faces=np.asarray(tm.faces))
 
 
-def quad(size=(1.0, 1.0), center=(0.0, 0.0, 0.0), normal=(0.0, 0.0, 1.0), divisions: int = 1) -> Mesh:
+def quad(size: tuple[float, float] = (1.0, 1.0), center: tuple[float, float, float] = (0.0, 0.0, 0.0),
+         normal: tuple[float, float, float] = (0.0, 0.0, 1.0), divisions: int = 1) -> Mesh:
     """A flat rectangle of ``size`` centred at ``center``, facing ``normal`` (its front side),
     split into ``divisions``² squares of two triangles each."""
     n = np.asarray(normal, float)

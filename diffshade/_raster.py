@@ -96,7 +96,7 @@ def _centres_np(n: int, size: int, dtype) -> np.ndarray:
     return ((dtype.type(2.0) * (np.arange(n, dtype=dtype) + dtype.type(0.5))) / dtype.type(size) - dtype.type(1.0)).astype(dtype)
 
 
-def pixel_centres(height: int, width: int, dtype=jnp.float32):
+def pixel_centres(height: int, width: int, dtype: jnp.dtype = jnp.float32) -> tuple[Array, Array]:
     """NDC coordinates of the pixel centres: ``(xs [W], ys [H])``; ``ys`` decreases (row 0 at the top)."""
     xs = _centres_np(width, width, dtype)
     ys = -_centres_np(height, height, dtype)
@@ -433,7 +433,8 @@ def visibility(
     return ids
 
 
-def visibility_passes(clip, faces, resolution, layers=1, tile_capacity=None, pair_capacity=None):
+def visibility_passes(clip: Float[Array, "V 4"], faces: Int[Array, "F 3"], resolution: tuple[int, int], layers: int = 1,
+                      tile_capacity: int | None = None, pair_capacity: int | None = None) -> int:
     """JAX backend only: ``(ids, passes)``, where ``passes`` counts the tile chunks processed.
 
     ``passes == 1`` means every tile fitted its capacity in one pair window; more means the
@@ -456,7 +457,7 @@ def _pixel_vertex_ids(faces, tri_id, valid):
 
 
 def fragments(
-    clip: Float[Array, "V 4"], faces: Int[Array, "F 3"], tri_id: Int[Array, "K H W"], pixels=None
+    clip: Float[Array, "V 4"], faces: Int[Array, "F 3"], tri_id: Int[Array, "K H W"], pixels: tuple | None = None
 ) -> Fragments:
     r"""Differentiable per-pixel barycentrics and depth of the given visible triangles.
 
@@ -518,7 +519,7 @@ def rasterize(
     return fragments(clip, faces, ids)
 
 
-def interpolate(attr, faces: Int[Array, "F 3"], frags: Fragments):
+def interpolate(attr: Float[Array, "V C"] | tuple, faces: Int[Array, "F 3"], frags: Fragments) -> Float[Array, "K H W C"] | tuple:
     r"""Perspective-correct interpolation of per-vertex attributes, :math:`\sum_j b_j a_{v_j}`;
     zeros on empty pixels.
 

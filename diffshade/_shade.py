@@ -12,6 +12,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, ArrayLike
 
 V3 = tuple  # (x, y, z) of equally shaped arrays
 
@@ -73,7 +74,7 @@ def safe_pow(x, m):
     return jnp.where(keep, jnp.exp(m * jnp.log(xs)), 0.0)
 
 
-def phong_to_blinn(m):
+def phong_to_blinn(m: ArrayLike) -> Array:
     r"""Blinn–Phong exponent :math:`m' = 4m` matching Phong's :math:`(v\cdot r)^m` (docs/model.md §2).
 
     Near the highlight :math:`\angle(n, h) \approx \tfrac12 \angle(v, r)`, so
@@ -82,7 +83,7 @@ def phong_to_blinn(m):
     return 4.0 * m
 
 
-def blinn_to_phong(mp):
+def blinn_to_phong(mp: ArrayLike) -> Array:
     r"""Inverse of :func:`phong_to_blinn`: :math:`m = m'/4`."""
     return mp / 4.0
 

@@ -16,8 +16,8 @@ material, and (where asked) its position and normal.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import equinox as eqx
 import jax.numpy as jnp

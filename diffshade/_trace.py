@@ -39,8 +39,8 @@ from ._materials import _material_at
 from ._options import RenderOptions, ShadowRays
 from ._rays import first_hits, intersect
 from ._scene import Scene
-from ._surface import Surface, needs
 from ._shadow import SHADOW_KINDS
+from ._surface import Components, Surface, needs
 
 # Secondary rays start this far (relative to the scene's size) along themselves, and skip the
 # triangle they leave: a ray never meets its own surface again through rounding.
@@ -314,7 +314,7 @@ def generations(scene: Scene, surface: Surface, opts: RenderOptions):
         yield c, (to if compacted else None), live
 
 
-def secondary_rays(scene: Scene, surface: Surface, color, opts: RenderOptions):
+def secondary_rays(scene: Scene, surface: Surface, color: Components, opts: RenderOptions) -> Components:
     """``color`` (the lit colour at the pixels, a component tuple) plus ``opts.rays.depth``
     generations of mirror and refracted rays from the surface's points, traced breadth first
     (docs/model.md §6); ``color`` itself without rays. Everything after the primary hit is

@@ -5,6 +5,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, ArrayLike
 
 
 def as_float_array(x):
@@ -35,7 +36,7 @@ def safe_normalize(v, axis=-1, fallback=None):
     return jnp.where(ok, out, fb)
 
 
-def keep(*xs):
+def keep(*xs: ArrayLike) -> tuple[Array, ...]:
     """Materialise ``xs`` (returned as a tuple): an XLA fusion boundary, transparent to jit, grad, jvp and vmap.
 
     Without it XLA's CPU backend fuses shared producers (a light's specular power, the
