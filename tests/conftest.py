@@ -64,7 +64,7 @@ def pose_problem(size=64, antialias=False):
     d = {k: v for k, v in ds.DEFAULT_SCENE.items() if k != "fog"}
     d["render"] = dict(d["render"], fog="none")
     scene, opts = ds.scene_from_dict(d)
-    opts = opts.replace(vertex_color="diffuse", antialias=antialias)
+    opts = opts.with_keys(vertex_color="diffuse", antialias=antialias)
     tm = trimesh.creation.icosphere(3)
     v = np.asarray(tm.vertices)
     cols = np.clip(0.5 + 0.35 * np.sin(5 * v[:, 0]) * np.cos(4 * v[:, 1] + 2 * v[:, 2]), 0.05, 0.95)[:, None]

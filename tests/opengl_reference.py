@@ -17,6 +17,7 @@ package ``libosmesa6`` and ``pip install PyOpenGL``; :func:`unavailable` says wh
 from __future__ import annotations
 
 import os
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -141,9 +142,16 @@ def _lights(scene, opts, view):
     return out
 
 
+def _flat(opts):
+    """The render options as the scene file's flat keys (``opts.keys()``), read as attributes; a
+    key of a group that is off takes diffshade's default (``clamp_at``, ``fog_distance``)."""
+    return SimpleNamespace(**{"clamp_at": "pixel", "fog_distance": "euclidean", **opts.keys()})
+
+
 def render(scene, opts):
     """``(image [H, W, 3] float64, covered [H, W] bool)`` of ``scene`` by Mesa's OpenGL, rows from
     the top as diffshade's."""
+    opts = _flat(opts)
     cam = scene.camera
     w, h = cam.width, cam.height
     c = _Context.get(w, h)
@@ -157,8 +165,9 @@ def render(scene, opts):
     pos, nrm = _f32(V[corners]), _f32(N[corners])
     if scene.mesh.material_ids is not None and len(scene.materials):
         raise ValueError("OpenGL reference: one material per scene")
-    if opts.transparency or opts.shadows or opts.transmission or opts.fresnel != "none":
-        raise ValueError("OpenGL reference: no transparency, shadows, transmission or Fresnel")
+    if (opts.transparency or opts.shadows or opts.shadow_rays or opts.ray_depth or opts.transmission
+            or opts.fresnel != "none"):
+        raise ValueError("OpenGL reference: no transparency, shadows, rays, transmission or Fresnel")
     bg = np.asarray(scene.background, np.float64)
 
     gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, c.fbo)
@@ -178,7 +187,7 @@ def render(scene, opts):
     gl.glLoadMatrixf(_f32(view.T))
     lights = _lights(scene, opts, view)
     front = scene.material
-    back = scene.back_material if (opts.back_material and scene.back_material is not None) else front
+    back = scene.back_material if scene.back_material is not None else front  # lights back faces when two-sided
 
     if opts.shading == "phong":
         _phong_program(c, scene, opts, lights, front, back, view)

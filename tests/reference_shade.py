@@ -10,6 +10,8 @@ only where a float32 rasterizer and a float64 ray caster must agree.
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 
 
@@ -32,11 +34,17 @@ def _pow(x, m):
     return x**m if x > 0 else 0.0
 
 
+def flat_options(opts):
+    """The render options as the scene file's flat keys (``opts.keys()``: ``shading``, ``fog``,
+    ``clamp``, ``clamp_at``, ...), read as attributes; a key of a group that is off is absent."""
+    return SimpleNamespace(**opts.keys())
+
+
 class Ref:
     """``s`` is a plain dict of numpy arrays/numbers (see tests/test_shading.py::to_ref)."""
 
     def __init__(self, s, opts):
-        self.s, self.o = s, opts
+        self.s, self.o = s, flat_options(opts)
 
     # -- docs/model.md §1–2 at one point ------------------------------------------------------------
     def point_color(self, P, n, mat, margin, parts=False, view=None, visible=None):
@@ -163,7 +171,7 @@ class Ref:
             wts = bary * wv / np.dot(bary, wv)
         mat = s["material"]
         back = o.two_sided and not front
-        bmat = s["back_material"] if (back and o.back_material) else mat
+        bmat = s["back_material"] if back else mat  # the scene's back material (its front one where it has none)
         sign = -1.0 if back else 1.0
         vertex_clamp = getattr(o, "clamp_at", "pixel") == "vertex"
 

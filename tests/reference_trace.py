@@ -113,9 +113,10 @@ class TraceRef(Ref):
         s, o = self.s, self.o
         mat = s["materials"][s["material_ids"][fi]]
         back = o.two_sided and not front
-        # the back material shades back faces' local terms (one-material scenes); the ray weights,
-        # the index and the absorption are the front material's
-        shaded = s["back_material"] if back and o.back_material and s["single_material"] else mat
+        # the scene's back material (its front one where it has none) shades back faces' local
+        # terms (one-material scenes); the ray weights, the index and the absorption are the front
+        # material's
+        shaded = s["back_material"] if back and s["single_material"] else mat
         sign = -1.0 if back else 1.0
         visible = (lambda p, src: self.shadow(p, src, fi, margin)) if o.shadow_rays else None
         view = None if level == 0 else v

@@ -35,7 +35,7 @@ def setup():
     tm = trimesh.creation.icosphere(2)
     truth = _albedo(np.asarray(tm.vertices))
     scene, opts = ds.scene_from_dict({**d, "mesh": {"icosphere": 0}, "render": {**d["render"], "vertex_color": "none"}})
-    opts = opts.replace(vertex_color="diffuse")
+    opts = opts.with_keys(vertex_color="diffuse")
     scene = eqx.tree_at(lambda s: s.mesh, scene, ds.Mesh(vertices=tm.vertices, faces=tm.faces, colors=truth))
     views = []
     for eye in EYES:

@@ -1,4 +1,4 @@
-"""The antialiasing stage (RenderOptions.antialias): exact coverage where it is exact, continuity
+"""The antialiasing stage (Output.antialias): exact coverage where it is exact, continuity
 in the geometry, gradients against finite differences, the mesh topology it reads, and errors."""
 
 import equinox as eqx
@@ -42,7 +42,7 @@ def test_straight_edges_get_their_exact_coverage():
     (corner pixels, where two edges meet, are not: a pair sees one edge); without the stage an
     edge pixel is all or nothing."""
     scene = _quad_scene()
-    img = np.asarray(ds.render(scene, ds.RenderOptions(antialias=True)))
+    img = np.asarray(ds.render(scene, ds.RenderOptions(output=ds.Output(antialias=True))))
     plain = np.asarray(ds.render(scene, ds.RenderOptions()))
     cov, part_rows, part_cols = _coverage(scene)
     ref = cov[..., None] * COLOR
@@ -65,7 +65,7 @@ def test_the_image_is_continuous_as_an_edge_sweeps_across_pixels():
     for k in range(120):
         sx = k * step_ndc * world_per_ndc
         scene = _quad_scene((sx, 0.7 * sx, 0.0))
-        img = np.asarray(r(scene, ds.RenderOptions(antialias=True)))
+        img = np.asarray(r(scene, ds.RenderOptions(output=ds.Output(antialias=True))))
         plain = np.asarray(r(scene, ds.RenderOptions()))
         _, part_rows, part_cols = _coverage(scene)
         corner = np.zeros((H, W), bool)
@@ -94,7 +94,7 @@ def test_a_smooth_silhouette_is_nearly_continuous_in_the_camera():
         cam = ds.Camera(eye=[3 * np.sin(a), 0.5, 3 * np.cos(a)], target=c.target, up=c.up, fov_y=c.fov_y,
                         near=c.near, far=c.far, width=40, height=40)
         s = eqx.tree_at(lambda s: s.camera, scene, cam)
-        cur = (np.asarray(r(s, opts.replace(antialias=True))), np.asarray(r(s, opts)))
+        cur = (np.asarray(r(s, opts.with_keys(antialias=True))), np.asarray(r(s, opts)))
         if prev is not None:
             jumps.append(np.abs(cur[0] - prev[0]).max())
             jumps_plain.append(np.abs(cur[1] - prev[1]).max())
@@ -131,7 +131,7 @@ def test_silhouette_gradients_reach_the_pose_and_match_finite_differences():
     scene = ds.Scene(mesh=mesh, camera=cam, material=mat, ambient_light=(0.7, 0.6, 0.5), background=(0.1, 0.2, 0.3))
     weights = jnp.asarray(np.random.default_rng(3).normal(size=(size, size, 3)))
     plain = ds.RenderOptions()
-    aa = plain.replace(antialias=True)
+    aa = plain.with_keys(antialias=True)
     ids = ds.scene_visibility(scene, aa)
     g0 = jax.grad(_pose_loss(scene, plain, ids, weights), argnums=(0, 1))(cam.rvec, cam.tvec)
     assert all(float(jnp.max(jnp.abs(g))) == 0.0 for g in g0)
@@ -164,19 +164,19 @@ def test_clear_errors():
     scene = _quad_scene()
     bare = eqx.tree_at(lambda s: s.mesh.adjacency, scene, None, is_leaf=lambda x: x is None)
     # concrete faces: the topology is computed on the spot, the same image
-    np.testing.assert_allclose(np.asarray(ds.render(bare, ds.RenderOptions(antialias=True))),
-                               np.asarray(ds.render(scene, ds.RenderOptions(antialias=True))), atol=0)
+    np.testing.assert_allclose(np.asarray(ds.render(bare, ds.RenderOptions(output=ds.Output(antialias=True)))),
+                               np.asarray(ds.render(scene, ds.RenderOptions(output=ds.Output(antialias=True)))), atol=0)
     with pytest.raises(ValueError, match="with_adjacency"):
-        jax.jit(ds.render, static_argnames="opts")(bare, ds.RenderOptions(antialias=True))
+        jax.jit(ds.render, static_argnames="opts")(bare, ds.RenderOptions(output=ds.Output(antialias=True)))
     with pytest.raises(ValueError, match="transparency"):
-        ds.RenderOptions(antialias=True, transparency=True, layers=2)
+        ds.RenderOptions(output=ds.Output(antialias=True), transparency=ds.Transparency(layers=2))
     with pytest.raises(ValueError, match="antialias must be True or False"):
-        ds.RenderOptions(antialias=1)
+        ds.Output(antialias=1)
     with pytest.raises(ValueError, match="adjacency must be shaped"):
         ds.Mesh(vertices=np.zeros((3, 3)), faces=[[0, 1, 2]], adjacency=[[0, 0]])
     ids = ds.scene_visibility(scene)
     with pytest.raises(ValueError, match="right, down"):
-        ds.render(scene, ds.RenderOptions(antialias=True), ids=ids[:, :1, :4],
+        ds.render(scene, ds.RenderOptions(output=ds.Output(antialias=True)), ids=ids[:, :1, :4],
                   pixels=(jnp.zeros((1, 4)), jnp.zeros((1, 4))))
 
 
@@ -188,7 +188,7 @@ def test_a_material_fit_with_the_stage_on_fits_the_ring_beside_the_silhouette():
     from fitting.problem import Problem
 
     scene, opts = small_default_scene(32, 32)
-    aa = opts.replace(antialias=True)
+    aa = opts.with_keys(antialias=True)
     assert scene.mesh.adjacency is None
     target = np.asarray(ds.render(scene, aa))
     free = ["material.diffuse", "material.shininess"]
@@ -216,7 +216,7 @@ def test_pose_fit_with_the_silhouette_in_it():
     from conftest import pose_problem
 
     start, aa, target, R, t, off_deg = pose_problem(antialias=True)
-    opts = aa.replace(antialias=False)
+    opts = aa.with_keys(antialias=False)
     assert off_deg(start.camera.rvec) > 1.9
     r = fit(start, aa, target, ["camera.rvec", "camera.tvec"])
     assert off_deg(r.values[:3]) <= 0.05

@@ -37,7 +37,7 @@ def _irradiance_closed_form(c, a, b, L):
 def _diffuse_at(scene, opts, P, n):
     pts = tuple(jnp.asarray([p], jnp.float64) for p in P)
     nrm = tuple(jnp.asarray([x], jnp.float64) for x in n)
-    col = R.shade_points(pts, nrm, scene.camera.eye, scene.material, scene, opts)
+    col = R.shade_points(pts, nrm, scene.camera.eye, scene.material, scene, opts.lighting)
     return np.array([float(c[0]) for c in col])
 
 
@@ -46,7 +46,7 @@ def test_grid_converges_to_the_rectangle_closed_form():
     exact = _irradiance_closed_form(c, a, b, L)
     errs = []
     for g in (1, 2, 4, 8, 16, 32):
-        opts = ds.RenderOptions(specular="none", ambient=False, area_grid=(g, g))
+        opts = ds.RenderOptions(lighting=ds.Lighting(specular="none", ambient=False, area_grid=(g, g)))
         got = _diffuse_at(_scene(_rect_light(c, a, b, L)), opts, (0.0, 0.0, 0.0), (0.0, 0.0, 1.0))
         np.testing.assert_allclose(got, got[0])  # grey light, grey material
         errs.append(abs(got[0] - exact) / exact)
@@ -56,7 +56,7 @@ def test_grid_converges_to_the_rectangle_closed_form():
 
 
 def test_nothing_is_lit_behind_an_emitter():
-    opts = ds.RenderOptions(specular="phong", ambient=False, area_grid=(3, 3))
+    opts = ds.RenderOptions(lighting=ds.Lighting(specular="phong", ambient=False, area_grid=(3, 3)))
     sc = _scene(_rect_light(1.0, 2.0, 1.0, 3.0))
     above = _diffuse_at(sc, opts, (0.0, 0.0, 2.0), (0.0, 0.0, -1.0))  # behind the emitter, facing it
     below = _diffuse_at(sc, opts, (0.0, 0.0, 0.0), (0.0, 0.0, 1.0))
@@ -64,7 +64,7 @@ def test_nothing_is_lit_behind_an_emitter():
 
 
 def test_area_light_gradients_match_finite_differences():
-    opts = ds.RenderOptions(specular="blinn", area_grid=(2, 3))
+    opts = ds.RenderOptions(lighting=ds.Lighting(specular="blinn", area_grid=(2, 3)))
     base = _scene(_rect_light(2.0, 1.0, 0.5, 2.0))
     base = eqx.tree_at(lambda s: s.area.normal, base, jnp.asarray([[0.1, -0.2, -1.0]]))
     ids = ds.scene_visibility(base, opts)
@@ -82,7 +82,7 @@ def test_scene_file_area_light_and_errors():
     d["light"] = [{"type": "area", "color": [2, 2, 2], "position": [0, 0, 3], "normal": [0, 0, -1], "size": [1, 0.5]}]
     d["render"] = dict(d["render"], area_grid=[3, 2])
     scene, opts = ds.scene_from_dict(d)
-    assert opts.area_grid == (3, 2) and scene.area.count == 1
+    assert opts.lighting.area_grid == (3, 2) and scene.area.count == 1
     np.testing.assert_allclose(scene.area.attenuation, [[0, 0, 1]])
     img = np.asarray(jax.jit(ds.render, static_argnames="opts")(scene, opts))
     assert np.isfinite(img).all() and img.max() > 0.1
@@ -94,7 +94,7 @@ def test_scene_file_area_light_and_errors():
     with pytest.raises(ds.SceneError, match="area_grid"):
         ds.scene_from_dict(dict(d, render=dict(d["render"], area_grid=[0, 2])))
     with pytest.raises(ValueError, match="area lights"):
-        ds.render(scene, opts.replace(shadows=True))
+        ds.render(scene, opts.replace(shadows=ds.ShadowMaps()))
 
 
 def test_fit_recovers_an_area_lights_colour_and_size():

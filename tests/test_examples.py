@@ -30,5 +30,5 @@ def test_the_photographs_data_set_is_what_its_readme_says(tmp_path, monkeypatch)
         assert isinstance(cam, ds.OpenCVCamera) and cam.resolution == (32, 32)
     for setup in ("a", "b"):
         scene, opts = ds.load_scene(tmp_path / f"setup_{setup}.toml")
-        assert opts.vertex_color == "diffuse" and scene.point.count == 1
+        assert opts.raster.vertex_color == "diffuse" and scene.point.count == 1
     np.testing.assert_allclose(truth["white_balance"]["view[1]"], 1.25 * np.array([1.08, 1.0, 0.86]))

@@ -174,7 +174,7 @@ def test_a_model_that_cannot_explain_the_image_is_not_called_a_success():
     # is far above the noise: the verdict says so and the standard errors are not meaningful.
     scene, opts = small_scene()
     target = jax.jit(ds.render, static_argnames="opts")(scene, opts)
-    r = fit(scene, opts.replace(specular="none"), target, ["material.ambient", "material.diffuse", "point[0].a1"])
+    r = fit(scene, opts.with_keys(specular="none"), target, ["material.ambient", "material.diffuse", "point[0].a1"])
     assert r.converged and not r.successful and not r.stderr_meaningful
     # (at 32² a missed highlight varies from pixel to pixel, so part of it counts as "white")
     assert "× the noise" in r.result and r.noise_ratio > 2
@@ -318,7 +318,7 @@ def test_recovers_transparency_absorption_transmission_and_kay():
         point=ds.PointLights(color=[2.0, 2.0, 2.0], position=[-0.6, 0.2, -0.6], attenuation=[1, 0, 0.5],
                              ambient=[0, 0, 0]),
         ambient_light=0.5, background=(0.1, 0.1, 0.15))
-    opts = ds.RenderOptions(transparency=True, absorption=True, transmission=True, layers=4)
+    opts = ds.RenderOptions(transparency=ds.Transparency(layers=4, absorption=True), lighting=ds.Lighting(transmission=True))
     target = jax.jit(ds.render, static_argnames="opts")(truth, opts)
     names = ["material[1].opacity", "material[1].absorption", "material[1].transmission",
              "material[2].kay_min", "material[2].kay_max", "material[2].kay_power"]

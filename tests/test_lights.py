@@ -108,7 +108,7 @@ def test_shadows_over_the_light_axis_equal_the_unrolled_ones(shading):
     tangent = jax.tree.map(lambda a: jnp.asarray(rng.normal(size=a.shape) * 0.01, a.dtype), params)
     scanned = _with_unroll(2, lambda: jax.jvp(f, (params,), (tangent,)))
     unrolled = _with_unroll(10 ** 6, lambda: jax.jvp(f, (params,), (tangent,)))
-    lit = ds.render(scene, opts.replace(shadows=False), ids)
+    lit = ds.render(scene, opts.replace(shadows=None), ids)
     assert float(jnp.sum(scanned[0] < lit - 1e-3)) > 3  # the shadows darken pixels
     np.testing.assert_allclose(scanned[0], unrolled[0], rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(scanned[1], unrolled[1], rtol=1e-10, atol=1e-12)

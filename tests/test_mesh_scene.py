@@ -96,7 +96,7 @@ def test_meshes_load_as_authored_with_their_normals(tmp_path):
     cam = ds.Camera(eye=[2.5, 2.0, 3.0], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.5, far=20.0, width=32, height=32)
     light = ds.DirectionalLights(color=[[1.0, 1.0, 1.0]], direction=[[-0.3, -1.0, -0.6]], ambient=[[0, 0, 0]])
     mat = ds.Material(ambient=0.1, diffuse=0.7, specular=0.0)
-    opts = ds.RenderOptions(shading="gouraud", specular="none")
+    opts = ds.RenderOptions(raster=ds.Raster(shading="gouraud"), lighting=ds.Lighting(specular="none"))
     out = []
     for mesh in (m, merged):
         scene = ds.Scene(mesh=mesh, camera=cam, material=mat, directional=light, ambient_light=[0.2, 0.2, 0.2])
@@ -195,13 +195,14 @@ def scene_dict(**over):
         ({"material": {"diffuse": [0.5, 2.0, 0.5]}}, r"material.diffuse: each entry must be <= 1.0"),
         ({"material": {"shininess": 0}}, r"material.shininess: must lie in \(0.0, inf\]"),
         ({"material": {"colour": 1}}, r"material: unknown field"),
-        ({"render": {"shading": "toon"}}, r"render: shading must be one of"),
+        ({"render": {"shading": "toon"}}, r"render: Raster.shading must be one of"),
         ({"mesh": {"path": "missing.obj"}}, r"mesh.path: .*missing.obj: mesh file not found"),
         ({"material": {"opacity": 1.5}}, r"material.opacity: must lie in \[0.0, 1.0\]"),
         ({"material": {"kay": 1}}, r"material.kay: must be true or false"),
         ({"material": {"absorption": [0, -1, 0]}}, r"material.absorption: each entry must be >= 0"),
-        ({"render": {"absorption": True, "transparency": True}}, r"render: absorption needs layers >= 2"),
-        ({"render": {"shadow_pcf": 2}}, r"render: shadow_pcf must be odd"),
+        ({"render": {"absorption": True, "transparency": True}}, r"render: Transparency.absorption needs layers >= 2"),
+        # (shadow_pcf is read with shadows on: ShadowMaps holds it)
+        ({"render": {"fog": "linear", "shadows": True, "shadow_pcf": 2}}, r"render: ShadowMaps.pcf must be odd"),
         ({"shadow": {"bias": 0.01}}, r"render.shadows: a \[shadow\] section is given but render.shadows is false"),
         ({"object": [{"box": [1, 0, 1]}]}, r"object\[0\].box: extents must be > 0"),
         ({"object": [{"quad": 2, "icosphere": 1}]}, r"object\[0\]: give exactly one of"),
@@ -224,7 +225,8 @@ def test_objects_scene_file_example():
     ids = np.asarray(scene.mesh.material_ids)
     assert ids.shape == (scene.mesh.faces.shape[0],) and set(ids.tolist()) == {0, 1, 2}
     assert (ids == 1).sum() == 12 and (ids == 0).sum() == 2  # the box and the floor quad
-    assert opts.transparency and opts.absorption and opts.transmission and opts.shadows and opts.layers == 5
+    assert opts.transparency == ds.Transparency(layers=5, absorption=True) and opts.layers == 5
+    assert opts.lighting.transmission and isinstance(opts.shadows, ds.ShadowMaps)
     np.testing.assert_allclose(np.asarray(mats[1].absorption), [0.3, 0.7, 1.6])
     V = np.asarray(scene.mesh.vertices)[np.unique(np.asarray(scene.mesh.faces)[ids == 2])]
     np.testing.assert_allclose(np.linalg.norm(V - [0.4, 0.0, -0.4], axis=1), 0.7, rtol=1e-12)  # radius, translate
@@ -243,7 +245,7 @@ def test_scene_file_roundtrip_and_fog_background(tmp_path):
         '[fog]\ncolor = [0.2, 0.3, 0.4]\ndensity = 0.3\n[[light]]\ntype = "directional"\ndirection = [0, 0, -1]\n'
     )
     scene, opts = ds.load_scene(p)
-    assert opts.fog == "exp" and scene.camera.resolution == (16, 24)
+    assert opts.fog == ds.FogModel("exp") and scene.camera.resolution == (16, 24)
     np.testing.assert_allclose(np.asarray(scene.background), [0.2, 0.3, 0.4])  # defaults to the fog colour
     img = np.asarray(jax.jit(ds.render, static_argnames="opts")(scene, opts))
     assert img.shape == (16, 24, 3) and np.isfinite(img).all()
@@ -337,7 +339,7 @@ def test_vertex_colours_are_read_decoded_and_merged(tmp_path):
         ds.scene_from_dict(d)
     d["mesh"] = {"path": str(tmp_path / "c.ply"), "colors": "linear"}
     scene, opts = ds.scene_from_dict(d)
-    assert opts.vertex_color == "diffuse"
+    assert opts.raster.vertex_color == "diffuse"
     np.testing.assert_allclose(np.asarray(scene.mesh.colors), codes / 255.0, atol=1e-12)
     d["mesh"] = {"path": str(tmp_path / "c.ply"), "colors": "cmyk"}
     with pytest.raises(ds.SceneError, match="mesh.colors"):

@@ -9,7 +9,7 @@ import pytest
 
 import diffshade as ds
 import diffshade._lighting as R
-from diffshade._shadow import light_visibility
+from diffshade._shadow import shadow_map_visibility
 
 from conftest import check_grads
 
@@ -128,12 +128,12 @@ def test_multi_lobe_shadow_map_is_the_point_lights_cube_map():
     b, _ = ds.scene_from_dict(d)
     pts = tuple(jnp.asarray(x) for x in np.random.default_rng(0).normal(size=(3, 50)))
     ng = tuple(-x for x in pts)  # the back of a unit sphere's points faces away: in shadow
-    sa = light_visibility(a, opts, pts, ng, 4)
-    sb = light_visibility(b, opts, pts, ng, 4)
+    sa = shadow_map_visibility(a, opts.shadows, pts, ng, 4)
+    sb = shadow_map_visibility(b, opts.shadows, pts, ng, 4)
     assert set(sa) == {"multi_lobe"} and sa["multi_lobe"].shape == (1, 50)
     np.testing.assert_array_equal(sa["multi_lobe"], sb["point"])
     img = ds.render(a, opts)
-    lit = ds.render(a, opts.replace(shadows=False))
+    lit = ds.render(a, opts.replace(shadows=None))
     assert float(jnp.sum(img < lit - 1e-3)) > 0  # the shadows darken some pixels
 
 

@@ -150,6 +150,7 @@ GROUPS = {
     "camera": lambda s: s.camera,
     "vertices": lambda s: s.mesh.vertices,
 }
+# (config, more flat render keys; back_material=True: the scene keeps its back material, see make_scene)
 GRAD_CASES = [
     ("all-lights-back-material-exp2", dict(specular="phong", spot_edge="smooth", emission=True)),
     ("dielectric-spot-smooth-light-ambient", dict(two_sided=True, back_material=True, fog="linear")),
@@ -170,8 +171,7 @@ GRAD_PARAMS = [
 @pytest.mark.parametrize("case,shading,group", GRAD_PARAMS)
 def test_every_parameter_gradient_matches_finite_differences(case, shading, group):
     config, kw = GRAD_CASES[case]
-    scene, opts = make_scene(config, shading)
-    opts = opts.replace(**kw)
+    scene, opts = make_scene(config, shading, **kw)
     ids = ds.scene_visibility(scene, opts)
     w = jnp.asarray(np.random.default_rng(case).normal(size=(scene.camera.height, scene.camera.width, 3)))
     get = GROUPS[group]
@@ -183,7 +183,7 @@ def test_every_parameter_gradient_matches_finite_differences(case, shading, grou
         return jnp.sum(w * ds.render(s, opts, ids=ids))
 
     g = jax.jit(jax.grad(loss))(params)
-    if group == "back_material" and not (opts.two_sided and opts.back_material):
+    if group == "back_material" and not (opts.lighting.two_sided and scene.back_material is not None):
         assert all(float(jnp.abs(x).max()) == 0 for x in jax.tree.leaves(g)), "unused back material has a gradient"
         return
     assert any(float(jnp.abs(x).max()) > 0 for x in jax.tree.leaves(g)), "gradient identically zero"
@@ -225,9 +225,13 @@ def _program(opts, scene):
 
 def test_only_the_terms_a_scene_uses_are_compiled():
     scene, _ = make_scene("all-lights-back-material-exp2", "phong", dtype=jnp.float32)
-    diffuse = ds.RenderOptions(shading="phong", specular="none", ambient=False, two_sided=False)
-    every = ds.RenderOptions(shading="phong", specular="blinn", fresnel="dielectric", emission=True, per_light_ambient=True,
-                             back_material=True, spot_edge="smooth", fog="exp2")
+    diffuse = ds.RenderOptions(raster=ds.Raster(shading="phong"),
+                               lighting=ds.Lighting(specular="none", ambient=False, two_sided=False))
+    # (the scene's back material lights the back faces: two-sided lighting with a back material)
+    every = ds.RenderOptions(raster=ds.Raster(shading="phong"),
+                             lighting=ds.Lighting(specular="blinn", fresnel="dielectric", emission=True, per_light_ambient=True,
+                                                  spot_edge="smooth"),
+                             fog=ds.FogModel("exp2"))
     d_txt, a_txt = _program(diffuse, scene), _program(every, scene)
     count = lambda t, op: t.count(f" {op}(")  # noqa: E731
     # No power, exponential or logarithm at all without specular, spot exponent or fog.

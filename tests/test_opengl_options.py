@@ -24,7 +24,7 @@ def test_gradients_through_vertex_clamp_and_specular_colours(config, shading):
                                                              up=scene.camera.up, fov_y=scene.camera.fov_y,
                                                              near=scene.camera.near, far=scene.camera.far, width=10, height=10))
     ids = ds.scene_visibility(scene, opts)
-    img = ds.render(scene, opts.replace(fog="none"), ids)
+    img = ds.render(scene, opts.replace(fog=None), ids)
     assert float(jnp.max(img)) >= 1.0 - 1e-12  # something saturates: the clamp is on the path
     lights = scene.point if scene.point.count else scene.directional
     spec = lights.specular if lights.specular is not None else lights.color
@@ -49,14 +49,15 @@ def test_compat_preset_from_scene_files_and_overrides():
     d.pop("fog", None)
     _, opts = ds.scene_from_dict({**d, "render": {"compat": "opengl"}})
     assert opts == ds.RenderOptions.opengl()
-    assert (opts.shading, opts.specular, opts.clamp, opts.clamp_at, opts.flat_source, opts.viewer, opts.color_sum) == (
-        "gouraud", "blinn", True, "vertex", "provoking", "infinite", "single")
+    assert (opts.raster.shading, opts.lighting.specular, opts.output.clamp, opts.raster.flat_source, opts.lighting.viewer,
+            opts.output.color_sum) == ("gouraud", "blinn", "vertex", "provoking", "infinite", "single")
     _, opts = ds.scene_from_dict({**d, "render": {"compat": "opengl", "shading": "flat", "viewer": "local"}})
     assert opts == ds.RenderOptions.opengl(shading="flat", viewer="local")
     _, default = ds.scene_from_dict({**d, "render": {}})
-    assert (default.clamp_at, default.flat_source, default.viewer, default.color_sum) == ("pixel", "centroid", "local", "single")
+    assert (default.output.clamp, default.raster.flat_source, default.lighting.viewer, default.output.color_sum) == (
+        None, "centroid", "local", "single")
     for render, message in [({"compat": "gl"}, "render.compat"), ({"viewer": "far"}, "viewer"),
-                            ({"clamp_at": "face"}, "clamp_at"), ({"color_sum": "both"}, "color_sum")]:
+                            ({"clamp": True, "clamp_at": "face"}, r"Output.clamp must be one of .*'face'"), ({"color_sum": "both"}, "color_sum")]:
         with pytest.raises(ds.SceneError, match=message):
             ds.scene_from_dict({**d, "render": render})
 
@@ -73,10 +74,10 @@ def test_light_specular_colour_in_scene_files():
     np.testing.assert_allclose(ds.render(same, opts), ds.render(scene, opts), rtol=1e-6, atol=1e-7)
     dark, _ = ds.scene_from_dict({**d, "light": [dict(lights[0], specular=0.0), lights[1]]})
     no_spec_point = eqx.tree_at(lambda s: s.point.color, scene, jnp.zeros((1, 3)))
-    diff_only = ds.render(scene, opts.replace(specular="none"))
+    diff_only = ds.render(scene, opts.with_keys(specular="none"))
     img = ds.render(dark, opts)
     # what is left of the point light is its diffuse part; the directional light keeps its highlight
-    expected = diff_only + (ds.render(no_spec_point, opts) - ds.render(no_spec_point, opts.replace(specular="none")))
+    expected = diff_only + (ds.render(no_spec_point, opts) - ds.render(no_spec_point, opts.with_keys(specular="none")))
     np.testing.assert_allclose(img, expected, rtol=1e-5, atol=1e-6)
     assert float(jnp.max(jnp.abs(img - ds.render(scene, opts)))) > 0.05
     with pytest.raises(ds.SceneError, match=r"light\[0\].specular"):
@@ -88,8 +89,8 @@ def test_light_specular_colour_in_scene_files():
 
 def test_shadows_with_vertex_clamp_is_a_clear_error():
     scene, opts = make_scene("opengl-specular-colours", "gouraud")
-    with pytest.raises(ValueError, match="clamp_at='vertex'.*shadows"):
-        ds.render(scene, opts.replace(shadows=True, shadow_resolution=8))
+    with pytest.raises(ValueError, match="clamp='vertex'.*shadows"):
+        ds.render(scene, opts.replace(shadows=ds.ShadowMaps(resolution=8)))
 
 
 def test_fit_names_and_recovery_of_a_separate_specular_colour():

@@ -58,18 +58,19 @@ SCENES = {
     "gouraud, three light kinds, exp fog, specular colours": lambda: make_scene("opengl-specular-colours", "gouraud"),
     "gouraud, separate specular, two-sided back material": lambda: make_scene("opengl-separate-specular", "gouraud"),
     "gouraud, linear fog, local viewer, non-square": lambda: (
-        lambda s, o: (_resize(s, 52, 30), o.replace(fog="linear", viewer="local")))(*make_scene("opengl-specular-colours", "gouraud")),
+        lambda s, o: (_resize(s, 52, 30), o.with_keys(fog="linear", viewer="local")))(*make_scene("opengl-specular-colours", "gouraud")),
     "gouraud, exp2 fog, emission, per-light ambient": lambda: (
-        lambda s, o: (s, o.replace(fog="exp2")))(*make_scene("opengl-separate-specular", "gouraud")),
+        lambda s, o: (s, o.replace(fog=ds.FogModel("exp2", distance="depth"))))(*make_scene("opengl-separate-specular", "gouraud")),
     "flat, hard-edged box": lambda: _hard_box_scene(ds.RenderOptions.opengl(shading="flat")),
     "gouraud, hard-edged box": lambda: _hard_box_scene(ds.RenderOptions.opengl()),
     "phong (GLSL), all lights, back material, exp2 fog": lambda: make_scene("all-lights-back-material-exp2", "phong"),
     "phong (GLSL), blinn, smooth spot, per-light ambient": lambda: (
-        lambda s, o: (s, o.replace(fresnel="none")))(*make_scene("dielectric-spot-smooth-light-ambient", "phong")),
+        lambda s, o: (s, o.with_keys(fresnel="none")))(*make_scene("dielectric-spot-smooth-light-ambient", "phong")),
     "phong (GLSL), linear fog by depth, clamped": lambda: make_scene("linear-fog-depth-clamped", "phong"),
     "phong (GLSL), emission and ambient only": lambda: make_scene("emission+ambient", "phong"),
     "phong (GLSL), blinn, infinite viewer, hard box": lambda: _hard_box_scene(
-        ds.RenderOptions(shading="phong", specular="blinn", viewer="infinite", emission=True, per_light_ambient=True)),
+        ds.RenderOptions(raster=ds.Raster(shading="phong"),
+                         lighting=ds.Lighting(specular="blinn", viewer="infinite", emission=True, per_light_ambient=True))),
 }
 
 
@@ -92,7 +93,7 @@ def test_the_clamp_order_is_what_makes_gouraud_match():
     scene = _f32(scene)
     ref, ref_covered = GL.render(scene, opts)
     ok = GL.compare(*_diffshade(scene, opts), ref, ref_covered)
-    off = GL.compare(*_diffshade(scene, opts.replace(clamp_at="pixel")), ref, ref_covered)
+    off = GL.compare(*_diffshade(scene, opts.with_keys(clamp_at="pixel")), ref, ref_covered)
     assert ok["p99"] <= 1e-3 < off["max"], (ok, off)
-    single = GL.compare(*_diffshade(scene, opts.replace(color_sum="single")), ref, ref_covered)
+    single = GL.compare(*_diffshade(scene, opts.with_keys(color_sum="single")), ref, ref_covered)
     assert single["max"] > 1e-2, single  # and GL_SEPARATE_SPECULAR_COLOR is honoured

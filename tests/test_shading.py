@@ -4,6 +4,7 @@ front of a back-facing tilted plane; closed forms on an analytic configuration; 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import equinox as eqx
@@ -41,7 +42,8 @@ LIGHTS = {
 BEHIND = ds.PointLights(color=[[0.7, 0.7, 0.9]], position=[[0.5, -0.5, -3.0]], attenuation=[[1.0, 0.0, 0.02]], ambient=[[0.0, 0.0, 0.0]])
 
 CONFIGS = {
-    # name: (lights, RenderOptions kwargs)
+    # name: (lights, the scene file's flat render keys); "back_material": the scene keeps its back
+    # material under two-sided lighting (without, it has none: the front one lights back faces)
     "emission+ambient": (["directional"], dict(emission=True, diffuse=False, specular="none")),
     "diffuse-directional": (["directional"], dict(ambient=False, specular="none")),
     "phong-point": (["point"], dict(specular="phong")),
@@ -63,7 +65,8 @@ CONFIGS = {
 BRIGHT = ds.PointLights(color=[[2.2, 1.9, 1.6]], position=[[0.8, 1.0, 1.6]], attenuation=[[1.0, 0.1, 0.05]], ambient=[[0.2, 0.1, 0.1]])
 
 
-def make_scene(config, shading, dtype=jnp.float64):
+def make_scene(config, shading, dtype=jnp.float64, **keys):
+    """The config's scene and options (``keys``: more flat render keys, over the config's)."""
     names, kw = CONFIGS[config]
     v, f = scene_mesh()
     lights = {}
@@ -91,8 +94,14 @@ def make_scene(config, shading, dtype=jnp.float64):
             scene = eqx.tree_at(lambda s: getattr(s, kind).specular, scene, jnp.asarray(spec[kind]),
                                 is_leaf=lambda x: x is None)
     scene = jax.tree.map(lambda a: a.astype(dtype) if jnp.issubdtype(a.dtype, jnp.floating) else a, scene)
-    kw = dict(kw)
-    opts = ds.RenderOptions.opengl(shading=shading, **kw) if kw.pop("compat", None) == "opengl" else ds.RenderOptions(shading=shading, **kw)
+    kw = {**kw, **keys}
+    back = kw.pop("back_material", False)
+    opts = (ds.RenderOptions.opengl(shading=shading, **kw) if kw.pop("compat", None) == "opengl"
+            else ds.RenderOptions.from_keys(shading=shading, **kw))
+    # the scene's back material lights back faces under two-sided lighting: kept where the config
+    # says back_material (and under one-sided lighting, where it is unused), else removed
+    if not back and opts.lighting.two_sided:
+        scene = dataclasses.replace(scene, back_material=None)
     return scene, opts
 
 
@@ -148,7 +157,7 @@ def test_vertex_colours_match_reference(shading, mode):
     nv = scene.mesh.vertices.shape[0]
     colors = np.random.default_rng(5).uniform(0.05, 0.95, (nv, 3))
     scene = eqx.tree_at(lambda s: s.mesh.colors, scene, jnp.asarray(colors), is_leaf=lambda x: x is None)
-    opts = opts.replace(vertex_color=mode)
+    opts = opts.with_keys(vertex_color=mode)
     img, ids = (np.asarray(x) for x in _render_fn(opts)(scene))
     pixels = [(i, j) for j in range(H) for i in range(W)]
     ref, margin, ref_ids = Ref(to_ref(scene), opts).image(pixels)
@@ -157,13 +166,14 @@ def test_vertex_colours_match_reference(shading, mode):
     assert safe.mean() > 0.6
     np.testing.assert_allclose(img[safe], ref[safe], rtol=1e-7, atol=1e-9)
     # the colours show: the same scene without them differs
-    plain = np.asarray(_render_fn(opts.replace(vertex_color="none"))(scene)[0])
+    plain = np.asarray(_render_fn(opts.with_keys(vertex_color="none"))(scene)[0])
     assert np.abs(plain - img)[ids >= 0].max() > 0.05
 
 
 def test_vertex_colours_equal_to_the_material_change_nothing():
     scene, opts = make_scene("all-lights-back-material-exp2", "gouraud")
-    opts = opts.replace(back_material=False, vertex_color="ambient_and_diffuse")
+    scene = dataclasses.replace(scene, back_material=None)
+    opts = opts.with_keys(vertex_color="ambient_and_diffuse")
     m = scene.material
     nv = scene.mesh.vertices.shape[0]
     # ambient and diffuse differ in the material: a colour can stand for both only in "diffuse" mode
@@ -172,14 +182,14 @@ def test_vertex_colours_equal_to_the_material_change_nothing():
                            is_leaf=lambda x: x is None)
     plain = eqx.tree_at(lambda s: s.material.ambient, scene, m.diffuse)
     np.testing.assert_allclose(np.asarray(_render_fn(opts)(with_col)[0]),
-                               np.asarray(_render_fn(opts.replace(vertex_color="none"))(plain)[0]), rtol=1e-12, atol=1e-14)
+                               np.asarray(_render_fn(opts.with_keys(vertex_color="none"))(plain)[0]), rtol=1e-12, atol=1e-14)
     with pytest.raises(ValueError, match="the mesh has no colours"):
         ds.render(scene, opts)
 
 
 def _direct_only(config="all-lights-back-material-exp2", shading="phong", **kw):
     scene, opts = make_scene(config, shading)
-    return scene, opts.replace(ambient=False, emission=False, per_light_ambient=False, fog="none", **kw)
+    return scene, opts.with_keys(ambient=False, emission=False, per_light_ambient=False, fog="none", **kw)
 
 
 def test_linear_in_light_colour_and_additive_over_lights():
@@ -246,7 +256,7 @@ def test_sphere_directional_closed_form_all_pixels():
     light = ds.DirectionalLights(color=[[0.9, 0.8, 0.7]], direction=[[0.3, -0.4, -1.0]], ambient=[[0.0, 0.0, 0.0]])
     mat = ds.Material(ambient=[0.1, 0.2, 0.3], diffuse=[0.6, 0.5, 0.4])
     scene = ds.Scene(mesh=m, camera=cam, material=mat, directional=light, ambient_light=[0.5, 0.5, 0.5])
-    img = np.asarray(ds.render(scene, ds.RenderOptions(shading="phong", specular="none")))
+    img = np.asarray(ds.render(scene, ds.RenderOptions(raster=ds.Raster(shading="phong"), lighting=ds.Lighting(specular="none"))))
     cam_only = {"eye": np.array([0, 0, 4.0]), "target": np.zeros(3), "up": np.array([0, 1.0, 0]), "fov_y": 40.0, "width": 48, "height": 48}
     ref = Ref(cam_only, ds.RenderOptions())
     l = -np.array([0.3, -0.4, -1.0]) / np.linalg.norm([0.3, -0.4, -1.0])

@@ -49,7 +49,7 @@ _NO_EMBREE = pytest.mark.skipif(not _rays.embree_available(), reason="no embreex
 def test_without_mirrors_or_glass_the_modes_agree_exactly(backend, render):
     scene, opts = _scene(render=render)
     raster = _render(scene, opts)
-    traced = _render(scene, opts.replace(ray_depth=2, ray_backend=backend))
+    traced = _render(scene, opts.with_keys(ray_depth=2, ray_backend=backend))
     # the same terms at the same points: equal to float64 rounding (two programs fuse differently)
     np.testing.assert_allclose(np.asarray(traced), np.asarray(raster), rtol=1e-13, atol=1e-15)
 
@@ -60,7 +60,7 @@ def test_shadow_rays_give_the_exact_shadow_of_a_sphere(backend):
     # the floor; every floor pixel away from the disc's edge is lit or not as the disc says
     scene, opts = _scene(size=(48, 36), lights=[{"type": "directional", "direction": [0, -1, 0], "color": 1.0}],
                          render={"ambient": False, "specular": "none"})
-    opts = opts.replace(shadow_rays=True, ray_backend=backend)
+    opts = opts.with_keys(shadow_rays=True, ray_backend=backend)
     img = np.asarray(_render(scene, opts))
     ids = np.asarray(ds.scene_visibility(scene, opts)[0])
     floor = ids >= 1280  # icosphere(3) has 1280 faces; the floor quad's come after
@@ -83,7 +83,7 @@ def test_a_mirror_floor_shows_what_the_mirror_ray_meets(backend):
     # ray misses the sphere and the sphere's colour where it meets it
     scene, opts = _scene(floor={"diffuse": 0.0, "ambient": 0.0, "mirror": 1.0}, render={"ambient": False})
     scene = ds.Scene(**{**{f: getattr(scene, f) for f in scene.__dataclass_fields__}, "background": jnp.asarray([0.1, 0.2, 0.3])})
-    img = np.asarray(_render(scene, opts.replace(ray_depth=1, ray_backend=backend)))
+    img = np.asarray(_render(scene, opts.with_keys(ray_depth=1, ray_backend=backend)))
     raster = np.asarray(_render(scene, opts))
     ids = np.asarray(ds.scene_visibility(scene, opts)[0])
     floor = ids >= 1280  # icosphere(3) has 1280 faces, the quad's come after
@@ -128,7 +128,7 @@ def test_refraction_through_a_slab_is_absorbed_by_its_true_path(backend):
     # straight through a slab at normal incidence: no bend, the wall's colour times e^{-mu 0.5}
     scene, opts = _slab_scene(1.5, backend)
     img = np.asarray(_render(scene, opts))
-    wall = np.asarray(_render(scene, opts.replace(ray_depth=0)))
+    wall = np.asarray(_render(scene, opts.with_keys(ray_depth=0)))
     ids = np.asarray(ds.scene_visibility(scene, opts)[0])
     centre = img[7:9, 9:11].reshape(-1, 3)  # rays through the slab's middle (almost normal incidence)
     assert (ids[7:9, 9:11] >= 0).all() and (ids[7:9, 9:11] < 12).all()
@@ -194,12 +194,13 @@ def test_no_nan_at_grazing_incidence_critical_angle_and_eta_one():
 
 
 def test_options_are_checked():
-    with pytest.raises(ValueError, match="ray_depth"):
-        ds.RenderOptions(ray_depth=9)
+    with pytest.raises(ValueError, match=r"Rays.depth must be an integer in \[0, 8\]"):
+        ds.RenderOptions(rays=ds.Rays(depth=9))
     with pytest.raises(ValueError, match="shading='phong'"):
-        ds.RenderOptions(shading="gouraud", ray_depth=1)
+        ds.RenderOptions(raster=ds.Raster(shading="gouraud"), rays=ds.Rays(depth=1))
+    # shadow maps or shadow rays is one field (the type): a scene file's keys asking for both are refused
     with pytest.raises(ValueError, match="choose one"):
-        ds.RenderOptions(shadows=True, shadow_rays=True)
+        ds.RenderOptions.from_keys(shadows=True, shadow_rays=True)
     with pytest.raises(ds.SceneError, match="mirror"):
         _scene(floor={"mirror": 1.5})
 
@@ -275,7 +276,7 @@ def test_fit_recovers_a_mirrors_weight_from_the_reflection_of_a_lit_ball():
     floor = ids >= 320
     reflected = floor & (target.max(-1) > 1e-3)
     assert reflected.sum() > 20 and (floor & ~reflected).sum() > 20  # the ball's reflection, and black floor
-    assert np.abs(np.asarray(_render(scene, opts.replace(ray_depth=0)))[floor]).max() < 1e-12
+    assert np.abs(np.asarray(_render(scene, opts.with_keys(ray_depth=0)))[floor]).max() < 1e-12
     start = pset.apply(scene, jnp.asarray(np.r_[0.0, 0.0, 0.0, 0.5, 0.5, 0.5]))
     r = fit(start, opts, target, free)
     assert r.successful, r.result
@@ -289,7 +290,7 @@ def test_shadow_rays_over_many_lights_follow_the_light_axis_rule():
     lights = [{"type": "point", "position": [float(np.cos(a)) * 2, 2.0, float(np.sin(a)) * 2], "attenuation": [1, 0, 0.05],
                "color": 0.3} for a in np.linspace(0, 5, 6)]
     scene, opts = _scene(size=(20, 16), lights=lights, render={"specular": "none"})
-    opts = opts.replace(shadow_rays=True, ray_backend="jax")
+    opts = opts.with_keys(shadow_rays=True, ray_backend="jax")
     old = Lg.LIGHTS_UNROLLED
     try:
         Lg.LIGHTS_UNROLLED = 2
@@ -298,7 +299,7 @@ def test_shadow_rays_over_many_lights_follow_the_light_axis_rule():
         unrolled = ds.render(scene, opts)
     finally:
         Lg.LIGHTS_UNROLLED = old
-    lit = ds.render(scene, opts.replace(shadow_rays=False))
+    lit = ds.render(scene, opts.with_keys(shadow_rays=False))
     assert float(jnp.sum(scanned < lit - 1e-3)) > 10  # shadows
     np.testing.assert_allclose(scanned, unrolled, rtol=1e-13, atol=1e-15)
 
@@ -333,10 +334,9 @@ def test_snell_total_internal_reflection_and_fresnel_weights():
     kt = _v([0.8, 0.5, 0.2])
     zero = _v([0.0, 0.0, 0.0])
     for fres in ("schlick", "dielectric"):
-        opts = ds.RenderOptions(fresnel=fres)
         for cos1, eta in ((0.9, 1.5), (0.3, 1.5), (0.9, 1 / 1.5), (0.2, 1 / 1.5)):
             _, tir = T.refracted_direction(n, _v([np.sqrt(1 - cos1 ** 2), 0.0, cos1]), 1.0 / eta)
-            w_r, w_t = T.ray_weights(opts, zero, kt, jnp.asarray(cos1), jnp.asarray(eta), jnp.asarray(1.5), tir)
+            w_r, w_t = T.ray_weights(fres, zero, kt, jnp.asarray(cos1), jnp.asarray(eta), jnp.asarray(1.5), tir)
             np.testing.assert_allclose([float(a + b) for a, b in zip(w_r, w_t)], [0.8, 0.5, 0.2], rtol=1e-12)
             assert all(float(w) >= 0 for w in w_t) and (not bool(tir) or all(float(w) == 0 for w in w_t))
 
@@ -391,7 +391,7 @@ def test_traced_image_matches_an_independent_numpy_tracer(case):
         extra = dict(ray_depth=3)
     scene, opts = _scene(floor={"mirror": 0.3, "diffuse": [0.4, 0.5, 0.3]}, ball=ball, size=(24, 18), render=render, ico=2,
                          lights=lights)
-    opts = opts.replace(**extra)
+    opts = opts.with_keys(**extra)
     img = np.asarray(_render(scene, opts))
     s = to_trace_ref(scene)
     np.testing.assert_allclose(s["normals"], np.asarray(scene.mesh.vertex_normals()), atol=1e-12)
@@ -405,7 +405,7 @@ def test_traced_image_matches_an_independent_numpy_tracer(case):
     assert (safe & hit).sum() > 0.5 * hit.sum() and (~hit).sum() > 10
     np.testing.assert_allclose(img[safe], col[safe], rtol=1e-9, atol=1e-12)
     # the scene exercises what it should: the glass changes the image, and so do the floor's reflections
-    flat = np.asarray(_render(scene, opts.replace(ray_depth=0, shadow_rays=False)))
+    flat = np.asarray(_render(scene, opts.with_keys(ray_depth=0, shadow_rays=False)))
     assert np.abs(img - flat)[safe].max() > 0.1
 
 
@@ -439,7 +439,7 @@ def test_a_coloured_filter_tints_the_shadow_by_its_transmittance(backend):
     assert under.sum() > 10 and free.sum() > 50
     np.testing.assert_allclose(img[under], np.broadcast_to(0.8 * k_rt ** 2 * np.exp(-mu * h), img[under].shape), rtol=1e-9)
     np.testing.assert_allclose(img[free], 0.8, rtol=1e-9)
-    blocked = np.asarray(_render(scene, opts.replace(shadow_ray_crossings=0)))
+    blocked = np.asarray(_render(scene, opts.with_keys(shadow_ray_crossings=0)))
     np.testing.assert_allclose(blocked[under], 0.0, atol=1e-12)
     np.testing.assert_allclose(blocked[free], 0.8, rtol=1e-9)
     # the shadow's colour is differentiable in k_rt and mu (forward and reverse)
@@ -459,7 +459,7 @@ def test_area_lights_cast_soft_shadows_by_rays(backend):
     scene, opts = _scene(size=(40, 30), lights=lights, render={"ambient": False, "specular": "none", "area_grid": [4, 4]},
                          ico=2)
     lit = np.asarray(_render(scene, opts))
-    img = np.asarray(_render(scene, opts.replace(shadow_rays=True, ray_backend=backend)))
+    img = np.asarray(_render(scene, opts.with_keys(shadow_rays=True, ray_backend=backend)))
     floor = np.asarray(ds.scene_visibility(scene, opts)[0]) >= 320
     frac = img[floor][:, 0] / np.maximum(lit[floor][:, 0], 1e-30)
     assert (frac < 1e-12).sum() > 5  # umbra
@@ -473,18 +473,18 @@ def test_ray_capacity_traces_only_the_live_rays_and_says_what_a_scene_needs():
     # ray_counts says, the image is the uncompacted one; below it, light is missing
     ball = {"refraction": 0.8, "mirror": 0.1, "ior": 1.5, "absorption": [0.2, 0.5, 1.0], "diffuse": [0.3, 0.1, 0.05]}
     scene, opts = _scene(ball=ball, size=(24, 18), ico=2, render={"fresnel": "schlick"})
-    opts = opts.replace(ray_depth=2)
+    opts = opts.with_keys(ray_depth=2)
     counts = ds.ray_counts(scene, opts)
     ids = np.asarray(ds.scene_visibility(scene, opts)[0])
     ball_px = int(((ids >= 0) & (ids < 320)).sum())
     assert counts[0] == 2 * ball_px and 0 < counts[1] <= 2 * counts[0], (counts, ball_px)
     full = np.asarray(_render(scene, opts))
     cap = max(counts)
-    np.testing.assert_allclose(np.asarray(_render(scene, opts.replace(ray_capacity=cap))), full, rtol=1e-12, atol=1e-14)
-    short = np.asarray(_render(scene, opts.replace(ray_capacity=counts[0] // 2)))
+    np.testing.assert_allclose(np.asarray(_render(scene, opts.with_keys(ray_capacity=cap))), full, rtol=1e-12, atol=1e-14)
+    short = np.asarray(_render(scene, opts.with_keys(ray_capacity=counts[0] // 2)))
     assert np.abs(short - full).max() > 1e-3
     # compacted, the image stays differentiable (forward and reverse)
-    o2 = opts.replace(ray_capacity=cap)
+    o2 = opts.with_keys(ray_capacity=cap)
 
     def f(ior, mu):
         m = scene.material
@@ -494,8 +494,8 @@ def test_ray_capacity_traces_only_the_live_rays_and_says_what_a_scene_needs():
     # (forward mode, the fits' mode; the gather and scatter of the compaction transpose to each other)
     check_grads(jax.jit(f), (scene.material.ior, scene.material.absorption), order=1, modes=("fwd",), eps=1e-6,
                 atol=1e-5, rtol=1e-4)
-    with pytest.raises(ValueError, match="ray_capacity"):
-        ds.RenderOptions(ray_capacity=-1)
+    with pytest.raises(ValueError, match=r"Rays.capacity must be an integer >= 0"):
+        ds.RenderOptions(rays=ds.Rays(capacity=-1))
 
 
 def _prism():
@@ -542,7 +542,7 @@ def test_a_prism_face_beyond_the_critical_angle_reflects_totally(backend):
             hit3 = _rays.first_hits(p2, jnp.asarray([out]), V, F, tmin=1e-6, skip=hit2, backend=backend)
             t3, _, _, ok3 = _rays.intersect(p2, jnp.asarray([out]), V, F, hit3)
             np.testing.assert_allclose(np.asarray(p2[0] + t3[0] * out), [0.0, 0.7, 0.2], atol=1e-12)  # the other leg
-            w_r, w_t = T.ray_weights(ds.RenderOptions(fresnel="dielectric"), _v([0, 0, 0]), _v([0.9, 0.9, 0.9]),
+            w_r, w_t = T.ray_weights("dielectric", _v([0, 0, 0]), _v([0.9, 0.9, 0.9]),
                                      jnp.asarray(np.cos(np.pi / 4)), jnp.asarray(1 / eta), jnp.asarray(eta), tir2)
             assert [float(w) for w in w_r] == [0.9] * 3 and [float(w) for w in w_t] == [0.0] * 3
         else:
@@ -614,11 +614,11 @@ def test_float32_engines_agree_on_a_glass_ball():
          "background": [0.55, 0.65, 0.8]}
     scene, opts = ds.scene_from_dict(d)
     scene = _f64(scene)
-    ref = np.asarray(_render(scene, opts.replace(ray_backend="jax")))
+    ref = np.asarray(_render(scene, opts.with_keys(ray_backend="jax")))
     s32 = jax.tree.map(lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a, scene)
     engines = ["jax"] + (["embree"] if _rays.embree_available() else [])
     for be in engines:
-        img = np.asarray(_render(s32, opts.replace(ray_backend=be)), np.float64)
+        img = np.asarray(_render(s32, opts.with_keys(ray_backend=be)), np.float64)
         assert np.abs(img - ref).max() < 1e-4, (be, np.abs(img - ref).max(), int((np.abs(img - ref).max(-1) > 1e-3).sum()))
 
 
@@ -628,7 +628,7 @@ def test_traced_gradients_of_refraction_specular_light_and_camera():
     ball = {"refraction": 0.8, "mirror": 0.1, "ior": 1.5, "absorption": [0.2, 0.5, 1.0], "specular": 0.4}
     scene, opts = _scene(ball=ball, size=(20, 16), ico=2, render={"fresnel": "dielectric"},
                          lights=[{"type": "point", "position": [2, 3, 3], "attenuation": [1, 0, 0.02]}])
-    opts = opts.replace(ray_depth=1, ray_backend="jax")
+    opts = opts.with_keys(ray_depth=1, ray_backend="jax")
     ids = ds.scene_visibility(scene, opts)
 
     def f(k_rt, k_s, light, eye):
@@ -642,14 +642,15 @@ def test_traced_gradients_of_refraction_specular_light_and_camera():
 
 
 def test_a_scene_without_rays_compiles_none_of_the_tracer():
-    # ray_depth 0 and no shadow rays: the ray options do not reach the program (no callback, no tracer)
+    # ray_depth 0 and no shadow rays: the ray options do not reach the program (no callback, no tracer);
+    # (shadow_ray_crossings without shadow_rays is no option at all now: ShadowRays holds it)
     scene, opts = _scene(size=(16, 12), ico=1)
     text = lambda o: jax.jit(lambda s: ds.render(s, o)).lower(scene).as_text()  # noqa: E731
     base = text(opts)
     assert "callback" not in base
-    for o in (opts.replace(ray_backend="embree"), opts.replace(ray_capacity=100, shadow_ray_crossings=0)):
+    for o in (opts.with_keys(ray_backend="embree"), opts.with_keys(ray_capacity=100, shadow_ray_crossings=0)):
         assert text(o) == base
-    assert "callback" in text(opts.replace(ray_depth=1, ray_backend="embree")) or not _rays.embree_available()
+    assert "callback" in text(opts.with_keys(ray_depth=1, ray_backend="embree")) or not _rays.embree_available()
 
 
 def test_no_nan_when_every_secondary_ray_misses():
@@ -657,6 +658,6 @@ def test_no_nan_when_every_secondary_ray_misses():
     sky, o2 = _scene(floor={"mirror": 1.0}, size=(16, 12), ico=1, lights=[{"type": "directional", "direction": [0, -1, 0]}])
     sky = eqx.tree_at(lambda s: s.camera.eye, sky, jnp.asarray([0.0, 6.0, 0.5]))  # looking down: mirror rays go up
     p2, rest2 = eqx.partition(sky, eqx.is_inexact_array)
-    o2 = o2.replace(ray_depth=1, ray_backend="jax")
+    o2 = o2.with_keys(ray_depth=1, ray_backend="jax")
     img2, t2 = jax.jit(lambda p: jax.jvp(lambda q: ds.render(eqx.combine(q, rest2), o2), (p,), (jax.tree.map(jnp.ones_like, p),)))(p2)
     assert bool(jnp.all(jnp.isfinite(img2))) and bool(jnp.all(jnp.isfinite(t2)))

@@ -65,7 +65,7 @@ def test_plane_with_opacity_over_background():
     bg = np.array([0.2, 0.4, 0.9])
     scene = ds.Scene(mesh=ds.quad((2, 2)), camera=cam, material=mat, directional=dlight([0, 0, -1]),
                      ambient_light=0.5, background=bg)
-    opts = ds.RenderOptions(transparency=True, layers=2, specular="none")
+    opts = ds.RenderOptions(lighting=ds.Lighting(specular="none"), transparency=ds.Transparency(layers=2))
     img = render(scene, opts)
     d = rays(cam)
     hit = 3.0 * d / -d[..., 2:3]  # ray to the plane z = 0
@@ -96,7 +96,7 @@ def slab_scene(mu, size=24, thickness=0.6, opacity=0.0):
 def test_slab_absorption_bouguer():
     mu = np.array([0.3, 0.8, 1.5])
     scene = slab_scene(mu)
-    opts = ds.RenderOptions(transparency=True, absorption=True, layers=3, specular="none")
+    opts = ds.RenderOptions(lighting=ds.Lighting(specular="none"), transparency=ds.Transparency(layers=3, absorption=True))
     img = render(scene, opts)
     cam = scene.camera
     d = rays(cam)
@@ -125,8 +125,9 @@ def test_kay_opacity_on_sphere_centre_and_silhouette(shading):
     cam = camera([0, 0, 40], [0, 0, 0], 48, fov=3.4)
     mat = ds.Material(emission=1.0, kay=True, kay_min=0.9, kay_max=0.2, kay_power=2.0)
     scene = ds.Scene(mesh=ds.icosphere(5), camera=cam, material=mat, background=0.0)
-    opts = ds.RenderOptions(transparency=True, layers=1, ambient=False, diffuse=False, specular="none", emission=True,
-                            shading=shading)
+    opts = ds.RenderOptions(raster=ds.Raster(shading=shading),
+                            lighting=ds.Lighting(ambient=False, diffuse=False, specular="none", emission=True),
+                            transparency=ds.Transparency(layers=1))
     t = render(scene, opts)[..., 0]
     d = rays(cam)
     eye = np.asarray(cam.eye)
@@ -158,7 +159,8 @@ def transmission_scene(light_dir, fresnel="none", m=20.0, ior=1.5, size=16):
     cam = camera([0, 0, 3], [0, 0, 0], size, fov=20)
     mat = ds.Material(ambient=0.0, diffuse=0.0, specular=0.0, shininess=m, ior=ior, transmission=(0.5, 0.7, 0.9))
     scene = ds.Scene(mesh=ds.quad((3, 3)), camera=cam, material=mat, directional=dlight(light_dir, (1.0, 0.8, 0.6)))
-    opts = ds.RenderOptions(transmission=True, ambient=False, diffuse=False, specular="none", fresnel=fresnel)
+    opts = ds.RenderOptions(lighting=ds.Lighting(transmission=True, ambient=False, diffuse=False, specular="none",
+                                                 fresnel=fresnel))
     return scene, opts
 
 
@@ -230,7 +232,8 @@ def shadow_scene(kind, size=48, pcf=1, shading="phong"):
                                        axis=[-0.2, -1, 0.1], cutoff=60.0, exponent=0.0, edge=0.0)
     scene = ds.Scene(mesh=ds.combine(plane, sph), camera=cam, material=mats[0], materials=mats[1:],
                      ambient_light=1.0, background=0.0, **lights)
-    opts = ds.RenderOptions(specular="none", shadows=True, shadow_pcf=pcf, shading=shading)
+    opts = ds.RenderOptions(raster=ds.Raster(shading=shading), lighting=ds.Lighting(specular="none"),
+                            shadows=ds.ShadowMaps(pcf=pcf))
     return scene, opts
 
 
@@ -290,7 +293,7 @@ def test_material_that_casts_no_shadow():
     scene, opts = shadow_scene("directional", size=24)
     glass = ds.Material(ambient=0.3, diffuse=0.6, specular=0.0, casts_shadow=False)
     lit_all = with_(scene, materials=(glass,))
-    plane = np.asarray(_jit_render(opts.replace(shadows=False))(scene))
+    plane = np.asarray(_jit_render(opts.replace(shadows=None))(scene))
     a, b = render(scene, opts), render(lit_all, opts)
     assert (np.abs(a - plane).max(-1) > 0.05).sum() > 10  # the sphere's shadow
     np.testing.assert_allclose(b, plane, atol=1e-12)  # no shadow without its faces in the map
@@ -305,7 +308,7 @@ def test_shadows_off_cost_nothing_and_bias_changes_do_not_recompile():
         s = with_(scene, shadow_bias=bias)
         assert np.all(np.isfinite(np.asarray(f(s))))
     assert f._cache_size() == n
-    plain = jax.jit(lambda s: ds.render(s, opts.replace(shadows=False))).lower(scene).as_text()
+    plain = jax.jit(lambda s: ds.render(s, opts.replace(shadows=None))).lower(scene).as_text()
     with_shadows = jax.jit(f).lower(scene).as_text()
     # Off, the program rasterizes once (the camera); on, once more per light (the native kernel
     # is a custom call; the portable backend would show as a loop instead).
@@ -424,7 +427,8 @@ def _face_data(scene):
 @pytest.mark.parametrize("n_panes,layers,sort", [(1, 2, False), (3, 5, True)])
 def test_compositing_matches_seed_zbuffer_with_transparency_buffers(n_panes, layers, sort):
     scene = _panes_scene(32, n_panes)
-    opts = ds.RenderOptions(shading="flat", specular="none", transparency=True, layers=layers)
+    opts = ds.RenderOptions(raster=ds.Raster(shading="flat"), lighting=ds.Lighting(specular="none"),
+                            transparency=ds.Transparency(layers=layers))
     img = render(scene, opts)
     V, F, color, t = _face_data(scene)
     d = rays(scene.camera)
@@ -440,8 +444,9 @@ def test_compositing_matches_seed_zbuffer_with_transparency_buffers(n_panes, lay
 
 def test_more_surfaces_than_layers_fall_back_to_background():
     scene = _panes_scene(24, 3, opaque_sphere=False)
-    full = ds.RenderOptions(shading="flat", specular="none", transparency=True, layers=3)
-    cut = full.replace(layers=2)
+    full = ds.RenderOptions(raster=ds.Raster(shading="flat"), lighting=ds.Lighting(specular="none"),
+                            transparency=ds.Transparency(layers=3))
+    cut = full.replace(transparency=ds.Transparency(layers=2))
     a, b = render(scene, full), render(scene, cut)
     assert ds.truncated_pixels(scene, full) == 0
     n_cut = ds.truncated_pixels(scene, cut)
@@ -464,8 +469,8 @@ def test_more_surfaces_than_layers_fall_back_to_background():
 
 # --- gradients and hard cases ---------------------------------------------------------------------
 
-GRAD_OPTS = ds.RenderOptions(transparency=True, absorption=True, transmission=True, layers=3, shadows=True,
-                             shadow_resolution=64, fresnel="dielectric")
+GRAD_OPTS = ds.RenderOptions(lighting=ds.Lighting(transmission=True, fresnel="dielectric"),
+                             transparency=ds.Transparency(layers=3, absorption=True), shadows=ds.ShadowMaps(resolution=64))
 
 
 def grad_scene(size=12):

@@ -61,7 +61,7 @@ def test_bilinear_pairs_and_clamp_are_not_linear():
     lin, why = split_linear(ps, opts)
     assert [ps.params[i].name for i in lin] == ["material.diffuse", "ambient_light"]
     assert "multiplies a free material diffuse" in why["point[0].color"]
-    lin, why = split_linear(ps, opts.replace(clamp=True))
+    lin, why = split_linear(ps, opts.with_keys(clamp=True))
     assert lin == [] and "clamp" in why["material.diffuse"]
 
 
