@@ -171,8 +171,8 @@ def main():
         import jax
         import jax.numpy as jnp
         import diffshade as ds
-        from fitting.fit import fit
-        from fitting.params import ParamSet
+        from fitting import fit
+        from fitting import ParamSet
 
         scene, opts = diffshade_scene(args.size)
         shared = ["material.specular"]

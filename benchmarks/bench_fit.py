@@ -25,8 +25,8 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 
 import diffshade as ds  # noqa: E402
 from fitting.cli import DEMO_FREE  # noqa: E402
-from fitting.fit import fit  # noqa: E402
-from fitting.params import ParamSet  # noqa: E402
+from fitting import fit  # noqa: E402
+from fitting import ParamSet  # noqa: E402
 
 
 def main():

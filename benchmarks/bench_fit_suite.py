@@ -47,8 +47,8 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 import diffshade as ds  # noqa: E402
-from fitting.fit import fit  # noqa: E402
-from fitting.params import ParamSet  # noqa: E402
+from fitting import fit  # noqa: E402
+from fitting import ParamSet  # noqa: E402
 
 
 BUNNY = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests", "data", "meshes", "bunny.ply")

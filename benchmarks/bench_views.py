@@ -47,9 +47,10 @@ def child(size: int, n: int, devices: int, repeats: int) -> dict:
     sys.path.insert(0, os.path.join(HERE, ".."))
     import diffshade as ds
     from fitting.cli import DEMO_FREE
-    from fitting.solve import compiled_program, limits
-    from fitting.problem import Problem
-    from fitting.strategy import Reduced, candidates
+    from fitting._varpro import compiled_program, limits
+    from fitting._problem import Problem
+    from fitting._linear import Reduced
+    from fitting._starts import candidates
 
     d = dict(ds.DEFAULT_SCENE)
     d["camera"] = dict(d["camera"], width=size, height=size)

@@ -39,7 +39,7 @@ def load_target(path: Path, resolution: tuple[int, int], with_quantum: bool = Fa
     codes are decoded to linear values; the ends are fixed points of every encoding, so a clipped
     code (0 or the top one) is decided on the encoded value and stays clipped. ``.npy`` floats
     are linear unless an encoding is given. ``decoded`` False: the code values themselves (in
-    [0, 1]), for :func:`fitting.fit.fit`'s ``encoding``. ``with_alpha``: an RGBA image is accepted
+    [0, 1]), for :func:`fitting.fit`'s ``encoding``. ``with_alpha``: an RGBA image is accepted
     and its alpha channel (in [0, 1], never decoded) returned last, None for RGB."""
     import numpy as np
 
@@ -225,8 +225,7 @@ def cmd_demo(args) -> int:
 
     import diffshade as ds
 
-    from .fit import fit
-    from .params import ParamSet
+    from . import ParamSet, fit
 
     scene, opts = ds.default_scene()
     if args.size != scene.camera.width:
@@ -319,8 +318,7 @@ def cmd_fit(args) -> int:
     import diffshade as ds
     from diffshade import color as _color
 
-    from .fit import compare_models, fit
-    from .params import ParamSet
+    from . import ParamSet, compare_models, fit
 
     scene_path = Path(args.scene)
     scene, opts = ds.load_scene(scene_path)
@@ -456,22 +454,6 @@ def cmd_fit(args) -> int:
     return EXIT_OK if r.successful else EXIT_FIT
 
 
-def enable_compilation_cache(path: str | None = None) -> str:
-    """Turn on JAX's persistent compilation cache (default ``~/.cache/diffshade/xla``, or
-    ``$DIFFSHADE_CACHE``): a second run of a fit of the same structure loads its programs
-    instead of compiling them."""
-    import os
-
-    import jax
-
-    path = path or os.environ.get("DIFFSHADE_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "diffshade", "xla")
-    os.makedirs(path, exist_ok=True)
-    jax.config.update("jax_compilation_cache_dir", path)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    return path
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="diffshade", description=__doc__.replace("``", ""),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -533,11 +515,12 @@ def main(argv=None) -> int:
     p.set_defaults(func=cmd_demo)
     args = parser.parse_args(argv)
     if not args.no_cache:
+        from ._cache import enable_compilation_cache
+
         enable_compilation_cache()
     import diffshade as ds
 
-    from .fit import FitError
-    from .params import ParamError
+    from . import FitError, ParamError
 
     try:
         return args.func(args)

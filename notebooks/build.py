@@ -165,8 +165,8 @@ float64 polish, and for each parameter the standard error and the profile-likeli
 (the range where the χ², the others re-fitted, rises by less than 9: ±3 s.e. where the image is
 linear in the parameters, wider where a trade-off bends)."""),
     ("code", SETUP + """
-from fitting.fit import fit
-from fitting.params import ParamSet
+from fitting import fit
+from fitting import ParamSet
 from fitting.cli import DEMO_FREE
 
 SIZE = 48 if SMALL else 256
@@ -239,7 +239,7 @@ print("gauges:", r2.gauges)
 assert r2.undetermined == ["material.shininess"] and r2.gauges"""),
     ("md", "## Which terms do the images support?\n\n`compare_models` fits nested term sets (no specular, Phong ↔ Blinn, no fog) and ranks them by BIC."),
     ("code", """\
-from fitting.fit import compare_models
+from fitting import compare_models
 scores = compare_models(s0, opts, target, DEMO_FREE, saturation=1.0, given=r)
 for m in scores:
     print(f"{m.name:12s} k={m.k:2d}  RSS={m.rss:.4e}  ΔBIC={m.bic - scores[0].bic:10.1f}  {m.fit.result or 'successful'}")
@@ -325,8 +325,8 @@ print(f"float32 {res['float32'][0]:.2f} ms, float64 {res['float64'][0]:.2f} ms; 
 assert d < 1e-4"""),
     ("md", "## Method and iteration count: time to fit against parameter error\n\nThe 13 parameters of the demo from a start 30% off, noise-free target, from that start alone (no global search, no polish), each method with a cap on its steps: the default compiled variable-projection program (9 reflectances solved exactly under their bounds at every step, Marquardt-scaled LM on the 4 nonlinear parameters with Kaufman's Jacobian), optimistix's LM or Dogleg on the same reduced residual, and Levenberg–Marquardt on all 13."),
     ("code", """\
-from fitting.fit import fit
-from fitting.params import ParamSet
+from fitting import fit
+from fitting import ParamSet
 from fitting.cli import DEMO_FREE
 fs, fo = scene_with(SIZE)
 fs = cast(fs, jnp.float32)
@@ -515,8 +515,8 @@ In the example every light is on the camera's side of the glass, so no light rea
 *through* it: the image does not depend on `k_t` at all, and the fit says so — the transmission
 is reported undetermined (infinite standard error) and left at its start."""),
     ("code", """\
-from fitting.fit import fit
-from fitting.params import ParamSet
+from fitting import fit
+from fitting import ParamSet
 names = ["material[1].opacity", "material[1].absorption", "material[1].transmission",
          "material[2].kay_min", "material[2].kay_max", "material[2].kay_power"]
 fopts = opts.replace(layers=5, shadows=False)
@@ -690,8 +690,8 @@ truth): seen through the ball, the chequers move with η, so away from the truth
 from a parabola (its local minima are counted below) — a fit of a refractive index needs a start
 in the right basin, as any local method does on a textured background."""),
     ("code", """\
-from fitting.fit import fit
-from fitting.params import ParamSet
+from fitting import fit
+from fitting import ParamSet
 truth, topts = glass_scene(SIZE, ball=dict(ior=1.52, refraction=0.85), render={"ray_depth": 2 if SMALL else 3, "fresnel": "dielectric"})
 clean = np.asarray(render(truth, topts))
 photo = np.round(np.clip(clean + np.random.default_rng(0).normal(0, 2 / 255, clean.shape), 0, 1) * 255) / 255
@@ -756,8 +756,8 @@ The fit frees:
 import importlib.util, json, tempfile
 from pathlib import Path
 from diffshade import color as _color
-from fitting.fit import fit
-from fitting.params import ParamSet
+from fitting import fit
+from fitting import ParamSet
 
 import fitting
 ROOT = Path(fitting.__file__).resolve().parent.parent   # the repository (the examples are not a package)

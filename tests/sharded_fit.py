@@ -30,8 +30,8 @@ jax.config.update("jax_enable_x64", True)
 import equinox as eqx  # noqa: E402
 
 import diffshade as ds  # noqa: E402
-from fitting.fit import fit  # noqa: E402
-from fitting.problem import Problem  # noqa: E402
+from fitting import fit  # noqa: E402
+from fitting._problem import Problem  # noqa: E402
 
 TRUTH = {"material.diffuse": [0.75, 0.35, 0.25], "material.specular": [0.5, 0.5, 0.5], "material.shininess": 30.0,
          "point[0].a1": 0.05, "view[*].camera.exposure": [1.1, 1.2, 1.3]}
@@ -62,7 +62,7 @@ def views():
 
 def collectives():
     """Every collective in the compiled programs: (kind, elements of its largest operand)."""
-    from fitting.strategy import _CACHE
+    from fitting._cache import _CACHE
 
     out = []
     for c in _CACHE.values():

@@ -14,10 +14,10 @@ import pytest
 import trimesh
 
 import diffshade as ds
-from fitting.albedo import AlbedoProblem, vertex_colouring
+from fitting._albedo import AlbedoProblem, vertex_colouring
 from fitting.cli import EXIT_OK, main
-from fitting.fit import fit
-from fitting.problem import Problem
+from fitting import fit
+from fitting._problem import Problem
 
 SIZE = 40
 EYES = [(0.0, 0.0, 3.0), (2.5, 0.6, 1.5), (-2.5, 0.6, 1.5)]

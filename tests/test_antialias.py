@@ -184,8 +184,8 @@ def test_a_material_fit_with_the_stage_on_fits_the_ring_beside_the_silhouette():
     """With antialias on, the fit shades and fits the background pixels beside the silhouette
     as well (the blend puts the surface into them) and recovers the material exactly from a
     target rendered the same way; the scene gets its mesh topology on the way in."""
-    from fitting.fit import fit
-    from fitting.problem import Problem
+    from fitting import fit
+    from fitting._problem import Problem
 
     scene, opts = small_default_scene(32, 32)
     aa = opts.replace(antialias=True)
@@ -211,7 +211,7 @@ def test_pose_fit_with_the_silhouette_in_it():
     off, comes back to within the issue's 0.05° (measured 0.019°); without the stage the same fit
     stops 0.77° off. (The verdict rejects both on this noise-free target: corner pixels and
     visibility flips between passes leave residuals far above float rounding.)"""
-    from fitting.fit import fit
+    from fitting import fit
 
     from conftest import pose_problem
 

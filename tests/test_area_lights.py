@@ -98,8 +98,8 @@ def test_scene_file_area_light_and_errors():
 
 
 def test_fit_recovers_an_area_lights_colour_and_size():
-    from fitting.fit import fit
-    from fitting.params import ParamSet
+    from fitting import fit
+    from fitting import ParamSet
 
     d = dict(ds.DEFAULT_SCENE)
     d["mesh"] = {"quad": [4, 4], "normal": [0, 0, 1]}
@@ -123,8 +123,8 @@ def test_fit_recovers_an_area_lights_colour_and_size():
 def test_fit_recovers_light_positions():
     # a position is a real parameter (x, y, z; no bounds): an area light's and a point light's,
     # moved by 0.2-0.4 units, come back from one image
-    from fitting.fit import fit
-    from fitting.params import ParamSet
+    from fitting import fit
+    from fitting import ParamSet
 
     d = dict(ds.DEFAULT_SCENE)
     d["mesh"] = {"quad": [4, 4], "normal": [0, 0, 1]}

@@ -259,7 +259,7 @@ def test_a_camera_two_degrees_off_is_refined_to_the_truth_from_one_view():
     """Pose refinement from one view of a textured (per-vertex-coloured) sphere: the fit re-
     rasterises the visibility between passes (it has no gradient) and moves the pose by the
     shading and colours inside the silhouette (margin 2 keeps the silhouette out)."""
-    from fitting.fit import fit
+    from fitting import fit
 
     from conftest import pose_problem
 

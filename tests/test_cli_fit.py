@@ -12,7 +12,7 @@ import skimage.io
 
 import diffshade as ds
 from fitting.cli import EXIT_INPUT, EXIT_OK, main
-from fitting.fit import fit
+from fitting import fit
 
 SCENE = """
 [mesh]
@@ -161,7 +161,7 @@ def test_clipped_target_is_censored_not_fitted_to_the_clip():
     free = ["material.specular", "material.shininess"]
     start = fit(scene, opts, target, free, max_steps=0)  # structure only; start = truth
     true = start.start
-    from fitting.params import ParamSet
+    from fitting import ParamSet
 
     s0 = ParamSet(free, scene).apply(scene, jax.numpy.asarray(true * 0.8))
     cens = fit(s0, opts, target, free, saturation=1.0)

@@ -141,8 +141,8 @@ def test_a_fit_to_an_srgb_photograph_declared_as_such_and_declared_wrongly():
     # encoding chunks exist to prevent), the same fit is biased and says so
     import diffshade as ds
     from conftest import small_default_scene
-    from fitting.fit import fit
-    from fitting.params import ParamSet
+    from fitting import fit
+    from fitting import ParamSet
 
     scene, opts = small_default_scene(32, 32)
     free = ["material.diffuse", "material.shininess", "point[0].a1"]

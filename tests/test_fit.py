@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import diffshade as ds
-from fitting.fit import FitError, fit
-from fitting.params import ParamError, ParamSet
+from fitting import FitError, fit
+from fitting import ParamError, ParamSet
 
 from conftest import small_default_scene
 
@@ -80,7 +80,7 @@ def test_float32_scene_fits_in_a_float64_session():
     scene = jax.tree.map(lambda x: x.astype(np.float32) if np.issubdtype(x.dtype, np.floating) else x, scene)
     target = jax.jit(ds.render, static_argnames="opts")(scene, opts)
     assert target.dtype == np.float32
-    from fitting.params import ParamSet
+    from fitting import ParamSet
 
     ps = ParamSet(["material.diffuse"], scene)
     s0 = ps.apply(scene, ps.theta_of(scene) * 0.8)
@@ -198,7 +198,7 @@ def test_white_noise_is_noise_spread_over_every_pixel_not_a_few_jumps():
     # signal (photon noise), and quantised noise are taken whole; a residual carried by a few
     # pixels that jump (refracted rays crossing a tile edge: a fit that stopped next to the
     # truth) is not noise, and the fit is rejected rather than called a success
-    from fitting.report import noise_ratio_limit, verdict, white_noise
+    from fitting._report import noise_ratio_limit, verdict, white_noise
 
     rng = np.random.default_rng(0)
     H, W = 48, 64
@@ -227,7 +227,7 @@ def test_white_noise_is_noise_spread_over_every_pixel_not_a_few_jumps():
 def test_margin_leaves_out_the_pixels_next_to_the_silhouette_and_the_mask_edge():
     from skimage.morphology import erosion
 
-    from fitting.problem import Problem
+    from fitting._problem import Problem
 
     scene, opts = small_scene()
     target = np.zeros(scene.camera.resolution + (3,))
@@ -251,7 +251,7 @@ def test_margin_also_leaves_out_occlusion_edges_inside_the_object():
     """A small sheet in front of a large one: the pixels where one meets the other (a jump in
     depth far larger than the change from pixel to pixel) are an edge like the silhouette; a
     curved surface seen at any angle (the sphere) has none inside its silhouette."""
-    from fitting.problem import near_edges, pixel_depths
+    from fitting._problem import near_edges, pixel_depths
 
     back = ds.quad((2.0, 2.0), center=(0.0, 0.0, -0.5), divisions=4)
     front = ds.quad((0.8, 0.8), center=(0.0, 0.0, 0.5), divisions=2)
@@ -338,7 +338,7 @@ def test_a_converged_fit_replaces_an_unconverged_one_when_both_are_below_the_flo
     float64: an unconverged polish at 0.007× the floor against a converged fit at 0.24× it);
     with noise, a converged attempt whose residual is larger by more than one unit of χ² does
     not replace a lower one."""
-    from fitting.report import better
+    from fitting._report import better
 
     theta = np.zeros(5)
     n2 = 10_000
@@ -346,7 +346,7 @@ def test_a_converged_fit_replaces_an_unconverged_one_when_both_are_below_the_flo
     def cand(converged, ratio, rss, source):
         return dict(converged=converged, ratio=ratio, rss=rss, source=source, theta=theta)
 
-    from fitting.report import FLOAT_FLOOR_SOURCE as floor
+    from fitting._report import FLOAT_FLOOR_SOURCE as floor
     assert better(cand(True, 0.24, 1e-24, floor), cand(False, 0.007, 1e-27, floor), n2)
     assert not better(cand(False, 0.24, 1e-24, floor), cand(False, 0.007, 1e-27, floor), n2)
     noisy = "white part of the residual"
@@ -361,10 +361,10 @@ def test_the_polish_leaves_an_exp2_fog_density_of_zero_that_the_image_does_not_w
     truth, 0.061 ± 0.005, had Δχ² = 33 less) with the reflectances compensating, called it a
     success and put k_a 26 s.e. from the truth. From that kind of point — density ~0, the
     reflectances at their best for it — the polish must find the fog again."""
-    from fitting.polish import polish
-    from fitting.problem import Problem
-    from fitting.solve import evaluator
-    from fitting.strategy import Reduced
+    from fitting._polish import polish
+    from fitting._problem import Problem
+    from fitting._varpro import evaluator
+    from fitting._linear import Reduced
 
     scene, opts = small_default_scene(32, 32, fog="exp2")
     clean = np.asarray(jax.jit(ds.render, static_argnames="opts")(scene, opts))
@@ -393,9 +393,9 @@ def test_a_polish_step_that_would_cross_a_bound_holds_that_variable_there():
     clipped after it was solved is no descent step there: the polish used to reject, damp and
     crawl (20 evaluations without converging from two of these starts); holding a1 at the
     bound and solving for a2 again reaches the optimum in a few, and a1 is reported on its bound."""
-    from fitting.polish import polish
-    from fitting.problem import Problem
-    from fitting.strategy import Reduced
+    from fitting._polish import polish
+    from fitting._problem import Problem
+    from fitting._linear import Reduced
 
     scene, opts = small_default_scene(8, 8)
     prob = Problem.build(scene, opts, [np.zeros((8, 8, 3))], ["point[0].a1", "point[0].a2"])
@@ -482,7 +482,7 @@ def test_the_linear_reach_from_a_point_ends_at_the_level_inside_the_box():
     # within the level
     import types
 
-    from fitting.intervals import linear_reach
+    from fitting._intervals import linear_reach
 
     rng = np.random.default_rng(1)
     A = np.zeros((300, 4))
@@ -517,7 +517,7 @@ def test_the_linear_reach_from_a_point_ends_at_the_level_inside_the_box():
 
 
 def test_points_within_the_level_join_the_intervals():
-    from fitting.intervals import cover_points
+    from fitting._intervals import cover_points
 
     interval = np.array([[0.0, 0.02], [1.0, 30.0], [np.nan, np.nan]])
     points = [(4.0, np.array([0.01, 50.0, 3.0])), (0.5, np.array([0.9, 20.0, 3.0])), (8.0, np.array([0.01, 10.0, 0.0]))]
@@ -531,8 +531,8 @@ def test_points_within_the_level_join_the_intervals():
 def test_intervals_cover_a_second_solution_the_images_cannot_tell_apart():
     # the alternative's values and its own ±3 s.e. join the intervals of the scalars it moves;
     # the others are left alone, and the domain still bounds them
-    from fitting.intervals import cover_alternative
-    from fitting.report import uncertainty
+    from fitting._intervals import cover_alternative
+    from fitting._report import uncertainty
 
     labels = ["k_s", "m", "a1"]
     interval = np.array([[0.0, 0.02], [0.1, 0.6], [0.05, 0.15]])

@@ -10,8 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 
 import diffshade as ds
-from fitting.fit import fit
-from fitting.params import ParamSet
+from fitting import fit
+from fitting import ParamSet
 
 from conftest import small_default_scene
 

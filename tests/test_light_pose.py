@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 import diffshade as ds
-from fitting.fit import fit
-from fitting.params import ParamError, ParamSet, direction_frame, direction_of, tilt_of
+from fitting import fit
+from fitting import ParamError, ParamSet, direction_frame, direction_of, tilt_of
 
 from conftest import check_grads
 

@@ -157,8 +157,8 @@ def test_scene_file_multi_lobe_errors():
 
 
 def test_fit_names_and_recovery_of_lobe_colours_and_a_cutoff():
-    from fitting.fit import fit
-    from fitting.params import ParamError, ParamSet
+    from fitting import fit
+    from fitting import ParamError, ParamSet
 
     d = _dict([_multi()], size=24, specular="none", per_light_ambient=False)
     scene, opts = ds.scene_from_dict(d)

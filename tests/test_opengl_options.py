@@ -93,8 +93,8 @@ def test_shadows_with_vertex_clamp_is_a_clear_error():
 
 
 def test_fit_names_and_recovery_of_a_separate_specular_colour():
-    from fitting.fit import fit
-    from fitting.params import ParamError, ParamSet
+    from fitting import fit
+    from fitting import ParamError, ParamSet
 
     d = dict(ds.DEFAULT_SCENE)
     d.pop("fog", None)

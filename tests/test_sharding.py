@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import diffshade as ds
-from fitting.problem import Problem, ViewData, stack_views, view_devices
+from fitting._problem import Problem, ViewData, stack_views, view_devices
 
 from conftest import small_default_scene
 

@@ -213,8 +213,8 @@ def test_fit_recovers_the_index_of_glass_before_a_chequered_wall(tmp_path):
     # the verdict rejects it: see test_report's white-noise test)
     import trimesh
 
-    from fitting.fit import fit
-    from fitting.params import ParamSet
+    from fitting import fit
+    from fitting import ParamSet
 
     b = trimesh.creation.box(extents=[1.4, 1.2, 0.5])
     b.apply_transform(trimesh.transformations.rotation_matrix(np.deg2rad(30), [0, 1, 0]))
@@ -253,8 +253,8 @@ def test_fit_recovers_a_mirrors_weight_from_the_reflection_of_a_lit_ball():
     # black background: the floor shows nothing but the ball's reflection, so k_r is seen only
     # there; fitted with the ball's own k_d (their product is what the reflection shows, the
     # ball seen directly tells them apart), the mirror weight starting on its lower bound 0
-    from fitting.fit import fit
-    from fitting.params import ParamSet
+    from fitting import fit
+    from fitting import ParamSet
 
     d = {"camera": {"eye": [0, 0.8, 4], "target": [0, -0.3, 0], "up": [0, 1, 0], "fov_y": 40, "near": 0.1, "far": 50,
                     "width": 28, "height": 24},

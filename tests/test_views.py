@@ -15,8 +15,8 @@ import diffshade as ds
 from conftest import opencv_look_at as _look_at
 from conftest import small_default_scene
 from fitting.cli import EXIT_INPUT, EXIT_OK, main
-from fitting.fit import fit
-from fitting.params import ParamError, ParamSet
+from fitting import fit
+from fitting import ParamError, ParamSet
 
 SIZE = 32
 EYES = [(0.0, 0.0, 3.0), (1.5, 0.5, 2.5), (-1.2, 1.0, 2.6)]
@@ -205,7 +205,7 @@ def test_cli_fits_through_a_calibrated_distorting_camera(tmp_path, capsys):
 def test_each_view_keeps_its_index_with_a_margin(views):
     """The compacted data of view k applies view k's own parameters, whatever the options (a
     margin once renamed the loop's view index)."""
-    from fitting.problem import Problem
+    from fitting._problem import Problem
 
     vs, opts, targets = views
     for margin in (0, 1):
@@ -218,7 +218,7 @@ def test_relinearised_residuals_are_the_code_value_residuals(views):
     the residual in code values, encode(I) − v, at every uncensored entry (the first pass's
     weights, taken at the noisy code, only agree to first order)."""
     from diffshade import color as _color
-    from fitting.problem import Problem
+    from fitting._problem import Problem
 
     vs, opts, targets = views
     rng = np.random.default_rng(4)

@@ -1,13 +1,13 @@
 """The strategy as it runs: variable projection with the global start and restarts (the default),
 or optimistix's solvers on the reduced problem; then the polish, the other basins and the report.
 
-- :func:`fit_varpro` runs the one compiled program (:mod:`fitting.program`) from the given start,
-  polishes (:mod:`fitting.polish`), and if the verdict rejects the result ranks the global start's
+- :func:`fit_varpro` runs the one compiled program (:mod:`fitting._varpro`) from the given start,
+  polishes (:mod:`fitting._polish`), and if the verdict rejects the result ranks the global start's
   candidates and runs again from the best one outside the basins explored;
 - :func:`fit_optimistix` runs optimistix's Levenberg–Marquardt (dogleg, Gauss–Newton) from the
   best of the candidates ranked on a pixel subset;
-- both hand their best solution to the scan for other basins (:mod:`fitting.basins`) and to the
-  report (:func:`fitting.report.build_result`).
+- both hand their best solution to the scan for other basins (:mod:`fitting._basins`) and to the
+  report (:func:`fitting._report.build_result`).
 """
 
 from __future__ import annotations
@@ -18,116 +18,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .basins import other_basins
-from .polish import polish
-from .problem import to_host
-from .program import flat_data, make_program
-from .report import better, build_result, candidate, noise_ratio_limit
-from .strategy import candidates, compiled, lm_solve, result_message
+from ._basins import other_basins
+from ._cache import compiled
+from ._optimistix import lm_solve, result_message
+from ._polish import polish, relinearise
+from ._report import better, build_result, candidate, noise_ratio_limit
+from ._starts import candidates
+from ._varpro import Evaluator, Program, compiled_program, evaluator
 
 SEARCH_PIXELS = 512  # covered pixels per view used to rank the global starts (optimistix's path)
 
 
-def limits(max_steps, rtol, dtype):
-    """The solve program's step limit and tolerance, as the data they are."""
-    return jnp.asarray(max_steps, jnp.int32), jnp.asarray(rtol, dtype)
-
-
-def compiled_program(prob, red, U, theta_ref, history=0, verbose=False):
-    """The compiled program (:mod:`fitting.program`) for these shapes (``U``: the candidate
-    starts, ``[C, n_nonlinear]``) and the seconds its compile took (0 when cached).
-    ``history``: the capacity of the recorded path (0: none)."""
-    dtype = prob.dtype
-    n2, _ = prob.counts()
-    z = jnp.zeros(len(red.idx_l) + len(red.idx_n), dtype)
-    args = (z, prob.device_data(), theta_ref, jnp.asarray(n2, dtype), jnp.asarray(0), *limits(0, 0.0, dtype),
-            jnp.asarray(U, dtype))
-    return compiled(prob, "program", make_program(red, history=history, verbose=verbose), *args,
-                    extra=(history, verbose, red.idx_n.tobytes()))
-
-
-class Program:
-    """The compiled program's three modes, called with the problem's data."""
-
-    def __init__(self, fn, prob, red, theta_ref, U):
-        self.fn, self.prob, self.red, self.theta_ref = fn, prob, red, theta_ref
-        self.dtype = prob.dtype
-        self.U = jnp.asarray(U, self.dtype)
-        self.n2 = jnp.asarray(prob.counts()[0], self.dtype)
-
-    def _call(self, z, mode, max_steps=0, rtol=0.0):
-        return self.fn(jnp.asarray(z, self.dtype), self.prob.device_data(), self.theta_ref, self.n2,
-                       jnp.asarray(mode), *limits(max_steps, rtol, self.dtype), self.U)
-
-    def solve(self, z0, max_steps, rtol):
-        """Variable-projection LM from ``z0 = (x, u)``."""
-        return self._call(z0, 0, max_steps, rtol)
-
-    def evaluate(self, z):
-        """Image and tangents at ``z`` in natural units."""
-        return self._call(z, 1)
-
-    def rank(self, x0, rows=None):
-        """The reduced cost of every candidate start (``x0``: the linear block's warm start), or of
-        the given ``rows`` of ``u`` (at most as many as the candidates: the program's shape)."""
-        z = np.concatenate([np.asarray(x0, np.float64), np.zeros(len(self.red.idx_n))])
-        if rows is None:
-            costs = np.asarray(self._call(z, 2)["costs"], np.float64)
-        else:
-            n = len(rows)
-            pad = np.concatenate([rows, np.repeat(rows[:1], len(self.U) - n, axis=0)])
-            U, self.U = self.U, jnp.asarray(pad, self.dtype)
-            try:
-                costs = np.asarray(self._call(z, 2)["costs"], np.float64)[:n]
-            finally:
-                self.U = U
-        return np.where(np.isfinite(costs), costs, np.inf)
-
-
-class Evaluator:
-    """The program in evaluation mode: ``ev(θ) -> (r, J, img)`` in float64, with ``r`` the
-    weighted, censored residual of the compacted pixels, ``J`` its Jacobian in the natural
-    parameters (censored entries that agree with the clipping have zero rows) and ``img`` the
-    model there."""
-
-    def __init__(self, program: Program):
-        self.program, self.red, self.prob = program, program.red, program.prob
-        self.refresh()
-        M = len(self.t)
-        self.lin_cols = (self.red.chan[:, np.arange(M) % 3] > 0) if len(self.red.idx_l) else None
-
-    def refresh(self):
-        """Take the problem's targets and weights again (after :meth:`Problem.relinearise`)."""
-        t, w, hi, lo = (np.asarray(a) for a in flat_data(self.prob.data))
-        self.t, self.w, self.hi, self.lo = t.astype(np.float64), w.astype(np.float64), hi, lo
-
-    def __call__(self, theta):
-        red = self.red
-        theta = np.asarray(theta, np.float64)
-        z = np.concatenate([theta[red.idx_l], theta[red.idx_n]])
-        out = self.program.evaluate(z)
-        img = to_host(out["img"]).astype(np.float64)
-        T = to_host(out["T"])
-        d = img - self.t
-        r = np.where(self.hi, np.minimum(d, 0), np.where(self.lo, np.maximum(d, 0), d)) * self.w
-        act = ~((self.hi & (d > 0)) | (self.lo & (d < 0)))
-        JT = np.empty((len(theta), len(d)))  # rows contiguous: the Jacobian's transpose
-        if len(red.idx_l):
-            JT[red.idx_l] = T[red.group] * self.lin_cols
-        JT[red.idx_n] = T[red.n_groups:]
-        JT *= self.w * act
-        return r, JT.T, img
-
-
-def evaluator(prob, red, theta_ref):
-    U = candidates(red, np.asarray(theta_ref, np.float64), 1)
-    fn, c = compiled_program(prob, red, U, theta_ref)
-    return Evaluator(Program(fn, prob, red, theta_ref, U)), c
-
-
 def fit_varpro(prob, red, theta0, *, starts, restarts, max_steps, polish_steps, rtol, noise, history, verbose,
                intervals=True):
-    """The default path: variable projection from the given start (:mod:`fitting.program`), then
+    """The default path: variable projection from the given start (:mod:`fitting._varpro`), then
     the polish; if the verdict rejects the result, the global start's candidates are ranked and
     the fit runs again from the best of them not yet explored, up to ``restarts`` times."""
     dtype = prob.dtype
@@ -281,23 +185,3 @@ def fit_optimistix(prob, red, theta0, *, solver, starts, restarts, max_steps, po
                                        else "the polish did not converge")
     return build_result(prob, red, best, theta0, notes, hist, steps_total, compile_s, solve_s, n2, n_cens, msg_solver,
                         ev, intervals)
-
-
-RELINEARISE_PASSES = 2
-
-
-def relinearise(prob, ev, red, best, polish_steps, rtol, n2, noise, notes):
-    """For encoded targets: residuals in code values, exactly at the model (IRLS passes of
-    :meth:`Problem.relinearise`, each followed by the polish from the current best)."""
-    if not prob.encoded:
-        return best, 0
-    steps = 0
-    for _ in range(RELINEARISE_PASSES):
-        prob.relinearise(best["img"])
-        ev.refresh()
-        theta, r, J, img, fixed, k1, converged = polish(ev, prob, red, best["theta"], polish_steps, rtol)
-        steps += k1
-        best = candidate(prob, theta, r, J, img, fixed, best["res"] if not converged else "", converged, k1, n2, noise)
-    notes.append(f"code values: weights and targets re-taken at the model {RELINEARISE_PASSES}× (Gauss–Newton on the "
-                 f"code-value residual); residual {best['ratio']:.3g}× the noise")
-    return best, steps

@@ -155,7 +155,7 @@ def profile_intervals(ev, theta, r, J, s2, stderr, lo, hi, k: float = 3.0):
 
 
 # ------------------------------------------------------------------------------------------
-# Points known to lie within the level widen the intervals (fitting.basins)
+# Points known to lie within the level widen the intervals (fitting._basins)
 # ------------------------------------------------------------------------------------------
 
 

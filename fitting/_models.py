@@ -11,8 +11,10 @@ import numpy as np
 
 import diffshade as ds
 
-from .problem import as_list
-from .report import FitResult
+from . import _options
+from ._fit import fit
+from ._problem import as_list
+from ._report import FitResult
 
 
 _SPECULAR_PARAMS = ("material.specular", "material.shininess", "material.ior",
@@ -38,16 +40,16 @@ def model_variants(scene: ds.Scene, opts: ds.RenderOptions, free):
     Given specular: without it, and Phong ↔ Blinn–Phong (the exponent's start converted by
     m' = 4m); given fog: without it. Free parameters of a removed term are dropped."""
     out = [("as given", opts, list(free), scene)]
-    if opts.specular != "none":
+    if _options.specular(opts) != "none":
         drop = [n for n in free if n in _SPECULAR_PARAMS]
-        out.append(("no specular", opts.replace(specular="none", fresnel="none"),
+        out.append(("no specular", _options.without_specular(opts),
                     [n for n in free if n not in drop], scene))
-        other = "blinn" if opts.specular == "phong" else "phong"
+        other = "blinn" if _options.specular(opts) == "phong" else "phong"
         conv = ds.phong_to_blinn if other == "blinn" else ds.blinn_to_phong
         s2 = eqx.tree_at(lambda s: s.material.shininess, scene, conv(scene.material.shininess))
-        out.append((other, opts.replace(specular=other), list(free), s2))
-    if opts.fog != "none":
-        out.append(("no fog", opts.replace(fog="none"), [n for n in free if not n.startswith("fog.")], scene))
+        out.append((other, _options.with_specular(opts, other), list(free), s2))
+    if _options.fog(opts) != "none":
+        out.append(("no fog", _options.without_fog(opts), [n for n in free if not n.startswith("fog.")], scene))
     return out
 
 
@@ -63,8 +65,6 @@ def compare_models(scene, opts, targets, free, *, variants=None, given: FitResul
     the one with fewer parameters wins instead of a comparison of rounding noise.
     ``given``: an existing fit of the model as given (not repeated).
     """
-    from .fit import fit
-
     targets = as_list(targets)
     variants = model_variants(scene, opts, free) if variants is None else variants
     dtype = scene.mesh.vertices.dtype

@@ -2,18 +2,18 @@
 
 ``fit`` reads as its three parts, each a module of its own:
 
-1. the **problem** (:mod:`fitting.problem`): views, targets, weights and censoring, compacted to
+1. the **problem** (:mod:`fitting._problem`): views, targets, weights and censoring, compacted to
    the covered pixels, giving residuals and the Jacobian;
 2. the **strategy**: variable projection of the parameters the image is linear in, in one
-   compiled program (:mod:`fitting.program`, :mod:`fitting.strategy`); the given start first, then
+   compiled program (:mod:`fitting._varpro`, :mod:`fitting._linear`); the given start first, then
    a global start for the nonlinear few and restarts when the verdict rejects a result
-   (:mod:`fitting.solve`); a float64 polish on the full problem (:mod:`fitting.polish`); a scan
-   for other basins the images cannot tell apart (:mod:`fitting.basins`);
-3. the **report** (:mod:`fitting.report`): the verdict (converged *and* explained by the noise),
-   standard errors, profile-likelihood intervals (:mod:`fitting.intervals`), identifiability,
+   (:mod:`fitting._restarts`); a float64 polish on the full problem (:mod:`fitting._polish`); a scan
+   for other basins the images cannot tell apart (:mod:`fitting._basins`);
+3. the **report** (:mod:`fitting._report`): the verdict (converged *and* explained by the noise),
+   standard errors, profile-likelihood intervals (:mod:`fitting._intervals`), identifiability,
    parameters on a bound, image quality.
 
-Which terms the images support: :func:`compare_models` (:mod:`fitting.models`).
+Which terms the images support: :func:`compare_models` (:mod:`fitting._models`).
 """
 
 from __future__ import annotations
@@ -23,14 +23,13 @@ import numpy as np
 
 import diffshade as ds
 
-from .models import ModelScore, compare_models, model_variants
-from .params import ParamSet
-from .problem import FitError, Problem, as_list
-from .report import FitResult
-from .solve import fit_optimistix, fit_varpro
-from .strategy import SOLVERS, Reduced
+from ._linear import Reduced
+from ._optimistix import SOLVERS
+from ._params import ParamSet
+from ._problem import FitError, Problem, as_list
+from ._report import FitResult
+from ._restarts import fit_optimistix, fit_varpro
 
-__all__ = ["FitError", "FitResult", "fit", "compare_models", "model_variants", "ModelScore"]
 
 
 def fit(
@@ -68,7 +67,7 @@ def fit(
     structure; they differ in camera, lights, ...), default ``scene`` for every target. A free
     parameter is shared by all views unless its name starts with ``view[i].`` (view ``i``'s own,
     e.g. an exposure; ``view[*].`` frees it for every view but the reference view 0: see
-    :mod:`fitting.params`). ``masks``: optional per-view ``[H, W]`` weights.
+    :mod:`fitting._params`). ``masks``: optional per-view ``[H, W]`` weights.
 
     The scene's values are the start of the nonlinear parameters (one of the ``starts`` ranked
     by the global search); the linear ones need none. ``restarts``: how many further starts are
@@ -79,7 +78,7 @@ def fit(
     files): a target channel at or above it is censored (one-sided residual), and so is one at 0.
     ``quantum``: the code step of an integer target (1/255, 1/65535), for the noise floor;
     ``noise``: the noise level σ if known (else estimated from the residual, see
-    :mod:`fitting.report`). ``rtol``/``atol``: the solver's tolerances, by default 1e-6 in
+    :mod:`fitting._report`). ``rtol``/``atol``: the solver's tolerances, by default 1e-6 in
     float32 and 1e-10 in float64. ``verbose``: print every solver step. ``history``: keep the
     loss and parameters of every accepted step in ``FitResult.history``.
 
@@ -94,7 +93,7 @@ def fit(
     surface there).
 
     ``mesh.colors`` among ``free`` (per-vertex albedo, with ``opts.vertex_color`` on) fits it as a
-    sparse linear block (:mod:`fitting.albedo`), with the smoothness prior
+    sparse linear block (:mod:`fitting._albedo`), with the smoothness prior
     ``albedo_smoothness`` λ (0: none) on the differences across mesh edges.
 
     A free camera pose (``camera.rvec``, ``camera.tvec``, per view or shared) moves what each
@@ -113,13 +112,13 @@ def fit(
 
     ``intervals``: with a successful fit to a target with noise (not a noise-free float one, whose
     σ is the float floor), also the profile-likelihood interval of every determined
-    scalar at Δχ² = 9 (``FitResult.interval``; :mod:`fitting.intervals`): the others re-fitted,
+    scalar at Δχ² = 9 (``FitResult.interval``; :mod:`fitting._intervals`): the others re-fitted,
     so a trade-off that bends (a faceted highlight's k_s and m) widens it where ±3 standard
     errors would not. Before them, a scan for other basins along each nonlinear scalar
-    (:func:`fitting.basins.other_basins`): a lower solution replaces the fit's, one within Δχ² = 9 is reported
+    (:func:`fitting._basins.other_basins`): a lower solution replaces the fit's, one within Δχ² = 9 is reported
     (``FitResult.ambiguous``, ``FitResult.alternative``) and covered by the intervals, and so are
     the scan's grid points within Δχ² = 9, the linear block solved there, and how far each
-    linear scalar reaches from those beyond the intervals (:func:`fitting.intervals.linear_reach`). A few
+    linear scalar reaches from those beyond the intervals (:func:`fitting._intervals.linear_reach`). A few
     evaluations per scalar; ``FitResult.interval_s`` says how long.
     """
     free = list(free)
@@ -142,7 +141,7 @@ def fit(
     theta0 = pset.theta_of(scene, views)
     pset.check(theta0)
     if any(p.path == ("mesh", "colors") for p in pset.params):
-        from .albedo import fit_albedo
+        from ._albedo import fit_albedo
 
         return fit_albedo(prob, np.asarray(theta0, np.float64), smoothness=albedo_smoothness,
                           max_steps=max(max_steps, 20), noise=noise, verbose=verbose,

@@ -37,8 +37,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .problem import FitError, Problem
-from .report import FitResult, image_quality, noise_level, uncertainty, verdict
+from . import _options
+from ._problem import FitError, Problem
+from ._report import FitResult, image_quality, noise_level, uncertainty, verdict
 
 
 def vertex_colouring(faces: np.ndarray, n_vertices: int) -> np.ndarray:
@@ -67,7 +68,7 @@ def _edges(faces: np.ndarray) -> np.ndarray:
 
 
 class AlbedoProblem:
-    """The albedo block of a :class:`fitting.problem.Problem`: the colouring, the compiled
+    """The albedo block of a :class:`fitting._problem.Problem`: the colouring, the compiled
     evaluation (image, compressed albedo tangents, other tangents) and the sparse assembly."""
 
     def __init__(self, prob: Problem, smoothness: float = 0.0):
@@ -77,11 +78,11 @@ class AlbedoProblem:
         self.prob = prob
         pset = prob.pset
         opts = prob.opts
-        if opts.vertex_color == "none":
+        if _options.vertex_color(opts) == "none":
             raise FitError("mesh.colors is free but render.vertex_color is 'none': the colours are not in the image")
-        if opts.clamp:
+        if _options.clamp(opts):
             raise FitError("mesh.colors with clamp = true: the image is not linear in the colours; fit without clamping")
-        if opts.layered:
+        if _options.layered(opts):
             raise FitError("mesh.colors with transparency layers is not supported")
         k = [i for i, p in enumerate(pset.params) if p.path == ("mesh", "colors")]
         if len(k) != 1 or pset.params[k[0]].view is not None:
@@ -307,7 +308,7 @@ def fit_albedo(prob: Problem, theta0, *, smoothness: float = 0.0, max_steps: int
 
     th, r, Jr, cost, A, seen, free, img, steps, converged = lm(theta, max_steps)
     if prob.encoded:  # residuals in code values, exactly at the model (see Problem.relinearise)
-        from .solve import RELINEARISE_PASSES
+        from ._polish import RELINEARISE_PASSES
 
         for _ in range(RELINEARISE_PASSES):
             prob.relinearise(img)

@@ -24,7 +24,7 @@ receiver, which sees only the power); ``multi_lobe[i].<position|a0|a1|a2>`` (sha
 ``directional[i].direction`` and ``spot[i].axis``: two angles in degrees, the tilt from the
 start direction about two axes normal to it (a chart of the sphere centred on the start: no pole
 where a light points straight down; the fitted direction is ``direction_of(tilt, frame)``);
-``mesh.colors`` (per-vertex albedo, ``[0, 1]``, 3 per vertex; fitted by :mod:`fitting.albedo`);
+``mesh.colors`` (per-vertex albedo, ``[0, 1]``, 3 per vertex; fitted by :mod:`fitting._albedo`);
 ``camera.exposure`` (one gain), ``camera.white_balance`` (RGB gains) and, for an OpenCV camera,
 ``camera.rvec``/``camera.tvec`` (its pose). RGB fields are per channel unless listed as shared
 (one value for the three channels).

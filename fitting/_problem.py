@@ -25,7 +25,8 @@ import diffshade as ds
 from diffshade import color as _color
 from diffshade import pixel_neighbours
 
-from .params import ParamSet
+from . import _options
+from ._params import ParamSet
 
 PAD = 1024  # covered-pixel counts are padded up to a multiple of this
 
@@ -243,7 +244,7 @@ class Problem:
         views = list(views) if views is not None else [scene] * len(targets)
         if len(views) != len(targets):
             raise FitError(f"{len(targets)} targets but {len(views)} views")
-        if opts.antialias:  # the stage reads the mesh's edge topology; the programs get traced faces
+        if _options.antialias(opts):  # the stage reads the mesh's edge topology; the programs get traced faces
             views = [v if v.mesh.adjacency is not None else eqx.tree_at(lambda s: s.mesh, v, v.mesh.with_adjacency())
                      for v in views]
         if masks is None:
@@ -293,7 +294,7 @@ class Problem:
                 side = 2 * int(margin) + 1
                 covered = erosion(covered, np.ones((side, side), bool), mode="ignore")
             used = covered
-            if opts.antialias:
+            if _options.antialias(opts):
                 # the background pixels beside the silhouette depend on the parameters too (the
                 # antialiasing blends the surface into them): they are shaded with the rest and,
                 # without a margin, fitted
@@ -321,7 +322,7 @@ class Problem:
             px_c, py_c = jnp.asarray(padn(xs[c_idx], 0.0)[None], dtype), jnp.asarray(padn(ys[r_idx], 0.0)[None], dtype)
             right_c, down_c = padn(right, -1)[None], padn(down, -1)[None]
             edges = (np.asarray(_edges_at(v, jnp.asarray(kids), px_c, py_c, jnp.asarray(right_c), jnp.asarray(down_c)))
-                     if opts.antialias else np.full((2, 2, n), -1, np.int32))
+                     if _options.antialias(opts) else np.full((2, 2, n), -1, np.int32))
             data.append(ViewData(
                 scene=v, ids=jnp.asarray(kids), px=px_c, py=py_c,
                 target=jnp.asarray(padn(flat(t), 0.0), dtype), weight=jnp.asarray(padn(flat(cw), 0.0), dtype),
@@ -423,7 +424,7 @@ class Problem:
     # -- evaluation ----------------------------------------------------------------------------
     def image(self, vd: ViewData, theta):
         """The model at a view's compacted pixels, ``[N, 3]``."""
-        pixels = (vd.px, vd.py, vd.right, vd.down, vd.edges) if self.opts.antialias else (vd.px, vd.py)
+        pixels = (vd.px, vd.py, vd.right, vd.down, vd.edges) if _options.antialias(self.opts) else (vd.px, vd.py)
         img = ds.render(self.pset.apply(vd.scene, theta, vd.index), self.opts, ids=vd.ids, pixels=pixels)
         return img[0]
 

@@ -25,7 +25,7 @@ case 7, render and step). Measured against three alternatives (jaxlib 0.10.2, 2 
 The modes:
 
 - ``mode = 0`` runs **variable projection** from ``z0``: at each trial :math:`u` the
-  linear block is solved exactly under its bounds (:func:`fitting.strategy.bounded_lsq`) and
+  linear block is solved exactly under its bounds (:func:`fitting._linear.bounded_lsq`) and
   Levenberg–Marquardt steps :math:`u` with Kaufman's Jacobian :math:`P^\perp_{A_f} J_u`
   (:math:`J_u` taken at the previous :math:`x^*`, exact at convergence); the damping is
   Marquardt's (scaled by :math:`\mathrm{diag}\,J^TJ`). It ends when even an undamped
@@ -33,7 +33,7 @@ The modes:
   (Δχ² = 0.01), or what float rounding of the residual explains.
 - ``mode = 1`` only **evaluates**: the image and its tangents at ``z0`` given in natural units
   (:math:`\theta` for every scalar, so a bound is no singularity), which is everything the
-  float64 polish and the report need (:mod:`fitting.fit`).
+  float64 polish and the report need (:func:`fitting.fit`).
 - ``mode = 2`` **ranks** the rows of ``U`` (candidate ``u``, the linear values of ``z0``
   as the warm start of each bounded solve): the reduced cost
   :math:`\min_{lo \le x \le hi}\|Ax + r_0\|^2` of each, over every pixel.
@@ -47,8 +47,10 @@ import numpy as np
 
 from diffshade import keep
 
-from .problem import ViewData
-from .strategy import Reduced, _masked_solve, bounded_lsq
+from ._cache import compiled
+from ._linear import Reduced, _masked_solve, bounded_lsq
+from ._problem import ViewData, to_host
+from ._starts import candidates
 
 
 def _tangents(red: Reduced):
@@ -63,7 +65,7 @@ def _tangents(red: Reduced):
 
 def flat_data(data):
     """Target, weight and censoring masks of every view's compacted pixels, flat ``[M]`` (``data``
-    a list of views or the views stacked: :meth:`fitting.problem.Problem.device_data`)."""
+    a list of views or the views stacked: :meth:`fitting._problem.Problem.device_data`)."""
     if isinstance(data, ViewData):
         return (data.target.reshape(-1), jnp.broadcast_to(data.weight, data.target.shape).reshape(-1),
                 data.hi.reshape(-1), data.lo.reshape(-1))
@@ -223,3 +225,100 @@ def make_program(red: Reduced, *, history: int = 0, verbose: bool = False):
         return out
 
     return program
+
+
+def limits(max_steps, rtol, dtype):
+    """The solve program's step limit and tolerance, as the data they are."""
+    return jnp.asarray(max_steps, jnp.int32), jnp.asarray(rtol, dtype)
+
+
+def compiled_program(prob, red, U, theta_ref, history=0, verbose=False):
+    """The compiled program (:mod:`fitting._varpro`) for these shapes (``U``: the candidate
+    starts, ``[C, n_nonlinear]``) and the seconds its compile took (0 when cached).
+    ``history``: the capacity of the recorded path (0: none)."""
+    dtype = prob.dtype
+    n2, _ = prob.counts()
+    z = jnp.zeros(len(red.idx_l) + len(red.idx_n), dtype)
+    args = (z, prob.device_data(), theta_ref, jnp.asarray(n2, dtype), jnp.asarray(0), *limits(0, 0.0, dtype),
+            jnp.asarray(U, dtype))
+    return compiled(prob, "program", make_program(red, history=history, verbose=verbose), *args,
+                    extra=(history, verbose, red.idx_n.tobytes()))
+
+
+class Program:
+    """The compiled program's three modes, called with the problem's data."""
+
+    def __init__(self, fn, prob, red, theta_ref, U):
+        self.fn, self.prob, self.red, self.theta_ref = fn, prob, red, theta_ref
+        self.dtype = prob.dtype
+        self.U = jnp.asarray(U, self.dtype)
+        self.n2 = jnp.asarray(prob.counts()[0], self.dtype)
+
+    def _call(self, z, mode, max_steps=0, rtol=0.0):
+        return self.fn(jnp.asarray(z, self.dtype), self.prob.device_data(), self.theta_ref, self.n2,
+                       jnp.asarray(mode), *limits(max_steps, rtol, self.dtype), self.U)
+
+    def solve(self, z0, max_steps, rtol):
+        """Variable-projection LM from ``z0 = (x, u)``."""
+        return self._call(z0, 0, max_steps, rtol)
+
+    def evaluate(self, z):
+        """Image and tangents at ``z`` in natural units."""
+        return self._call(z, 1)
+
+    def rank(self, x0, rows=None):
+        """The reduced cost of every candidate start (``x0``: the linear block's warm start), or of
+        the given ``rows`` of ``u`` (at most as many as the candidates: the program's shape)."""
+        z = np.concatenate([np.asarray(x0, np.float64), np.zeros(len(self.red.idx_n))])
+        if rows is None:
+            costs = np.asarray(self._call(z, 2)["costs"], np.float64)
+        else:
+            n = len(rows)
+            pad = np.concatenate([rows, np.repeat(rows[:1], len(self.U) - n, axis=0)])
+            U, self.U = self.U, jnp.asarray(pad, self.dtype)
+            try:
+                costs = np.asarray(self._call(z, 2)["costs"], np.float64)[:n]
+            finally:
+                self.U = U
+        return np.where(np.isfinite(costs), costs, np.inf)
+
+
+class Evaluator:
+    """The program in evaluation mode: ``ev(θ) -> (r, J, img)`` in float64, with ``r`` the
+    weighted, censored residual of the compacted pixels, ``J`` its Jacobian in the natural
+    parameters (censored entries that agree with the clipping have zero rows) and ``img`` the
+    model there."""
+
+    def __init__(self, program: Program):
+        self.program, self.red, self.prob = program, program.red, program.prob
+        self.refresh()
+        M = len(self.t)
+        self.lin_cols = (self.red.chan[:, np.arange(M) % 3] > 0) if len(self.red.idx_l) else None
+
+    def refresh(self):
+        """Take the problem's targets and weights again (after :meth:`Problem.relinearise`)."""
+        t, w, hi, lo = (np.asarray(a) for a in flat_data(self.prob.data))
+        self.t, self.w, self.hi, self.lo = t.astype(np.float64), w.astype(np.float64), hi, lo
+
+    def __call__(self, theta):
+        red = self.red
+        theta = np.asarray(theta, np.float64)
+        z = np.concatenate([theta[red.idx_l], theta[red.idx_n]])
+        out = self.program.evaluate(z)
+        img = to_host(out["img"]).astype(np.float64)
+        T = to_host(out["T"])
+        d = img - self.t
+        r = np.where(self.hi, np.minimum(d, 0), np.where(self.lo, np.maximum(d, 0), d)) * self.w
+        act = ~((self.hi & (d > 0)) | (self.lo & (d < 0)))
+        JT = np.empty((len(theta), len(d)))  # rows contiguous: the Jacobian's transpose
+        if len(red.idx_l):
+            JT[red.idx_l] = T[red.group] * self.lin_cols
+        JT[red.idx_n] = T[red.n_groups:]
+        JT *= self.w * act
+        return r, JT.T, img
+
+
+def evaluator(prob, red, theta_ref):
+    U = candidates(red, np.asarray(theta_ref, np.float64), 1)
+    fn, c = compiled_program(prob, red, U, theta_ref)
+    return Evaluator(Program(fn, prob, red, theta_ref, U)), c

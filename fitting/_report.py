@@ -26,7 +26,7 @@ Where that weakest combination bends over its own standard error, they overstate
 the randomised suite (two point lights, Blinn, exp fog; 8-bit, σ = 2/255): k_d, k_s and the
 attenuations, traded along a curve, spread 0.40–0.48 of their standard errors, while k_a, m and
 the fog density, well determined, spread 0.93–0.97 of theirs. The suite's 1-σ coverage above
-68 % comes from such parameters; the profile intervals (:mod:`fitting.intervals`) follow the
+68 % comes from such parameters; the profile intervals (:mod:`fitting._intervals`) follow the
 curve.
 """
 
@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .intervals import INTERVAL_LEVEL, cover_alternative, cover_points, linear_reach, profile_intervals
+from ._intervals import INTERVAL_LEVEL, cover_alternative, cover_points, linear_reach, profile_intervals
 
 FLOAT_ROUNDING = 30  # the render's own rounding, in units of ε·max|y| (measured)
 FLOAT_FLOOR_SOURCE = "float rounding of the target"  # the noise source of a noise-free float target
@@ -268,8 +268,8 @@ def build_result(prob, red, best, theta0, notes, hist, steps, compile_s, solve_s
                  intervals=True, alternative=None, points=(), scan_s=0.0) -> FitResult:
     """The :class:`FitResult` of the chosen solution ``best`` (:func:`candidate`): the verdict,
     standard errors, identifiability and gauges, scalars on a bound, image quality, float32's
-    limits, and with ``intervals`` the profile-likelihood intervals (:mod:`fitting.intervals`)
-    widened to the other basins' ``alternative`` and ``points`` (:mod:`fitting.basins`)."""
+    limits, and with ``intervals`` the profile-likelihood intervals (:mod:`fitting._intervals`)
+    widened to the other basins' ``alternative`` and ``points`` (:mod:`fitting._basins`)."""
     pset = prob.pset
     theta, r, J, fixed = best["theta"], best["r"], best["J"], best["fixed"]
     labels = pset.labels

@@ -1,7 +1,7 @@
 """The polish: projected Levenberg–Marquardt on every free scalar, in natural units and float64,
 on the host, with the whole (censored) residual from the compiled program's evaluation.
 
-Variable projection (:mod:`fitting.program`) runs in the problem's float type on the reduced
+Variable projection (:mod:`fitting._varpro`) runs in the problem's float type on the reduced
 problem; the polish finishes on the full one (float32 normal equations cannot resolve the weakly
 determined directions it must still move: measured, noisy fits stopped short with |z| up to
 70), holds a scalar at a bound its step would carry across, and gives the Jacobian the report
@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .report import float_floor
+from . import _options
+from ._report import candidate, float_floor
 
 
 def squared_scalars(prob) -> np.ndarray:
@@ -22,7 +23,7 @@ def squared_scalars(prob) -> np.ndarray:
     truth, 0.061 ± 0.005, had Δχ² = 33 less, and called the other parameters 26 s.e. off right);
     the polish steps their square, whose column does not vanish."""
     out = np.zeros(prob.pset.offsets[-1], bool)
-    if prob.opts.fog == "exp2":
+    if _options.fog(prob.opts) == "exp2":
         for p, off in zip(prob.pset.params, prob.pset.offsets[:-1]):
             if p.path == ("fog", "density"):
                 out[off:off + p.size] = True
@@ -133,3 +134,23 @@ def polish(ev, prob, red, theta, steps, rtol):
     fixed = ((theta <= floor) & (g >= 0)) | (theta >= hi)
     fixed &= lin | np.isfinite(hi) | pos
     return theta, r, J, img, fixed, n_ev, conv
+
+
+RELINEARISE_PASSES = 2
+
+
+def relinearise(prob, ev, red, best, polish_steps, rtol, n2, noise, notes):
+    """For encoded targets: residuals in code values, exactly at the model (IRLS passes of
+    :meth:`Problem.relinearise`, each followed by the polish from the current best)."""
+    if not prob.encoded:
+        return best, 0
+    steps = 0
+    for _ in range(RELINEARISE_PASSES):
+        prob.relinearise(best["img"])
+        ev.refresh()
+        theta, r, J, img, fixed, k1, converged = polish(ev, prob, red, best["theta"], polish_steps, rtol)
+        steps += k1
+        best = candidate(prob, theta, r, J, img, fixed, best["res"] if not converged else "", converged, k1, n2, noise)
+    notes.append(f"code values: weights and targets re-taken at the model {RELINEARISE_PASSES}× (Gauss–Newton on the "
+                 f"code-value residual); residual {best['ratio']:.3g}× the noise")
+    return best, steps

@@ -5,17 +5,17 @@ search range (widened a decade each way on a log scale) ranks grid points by the
 the linear block re-solved at each, in one call of the compiled program's ranking mode. From the
 best grid point, variable projection and the polish run again: a lower solution replaces the fit's,
 one within the intervals' level is reported, and so are the grid points within it, which the
-intervals must cover (:mod:`fitting.intervals`).
+intervals must cover (:mod:`fitting._intervals`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .intervals import INTERVAL_LEVEL
-from .polish import polish
-from .report import FLOAT_FLOOR_SOURCE, candidate, noise_ratio_limit
-from .strategy import inside, search_ranges
+from ._intervals import INTERVAL_LEVEL
+from ._polish import polish
+from ._report import FLOAT_FLOOR_SOURCE, candidate, noise_ratio_limit
+from ._starts import inside, search_ranges
 
 SCAN_POINTS = 16  # grid points per nonlinear scalar in the search for other basins (at most)
 SCAN_WIDEN = 10.0  # the scan's log ranges: the search ranges widened by this factor each way
