@@ -10,8 +10,12 @@ from __future__ import annotations
 import os
 import time
 from collections import OrderedDict
+from typing import TYPE_CHECKING
 
 import jax
+
+if TYPE_CHECKING:
+    from ._problem import Problem
 
 CACHE_SIZE = 16
 _CACHE: OrderedDict = OrderedDict()

@@ -13,7 +13,7 @@ import diffshade as ds
 
 from . import _options
 from ._fit import fit
-from ._problem import as_list
+from ._observations import Observations
 from ._report import FitResult
 
 
@@ -21,8 +21,10 @@ _SPECULAR_PARAMS = ("material.specular", "material.shininess", "material.ior",
                     "back_material.specular", "back_material.shininess", "back_material.ior")
 
 
-@dataclass
+@dataclass(frozen=True)
 class ModelScore:
+    """One variant of the terms, fitted and scored."""
+
     name: str  # e.g. "as given", "no specular", "blinn", "no fog"
     opts: ds.RenderOptions
     free: list[str]
@@ -53,8 +55,8 @@ def model_variants(scene: ds.Scene, opts: ds.RenderOptions, free):
     return out
 
 
-def compare_models(scene, opts, targets, free, *, variants=None, given: FitResult | None = None,
-                   **fit_kw) -> list[ModelScore]:
+def compare_models(scene: ds.Scene, opts: ds.RenderOptions, observations: Observations, free, *, variants=None,
+                   given: FitResult | None = None, **fit_kw) -> list[ModelScore]:
     r"""Fit every variant (default :func:`model_variants`) and score it by AIC and BIC,
 
     .. math:: \mathrm{AIC} = n \ln(\mathrm{RSS}/n) + 2k, \qquad \mathrm{BIC} = n \ln(\mathrm{RSS}/n) + k \ln n
@@ -63,21 +65,22 @@ def compare_models(scene, opts, targets, free, *, variants=None, given: FitResul
     determine). Sorted best (lowest BIC) first. ``RSS/n`` is floored at float rounding
     (``(ε · rms target)²``), so among models that all reproduce a noise-free target exactly
     the one with fewer parameters wins instead of a comparison of rounding noise.
-    ``given``: an existing fit of the model as given (not repeated).
+    ``given``: an existing fit of the model as given (not repeated); ``fit_kw``: :func:`fitting.fit`'s
+    keyword arguments (``shared``, ``strategy``, ...).
     """
-    targets = as_list(targets)
+    targets = observations.targets
     variants = model_variants(scene, opts, free) if variants is None else variants
     dtype = scene.mesh.vertices.dtype
     eps = float(jnp.finfo(dtype).eps)
     scale2 = float(np.mean([np.mean(np.asarray(t, np.float64) ** 2) for t in targets]))
     out = []
     for name, o, fr, sc in variants:
-        r = given if (given is not None and name == "as given") else fit(sc, o, targets, fr, **fit_kw)
-        n = int(r.n_residuals)
-        k = len(r.names) - len(r.undetermined)
-        ms = max(r.rss / n, (eps ** 2) * scale2)
+        r = given if (given is not None and name == "as given") else fit(sc, o, observations, fr, **fit_kw)
+        n = int(r.residual.n)
+        k = len(r.names) - len(r.diagnostics.undetermined)
+        ms = max(r.residual.rss / n, (eps ** 2) * scale2)
         aic = n * np.log(ms) + 2 * k
         bic = n * np.log(ms) + k * np.log(n)
-        out.append(ModelScore(name, o, fr, r, n, k, r.rss, float(aic), float(bic)))
+        out.append(ModelScore(name, o, fr, r, n, k, r.residual.rss, float(aic), float(bic)))
     out.sort(key=lambda m: m.bic)
     return out

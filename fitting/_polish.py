@@ -10,6 +10,8 @@ uses.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from . import _options
@@ -56,7 +58,19 @@ def bounded_step(H, g, free, v, lo, hi, lam):
     return np.where(held, at, v + s), -(2.0 * float(g @ s) + float(s @ H @ s))
 
 
-def polish(ev, prob, red, theta, steps, rtol):
+class Polished(NamedTuple):
+    """The polish's end: ``(θ, r, J, img, fixed, evaluations, converged)``."""
+
+    theta: np.ndarray
+    r: np.ndarray
+    J: np.ndarray
+    img: np.ndarray
+    fixed: np.ndarray  # bool: scalars held on a bound
+    evaluations: int
+    converged: bool
+
+
+def polish(ev, prob, red, theta, steps, rtol) -> Polished:
     """Projected Levenberg–Marquardt on all parameters in natural units with the full (censored)
     residual, in float64 on the program's evaluation ``ev``; the scalars of
     :func:`squared_scalars` by their square. Scalars on a bound whose gradient points outside stay there. Returns
@@ -133,24 +147,24 @@ def polish(ev, prob, red, theta, steps, rtol):
     # floor, a hair above 0, is on its bound 0)
     fixed = ((theta <= floor) & (g >= 0)) | (theta >= hi)
     fixed &= lin | np.isfinite(hi) | pos
-    return theta, r, J, img, fixed, n_ev, conv
+    return Polished(theta, r, J, img, fixed, n_ev, conv)
 
 
 RELINEARISE_PASSES = 2
 
 
-def relinearise(prob, ev, red, best, polish_steps, rtol, n2, noise, notes):
+def relinearise(prob, ev, red, best, polish_steps, rtol, n2, noise):
     """For encoded targets: residuals in code values, exactly at the model (IRLS passes of
-    :meth:`Problem.relinearise`, each followed by the polish from the current best)."""
+    :meth:`Problem.relinearise`, each followed by the polish from the current best). Returns
+    ``(best, evaluations, notes)``."""
     if not prob.encoded:
-        return best, 0
+        return best, 0, []
     steps = 0
     for _ in range(RELINEARISE_PASSES):
-        prob.relinearise(best["img"])
+        prob.relinearise(best.img)
         ev.refresh()
-        theta, r, J, img, fixed, k1, converged = polish(ev, prob, red, best["theta"], polish_steps, rtol)
-        steps += k1
-        best = candidate(prob, theta, r, J, img, fixed, best["res"] if not converged else "", converged, k1, n2, noise)
-    notes.append(f"code values: weights and targets re-taken at the model {RELINEARISE_PASSES}× (Gauss–Newton on the "
-                 f"code-value residual); residual {best['ratio']:.3g}× the noise")
-    return best, steps
+        p = polish(ev, prob, red, best.theta, polish_steps, rtol)
+        steps += p.evaluations
+        best = candidate(prob, p, best.res if not p.converged else "", n2, noise)
+    return best, steps, [f"code values: weights and targets re-taken at the model {RELINEARISE_PASSES}× (Gauss–Newton "
+                         f"on the code-value residual); residual {best.ratio:.3g}× the noise"]

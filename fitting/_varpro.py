@@ -5,22 +5,8 @@ Every evaluation is **one** forward-mode pass of the render at :math:`z = (x, u)
 scalars :math:`x` in natural units, nonlinear ones in the solver's unconstrained :math:`u`) along
 one tangent per linear field and one per nonlinear scalar. It gives the image, the columns of
 :math:`A` (exact: the image is affine in :math:`x`) and :math:`J_u` at the current :math:`x`.
-The render appears once in the program, inside its loop: every mode runs through that one copy,
-so a fit compiles the render once (a separate search program with primal renders on a pixel
-subset doubled the compile: measured 6.1 s against 3.9 s for a two-light Phong fit).
-
-The loop is XLA's, not the host's: XLA hoists out of it the render's work that does not depend
-on the parameters (the pose's geometry, the light vectors), and a step there costs 1.65 ms (suite
-case 7, render and step). Measured against three alternatives (jaxlib 0.10.2, 2 cores):
-
-- the render and the step as two programs called in turn from the host, the step compiled with
-  XLA's older CPU emitters: over eight suite structures compile 3.0-4.7 s against 3.9-6.6 s,
-  but each step 3.0-3.6 against 1.65 ms, and the solve 1.1-2.1x slower (median 1.6x);
-- the step as a host callback: compile 4.0-4.3 against 5.8-6.9 s (case 41, three lights), but
-  JAX never writes a program with host callbacks into the persistent compilation cache, so every
-  CLI run would compile;
-- the render split by JAX's partial evaluation into a parameter-independent program and the
-  loop: compile 5.5-5.7 against 5.4-5.8 s (case 41), no gain.
+The render appears once in the program, inside its loop, and the loop is XLA's, not the host's
+(why, with the alternatives measured: design notes: docs/fit-design-notes.md, "The solve as one compiled program").
 
 The modes:
 
@@ -40,6 +26,8 @@ The modes:
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -105,126 +93,196 @@ def _damped_steps(H, g, lam, rcond):
     return gn, dm
 
 
+class ProgramOut(NamedTuple):
+    """What the compiled program returns (the history fields None without a history)."""
+
+    z: jax.Array  # the solution (x, u)
+    theta: jax.Array  # and in natural units
+    conv: jax.Array  # bool: the solve converged
+    k: jax.Array  # evaluations
+    img: jax.Array  # [M] the image at the last evaluation
+    T: jax.Array  # [tangents, M] its tangents
+    costs: jax.Array  # [C] mode 2: the reduced cost of every start
+    hz: jax.Array | None = None  # [S, p] θ of the accepted steps
+    hc: jax.Array | None = None  # [S] their costs
+    nh: jax.Array | None = None  # how many
+
+
+class _State(NamedTuple):
+    """The solve loop's carry."""
+
+    zt: jax.Array  # the trial point
+    zc: jax.Array  # the current (accepted) point
+    costs: jax.Array
+    cc: jax.Array  # the current cost
+    first: jax.Array
+    lam: jax.Array
+    H: jax.Array
+    g: jax.Array
+    k: jax.Array
+    done: jax.Array
+    conv: jax.Array
+    img: jax.Array
+    T: jax.Array
+    hz: jax.Array | None = None
+    hc: jax.Array | None = None
+    nh: jax.Array | None = None
+
+
+class _Program:
+    """The pieces of ``program`` for one reduced problem (static: index sets, tangents, history
+    capacity ``S``); the data, the tolerances and the starts come in traced at each call."""
+
+    def __init__(self, red: Reduced, history: int, verbose: bool):
+        self.red, self.prob, self.S, self.verbose = red, red.prob, history, verbose
+        self.E_all, _ = _tangents(red)
+        self.n_l, self.n_n = len(red.idx_l), len(red.idx_n)
+        self.p = self.n_l + self.n_n
+
+    def to_theta(self, zz, natural, theta_ref):
+        """θ from ``z``: the nonlinear part is ``u`` (``natural`` False) or already θ (True)."""
+        n_l, idx_n = self.n_l, self.red.idx_n
+        un = zz[n_l:]
+        th = self.red.theta(jnp.where(natural, 0.0, un), zz[:n_l], theta_ref)  # double where: exp(θ) may overflow
+        return th.at[idx_n].set(jnp.where(natural, un.astype(th.dtype), th[idx_n]))
+
+    def images(self, z, c):
+        """Flat image and its tangents, one per linear field and one per nonlinear scalar."""
+        def f(zz):
+            return self.prob.images(self.to_theta(zz, c.natural, c.theta_ref), c.data)
+        img, T = jax.vmap(lambda e: jax.jvp(f, (z,), (e,)), out_axes=(None, 0))(jnp.asarray(self.E_all, c.dt))
+        return keep(img, T)
+
+    def evaluate(self, z, c):
+        """The linear block solved at ``z``'s ``u``; the reduced cost, ``J^T J`` and ``J^T r`` of
+        Kaufman's Jacobian; and the raw image and tangents."""
+        n_l, red, dt = self.n_l, self.red, c.dt
+        img, T = self.images(z, c)
+        A = columns(red, T, c.M, dt)
+        Juw = T[red.n_groups:] * c.wu
+        d = (img - c.t) * c.wu
+        if n_l:
+            def project(_):
+                Aw = A * c.wu
+                r0 = d - Aw.T @ z[:n_l]
+                x_new, free = bounded_lsq(Aw.T, r0, c.lo_x, c.hi_x, z[:n_l])
+                r_red = r0 + Aw.T @ x_new
+                Af = Aw * free[:, None].astype(dt)
+                coef = _masked_solve(Af @ Af.T, Af @ Juw.T, free, c.rcond)  # [n_l, n_n]
+                return x_new, r_red, Juw - coef.T @ Af
+
+            # evaluation mode wants the image and tangents only
+            x_new, r_red, Jred = jax.lax.cond(c.natural, lambda _: (z[:n_l], d, Juw), project, None)
+        else:
+            x_new, r_red, Jred = z[:0], d, Juw
+        z_new = jnp.concatenate([x_new, z[n_l:]])
+        return z_new, r_red @ r_red, Jred @ Jred.T, Jred @ r_red, img, T
+
+    def start(self, k, c):
+        """Mode 2's k-th trial point: the given linear values with the k-th start's ``u``."""
+        return jnp.concatenate([c.z0[:self.n_l], c.U[jnp.minimum(k, c.C - 1)]])
+
+    def record(self, s: _State, z_new, c_new, ok, c):
+        """The accepted step's θ and cost into the history."""
+        i = s.nh
+        th_new = self.red.theta(z_new[self.n_l:], z_new[:self.n_l], c.theta_ref)
+        return s._replace(hz=s.hz.at[i].set(jnp.where(ok, th_new, s.hz[i])),
+                          hc=s.hc.at[i].set(jnp.where(ok, c_new, s.hc[i])),
+                          nh=jnp.minimum(i + (ok & ~c.rank), self.S - 1))
+
+    def body(self, s: _State, c) -> _State:
+        """One evaluation: accept or reject the trial point, then the next trial point."""
+        z_new, c_new, H, g, img, T = self.evaluate(s.zt, c)
+        ok = jnp.isfinite(c_new) & ((c_new <= s.cc) | s.first)
+        upd = lambda a, b: jnp.where(ok, a, b)  # noqa: E731
+        s = s._replace(img=img, T=T, first=jnp.asarray(False), k=s.k + 1)
+        # mode 2 ranks the starts: the reduced cost of each, then the next
+        i = jnp.minimum(s.k - 1, c.C - 1)
+        s = s._replace(costs=jnp.where(c.rank, s.costs.at[i].set(jnp.where(jnp.isfinite(c_new), c_new, jnp.inf)),
+                                       s.costs),
+                       zc=upd(z_new, s.zc), cc=upd(c_new, s.cc), H=upd(H, s.H), g=upd(g, s.g))
+        s = s._replace(lam=jnp.where(ok, jnp.maximum(s.lam * 0.1, 1e-9), s.lam * 10.0))
+        if self.verbose:
+            jax.debug.print("  variable projection: cost {}, accepted {}, lambda {}", c_new, ok, s.lam)
+        if self.S:
+            s = self.record(s, z_new, c_new, ok, c)
+        # converged: the undamped Gauss–Newton step would gain less than a hundredth of the residual
+        # variance plus what float rounding of the residual explains (ε², not the residual's own
+        # variance as in the float64 polish: design notes, docs/fit-design-notes.md), or move no
+        # nonlinear variable by more than rtol
+        gn, dm = _damped_steps(s.H, s.g, s.lam, c.rcond)
+        gain = -(s.g @ gn)
+        s2 = s.cc / jnp.maximum(c.n_res - self.p, 1)
+        conv = gain <= 1e-2 * s2 + 10.0 * self.p * c.float_var
+        conv = conv | (jnp.max(jnp.abs(gn), initial=0.0) <= c.rtol)
+        zc, n_l = s.zc, self.n_l
+        return s._replace(zt=jnp.where(c.rank, self.start(s.k, c), jnp.concatenate([zc[:n_l], zc[n_l:] + dm])),
+                          conv=conv,
+                          done=jnp.where(c.rank, s.k >= c.C,
+                                         c.natural | conv | (s.lam > 1e12) | (s.k >= c.max_steps)))
+
+    def init(self, c) -> _State:
+        dt, n_n = c.dt, self.n_n
+        z_first = jnp.where(c.rank, self.start(0, c), c.z0)
+        hist = {}
+        if self.S:
+            hist = dict(hz=jnp.zeros((self.S, len(c.theta_ref)), dt), hc=jnp.full((self.S,), jnp.nan, dt),
+                        nh=jnp.asarray(0))
+        return _State(zt=z_first, zc=z_first, costs=jnp.full((c.C,), jnp.inf, dt), cc=jnp.asarray(jnp.inf, dt),
+                      first=jnp.asarray(True), lam=jnp.asarray(1e-3, dt), H=jnp.zeros((n_n, n_n), dt),
+                      g=jnp.zeros(n_n, dt), k=jnp.asarray(0), done=jnp.asarray(False), conv=jnp.asarray(False),
+                      img=jnp.zeros(c.M, dt), T=jnp.zeros((self.E_all.shape[0], c.M), dt), **hist)
+
+    def __call__(self, z0, data, theta_ref, n_res, mode, max_steps, rtol, U) -> ProgramOut:
+        c = _Call.of(self.red, z0, data, theta_ref, n_res, mode, max_steps, rtol, U)
+        s = jax.lax.while_loop(lambda s: ~s.done, lambda s: self.body(s, c), self.init(c))
+        zc, n_l = s.zc, self.n_l
+        return ProgramOut(z=zc, theta=self.red.theta(zc[n_l:], zc[:n_l], theta_ref), conv=s.conv, k=s.k, img=s.img,
+                          T=s.T, costs=s.costs, hz=s.hz, hc=s.hc, nh=s.nh)
+
+
+class _Call(NamedTuple):
+    """One call's traced inputs and what follows from them."""
+
+    z0: jax.Array
+    data: object
+    theta_ref: jax.Array
+    n_res: jax.Array
+    max_steps: jax.Array
+    rtol: jax.Array
+    U: jax.Array
+    C: int
+    dt: object
+    rcond: float
+    lo_x: jax.Array
+    hi_x: jax.Array
+    t: jax.Array
+    wu: jax.Array
+    M: int
+    float_var: jax.Array  # rounding of one residual entry, squared
+    natural: jax.Array  # mode 1
+    rank: jax.Array  # mode 2
+
+    @classmethod
+    def of(cls, red, z0, data, theta_ref, n_res, mode, max_steps, rtol, U):
+        dt = theta_ref.dtype
+        eps = float(jnp.finfo(dt).eps)
+        t, w, hi, lo = flat_data(data)
+        U = U.astype(dt)
+        return cls(z0=z0.astype(dt), data=data, theta_ref=theta_ref, n_res=n_res, max_steps=max_steps, rtol=rtol, U=U,
+                   C=U.shape[0], dt=dt, rcond=1e2 * eps, lo_x=jnp.asarray(red.lo, dt), hi_x=jnp.asarray(red.hi, dt),
+                   t=t, wu=w * ~(hi | lo), M=t.shape[0], float_var=(eps * jnp.max(jnp.abs(t) * (w > 0))) ** 2,
+                   natural=mode == 1, rank=mode == 2)
+
+
 def make_program(red: Reduced, *, history: int = 0, verbose: bool = False):
-    """``program(z0, data, theta_ref, n_res, mode, max_steps, rtol, U) -> dict`` (see the module
-    docstring). ``mode`` 0: variable projection from ``z0 = (x, u)``; 1: evaluate at ``z0``
+    """``program(z0, data, theta_ref, n_res, mode, max_steps, rtol, U) -> ProgramOut`` (see the
+    module docstring). ``mode`` 0: variable projection from ``z0 = (x, u)``; 1: evaluate at ``z0``
     given in natural units and return ``img`` and the tangents ``T``; 2: the reduced cost of
     every row of ``U`` (``[C, n_nonlinear]``) in ``costs``. The step limit and the
     tolerance are data (changing them compiles nothing); ``history`` (static) is the capacity of
     the recorded path, 0 for none."""
-    prob = red.prob
-    E_all, _ = _tangents(red)
-    n_l, n_n = len(red.idx_l), len(red.idx_n)
-    p = n_l + n_n
-    idx_n = red.idx_n
-    S = history
-
-    def to_theta(zz, natural, theta_ref):
-        """θ from ``z``: the nonlinear part is ``u`` (``natural`` False) or already θ (True)."""
-        un = zz[n_l:]
-        th = red.theta(jnp.where(natural, 0.0, un), zz[:n_l], theta_ref)  # double where: exp(θ) may overflow
-        return th.at[idx_n].set(jnp.where(natural, un.astype(th.dtype), th[idx_n]))
-
-    def program(z0, data, theta_ref, n_res, mode, max_steps, rtol, U):
-        dt = theta_ref.dtype
-        eps = float(jnp.finfo(dt).eps)
-        rcond = 1e2 * eps
-        lo_x, hi_x = jnp.asarray(red.lo, dt), jnp.asarray(red.hi, dt)
-        t, w, hi, lo = flat_data(data)
-        wu = w * ~(hi | lo)
-        M = t.shape[0]
-        float_var = (eps * jnp.max(jnp.abs(t) * (w > 0))) ** 2  # rounding of one residual entry, squared
-        natural = mode == 1
-        rank = mode == 2
-        z0 = z0.astype(dt)
-        U = U.astype(dt)
-        C = U.shape[0]
-
-        def start(k):
-            """Mode 2's k-th trial point: the given linear values with the k-th start's ``u``."""
-            return jnp.concatenate([z0[:n_l], U[jnp.minimum(k, C - 1)]])
-
-        def images(z):
-            """Flat image and its tangents, one per linear field and one per nonlinear scalar."""
-            def f(zz):
-                return prob.images(to_theta(zz, natural, theta_ref), data)
-            img, T = jax.vmap(lambda e: jax.jvp(f, (z,), (e,)), out_axes=(None, 0))(jnp.asarray(E_all, dt))
-            return keep(img, T)
-
-        def evaluate(z):
-            """The linear block solved at ``z``'s ``u``; the reduced cost, ``J^T J`` and ``J^T r`` of
-            Kaufman's Jacobian; and the raw image and tangents."""
-            img, T = images(z)
-            A = columns(red, T, M, dt)
-            Juw = T[red.n_groups:] * wu
-            d = (img - t) * wu
-            if n_l:
-                def project(_):
-                    Aw = A * wu
-                    r0 = d - Aw.T @ z[:n_l]
-                    x_new, free = bounded_lsq(Aw.T, r0, lo_x, hi_x, z[:n_l])
-                    r_red = r0 + Aw.T @ x_new
-                    Af = Aw * free[:, None].astype(dt)
-                    coef = _masked_solve(Af @ Af.T, Af @ Juw.T, free, rcond)  # [n_l, n_n]
-                    return x_new, r_red, Juw - coef.T @ Af
-
-                # evaluation mode wants the image and tangents only
-                x_new, r_red, Jred = jax.lax.cond(natural, lambda _: (z[:n_l], d, Juw), project, None)
-            else:
-                x_new, r_red, Jred = z[:0], d, Juw
-            z_new = jnp.concatenate([x_new, z[n_l:]])
-            return z_new, r_red @ r_red, Jred @ Jred.T, Jred @ r_red, img, T
-
-        def body(s):
-            z_new, c_new, H, g, img, T = evaluate(s["zt"])
-            ok = jnp.isfinite(c_new) & ((c_new <= s["cc"]) | s["first"])
-            upd = lambda a, b: jnp.where(ok, a, b)  # noqa: E731
-            s = dict(s, img=img, T=T, first=jnp.asarray(False), k=s["k"] + 1)
-            # mode 2 ranks the starts: the reduced cost of each, then the next
-            i = jnp.minimum(s["k"] - 1, C - 1)
-            s["costs"] = jnp.where(rank, s["costs"].at[i].set(jnp.where(jnp.isfinite(c_new), c_new, jnp.inf)), s["costs"])
-            s["zc"], s["cc"], s["H"], s["g"] = upd(z_new, s["zc"]), upd(c_new, s["cc"]), upd(H, s["H"]), upd(g, s["g"])
-            s["lam"] = jnp.where(ok, jnp.maximum(s["lam"] * 0.1, 1e-9), s["lam"] * 10.0)
-            if verbose:
-                jax.debug.print("  variable projection: cost {}, accepted {}, lambda {}", c_new, ok, s["lam"])
-            if history:
-                i = s["nh"]
-                th_new = red.theta(z_new[n_l:], z_new[:n_l], theta_ref)
-                s["hz"] = s["hz"].at[i].set(jnp.where(ok, th_new, s["hz"][i]))
-                s["hc"] = s["hc"].at[i].set(jnp.where(ok, c_new, s["hc"][i]))
-                s["nh"] = jnp.minimum(i + (ok & ~rank), S - 1)
-            # converged: the undamped Gauss–Newton step would gain less than a hundredth of the
-            # residual variance plus what float rounding of the residual explains, or move no
-            # nonlinear variable by more than rtol
-            gn, dm = _damped_steps(s["H"], s["g"], s["lam"], rcond)
-            gain = -(s["g"] @ gn)
-            # (ε², not the residual's own variance as in the float64 polish: in float32 the reduced
-            # problem cannot resolve a noise-free optimum further, and the polish finishes it;
-            # measured, the stricter test ran 100 steps in the attenuation valley for nothing)
-            s2 = s["cc"] / jnp.maximum(n_res - p, 1)
-            conv = gain <= 1e-2 * s2 + 10.0 * p * float_var
-            conv = conv | (jnp.max(jnp.abs(gn), initial=0.0) <= rtol)
-            zc = s["zc"]
-            s["zt"] = jnp.where(rank, start(s["k"]), jnp.concatenate([zc[:n_l], zc[n_l:] + dm]))
-            s["conv"] = conv
-            s["done"] = jnp.where(rank, s["k"] >= C, natural | conv | (s["lam"] > 1e12) | (s["k"] >= max_steps))
-            return s
-
-        z_first = jnp.where(rank, start(0), z0)
-        s0 = dict(zt=z_first, zc=z_first, costs=jnp.full((C,), jnp.inf, dt), cc=jnp.asarray(jnp.inf, dt), first=jnp.asarray(True), lam=jnp.asarray(1e-3, dt),
-                  H=jnp.zeros((n_n, n_n), dt), g=jnp.zeros(n_n, dt), k=jnp.asarray(0), done=jnp.asarray(False),
-                  conv=jnp.asarray(False), img=jnp.zeros(M, dt), T=jnp.zeros((E_all.shape[0], M), dt))
-        if history:
-            s0.update(hz=jnp.zeros((S, len(theta_ref)), dt), hc=jnp.full((S,), jnp.nan, dt), nh=jnp.asarray(0))
-        s = jax.lax.while_loop(lambda s: ~s["done"], body, s0)
-        zc = s["zc"]
-        out = dict(z=zc, theta=red.theta(zc[n_l:], zc[:n_l], theta_ref), conv=s["conv"], k=s["k"], img=s["img"], T=s["T"],
-                   costs=s["costs"])
-        if history:
-            out.update(hz=s["hz"], hc=s["hc"], nh=s["nh"])
-        return out
-
-    return program
+    return _Program(red, history, verbose)
 
 
 def limits(max_steps, rtol, dtype):
@@ -271,13 +329,13 @@ class Program:
         the given ``rows`` of ``u`` (at most as many as the candidates: the program's shape)."""
         z = np.concatenate([np.asarray(x0, np.float64), np.zeros(len(self.red.idx_n))])
         if rows is None:
-            costs = np.asarray(self._call(z, 2)["costs"], np.float64)
+            costs = np.asarray(self._call(z, 2).costs, np.float64)
         else:
             n = len(rows)
             pad = np.concatenate([rows, np.repeat(rows[:1], len(self.U) - n, axis=0)])
             U, self.U = self.U, jnp.asarray(pad, self.dtype)
             try:
-                costs = np.asarray(self._call(z, 2)["costs"], np.float64)[:n]
+                costs = np.asarray(self._call(z, 2).costs, np.float64)[:n]
             finally:
                 self.U = U
         return np.where(np.isfinite(costs), costs, np.inf)
@@ -305,8 +363,8 @@ class Evaluator:
         theta = np.asarray(theta, np.float64)
         z = np.concatenate([theta[red.idx_l], theta[red.idx_n]])
         out = self.program.evaluate(z)
-        img = to_host(out["img"]).astype(np.float64)
-        T = to_host(out["T"])
+        img = to_host(out.img).astype(np.float64)
+        T = to_host(out.T)
         d = img - self.t
         r = np.where(self.hi, np.minimum(d, 0), np.where(self.lo, np.maximum(d, 0), d)) * self.w
         act = ~((self.hi & (d > 0)) | (self.lo & (d < 0)))

@@ -12,7 +12,7 @@ import numpy as np
 import diffshade as ds
 from fitting._problem import Problem
 from fitting._linear import Reduced, bounded_lsq, split_linear
-from fitting import ParamSet
+from fitting import Observations, ParamSet
 
 from conftest import small_default_scene
 
@@ -40,7 +40,7 @@ def test_term_images_are_the_jacobian_columns_of_the_linear_parameters():
     free = ["material.ambient", "material.diffuse", "material.specular", "material.shininess", "fog.color",
             "point[0].a1"]
     target = np.zeros(scene.camera.resolution + (3,))
-    prob = Problem.build(scene, opts, target, free, shared=["material.specular"])
+    prob = Problem.build(scene, opts, Observations(target), free, shared=["material.specular"])
     red = Reduced(prob)
     assert [prob.pset.params[i].name for i in red.linear_params] == ["material.ambient", "material.diffuse",
                                                                       "material.specular", "fog.color"]
@@ -118,7 +118,7 @@ def test_the_program_ranks_the_starts_by_their_reduced_cost_and_is_the_only_prog
     per view and a bounded solve). A fit of the same structure then compiles nothing more: the
     render is compiled once per fit, for the solve, the ranking and the polish alike."""
     from fitting import _cache
-    from fitting import fit
+    from fitting import Observations, VarPro, fit
     from fitting._varpro import Program, compiled_program
     from fitting._starts import candidates
 
@@ -128,7 +128,7 @@ def test_the_program_ranks_the_starts_by_their_reduced_cost_and_is_the_only_prog
     ps = ParamSet(free, scene)
     start = ps.theta_of(scene) * jnp.asarray([1.0] * 9 + [2.0, 3.0])
     s0 = ps.apply(scene, start)
-    prob = Problem.build(s0, opts, [target], free)
+    prob = Problem.build(s0, opts, Observations([target]), free)
     red = Reduced(prob)
     theta0 = np.asarray(prob.pset.theta_of(s0), np.float64)
     theta_ref = jnp.asarray(theta0, prob.dtype)
@@ -141,7 +141,7 @@ def test_the_program_ranks_the_starts_by_their_reduced_cost_and_is_the_only_prog
     want = np.array([float(cost(jnp.asarray(u), (prob.data, theta_ref))) for u in U])
     np.testing.assert_allclose(costs, want, rtol=1e-8, atol=1e-20)
     assert len(set(np.argsort(costs)[:3])) == 3 and np.ptp(costs) > 0  # the starts differ
-    r = fit(s0, opts, target, free, starts=6)
+    r = fit(s0, opts, Observations(target), free, strategy=VarPro(starts=6))
     assert r.compile_s == 0.0 and _cache.cache_info()["misses"] == before + 1
     assert r.successful, (r.result, r.notes)
 
@@ -154,7 +154,7 @@ def test_the_compiled_program_cache_keeps_only_the_most_recently_used(monkeypatc
     monkeypatch.setattr(_cache, "CACHE_SIZE", 3)
     monkeypatch.setattr(_cache, "_CACHE", type(_cache._CACHE)())
     scene, opts = small()
-    prob = Problem.build(scene, opts, [np.zeros((20, 24, 3))], ["material.diffuse"])
+    prob = Problem.build(scene, opts, Observations([np.zeros((20, 24, 3))]), ["material.diffuse"])
     x = jnp.ones(2)
 
     def get(i):
