@@ -534,12 +534,8 @@ def cmd_fit(args) -> int:
     return EXIT_OK if r.successful else EXIT_FIT
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="diffshade", description=__doc__.replace("``", ""),
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--no-cache", action="store_true",
-                        help="do not use the persistent compilation cache (~/.cache/diffshade/xla)")
-    sub = parser.add_subparsers(dest="command", required=True)
+def _add_render(sub) -> None:
+    """The ``render`` command's arguments."""
     p = sub.add_parser("render", help="render a TOML scene file to a PNG")
     p.add_argument("scene", help="scene file (.toml)")
     p.add_argument("-o", "--output", default="render.png", help="output PNG (default: render.png)")
@@ -547,6 +543,10 @@ def main(argv=None) -> int:
     p.add_argument("--encoding", default="linear", metavar="ENC",
                    help="colour encoding of the PNG: linear (default), srgb, gamma:G; declared in its chunks")
     p.set_defaults(func=cmd_render)
+
+
+def _add_fit(sub) -> None:
+    """The ``fit`` command's arguments."""
     p = sub.add_parser("fit", help="fit named scene parameters to target image(s)",
                        description="Fit the named free parameters of a scene file to target images (PNG: 8/16-bit, "
                        "encoding from the file or --encoding; or .npy floats, linear). Start values are the scene file's. Writes fit.json, material.mtl, "
@@ -588,11 +588,25 @@ def main(argv=None) -> int:
     p.add_argument("-o", "--output-dir", default="fit_out", help="output folder (default: fit_out)")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs (never inputs)")
     p.set_defaults(func=cmd_fit)
+
+
+def _add_demo(sub) -> None:
+    """The ``demo`` command's arguments."""
     p = sub.add_parser("demo", help="fit the built-in default scene's material, attenuation and fog back from its image")
     p.add_argument("-o", "--output", default="out/demo.png", help="output PNG (default: out/demo.png)")
     p.add_argument("--size", type=int, default=256, help="image side in pixels (default 256)")
     p.add_argument("--seed", type=int, default=0, help="seed of the perturbed start (default 0)")
     p.set_defaults(func=cmd_demo)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="diffshade", description=__doc__.replace("``", ""),
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--no-cache", action="store_true",
+                        help="do not use the persistent compilation cache (~/.cache/diffshade/xla)")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for add in (_add_render, _add_fit, _add_demo):
+        add(sub)
     args = parser.parse_args(argv)
     if not args.no_cache:
         from ._cache import enable_compilation_cache
