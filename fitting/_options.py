@@ -1,72 +1,66 @@
-"""Every read of a :class:`diffshade.RenderOptions` field by ``fitting``, in one place.
-
-The fitting code asks these functions, never ``opts.<field>`` directly, so that when the options
-are regrouped only this module changes."""
+"""What ``fitting`` reads of a :class:`diffshade.RenderOptions` (its groups), in one place."""
 
 from __future__ import annotations
 
 import diffshade as ds
 
 
-def antialias(opts: ds.RenderOptions):
+def antialias(opts: ds.RenderOptions) -> bool:
     """Whether the silhouette is antialiased (the compacted pixels then carry neighbours and edges)."""
-    return opts.antialias
+    return opts.output.antialias
 
 
-def clamp(opts: ds.RenderOptions):
+def clamp(opts: ds.RenderOptions) -> bool:
     """Whether the shading is clamped (then the image is linear in no parameter)."""
-    return opts.clamp
+    return opts.output.clamp is not None
 
 
 def fog(opts: ds.RenderOptions) -> str:
     """The fog model (``"none"``, ``"linear"``, ``"exp"``, ``"exp2"``)."""
-    return opts.fog
+    return "none" if opts.fog is None else opts.fog.mode
 
 
 def specular(opts: ds.RenderOptions) -> str:
     """The specular model (``"none"``, ``"phong"``, ``"blinn"``)."""
-    return opts.specular
+    return opts.lighting.specular
 
 
 def vertex_color(opts: ds.RenderOptions) -> str:
     """How vertex colours enter the image (``"none"``: they do not)."""
-    return opts.vertex_color
+    return opts.raster.vertex_color
 
 
-def layered(opts: ds.RenderOptions):
+def layered(opts: ds.RenderOptions) -> bool:
     """Whether the render composites transparency layers."""
     return opts.layered
 
 
 def without_specular(opts: ds.RenderOptions) -> ds.RenderOptions:
     """``opts`` without the specular term (and its Fresnel factor)."""
-    return opts.replace(specular="none", fresnel="none")
+    return opts.with_keys(specular="none", fresnel="none")
 
 
 def with_specular(opts: ds.RenderOptions, model: str) -> ds.RenderOptions:
     """``opts`` with the specular model ``model``."""
-    return opts.replace(specular=model)
+    return opts.with_keys(specular=model)
 
 
 def without_fog(opts: ds.RenderOptions) -> ds.RenderOptions:
     """``opts`` without fog."""
-    return opts.replace(fog="none")
+    return opts.replace(fog=None)
 
 
 def mtl_flags(opts: ds.RenderOptions) -> dict:
     """What a Wavefront MTL export needs to know: the specular model and which optional terms are on."""
-    return dict(specular=opts.specular, absorption=opts.absorption, transparency=opts.transparency,
-                transmission=opts.transmission)
+    return dict(specular=opts.lighting.specular, absorption=opts.layered and opts.transparency.absorption,
+                transparency=opts.layered, transmission=opts.lighting.transmission)
 
 
 def render_summary(opts: ds.RenderOptions) -> dict:
-    """The options the ``render`` command prints."""
-    return dict(shading=opts.shading, specular=opts.specular, fog=opts.fog, absorption=opts.absorption,
-                transmission=opts.transmission, transparency=opts.transparency, layers=opts.layers,
-                shadows=opts.shadows, shadow_resolution=opts.shadow_resolution, shadow_pcf=opts.shadow_pcf,
-                layered=opts.layered)
+    """The options the ``render`` command prints (the scene file's keys, and ``layered``)."""
+    return {**opts.keys(), "layers": opts.layers, "layered": opts.layered}
 
 
 def as_dict(opts: ds.RenderOptions) -> dict:
-    """Every option by name (the fit's JSON record)."""
-    return {k: getattr(opts, k) for k in opts.__dataclass_fields__}
+    """Every option by its scene-file key (the fit's JSON record)."""
+    return opts.keys()

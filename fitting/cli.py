@@ -185,11 +185,15 @@ def _render(scene, opts, out: Path, overwrite: bool, encoding: str = "linear") -
         f"specular={o['specular']}, fog={o['fog']}, lights: {scene.directional.count} directional, "
         f"{scene.point.count} point, {scene.spot.count} spot, {scene.area.count} area, {scene.multi_lobe.count} multi-lobe"
     )
-    extras = [name for name, on in (("absorption", o['absorption']), ("transmission", o['transmission'])) if on]
+    extras = [name for name in ("absorption", "transmission") if o.get(name)]
     if o['transparency']:
         extras.insert(0, f"transparency over {o['layers']} layer(s)")
     if o['shadows']:
         extras.append(f"shadow maps {o['shadow_resolution']}² (PCF {o['shadow_pcf']}x{o['shadow_pcf']})")
+    if o['shadow_rays']:
+        extras.append(f"shadow rays (through up to {o['shadow_ray_crossings']} transparent surfaces)")
+    if o['ray_depth']:
+        extras.append(f"mirror and refracted rays, {o['ray_depth']} bounce(s)")
     if extras:
         print("with " + ", ".join(extras))
     if o['layered']:
