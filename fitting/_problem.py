@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import diffshade as ds
-from diffshade import color as _color
+from diffshade import color
 from diffshade import pixel_neighbours
 
 from . import _options
@@ -123,7 +123,7 @@ def near_edges(depth: np.ndarray, margin: int, ratio: float = 4.0) -> np.ndarray
 @jax.jit
 def _edges_at(scene, ids, px, py, right, down):
     """The antialiasing's silhouette edges of a view's compacted pixels at its scene's values
-    (:func:`diffshade._antialias.silhouette_edges`): held fixed through a fit's pass, as the
+    (:func:`diffshade.silhouette_edges`): held fixed through a fit's pass, as the
     visibility is."""
     from diffshade import silhouette_edges
 
@@ -222,11 +222,11 @@ def _read_target(t, v, k, enc, obs: Observations, lower: bool):
     chan_w = np.ones_like(t)
     if enc is not None and enc != "linear":
         try:
-            _color.parse_encoding(enc)
-        except _color.EncodingError as exc:
+            color.parse_encoding(enc)
+        except color.EncodingError as exc:
             raise FitError(f"target {k}: {exc}") from exc
-        chan_w = 1.0 / _color.decode_slope(np.clip(t, 0.0, 1.0), enc, floor=(obs.quantum or 1 / 255) / 2)
-        t = np.asarray(_color.decode(t, enc), np.float64)
+        chan_w = 1.0 / color.decode_slope(np.clip(t, 0.0, 1.0), enc, floor=(obs.quantum or 1 / 255) / 2)
+        t = np.asarray(color.decode(t, enc), np.float64)
     return t, chan_w, hi, lo
 
 
@@ -382,8 +382,8 @@ class Problem:
             if b.encoding is None:
                 continue
             floor = (self.quantum or 1 / 255) / 2
-            e = np.asarray(_color.encode(np.clip(I, 0.0, None), b.encoding), np.float64)
-            slope = _color.decode_slope(np.clip(e, 0.0, 1.0), b.encoding, floor=floor)  # dL/dv at the model
+            e = np.asarray(color.encode(np.clip(I, 0.0, None), b.encoding), np.float64)
+            slope = color.decode_slope(np.clip(e, 0.0, 1.0), b.encoding, floor=floor)  # dL/dv at the model
             cens = np.asarray(vd.hi | vd.lo)
             t_new = np.where(cens, np.asarray(vd.target, np.float64), I + (b.codes - e) * slope)
             w_new = np.where(cens, np.asarray(vd.weight, np.float64), b.sqrt_mask / slope)

@@ -43,14 +43,14 @@ def load_target(path: Path, resolution: tuple[int, int], with_quantum: bool = Fa
     and its alpha channel (in [0, 1], never decoded) returned last, None for RGB."""
     import numpy as np
 
-    from diffshade import color as _color
+    from diffshade import color
 
     if not path.exists():
         raise InputError(f"{path}: target image not found")
     if encoding != "auto":
         try:
-            _color.parse_encoding(encoding)
-        except _color.EncodingError as exc:
+            color.parse_encoding(encoding)
+        except color.EncodingError as exc:
             raise InputError(str(exc)) from exc
     if path.suffix.lower() == ".npy":
         try:
@@ -65,11 +65,11 @@ def load_target(path: Path, resolution: tuple[int, int], with_quantum: bool = Fa
         import skimage.io
 
         try:
-            declared, why = _color.png_encoding(path)
-            img = _color.read_png16(path) if path.suffix.lower() == ".png" else None
+            declared, why = color.png_encoding(path)
+            img = color.read_png16(path) if path.suffix.lower() == ".png" else None
             if img is None:
                 img = skimage.io.imread(path)
-        except _color.EncodingError as exc:
+        except color.EncodingError as exc:
             raise InputError(str(exc)) from exc
         except Exception as exc:  # noqa: BLE001 - imageio raises many types; name the file
             raise InputError(f"{path}: cannot read as an image: {exc}") from exc
@@ -103,7 +103,7 @@ def load_target(path: Path, resolution: tuple[int, int], with_quantum: bool = Fa
     if not np.isfinite(img).all():
         raise InputError(f"{path}: contains NaN or inf")
     if decoded:
-        img = np.asarray(_color.decode(img, enc), np.float64)
+        img = np.asarray(color.decode(img, enc), np.float64)
     out = (img, sat) + ((q,) if with_quantum else ()) + (((enc, why),) if with_encoding else ())
     return out + ((alpha,) if with_alpha else ())
 
@@ -154,13 +154,13 @@ def _write_text(text: str, out: Path) -> None:
 def _write_png(image, out: Path, overwrite: bool, encoding: str = "linear") -> None:
     """``image`` (linear) as an 8-bit PNG encoded as ``encoding``, its chunks declaring it
     (``gAMA`` 1.0 for linear, ``sRGB`` for sRGB), written through a temporary file."""
-    from diffshade import color as _color
+    from diffshade import color
 
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out}: exists; pass --overwrite to replace it")
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(out.name + ".tmp.png")
-    _color.write_png(tmp, image, encoding)
+    color.write_png(tmp, image, encoding)
     tmp.replace(out)
 
 
@@ -214,11 +214,11 @@ def cmd_render(args) -> int:
 
 
 def _check_encoding(name: str) -> str:
-    from diffshade import color as _color
+    from diffshade import color
 
     try:
-        _color.parse_encoding(name)
-    except _color.EncodingError as exc:
+        color.parse_encoding(name)
+    except color.EncodingError as exc:
         raise InputError(str(exc)) from exc
     return name
 
@@ -453,13 +453,13 @@ def _fit_images(pset, r, scene, opts, views, tg: _Targets):
     import numpy as np
 
     import diffshade as ds
-    from diffshade import color as _color
+    from diffshade import color
 
     theta = jnp.asarray(r.values, scene.mesh.vertices.dtype)
     render = jax.jit(ds.render, static_argnames="opts")
     rows = []
     for k, (v, t, (enc, _)) in enumerate(zip(views, tg.images, tg.encodings)):
-        t = np.asarray(_color.decode(t, enc), np.float64)
+        t = np.asarray(color.decode(t, enc), np.float64)
         img = np.asarray(render(pset.apply(v, theta, k), opts), np.float64)
         rows.append(np.concatenate([t, img, np.clip(0.5 + 10.0 * (img - t), 0, 1)], axis=1))
     return pset.apply(scene, theta), rows
@@ -470,10 +470,10 @@ def _write_albedo(fitted_scene, out_dir: Path) -> None:
     import numpy as np
     import trimesh
 
-    from diffshade import color as _color
+    from diffshade import color
 
     m = fitted_scene.mesh
-    codes = np.round(np.asarray(_color.encode(np.clip(np.asarray(m.colors, np.float64), 0, 1), "srgb")) * 255)
+    codes = np.round(np.asarray(color.encode(np.clip(np.asarray(m.colors, np.float64), 0, 1), "srgb")) * 255)
     rgba = np.concatenate([codes, np.full((len(codes), 1), 255)], axis=1).astype(np.uint8)
     ply = out_dir / "albedo.ply"
     trimesh.Trimesh(np.asarray(m.vertices), np.asarray(m.faces), vertex_colors=rgba, process=False).export(ply)
