@@ -171,8 +171,8 @@ def main():
         import jax
         import jax.numpy as jnp
         import diffshade as ds
-        from fitting.fit import fit
-        from fitting.params import ParamSet
+        from fitting import Observations, fit
+        from fitting import ParamSet
 
         scene, opts = diffshade_scene(args.size)
         shared = ["material.specular"]
@@ -181,7 +181,7 @@ def main():
         target = np.asarray(jax.jit(ds.render, static_argnames="opts")(scene, opts))
         times, ok, compile_s, steps = [], 0, None, []
         for k, x0 in enumerate(S):
-            r = fit(pset.apply(scene, jnp.asarray(x0, jnp.float32)), opts, target, FREE, shared=shared)
+            r = fit(pset.apply(scene, jnp.asarray(x0, jnp.float32)), opts, Observations(target), FREE, shared=shared)
             err = float(np.max(np.abs(r.values - TRUTH) / TRUTH))
             good = r.successful and err <= 1e-4
             ok += good

@@ -25,8 +25,8 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 
 import diffshade as ds  # noqa: E402
 from fitting.cli import DEMO_FREE  # noqa: E402
-from fitting.fit import fit  # noqa: E402
-from fitting.params import ParamSet  # noqa: E402
+from fitting import Observations, fit  # noqa: E402
+from fitting import ParamSet  # noqa: E402
 
 
 def main():
@@ -56,7 +56,7 @@ def main():
         rng = np.random.default_rng(1000 + k)
         start = true * np.exp(rng.uniform(np.log(lo), np.log(hi), true.shape))
         start = np.where(np.array([p.domain == "unit" for p in pset.params for _ in range(p.size)]), np.clip(start, 0.01, 0.99), start)
-        r = fit(pset.apply(scene, jnp.asarray(start, jnp.float32)), opts, target, DEMO_FREE)
+        r = fit(pset.apply(scene, jnp.asarray(start, jnp.float32)), opts, Observations(target), DEMO_FREE)
         compile_s = r.compile_s if compile_s is None else compile_s
         err = np.max(np.abs(r.values - true) / true)
         good = r.successful and err <= 1e-4
@@ -74,7 +74,7 @@ def main():
         rng = np.random.default_rng(seed)
         noisy = np.round(np.clip(target + rng.normal(0, 2 / 255, target.shape), 0, 1) * 255) / 255
         start = true * rng.uniform(0.7, 1.3, true.shape)
-        r = fit(pset.apply(scene, jnp.asarray(start, jnp.float32)), opts, noisy, DEMO_FREE, saturation=1.0, quantum=1 / 255)
+        r = fit(pset.apply(scene, jnp.asarray(start, jnp.float32)), opts, Observations(noisy, saturation=1.0, quantum=1 / 255), DEMO_FREE)
         z = np.abs(r.values - true) / r.stderr
         inside += int((z <= 3).sum())
         total += len(z)

@@ -15,10 +15,10 @@ Scoring:
   line says how many of those are still within 3 of their reported standard errors: a float32
   solve is as precise as its float floor, which the s.e. then report). A parameter the fit
   itself reports as resolved by float32 only to a relative s.e. above 1e-4
-  (``FitResult.float_limited``: an attenuation coefficient traded against the others) must be
+  (``FitResult.diagnostics.float_limited``: an attenuation coefficient traded against the others) must be
   within 3 of those standard errors instead.
 - noisy: success = successful and every determined parameter within its reported 3σ
-  uncertainty: the profile-likelihood interval (Δχ² = 9, ``FitResult.interval``; ±3 s.e. where
+  uncertainty: the profile-likelihood interval (Δχ² = 9, ``FitResult.intervals.bounds``; ±3 s.e. where
   the model is linear over it); 1-σ coverage = the fraction of determined parameters within 1
   s.e. (expected 68 %). A fit that says successful with a parameter outside is a false success.
   The line also counts the fits with a parameter beyond ±3 Gauss–Newton s.e., and how many such
@@ -47,8 +47,8 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 import diffshade as ds  # noqa: E402
-from fitting.fit import fit  # noqa: E402
-from fitting.params import ParamSet  # noqa: E402
+from fitting import Observations, VarPro, fit  # noqa: E402
+from fitting import ParamSet  # noqa: E402
 
 
 BUNNY = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests", "data", "meshes", "bunny.ply")
@@ -168,15 +168,14 @@ def main():
                 continue
             if noisy:
                 tgt = np.round(np.clip(clean + rng.normal(0, 2 / 255, clean.shape), 0, 1) * 255) / 255
-                kw = dict(saturation=1.0, quantum=1 / 255)
+                obs = Observations(tgt, saturation=1.0, quantum=1 / 255)
             else:
-                tgt, kw = clean, {}
+                obs = Observations(clean)
             t0 = time.perf_counter()
-            if args.starts is not None:
-                kw["starts"] = args.starts
-            r = fit(s0, opts, tgt, free, **kw)
+            strategy = VarPro() if args.starts is None else VarPro(starts=args.starts)
+            r = fit(s0, opts, obs, free, strategy=strategy)
             wall = time.perf_counter() - t0
-            det = np.array([n not in r.undetermined for n in r.names])
+            det = np.array([n not in r.diagnostics.undetermined for n in r.names])
             outside = 0
             if noisy:
                 z = np.abs(r.values - true) / np.where(r.stderr > 0, r.stderr, np.inf)
@@ -190,8 +189,8 @@ def main():
                 err = np.abs(r.values - true) / np.maximum(np.abs(true), 1e-12)
                 z = np.abs(r.values - true) / np.where(r.stderr > 0, r.stderr, np.inf)
                 # a parameter the fit reports float32 resolves only to a relative s.e. above 1e-4
-                # (FitResult.float_limited) is scored against that reported precision
-                lim = np.array([n in r.float_limited for n in r.names])
+                # (FitResult.diagnostics.float_limited) is scored against that reported precision
+                lim = np.array([n in r.diagnostics.float_limited for n in r.names])
                 right = bool(np.all(np.where(lim, z <= 3, err <= 1e-4)[det]))
                 within1 = 0
                 err_s = f"max err {np.max(err[det]):.1e} |z| {np.max(z[det]):5.2f}"
@@ -199,10 +198,10 @@ def main():
                                                              ("honest fail" if not right else "fail (right)"))
             honest = bool(np.all(z[det] <= 3))  # within ±3 Gauss–Newton s.e.
             rows.append(dict(case=case, noisy=noisy, ok=r.successful and right, false=r.successful and not right,
-                             false_wald=r.successful and not honest, interval_s=r.interval_s, outside=outside,
+                             false_wald=r.successful and not honest, interval_s=r.intervals.seconds, outside=outside,
                              solve=r.solve_s, compile=r.compile_s, steps=r.steps, within1=within1,
                              ndet=int(det.sum()), wall=wall, honest=honest))
-            print(f"{case:3d} {'8-bit' if noisy else ('f64' if args.x64 else 'f32')} {name:48s} {verdict:13s} {err_s} ratio {r.noise_ratio:7.3g} "
+            print(f"{case:3d} {'8-bit' if noisy else ('f64' if args.x64 else 'f32')} {name:48s} {verdict:13s} {err_s} ratio {r.residual.noise_ratio:7.3g} "
                   f"steps {r.steps:3d} solve {r.solve_s:6.3f} s compile {r.compile_s:5.1f} s"
                   + ("" if r.successful else f"  [{r.result[:70]}]"), flush=True)
     for noisy in (False, True):

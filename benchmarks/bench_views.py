@@ -46,10 +46,12 @@ def child(size: int, n: int, devices: int, repeats: int) -> dict:
 
     sys.path.insert(0, os.path.join(HERE, ".."))
     import diffshade as ds
+    from fitting import Observations
     from fitting.cli import DEMO_FREE
-    from fitting.solve import compiled_program, limits
-    from fitting.problem import Problem
-    from fitting.strategy import Reduced, candidates
+    from fitting._varpro import compiled_program, limits
+    from fitting._problem import Problem
+    from fitting._linear import Reduced
+    from fitting._starts import candidates
 
     d = dict(ds.DEFAULT_SCENE)
     d["camera"] = dict(d["camera"], width=size, height=size)
@@ -65,7 +67,7 @@ def child(size: int, n: int, devices: int, repeats: int) -> dict:
     base_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     free = list(DEMO_FREE)
     devs = jax.devices()[:devices]
-    prob = Problem.build(scene, opts, targets, free, views=views, devices=devs)
+    prob = Problem.build(scene, opts, Observations(targets, views=views), free, devices=devs)
     red = Reduced(prob)
     theta0 = np.asarray(prob.pset.theta_of(scene, views), np.float64) * 1.3
     theta_ref = jnp.asarray(theta0, prob.dtype)
@@ -80,8 +82,8 @@ def child(size: int, n: int, devices: int, repeats: int) -> dict:
     def run(steps):
         t = time.perf_counter()
         out = fn(z0, data, theta_ref, n2, jnp.asarray(0), *limits(steps, 0.0, prob.dtype), jnp.asarray(U, prob.dtype))
-        jax.block_until_ready(out["z"])
-        return time.perf_counter() - t, int(out["k"])
+        jax.block_until_ready(out.z)
+        return time.perf_counter() - t, int(out.k)
 
     run(1), run(6)  # warm
     per = []

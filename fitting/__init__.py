@@ -1,1 +1,19 @@
-"""fitting: recover material, light and fog parameters from images (builds on diffshade)."""
+"""fitting: recover material, light and fog parameters from images (builds on diffshade).
+
+``fit(scene, opts, Observations(targets, ...), free, strategy=VarPro(...))`` returns a
+:class:`FitResult`; :func:`compare_models` asks which terms the images support. Everything else
+lives in private modules named by what they compute (``_params``, ``_problem``, ``_linear``,
+``_varpro``, ``_starts``, ``_restarts``, ``_polish``, ``_basins``, ``_intervals``, ``_albedo``,
+``_report``, ``_models``, ``_cache``); design notes: docs/fit-design-notes.md."""
+
+from ._cache import cache_info, enable_compilation_cache
+from ._fit import fit
+from ._models import ModelScore, compare_models, model_variants
+from ._params import Param, ParamError, ParamSet, direction_frame, direction_of, tilt_of
+from ._observations import FitError, Observations, Optimistix, Strategy, VarPro
+from ._report import Diagnostics, FitResult, Intervals, ResidualStats
+
+__all__ = ["Diagnostics", "FitError", "FitResult", "Intervals", "ModelScore", "Observations", "Optimistix",
+           "ResidualStats", "Strategy", "VarPro", "Param", "ParamError", "ParamSet", "cache_info",
+           "compare_models", "direction_frame", "direction_of", "enable_compilation_cache", "fit", "model_variants",
+           "tilt_of"]

@@ -39,18 +39,18 @@ def load_target(path: Path, resolution: tuple[int, int], with_quantum: bool = Fa
     codes are decoded to linear values; the ends are fixed points of every encoding, so a clipped
     code (0 or the top one) is decided on the encoded value and stays clipped. ``.npy`` floats
     are linear unless an encoding is given. ``decoded`` False: the code values themselves (in
-    [0, 1]), for :func:`fitting.fit.fit`'s ``encoding``. ``with_alpha``: an RGBA image is accepted
+    [0, 1]), for :func:`fitting.fit`'s ``encoding``. ``with_alpha``: an RGBA image is accepted
     and its alpha channel (in [0, 1], never decoded) returned last, None for RGB."""
     import numpy as np
 
-    from diffshade import color as _color
+    from diffshade import color
 
     if not path.exists():
         raise InputError(f"{path}: target image not found")
     if encoding != "auto":
         try:
-            _color.parse_encoding(encoding)
-        except _color.EncodingError as exc:
+            color.parse_encoding(encoding)
+        except color.EncodingError as exc:
             raise InputError(str(exc)) from exc
     if path.suffix.lower() == ".npy":
         try:
@@ -65,11 +65,11 @@ def load_target(path: Path, resolution: tuple[int, int], with_quantum: bool = Fa
         import skimage.io
 
         try:
-            declared, why = _color.png_encoding(path)
-            img = _color.read_png16(path) if path.suffix.lower() == ".png" else None
+            declared, why = color.png_encoding(path)
+            img = color.read_png16(path) if path.suffix.lower() == ".png" else None
             if img is None:
                 img = skimage.io.imread(path)
-        except _color.EncodingError as exc:
+        except color.EncodingError as exc:
             raise InputError(str(exc)) from exc
         except Exception as exc:  # noqa: BLE001 - imageio raises many types; name the file
             raise InputError(f"{path}: cannot read as an image: {exc}") from exc
@@ -103,7 +103,7 @@ def load_target(path: Path, resolution: tuple[int, int], with_quantum: bool = Fa
     if not np.isfinite(img).all():
         raise InputError(f"{path}: contains NaN or inf")
     if decoded:
-        img = np.asarray(_color.decode(img, enc), np.float64)
+        img = np.asarray(color.decode(img, enc), np.float64)
     out = (img, sat) + ((q,) if with_quantum else ()) + (((enc, why),) if with_encoding else ())
     return out + ((alpha,) if with_alpha else ())
 
@@ -118,26 +118,29 @@ def write_mtl(scene, opts, path: Path, header: str) -> None:
     def rgb(x):
         return " ".join(f"{float(c):.6g}" for c in np.broadcast_to(np.asarray(x), (3,)))
 
+    from . import _options
+
+    o = _options.mtl_flags(opts)
     lines = [f"# {ln}" for ln in header.splitlines()]
-    lines.append(f"# Ns is the {'Blinn-Phong' if opts.specular == 'blinn' else 'Phong'} exponent; "
+    lines.append(f"# Ns is the {'Blinn-Phong' if o['specular'] == 'blinn' else 'Phong'} exponent; "
                  "colours are linear; Ke = emission")
     mats = [("material", scene.material)] + [(f"material_{i + 1}", m) for i, m in enumerate(scene.materials)]
     if scene.back_material is not None:
         mats.append(("back_material", scene.back_material))
     for name, m in mats:
         extra = []
-        if opts.absorption:
+        if o['absorption']:
             extra.append(f"# absorption mu {rgb(m.absorption)} (per unit length)")
-        if opts.transparency and m.kay:
+        if o['transparency'] and m.kay:
             extra.append(f"# Kay opacity t_min {float(m.kay_min):.6g} t_max {float(m.kay_max):.6g} "
                          f"p {float(m.kay_power):.6g}")
-        opacity = float(m.opacity) if opts.transparency and not m.kay else 1.0
+        opacity = float(m.opacity) if o['transparency'] and not m.kay else 1.0
         lines += ["", *extra, f"newmtl {name}", f"Ka {rgb(m.ambient)}", f"Kd {rgb(m.diffuse)}",
                   f"Ks {rgb(m.specular)}", f"Ns {float(m.shininess):.6g}", f"Ke {rgb(m.emission)}",
                   f"Ni {float(m.ior):.6g}", f"d {opacity:.6g}"]
-        if opts.transmission:
+        if o['transmission']:
             lines.append(f"Tf {rgb(m.transmission)}")
-        lines.append(f"illum {1 if opts.specular == 'none' else (4 if opts.transparency else 2)}")
+        lines.append(f"illum {1 if o['specular'] == 'none' else (4 if o['transparency'] else 2)}")
     _write_text("\n".join(lines) + "\n", path)
 
 
@@ -151,13 +154,13 @@ def _write_text(text: str, out: Path) -> None:
 def _write_png(image, out: Path, overwrite: bool, encoding: str = "linear") -> None:
     """``image`` (linear) as an 8-bit PNG encoded as ``encoding``, its chunks declaring it
     (``gAMA`` 1.0 for linear, ``sRGB`` for sRGB), written through a temporary file."""
-    from diffshade import color as _color
+    from diffshade import color
 
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out}: exists; pass --overwrite to replace it")
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(out.name + ".tmp.png")
-    _color.write_png(tmp, image, encoding)
+    color.write_png(tmp, image, encoding)
     tmp.replace(out)
 
 
@@ -166,6 +169,9 @@ def _render(scene, opts, out: Path, overwrite: bool, encoding: str = "linear") -
 
     import diffshade as ds
 
+    from . import _options
+
+    o = _options.render_summary(opts)
     fn = jax.jit(ds.render, static_argnames="opts")
     t0 = time.perf_counter()
     img = fn(scene, opts).block_until_ready()
@@ -175,21 +181,25 @@ def _render(scene, opts, out: Path, overwrite: bool, encoding: str = "linear") -
     _write_png(img, out, overwrite, encoding)
     h, w = scene.camera.resolution
     print(
-        f"rendered {w}x{h}, {scene.mesh.faces.shape[0]} faces, shading={opts.shading}, "
-        f"specular={opts.specular}, fog={opts.fog}, lights: {scene.directional.count} directional, "
+        f"rendered {w}x{h}, {scene.mesh.faces.shape[0]} faces, shading={o['shading']}, "
+        f"specular={o['specular']}, fog={o['fog']}, lights: {scene.directional.count} directional, "
         f"{scene.point.count} point, {scene.spot.count} spot, {scene.area.count} area, {scene.multi_lobe.count} multi-lobe"
     )
-    extras = [name for name, on in (("absorption", opts.absorption), ("transmission", opts.transmission)) if on]
-    if opts.transparency:
-        extras.insert(0, f"transparency over {opts.layers} layer(s)")
-    if opts.shadows:
-        extras.append(f"shadow maps {opts.shadow_resolution}² (PCF {opts.shadow_pcf}x{opts.shadow_pcf})")
+    extras = [name for name in ("absorption", "transmission") if o.get(name)]
+    if o['transparency']:
+        extras.insert(0, f"transparency over {o['layers']} layer(s)")
+    if o['shadows']:
+        extras.append(f"shadow maps {o['shadow_resolution']}² (PCF {o['shadow_pcf']}x{o['shadow_pcf']})")
+    if o['shadow_rays']:
+        extras.append(f"shadow rays (through up to {o['shadow_ray_crossings']} transparent surfaces)")
+    if o['ray_depth']:
+        extras.append(f"mirror and refracted rays, {o['ray_depth']} bounce(s)")
     if extras:
         print("with " + ", ".join(extras))
-    if opts.layered:
+    if o['layered']:
         cut = ds.truncated_pixels(scene, opts)
         if cut:
-            print(f"note: {cut} pixel(s) have more than {opts.layers} surfaces; what lies beyond the last layer "
+            print(f"note: {cut} pixel(s) have more than {o['layers']} surfaces; what lies beyond the last layer "
                   "is not composited (raise render.layers to include it)")
     print(f"first call (compile + run) {t1 - t0:.2f} s, steady state {1e3 * (t2 - t1):.1f} ms")
     print(f"wrote {out} ({encoding} encoding, declared in the file)")
@@ -204,11 +214,11 @@ def cmd_render(args) -> int:
 
 
 def _check_encoding(name: str) -> str:
-    from diffshade import color as _color
+    from diffshade import color
 
     try:
-        _color.parse_encoding(name)
-    except _color.EncodingError as exc:
+        color.parse_encoding(name)
+    except color.EncodingError as exc:
         raise InputError(str(exc)) from exc
     return name
 
@@ -225,8 +235,7 @@ def cmd_demo(args) -> int:
 
     import diffshade as ds
 
-    from .fit import fit
-    from .params import ParamSet
+    from . import Observations, ParamSet, fit
 
     scene, opts = ds.default_scene()
     if args.size != scene.camera.width:
@@ -243,15 +252,16 @@ def cmd_demo(args) -> int:
     rng = np.random.default_rng(args.seed)
     start = true * rng.uniform(0.7, 1.3, true.shape)
     s0 = pset.apply(scene, jnp.asarray(start, jnp.float32))
-    r = fit(s0, opts, target, DEMO_FREE)
+    r = fit(s0, opts, Observations(target), DEMO_FREE)
     err = np.abs(r.values - true) / np.abs(true)
     print(f"{'parameter':22s} {'true':>10s} {'start':>10s} {'recovered':>10s} {'rel. error':>10s} {'std. error':>10s}")
     for n, t, s_, v, e, se in zip(r.names, true, start, r.values, err, r.stderr):
         print(f"{n:22s} {t:10.5f} {s_:10.5f} {v:10.5f} {e:10.2e} {se:10.2e}")
     print(f"result: {r.result or 'successful'}; {r.steps} steps; compile {r.compile_s:.2f} s, solve {r.solve_s:.2f} s; "
-          f"max rel. error {err.max():.2e}; RMS residual {r.rms:.2e}; PSNR {r.psnr:.1f} dB; SSIM {r.ssim:.6f}")
-    if r.undetermined or r.gauges:
-        print(f"not determined by the image: {r.undetermined}; {r.gauges}")
+          f"max rel. error {err.max():.2e}; RMS residual {r.residual.rms:.2e}; PSNR {r.residual.psnr:.1f} dB; "
+          f"SSIM {r.residual.ssim:.6f}")
+    if r.diagnostics.undetermined or r.diagnostics.gauges:
+        print(f"not determined by the image: {r.diagnostics.undetermined}; {r.diagnostics.gauges}")
     print(f"method: {r.method}")
     for n in r.notes:
         print("  " + n)
@@ -270,7 +280,7 @@ FIT_OUTPUTS = ("fit.json", "material.mtl", "fit.png", "report.txt")
 def _report_table(r) -> list[str]:
     import numpy as np
 
-    iv = r.interval is not None
+    iv = r.intervals is not None
     lines = [f"{'parameter':26s} {'start':>11s} {'fitted':>11s} {'std. error':>11s} {'rel. s.e.':>10s}"
              + (f"  {'3σ profile interval':>25s}" if iv else "")]
     albedo = [i for i, n in enumerate(r.names) if n.startswith("mesh.colors[")]
@@ -280,7 +290,7 @@ def _report_table(r) -> list[str]:
             continue
         rel = se / abs(v) if v != 0 else float("inf")
         lines.append(f"{n:26s} {s_:11.5g} {v:11.5g} {se:11.3g} {rel:10.2e}"
-                     + (f"  [{r.interval[i, 0]:11.5g}, {r.interval[i, 1]:11.5g}]" if iv else ""))
+                     + (f"  [{r.intervals.bounds[i, 0]:11.5g}, {r.intervals.bounds[i, 1]:11.5g}]" if iv else ""))
     if albedo:  # thousands of scalars: a summary here, every value in fit.json
         se = r.stderr[albedo]
         fin = np.isfinite(se)
@@ -288,42 +298,35 @@ def _report_table(r) -> list[str]:
                      f"{r.values[albedo].max():.3g}], median s.e. {np.median(se[fin]) if fin.any() else np.inf:.3g}, "
                      f"{int((~fin).sum()) // 3} vertices undetermined (every value in fit.json)")
     lines.append(f"result: {r.result or 'successful'}; {r.steps} steps; compile {r.compile_s:.2f} s, solve {r.solve_s:.2f} s; "
-                 f"RMS residual {r.rms:.3e}; PSNR {r.psnr:.2f} dB; SSIM {r.ssim:.5f}")
+                 f"RMS residual {r.residual.rms:.3e}; PSNR {r.residual.psnr:.2f} dB; SSIM {r.residual.ssim:.5f}")
     lines.append(f"method: {r.method}")
-    lines.append(f"noise: σ = {r.noise:.3g} ({r.noise_source}); residual {r.noise_ratio:.3g}× the noise"
-                 + ("" if r.stderr_meaningful else " — the standard errors are NOT meaningful"))
-    for b in r.on_bound:
+    lines.append(f"noise: σ = {r.residual.noise:.3g} ({r.residual.noise_source}); residual "
+                 f"{r.residual.noise_ratio:.3g}× the noise"
+                 + ("" if r.successful else " — the standard errors are NOT meaningful"))
+    diag = r.diagnostics
+    for b in diag.on_bound:
         lines.append("on a bound: " + b)
     for n in r.notes:
         lines.append("  " + n)
-    if r.undetermined:
-        und = [u for u in r.undetermined if not u.startswith("mesh.colors[")]
-        n_v = len(r.undetermined) - len(und)
+    if diag.undetermined:
+        und = [u for u in diag.undetermined if not u.startswith("mesh.colors[")]
+        n_v = len(diag.undetermined) - len(und)
         lines.append("NOT DETERMINED by the images (values are the starts, not estimates): " + ", ".join(
             und + ([f"the albedo of {n_v} vertices (seen by no view, or unlit where seen)"] if n_v else [])))
-    for g in r.gauges:
+    for g in diag.gauges:
         lines.append("near-gauge (the images barely constrain this combination): " + g)
-    if r.ambiguous:
-        alt = dict(zip(r.names, r.alternative))
+    if r.intervals is not None and r.intervals.ambiguous:
+        alt = dict(zip(r.names, r.intervals.alternative))
         lines.append("AMBIGUOUS: the images cannot tell these values apart (within Δχ² = 9); the intervals "
                      "cover both: " + ", ".join(
-            f"{n} {r.values[r.names.index(n)]:.5g} or {alt[n]:.5g}" for n in r.ambiguous))
+            f"{n} {r.values[r.names.index(n)]:.5g} or {alt[n]:.5g}" for n in r.intervals.ambiguous))
     return lines
 
 
-def cmd_fit(args) -> int:
-    import jax
-    import jax.numpy as jnp
-    import numpy as np
-
+def _load_views(args, scene):
+    """The views' scenes (``--views``) with their cameras (``--cameras``), and the paths read."""
     import diffshade as ds
-    from diffshade import color as _color
 
-    from .fit import compare_models, fit
-    from .params import ParamSet
-
-    scene_path = Path(args.scene)
-    scene, opts = ds.load_scene(scene_path)
     view_paths = [Path(v) for v in args.views] if args.views else []
     if view_paths and len(view_paths) != len(args.targets):
         raise InputError(f"{len(args.targets)} target(s) but {len(view_paths)} --views scene file(s); give one per target")
@@ -335,24 +338,37 @@ def cmd_fit(args) -> int:
         if len(camera_paths) != len(args.targets):
             raise InputError(f"{len(args.targets)} target(s) but {len(camera_paths)} --cameras file(s); give one per target")
         views = [eqx.tree_at(lambda s: s.camera, v, ds.load_camera(c)) for v, c in zip(views, camera_paths)]
-    target_paths = [Path(t) for t in args.targets]
-    loaded = [load_target(t, v.camera.resolution, with_quantum=True, encoding=args.encoding, with_encoding=True,
-                          decoded=False, with_alpha=True) for t, v in zip(target_paths, views)]
-    targets = [img for img, *_ in loaded]  # code values; the fit decodes them (clipping decided on the codes)
-    sats = {sat for _, sat, _, _, _ in loaded}
-    saturation = 1.0 if sats == {1.0} and not args.no_censor else None
-    quanta = [q for _, _, q, _, _ in loaded if q is not None]
-    quantum = max(quanta) if len(quanta) == len(loaded) else None
-    encodings = [e for *_, e, _ in loaded]
-    alphas = [a for *_, a in loaded]
-    for t, (enc, why) in zip(target_paths, encodings):
-        undeclared = why.startswith("no sRGB")
-        print(f"{'warning: ' if undeclared else ''}{t}: {enc} ({why})")
-    masks = None
+    return views, view_paths, camera_paths
+
+
+class _Targets:
+    """The targets as read: code values (the fit decodes them), clipping, code step, encodings
+    and alpha channels."""
+
+    def __init__(self, args, views):
+        self.paths = [Path(t) for t in args.targets]
+        loaded = [load_target(t, v.camera.resolution, with_quantum=True, encoding=args.encoding, with_encoding=True,
+                              decoded=False, with_alpha=True) for t, v in zip(self.paths, views)]
+        self.images = [img for img, *_ in loaded]  # code values; the fit decodes them (clipping decided on the codes)
+        self.sats = {sat for _, sat, _, _, _ in loaded}
+        self.saturation = 1.0 if self.sats == {1.0} and not args.no_censor else None
+        quanta = [q for _, _, q, _, _ in loaded if q is not None]
+        self.quantum = max(quanta) if len(quanta) == len(loaded) else None
+        self.encodings = [e for *_, e, _ in loaded]
+        self.alphas = [a for *_, a in loaded]
+        for t, (enc, why) in zip(self.paths, self.encodings):
+            undeclared = why.startswith("no sRGB")
+            print(f"{'warning: ' if undeclared else ''}{t}: {enc} ({why})")
+
+
+def _load_masks(args, tg: _Targets, views):
+    """The weight images (``--mask``), else the targets' alpha channels; and the paths read."""
+    import numpy as np
+
     mask_paths = [Path(m) for m in args.mask] if args.mask else []
     if mask_paths:
-        if len(mask_paths) != len(targets):
-            raise InputError(f"{len(targets)} target(s) but {len(mask_paths)} mask(s); give one per target")
+        if len(mask_paths) != len(tg.images):
+            raise InputError(f"{len(tg.images)} target(s) but {len(mask_paths)} mask(s); give one per target")
         import skimage.io
 
         masks = []
@@ -365,119 +381,165 @@ def cmd_fit(args) -> int:
                 raise InputError(f"{mp}: mask is {m.shape[1]}x{m.shape[0]} but the camera renders "
                                  f"{v.camera.width}x{v.camera.height}")
             masks.append(m / max(m.max(), 1e-300))
-    elif any(a is not None for a in alphas):  # a PNG's alpha channel is its mask (0: not the object)
-        masks = [np.ones(v.camera.resolution) if a is None else a for a, v in zip(alphas, views)]
-        for t, a in zip(target_paths, alphas):
+        return masks, mask_paths
+    if any(a is not None for a in tg.alphas):  # a PNG's alpha channel is its mask (0: not the object)
+        for t, a in zip(tg.paths, tg.alphas):
             if a is not None:
                 print(f"{t}: its alpha channel is the mask ({int((a > 0).sum())} of {a.size} pixels weighted)")
+        return [np.ones(v.camera.resolution) if a is None else a for a, v in zip(tg.alphas, views)], mask_paths
+    return None, mask_paths
 
-    # a calibrated camera's lens distortion: the target (and its mask) resampled to the ideal
-    # pinhole camera the renderer draws; clipped codes stay clipped; pixels the photograph does
-    # not reach get no weight
+
+def _undistort(args, tg: _Targets, masks, views):
+    """A calibrated camera's lens distortion: the target (and its mask) resampled to the ideal
+    pinhole camera the renderer draws; clipped codes stay clipped; pixels the photograph does not
+    reach get no weight. Returns the masks."""
+    import numpy as np
+
+    import diffshade as ds
+
     for k, v in enumerate(views):
         dist = np.asarray(getattr(v.camera, "distortion", np.zeros(1)), np.float64)
         if not dist.any():
             continue
         Kmat = np.asarray(v.camera.intrinsics(), np.float64)
-        targets[k], valid = ds.undistort(targets[k], Kmat, dist, saturation=1.0 if sats == {1.0} else None)
+        tg.images[k], valid = ds.undistort(tg.images[k], Kmat, dist, saturation=1.0 if tg.sats == {1.0} else None)
         m = np.ones(v.camera.resolution) if masks is None or masks[k] is None else ds.undistort(masks[k], Kmat, dist)[0]
         masks = masks if masks is not None else [np.ones(w.camera.resolution) for w in views]
         masks[k] = m * valid
-        print(f"{target_paths[k]}: undistorted (k1..: {np.round(dist, 5).tolist()}); "
+        print(f"{tg.paths[k]}: undistorted (k1..: {np.round(dist, 5).tolist()}); "
               f"{int((~valid).sum())} pixel(s) outside the photograph left out"
               + ("" if args.noise else "; resampling averages neighbouring pixels' noise, so the estimate "
                  "from the residual is low: pass --noise SIGMA if the camera's is known"))
+    return masks
 
+
+def _check_outputs(args, inputs) -> list[Path]:
+    """The output paths, none of them an input, none existing unless ``--overwrite``."""
     out_dir = Path(args.output_dir)
     outputs = [out_dir / n for n in FIT_OUTPUTS]
-    inputs = {p.resolve() for p in [scene_path, *view_paths, *camera_paths, *target_paths, *mask_paths]}
+    inputs = {p.resolve() for p in inputs}
     for o in outputs + ([out_dir / "albedo.ply"] if "mesh.colors" in args.free else []):
         if o.resolve() in inputs:
             raise InputError(f"{o}: is one of the inputs; choose another --output-dir (inputs are never overwritten)")
         if o.exists() and not args.overwrite:
             raise InputError(f"{o}: exists; pass --overwrite to replace it or choose another --output-dir")
+    return outputs
 
-    pset = ParamSet(args.free, scene, args.shared or (), n_views=len(targets))  # name errors before any compile
-    print(f"fitting {', '.join(args.free)} to {len(targets)} image(s) of {views[0].camera.width}x"
-          f"{views[0].camera.height} with {args.solver}" + (" (clipped pixels censored)" if saturation else ""))
-    if args.margin < 0:
-        raise InputError(f"--margin {args.margin}: a number of pixels, 0 or more")
-    kw = dict(views=views, masks=masks, margin=args.margin, albedo_smoothness=args.albedo_smoothness, shared=args.shared or (), solver=args.solver, max_steps=args.max_steps,
-              saturation=saturation, quantum=quantum, noise=args.noise, encoding=[e for e, _ in encodings])
-    r = fit(scene, opts, targets, args.free, verbose=args.verbose, **kw)
-    report = [f"diffshade fit: scene {scene_path}, target(s) {', '.join(map(str, target_paths))}", *_report_table(r)]
+
+def _compare(scene, opts, obs, args, r, fit_kw):
+    """``--compare``: the nested term sets fitted and ranked by BIC; report lines and records."""
+    from . import _options, compare_models
+
+    fit_kw = dict(fit_kw, strategy=fit_kw["strategy"].replace(verbose=False))  # verbose: the main fit only
+    scores = compare_models(scene, opts, obs, args.free, given=r, **fit_kw)
+    report = ["", "model comparison (lowest BIC first; ΔBIC > 10 is strong evidence):",
+              f"{'model':14s} {'k':>3s} {'RSS':>11s} {'AIC':>14s} {'BIC':>14s} {'ΔBIC':>9s} result"]
     comparison = []
-    if args.compare:
-        scores = compare_models(scene, opts, targets, args.free, given=r, **kw)
-        report += ["", "model comparison (lowest BIC first; ΔBIC > 10 is strong evidence):",
-                   f"{'model':14s} {'k':>3s} {'RSS':>11s} {'AIC':>14s} {'BIC':>14s} {'ΔBIC':>9s} result"]
-        for m in scores:
-            report.append(f"{m.name:14s} {m.k:3d} {m.rss:11.4e} {m.aic:14.1f} {m.bic:14.1f} "
-                          f"{m.bic - scores[0].bic:9.1f} {m.fit.result or 'successful'}")
-            comparison.append({"model": m.name, "specular": m.opts.specular, "fog": m.opts.fog, "free": m.free,
-                               "k": m.k, "n": m.n, "rss": m.rss, "aic": m.aic, "bic": m.bic,
-                               "delta_bic": m.bic - scores[0].bic, "fit": m.fit.as_dict()})
-        report.append(f"the images support: {scores[0].name}")
-    print("\n".join(report[1:]))
+    for m in scores:
+        report.append(f"{m.name:14s} {m.k:3d} {m.rss:11.4e} {m.aic:14.1f} {m.bic:14.1f} "
+                      f"{m.bic - scores[0].bic:9.1f} {m.fit.result or 'successful'}")
+        comparison.append({"model": m.name, "specular": _options.specular(m.opts), "fog": _options.fog(m.opts),
+                           "free": m.free, "k": m.k, "n": m.n, "rss": m.rss, "aic": m.aic, "bic": m.bic,
+                           "delta_bic": m.bic - scores[0].bic, "fit": m.fit.as_dict()})
+    report.append(f"the images support: {scores[0].name}")
+    return report, comparison
+
+
+def _fit_images(pset, r, scene, opts, views, tg: _Targets):
+    """The fitted scene, and per view a row target | fit | 10x residual + 0.5."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import diffshade as ds
+    from diffshade import color
 
     theta = jnp.asarray(r.values, scene.mesh.vertices.dtype)
-    fitted_scene = pset.apply(scene, theta)
     render = jax.jit(ds.render, static_argnames="opts")
     rows = []
-    for k, (v, t, (enc, _)) in enumerate(zip(views, targets, encodings)):
-        t = np.asarray(_color.decode(t, enc), np.float64)
+    for k, (v, t, (enc, _)) in enumerate(zip(views, tg.images, tg.encodings)):
+        t = np.asarray(color.decode(t, enc), np.float64)
         img = np.asarray(render(pset.apply(v, theta, k), opts), np.float64)
         rows.append(np.concatenate([t, img, np.clip(0.5 + 10.0 * (img - t), 0, 1)], axis=1))
+    return pset.apply(scene, theta), rows
+
+
+def _write_albedo(fitted_scene, out_dir: Path) -> None:
+    """The fitted albedo on the mesh, as sRGB vertex colours."""
+    import numpy as np
+    import trimesh
+
+    from diffshade import color
+
+    m = fitted_scene.mesh
+    codes = np.round(np.asarray(color.encode(np.clip(np.asarray(m.colors, np.float64), 0, 1), "srgb")) * 255)
+    rgba = np.concatenate([codes, np.full((len(codes), 1), 255)], axis=1).astype(np.uint8)
+    ply = out_dir / "albedo.ply"
+    trimesh.Trimesh(np.asarray(m.vertices), np.asarray(m.faces), vertex_colors=rgba, process=False).export(ply)
+    print(f"wrote {ply} (the fitted albedo as sRGB vertex colours)")
+
+
+def _write_outputs(args, meta, r, report, comparison, outputs, fitted, rows, encoding, opts):
+    """fit.json, material.mtl, fit.png and report.txt."""
     import json
 
-    meta = {"scene": str(scene_path), "targets": [str(t) for t in target_paths], "views": [str(v) for v in view_paths],
-            "cameras": [str(c) for c in camera_paths],
-            "encodings": [{"encoding": e, "from": why} for e, why in encodings],
-            "free": args.free, "shared": args.shared or [], "solver": args.solver, "censored_at": saturation,
-            "options": {k: getattr(opts, k) for k in opts.__dataclass_fields__}}
+    import numpy as np
+
     doc = {**meta, **r.as_dict()}
     if comparison:
         doc["comparison"] = comparison
     _write_text(json.dumps(doc, indent=2, default=float) + "\n", outputs[0])
-    write_mtl(fitted_scene, opts, outputs[1], f"{report[0]}\nfree: {' '.join(args.free)}; result: "
+    write_mtl(fitted, opts, outputs[1], f"{report[0]}\nfree: {' '.join(args.free)}; result: "
               f"{r.result or 'successful'}; standard errors in fit.json")
-    _write_png(np.concatenate(rows, axis=0), outputs[2], True, encodings[0][0])
+    _write_png(np.concatenate(rows, axis=0), outputs[2], True, encoding)
     _write_text("\n".join(report) + "\n", outputs[3])
-    if "mesh.colors" in pset.names:  # the fitted albedo on the mesh, as sRGB vertex colours
-        import trimesh
 
-        m = fitted_scene.mesh
-        codes = np.round(np.asarray(_color.encode(np.clip(np.asarray(m.colors, np.float64), 0, 1), "srgb")) * 255)
-        rgba = np.concatenate([codes, np.full((len(codes), 1), 255)], axis=1).astype(np.uint8)
-        ply = out_dir / "albedo.ply"
-        trimesh.Trimesh(np.asarray(m.vertices), np.asarray(m.faces), vertex_colors=rgba, process=False).export(ply)
-        print(f"wrote {ply} (the fitted albedo as sRGB vertex colours)")
+
+def cmd_fit(args) -> int:
+    import diffshade as ds
+
+    from . import Observations, Optimistix, ParamSet, VarPro, _options, fit
+
+    scene_path = Path(args.scene)
+    scene, opts = ds.load_scene(scene_path)
+    views, view_paths, camera_paths = _load_views(args, scene)
+    tg = _Targets(args, views)
+    masks, mask_paths = _load_masks(args, tg, views)
+    masks = _undistort(args, tg, masks, views)
+    outputs = _check_outputs(args, [scene_path, *view_paths, *camera_paths, *tg.paths, *mask_paths])
+    pset = ParamSet(args.free, scene, args.shared or (), n_views=len(tg.images))  # name errors before any compile
+    print(f"fitting {', '.join(args.free)} to {len(tg.images)} image(s) of {views[0].camera.width}x"
+          f"{views[0].camera.height} with {args.solver}" + (" (clipped pixels censored)" if tg.saturation else ""))
+    if args.margin < 0:
+        raise InputError(f"--margin {args.margin}: a number of pixels, 0 or more")
+    obs = Observations(tg.images, views=views, masks=masks, encoding=[e for e, _ in tg.encodings],
+                       saturation=tg.saturation, quantum=tg.quantum, noise=args.noise, margin=args.margin)
+    strategy = (VarPro(max_steps=args.max_steps, verbose=args.verbose) if args.solver == "varpro" else
+                Optimistix(solver=args.solver, max_steps=args.max_steps, verbose=args.verbose))
+    fit_kw = dict(shared=args.shared or (), strategy=strategy, albedo_smoothness=args.albedo_smoothness)
+    r = fit(scene, opts, obs, args.free, **fit_kw)
+    report = [f"diffshade fit: scene {scene_path}, target(s) {', '.join(map(str, tg.paths))}", *_report_table(r)]
+    comparison = []
+    if args.compare:
+        more, comparison = _compare(scene, opts, obs, args, r, fit_kw)
+        report += more
+    print("\n".join(report[1:]))
+    fitted, rows = _fit_images(pset, r, scene, opts, views, tg)
+    meta = {"scene": str(scene_path), "targets": [str(t) for t in tg.paths], "views": [str(v) for v in view_paths],
+            "cameras": [str(c) for c in camera_paths],
+            "encodings": [{"encoding": e, "from": why} for e, why in tg.encodings],
+            "free": args.free, "shared": args.shared or [], "solver": args.solver, "censored_at": tg.saturation,
+            "options": _options.as_dict(opts)}
+    _write_outputs(args, meta, r, report, comparison, outputs, fitted, rows, tg.encodings[0][0], opts)
+    if "mesh.colors" in pset.names:
+        _write_albedo(fitted, Path(args.output_dir))
     print(f"wrote {', '.join(str(o) for o in outputs)} (fit.png: target | fit | 10x residual + 0.5)")
     return EXIT_OK if r.successful else EXIT_FIT
 
 
-def enable_compilation_cache(path: str | None = None) -> str:
-    """Turn on JAX's persistent compilation cache (default ``~/.cache/diffshade/xla``, or
-    ``$DIFFSHADE_CACHE``): a second run of a fit of the same structure loads its programs
-    instead of compiling them."""
-    import os
-
-    import jax
-
-    path = path or os.environ.get("DIFFSHADE_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "diffshade", "xla")
-    os.makedirs(path, exist_ok=True)
-    jax.config.update("jax_compilation_cache_dir", path)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    return path
-
-
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="diffshade", description=__doc__.replace("``", ""),
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--no-cache", action="store_true",
-                        help="do not use the persistent compilation cache (~/.cache/diffshade/xla)")
-    sub = parser.add_subparsers(dest="command", required=True)
+def _add_render(sub) -> None:
+    """The ``render`` command's arguments."""
     p = sub.add_parser("render", help="render a TOML scene file to a PNG")
     p.add_argument("scene", help="scene file (.toml)")
     p.add_argument("-o", "--output", default="render.png", help="output PNG (default: render.png)")
@@ -485,6 +547,10 @@ def main(argv=None) -> int:
     p.add_argument("--encoding", default="linear", metavar="ENC",
                    help="colour encoding of the PNG: linear (default), srgb, gamma:G; declared in its chunks")
     p.set_defaults(func=cmd_render)
+
+
+def _add_fit(sub) -> None:
+    """The ``fit`` command's arguments."""
     p = sub.add_parser("fit", help="fit named scene parameters to target image(s)",
                        description="Fit the named free parameters of a scene file to target images (PNG: 8/16-bit, "
                        "encoding from the file or --encoding; or .npy floats, linear). Start values are the scene file's. Writes fit.json, material.mtl, "
@@ -526,18 +592,33 @@ def main(argv=None) -> int:
     p.add_argument("-o", "--output-dir", default="fit_out", help="output folder (default: fit_out)")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs (never inputs)")
     p.set_defaults(func=cmd_fit)
+
+
+def _add_demo(sub) -> None:
+    """The ``demo`` command's arguments."""
     p = sub.add_parser("demo", help="fit the built-in default scene's material, attenuation and fog back from its image")
     p.add_argument("-o", "--output", default="out/demo.png", help="output PNG (default: out/demo.png)")
     p.add_argument("--size", type=int, default=256, help="image side in pixels (default 256)")
     p.add_argument("--seed", type=int, default=0, help="seed of the perturbed start (default 0)")
     p.set_defaults(func=cmd_demo)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="diffshade", description=__doc__.replace("``", ""),
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--no-cache", action="store_true",
+                        help="do not use the persistent compilation cache (~/.cache/diffshade/xla)")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for add in (_add_render, _add_fit, _add_demo):
+        add(sub)
     args = parser.parse_args(argv)
     if not args.no_cache:
+        from ._cache import enable_compilation_cache
+
         enable_compilation_cache()
     import diffshade as ds
 
-    from .fit import FitError
-    from .params import ParamError
+    from . import FitError, ParamError
 
     try:
         return args.func(args)

@@ -165,8 +165,7 @@ float64 polish, and for each parameter the standard error and the profile-likeli
 (the range where the χ², the others re-fitted, rises by less than 9: ±3 s.e. where the image is
 linear in the parameters, wider where a trade-off bends)."""),
     ("code", SETUP + """
-from fitting.fit import fit
-from fitting.params import ParamSet
+from fitting import Observations, Optimistix, ParamSet, VarPro, fit
 from fitting.cli import DEMO_FREE
 
 SIZE = 48 if SMALL else 256
@@ -183,11 +182,11 @@ rng = np.random.default_rng(7)
 start = true * rng.uniform(0.7, 1.3, true.shape)
 s0 = pset.apply(scene, jnp.asarray(start, jnp.float32))
 target = noisy_target(0)
-r = fit(s0, opts, target, DEMO_FREE, saturation=1.0, quantum=1 / 255, history=True)
+r = fit(s0, opts, Observations(target, saturation=1.0, quantum=1 / 255), DEMO_FREE, history=True)
 print(f"{r.result or 'successful'}: {r.steps} steps, compile {r.compile_s:.1f} s, solve {r.solve_s:.2f} s, "
-      f"PSNR {r.psnr:.1f} dB, SSIM {r.ssim:.4f}")
+      f"PSNR {r.residual.psnr:.1f} dB, SSIM {r.residual.ssim:.4f}")
 print(f"{'parameter':22s} {'true':>9s} {'fitted':>9s} {'std.err':>9s} {'z':>6s}   3σ profile interval (Δχ² = 9)")
-for n, t, v, e, (lo, hi) in zip(r.names, true, r.values, r.stderr, r.interval):
+for n, t, v, e, (lo, hi) in zip(r.names, true, r.values, r.stderr, r.intervals.bounds):
     print(f"{n:22s} {t:9.4f} {v:9.4f} {e:9.2e} {(v - t) / e:6.2f}   [{lo:.4f}, {hi:.4f}]")
 print(r.notes[-1])
 assert r.successful and r.within(true).all()"""),
@@ -213,7 +212,7 @@ standard normal: nearly all $|z| \\le 3$."""),
 seeds = range(3 if SMALL else 20)
 zs = []
 for seed in seeds:
-    rr = fit(s0, opts, noisy_target(100 + seed), DEMO_FREE, saturation=1.0, quantum=1 / 255)
+    rr = fit(s0, opts, Observations(noisy_target(100 + seed), saturation=1.0, quantum=1 / 255), DEMO_FREE)
     zs.append((rr.values - true) / rr.stderr)
 zs = np.array(zs)
 inside = np.mean(np.abs(zs) <= 3)
@@ -232,15 +231,15 @@ if they were recovered."""),
     ("code", """\
 s2, o2 = scene_with(SIZE, render={"specular": "none"})
 t2 = render(s2, o2)
-r2 = fit(s2, o2, t2, ["material.diffuse", "material.shininess", "material.ambient", "ambient_light"],
-         shared=["material.ambient", "ambient_light"], max_steps=30)
-print("undetermined:", r2.undetermined)
-print("gauges:", r2.gauges)
-assert r2.undetermined == ["material.shininess"] and r2.gauges"""),
+r2 = fit(s2, o2, Observations(t2), ["material.diffuse", "material.shininess", "material.ambient", "ambient_light"],
+         shared=["material.ambient", "ambient_light"], strategy=VarPro(max_steps=30))
+print("undetermined:", r2.diagnostics.undetermined)
+print("gauges:", r2.diagnostics.gauges)
+assert r2.diagnostics.undetermined == ["material.shininess"] and r2.diagnostics.gauges"""),
     ("md", "## Which terms do the images support?\n\n`compare_models` fits nested term sets (no specular, Phong ↔ Blinn, no fog) and ranks them by BIC."),
     ("code", """\
-from fitting.fit import compare_models
-scores = compare_models(s0, opts, target, DEMO_FREE, saturation=1.0, given=r)
+from fitting import compare_models
+scores = compare_models(s0, opts, Observations(target, saturation=1.0), DEMO_FREE, given=r)
 for m in scores:
     print(f"{m.name:12s} k={m.k:2d}  RSS={m.rss:.4e}  ΔBIC={m.bic - scores[0].bic:10.1f}  {m.fit.result or 'successful'}")
 assert scores[0].name == "as given\""""),
@@ -325,8 +324,7 @@ print(f"float32 {res['float32'][0]:.2f} ms, float64 {res['float64'][0]:.2f} ms; 
 assert d < 1e-4"""),
     ("md", "## Method and iteration count: time to fit against parameter error\n\nThe 13 parameters of the demo from a start 30% off, noise-free target, from that start alone (no global search, no polish), each method with a cap on its steps: the default compiled variable-projection program (9 reflectances solved exactly under their bounds at every step, Marquardt-scaled LM on the 4 nonlinear parameters with Kaufman's Jacobian), optimistix's LM or Dogleg on the same reduced residual, and Levenberg–Marquardt on all 13."),
     ("code", """\
-from fitting.fit import fit
-from fitting.params import ParamSet
+from fitting import Observations, Optimistix, ParamSet, VarPro, fit
 from fitting.cli import DEMO_FREE
 fs, fo = scene_with(SIZE)
 fs = cast(fs, jnp.float32)
@@ -334,17 +332,19 @@ pset = ParamSet(DEMO_FREE, fs)
 true = np.asarray(pset.theta_of(fs), np.float64)
 tgt = render(fs, fo)
 s0 = pset.apply(fs, jnp.asarray(true * np.random.default_rng(3).uniform(0.7, 1.3, true.shape), jnp.float32))
-methods = {"varpro (default)": dict(method="auto", solver="varpro"), "varpro + lm": dict(method="auto", solver="lm"),
-           "varpro + dogleg": dict(method="auto", solver="dogleg"), "full lm": dict(method="full", solver="lm")}
+methods = {"varpro (default)": (VarPro, dict(method="auto")), "varpro + lm": (Optimistix, dict(method="auto", solver="lm")),
+           "varpro + dogleg": (Optimistix, dict(method="auto", solver="dogleg")),
+           "full lm": (Optimistix, dict(method="full", solver="lm"))}
 if SMALL:
     methods.pop("varpro + dogleg")
     methods.pop("full lm")
 caps = (5, 100) if SMALL else (3, 5, 10, 20, 100)
 runs = []
-for name, kw in methods.items():
+for name, (kind, kw) in methods.items():
     # the default program takes its step limit as data; optimistix's solvers compile once per limit
     for cap in (caps if name == "varpro (default)" or not SMALL else caps[-1:]):
-        rr = fit(s0, fo, tgt, DEMO_FREE, max_steps=cap, starts=1, restarts=0, polish_steps=0, **kw)  # the cap is the cap
+        rr = fit(s0, fo, Observations(tgt), DEMO_FREE,
+                 strategy=kind(max_steps=cap, starts=1, restarts=0, polish_steps=0, **kw))  # the cap is the cap
         runs.append((name, cap, rr.steps, rr.solve_s * 1e3, float(np.max(np.abs(rr.values - true) / true)),
                      (rr.result or "successful").split(".")[0][:40]))
 pts = [(r[3], r[4]) for r in runs]
@@ -516,8 +516,7 @@ In the example every light is on the camera's side of the glass, so no light rea
 *through* it: the image does not depend on `k_t` at all, and the fit says so — the transmission
 is reported undetermined (infinite standard error) and left at its start."""),
     ("code", """\
-from fitting.fit import fit
-from fitting.params import ParamSet
+from fitting import Observations, Optimistix, ParamSet, VarPro, fit
 names = ["material[1].opacity", "material[1].absorption", "material[1].transmission",
          "material[2].kay_min", "material[2].kay_max", "material[2].kay_power"]
 fopts = opts.with_keys(layers=5, shadows=False)
@@ -527,16 +526,16 @@ def fit_glass(scene):
     ps = ParamSet(names, scene)
     theta = np.asarray(ps.theta_of(scene))
     start = ps.apply(scene, theta * np.random.default_rng(1).uniform(0.75, 1.25, theta.size))
-    r = fit(start, fopts, target, names, max_steps=60)
+    r = fit(start, fopts, Observations(target), names, strategy=VarPro(max_steps=60))
     rel = np.abs(np.asarray(r.values) / theta - 1)
     for lab, t0, s0, v, e, se in zip(ps.labels, theta, np.asarray(ps.theta_of(start)), np.asarray(r.values), rel, r.stderr):
         print(f"{lab:28s} true {t0:7.4f}  start {s0:7.4f}  fit {v:7.4f}  rel. error {e:.1e}  s.e. {se:.1e}")
     print(f"successful {r.successful}, {r.steps} steps, solve {r.solve_s:.2f} s (compile {r.compile_s:.1f} s); "
-          f"undetermined: {r.undetermined}")
+          f"undetermined: {r.diagnostics.undetermined}")
     return r, rel, ps
 
 r, rel, ps = fit_glass(scene)
-assert r.successful and sorted(r.undetermined) == [f"material[1].transmission[{c}]" for c in "bgr"]
+assert r.successful and sorted(r.diagnostics.undetermined) == [f"material[1].transmission[{c}]" for c in "bgr"]
 known = np.array(["transmission" not in lab for lab in ps.labels])
 assert rel[known].max() < 1e-3"""),
     ("md", "A point light behind the box makes the transmission visible; now all ten values come back:"),
@@ -549,7 +548,7 @@ lit_behind = eqx.tree_at(lambda s: s.point, scene, ds.PointLights(
     ambient=jnp.concatenate([scene.point.ambient, back.ambient])))
 show([render(scene, fopts), render(lit_behind, fopts)], ["example", "+ a light behind the glass"], cols=2, scale=3.5)
 r2, rel2, _ = fit_glass(lit_behind)
-assert r2.successful and not r2.undetermined and rel2.max() < 1e-3"""),
+assert r2.successful and not r2.diagnostics.undetermined and rel2.max() < 1e-3"""),
 ]
 
 MIRRORS = [
@@ -691,8 +690,7 @@ truth): seen through the ball, the chequers move with η, so away from the truth
 from a parabola (its local minima are counted below) — a fit of a refractive index needs a start
 in the right basin, as any local method does on a textured background."""),
     ("code", """\
-from fitting.fit import fit
-from fitting.params import ParamSet
+from fitting import Observations, Optimistix, ParamSet, VarPro, fit
 truth, topts = glass_scene(SIZE, ball=dict(ior=1.52, refraction=0.85), render={"ray_depth": 2 if SMALL else 3, "fresnel": "dielectric"})
 clean = np.asarray(render(truth, topts))
 photo = np.round(np.clip(clean + np.random.default_rng(0).normal(0, 2 / 255, clean.shape), 0, 1) * 255) / 255
@@ -723,11 +721,11 @@ shared = ["material.refraction"]
 ps = ParamSet(names, truth, shared=shared)
 theta = np.asarray(ps.theta_of(truth), np.float64)
 start = ps.apply(truth, jnp.asarray(theta * np.r_[0.98, 1.15, 1.25, 0.8, 1.2], truth.mesh.vertices.dtype))
-r = fit(start, topts, photo, names, shared=shared, saturation=1.0, quantum=1 / 255)
+r = fit(start, topts, Observations(photo, saturation=1.0, quantum=1 / 255), names, shared=shared)
 for lab, t0, s0, v, se in zip(ps.labels, theta, np.asarray(ps.theta_of(start)), r.values, r.stderr):
     print(f"{lab:24s} true {t0:.4f}  start {s0:.4f}  fit {v:.4f} ± {se:.4f}  ({abs(v - t0) / se:.1f} s.e.)")
 print(f"successful: {r.successful}; {r.steps} steps, solve {r.solve_s:.1f} s (compile {r.compile_s:.1f} s); "
-      f"residual {r.noise_ratio:.2f}× the noise")
+      f"residual {r.residual.noise_ratio:.2f}× the noise")
 show([photo, render(ps.apply(truth, jnp.asarray(r.values, truth.mesh.vertices.dtype)), topts), np.abs(photo - clean) * 10],
      ["photograph (8-bit, noise)", "fitted", "|noise| × 10"], cols=3, scale=3.2)
 assert r.successful and abs(r.values[0] - 1.52) < 5e-3 and np.all(np.abs(r.values - theta) <= 4 * r.stderr)"""),
@@ -757,8 +755,7 @@ The fit frees:
 import importlib.util, json, tempfile
 from pathlib import Path
 from diffshade import color as _color
-from fitting.fit import fit
-from fitting.params import ParamSet
+from fitting import Observations, Optimistix, ParamSet, VarPro, fit
 
 import fitting
 ROOT = Path(fitting.__file__).resolve().parent.parent   # the repository (the examples are not a package)
@@ -786,7 +783,7 @@ free = ["mesh.colors", "view[*].camera.white_balance", "point[0].a1", "point[0].
         "material.shininess"]
 kw = dict(views=views, saturation=1.0, quantum=1 / 255, noise=2 / 255, margin=1)
 t0 = time.perf_counter()
-r = fit(views[0], opts, codes, free, encoding="srgb", **kw)
+r = fit(views[0], opts, Observations(codes, encoding="srgb", **kw), free)
 print(f"{r.result or 'successful'} in {time.perf_counter() - t0:.1f} s; {r.method}")
 for n in r.notes: print("  ", n)
 
@@ -837,17 +834,17 @@ light. The fit cannot explain the images and says so. Every parameter it reports
 the specular term is explained away."""),
     ("code", """\
 t0 = time.perf_counter()
-wrong = fit(views[0], opts, codes, free, encoding="linear", **kw)
+wrong = fit(views[0], opts, Observations(codes, encoding="linear", **kw), free)
 print(f"{wrong.result or 'successful'} ({time.perf_counter() - t0:.1f} s)")
 names = [n for n, _ in rows]
 rel = lambda res: [(res.values[idx[n]] - t) / t for n, t in rows]
 x = np.arange(len(names))
 fig, ax = plt.subplots(figsize=(11, 3.2))
-ax.bar(x - 0.2, rel(r), 0.4, label=f"sRGB declared: residual {r.noise_ratio:.2f}× the noise")
-ax.bar(x + 0.2, rel(wrong), 0.4, label=f"read as linear: residual {wrong.noise_ratio:.1f}× the noise")
+ax.bar(x - 0.2, rel(r), 0.4, label=f"sRGB declared: residual {r.residual.noise_ratio:.2f}× the noise")
+ax.bar(x + 0.2, rel(wrong), 0.4, label=f"read as linear: residual {wrong.residual.noise_ratio:.1f}× the noise")
 ax.axhline(0, color="k", lw=0.5); ax.set_xticks(x, [n.replace("camera.white_balance", "wb") for n in names], rotation=60, fontsize=7)
 ax.set_ylabel("relative error"); ax.set_yscale("symlog", linthresh=0.1); ax.legend(fontsize=8); plt.tight_layout(); plt.show()
-assert not wrong.successful and wrong.noise_ratio > 3"""),
+assert not wrong.successful and wrong.residual.noise_ratio > 3"""),
 ]
 
 NOTEBOOKS = {"01_tour_of_terms.ipynb": TOUR, "02_fitting.ipynb": FITTING, "03_speed_vs_error.ipynb": SPEED,

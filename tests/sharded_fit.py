@@ -30,8 +30,8 @@ jax.config.update("jax_enable_x64", True)
 import equinox as eqx  # noqa: E402
 
 import diffshade as ds  # noqa: E402
-from fitting.fit import fit  # noqa: E402
-from fitting.problem import Problem  # noqa: E402
+from fitting import Observations, fit  # noqa: E402
+from fitting._problem import Problem  # noqa: E402
 
 TRUTH = {"material.diffuse": [0.75, 0.35, 0.25], "material.specular": [0.5, 0.5, 0.5], "material.shininess": 30.0,
          "point[0].a1": 0.05, "view[*].camera.exposure": [1.1, 1.2, 1.3]}
@@ -62,7 +62,7 @@ def views():
 
 def collectives():
     """Every collective in the compiled programs: (kind, elements of its largest operand)."""
-    from fitting.strategy import _CACHE
+    from fitting._cache import _CACHE
 
     out = []
     for c in _CACHE.values():
@@ -79,15 +79,15 @@ def main(mode):
     if mode == "devices":
         for n in (1, len(jax.devices())):
             devs = jax.devices()[:n]
-            prob = Problem.build(scene, opts, targets, FREE, views=starts, devices=devs)
+            prob = Problem.build(scene, opts, Observations(targets, views=starts), FREE, devices=devs)
             placed = prob.device_data()
             shards = [(s.device.id, s.data.shape[0]) for s in placed.target.addressable_shards]
-            r = fit(scene, opts, targets, FREE, views=starts, devices=devs)
+            r = fit(scene, opts, Observations(targets, views=starts), FREE, devices=devs)
             print(json.dumps(dict(devices=n, values=r.values.tolist(), successful=bool(r.successful),
                                   names=r.names, shards=shards, pixels=int(placed.target.shape[1]),
                                   collectives=collectives() if n > 1 else [])), flush=True)
     else:
-        r = fit(scene, opts, targets, FREE, views=starts)
+        r = fit(scene, opts, Observations(targets, views=starts), FREE)
         print(json.dumps(dict(process=jax.process_index(), devices=len(jax.devices()),
                               local=len(jax.local_devices()), values=r.values.tolist(),
                               successful=bool(r.successful))), flush=True)

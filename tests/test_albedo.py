@@ -14,10 +14,10 @@ import pytest
 import trimesh
 
 import diffshade as ds
-from fitting.albedo import AlbedoProblem, vertex_colouring
+from fitting._albedo import AlbedoProblem, vertex_colouring
 from fitting.cli import EXIT_OK, main
-from fitting.fit import fit
-from fitting.problem import Problem
+from fitting import Observations, fit
+from fitting._problem import Problem
 
 SIZE = 40
 EYES = [(0.0, 0.0, 3.0), (2.5, 0.6, 1.5), (-2.5, 0.6, 1.5)]
@@ -71,7 +71,7 @@ def test_the_compressed_design_matrix_is_the_jacobian(setup):
     equal to the dense one from forward mode, one tangent per scalar."""
     views, opts, targets, truth = setup
     free = ["mesh.colors", "material.shininess"]
-    prob = Problem.build(views[0], opts, targets[:2], free, views=views[:2])
+    prob = Problem.build(views[0], opts, Observations(targets[:2], views=views[:2]), free)
     ap = AlbedoProblem(prob)
     theta = np.asarray(prob.pset.theta_of(views[0], views[:2]), np.float64)
     ap._compile(theta)
@@ -90,7 +90,7 @@ def test_the_compressed_design_matrix_is_the_jacobian(setup):
 def test_albedo_and_the_other_parameters_are_recovered_and_unseen_vertices_named(setup):
     views, opts, targets, truth = setup
     free = ["mesh.colors", "material.shininess", "material.specular", "point[0].a1", "point[0].a2"]
-    r = fit(_start(views)[0], opts, targets, free, views=_start(views))
+    r = fit(_start(views)[0], opts, Observations(targets, views=_start(views)), free)
     assert r.successful, r.result
     assert "sparse linear block" in r.method
     n = truth.size
@@ -99,7 +99,7 @@ def test_albedo_and_the_other_parameters_are_recovered_and_unseen_vertices_named
     np.testing.assert_allclose(r.values[:n][seen], truth.reshape(-1)[seen], atol=1e-8)
     np.testing.assert_allclose(r.values[n:], [30.0, 0.5, 0.5, 0.5, 0.05, 0.02], rtol=1e-7)
     unseen_v = np.flatnonzero(~seen.reshape(-1, 3).any(axis=1))
-    assert sorted(r.undetermined) == sorted(f"mesh.colors[{v}]" for v in unseen_v)
+    assert sorted(r.diagnostics.undetermined) == sorted(f"mesh.colors[{v}]" for v in unseen_v)
     np.testing.assert_array_equal(r.values[:n][~seen], 0.5)  # kept at the start: not an estimate
     # every vertex no view sees is among them; the others are seen only where no light reaches
     # (their column of the Jacobian is 0: tested above against the dense one)
@@ -116,14 +116,14 @@ def test_the_smoothness_prior_fills_unseen_vertices(setup):
     # a weak prior: where no data is, its harmonic interpolation of the neighbours, whatever λ is;
     # the attenuation at the truth (only the albedo is free)
     starts = _start(views, a=(1.0, 0.05, 0.02))
-    r = fit(starts[0], opts, targets, ["mesh.colors"], views=starts, albedo_smoothness=1e-6)
+    r = fit(starts[0], opts, Observations(targets, views=starts), ["mesh.colors"], albedo_smoothness=1e-6)
     n = truth.size
-    assert not r.undetermined and np.isfinite(r.stderr[:n]).all()
+    assert not r.diagnostics.undetermined and np.isfinite(r.stderr[:n]).all()
     assert any("smoothness prior alone" in note for note in r.notes)
     # the prior pulls the unseen caps toward their neighbours, away from the flat 0.5 start
-    r0 = fit(starts[0], opts, targets, ["mesh.colors"], views=starts)
+    r0 = fit(starts[0], opts, Observations(targets, views=starts), ["mesh.colors"])
     assert r0.successful, r0.result
-    assert r.rms < 1e-5  # the prior's pull on the seen vertices: far below any real noise, above float rounding
+    assert r.residual.rms < 1e-5  # the prior's pull on the seen vertices: far below any real noise, above float rounding
     unseen = ~np.isfinite(r0.stderr[:n])
     err_prior = np.abs(r.values[:n][unseen] - truth.reshape(-1)[unseen]).mean()
     err_start = np.abs(0.5 - truth.reshape(-1)[unseen]).mean()
@@ -139,7 +139,7 @@ def test_noisy_8bit_albedo_errors_are_covered_by_their_standard_errors(setup):
     rng = np.random.default_rng(11)
     noisy = [np.round(np.clip(t + rng.normal(0, 2 / 255, t.shape), 0, 1) * 255) / 255 for t in targets]
     starts = _start(views, a=(1.0, 0.1, 0.02))  # a1 free (from twice its truth), a0 and a2 at theirs
-    r = fit(starts[0], opts, noisy, ["mesh.colors", "point[0].a1"], views=starts, saturation=1.0, quantum=1 / 255)
+    r = fit(starts[0], opts, Observations(noisy, views=starts, saturation=1.0, quantum=1 / 255), ["mesh.colors", "point[0].a1"])
     assert r.successful, r.result
     n = truth.size
     seen = np.isfinite(r.stderr[:n])

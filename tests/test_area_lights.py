@@ -98,8 +98,8 @@ def test_scene_file_area_light_and_errors():
 
 
 def test_fit_recovers_an_area_lights_colour_and_size():
-    from fitting.fit import fit
-    from fitting.params import ParamSet
+    from fitting import Observations, fit
+    from fitting import ParamSet
 
     d = dict(ds.DEFAULT_SCENE)
     d["mesh"] = {"quad": [4, 4], "normal": [0, 0, 1]}
@@ -114,7 +114,7 @@ def test_fit_recovers_an_area_lights_colour_and_size():
     true = np.asarray(pset.theta_of(scene), np.float64)
     target = np.asarray(jax.jit(ds.render, static_argnames="opts")(scene, opts))
     start = pset.apply(scene, jnp.asarray(true * np.array([0.6, 1.4, 1.2, 1.5, 0.7]), scene.mesh.vertices.dtype))
-    r = fit(start, opts, target, free)
+    r = fit(start, opts, Observations(target), free)
     assert r.successful, r.result
     np.testing.assert_allclose(r.values, true, rtol=1e-4)
     assert "variable projection" in r.method  # the colour is linear, the size is not
@@ -123,8 +123,8 @@ def test_fit_recovers_an_area_lights_colour_and_size():
 def test_fit_recovers_light_positions():
     # a position is a real parameter (x, y, z; no bounds): an area light's and a point light's,
     # moved by 0.2-0.4 units, come back from one image
-    from fitting.fit import fit
-    from fitting.params import ParamSet
+    from fitting import Observations, fit
+    from fitting import ParamSet
 
     d = dict(ds.DEFAULT_SCENE)
     d["mesh"] = {"quad": [4, 4], "normal": [0, 0, 1]}
@@ -141,6 +141,6 @@ def test_fit_recovers_light_positions():
     true = np.asarray(pset.theta_of(scene), np.float64)
     target = np.asarray(jax.jit(ds.render, static_argnames="opts")(scene, opts))
     moved = true + np.array([0.2, -0.3, 0.2, 0.3, 0.4, -0.3])
-    r = fit(pset.apply(scene, jnp.asarray(moved, scene.mesh.vertices.dtype)), opts, target, free)
+    r = fit(pset.apply(scene, jnp.asarray(moved, scene.mesh.vertices.dtype)), opts, Observations(target), free)
     assert r.successful, r.result
     np.testing.assert_allclose(r.values, true, atol=2e-4)

@@ -259,13 +259,13 @@ def test_a_camera_two_degrees_off_is_refined_to_the_truth_from_one_view():
     """Pose refinement from one view of a textured (per-vertex-coloured) sphere: the fit re-
     rasterises the visibility between passes (it has no gradient) and moves the pose by the
     shading and colours inside the silhouette (margin 2 keeps the silhouette out)."""
-    from fitting.fit import fit
+    from fitting import Observations, fit
 
     from conftest import pose_problem
 
     start, opts, target, R, t, off_deg = pose_problem()
     assert off_deg(start.camera.rvec) > 1.9
-    r = fit(start, opts, target, ["camera.rvec", "camera.tvec"], margin=2)
+    r = fit(start, opts, Observations(target, margin=2), ["camera.rvec", "camera.tvec"])
     assert r.successful, r.result
     assert sum(n.startswith("visibility pass") for n in r.notes) >= 2
     assert off_deg(r.values[:3]) < 0.05 / 100  # the issue's 0.05°, with room

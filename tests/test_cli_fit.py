@@ -12,7 +12,7 @@ import skimage.io
 
 import diffshade as ds
 from fitting.cli import EXIT_INPUT, EXIT_OK, main
-from fitting.fit import fit
+from fitting import Observations, VarPro, fit
 
 SCENE = """
 [mesh]
@@ -159,13 +159,13 @@ def test_clipped_target_is_censored_not_fitted_to_the_clip():
     assert (img >= 1).mean() > 0.01
     target = np.clip(img, 0, 1)
     free = ["material.specular", "material.shininess"]
-    start = fit(scene, opts, target, free, max_steps=0)  # structure only; start = truth
+    start = fit(scene, opts, Observations(target), free, strategy=VarPro(max_steps=0))  # structure only; start = truth
     true = start.start
-    from fitting.params import ParamSet
+    from fitting import ParamSet
 
     s0 = ParamSet(free, scene).apply(scene, jax.numpy.asarray(true * 0.8))
-    cens = fit(s0, opts, target, free, saturation=1.0)
-    plain = fit(s0, opts, target, free)
+    cens = fit(s0, opts, Observations(target, saturation=1.0), free)
+    plain = fit(s0, opts, Observations(target), free)
     err_c = np.max(np.abs(cens.values - true) / true)
     err_p = np.max(np.abs(plain.values - true) / true)
     assert cens.successful and err_c < 1e-4, (cens.values, true)

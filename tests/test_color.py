@@ -141,8 +141,8 @@ def test_a_fit_to_an_srgb_photograph_declared_as_such_and_declared_wrongly():
     # encoding chunks exist to prevent), the same fit is biased and says so
     import diffshade as ds
     from conftest import small_default_scene
-    from fitting.fit import fit
-    from fitting.params import ParamSet
+    from fitting import Observations, fit
+    from fitting import ParamSet
 
     scene, opts = small_default_scene(32, 32)
     free = ["material.diffuse", "material.shininess", "point[0].a1"]
@@ -152,11 +152,11 @@ def test_a_fit_to_an_srgb_photograph_declared_as_such_and_declared_wrongly():
     rng = np.random.default_rng(3)
     codes = np.round(np.clip(C.encode(np.clip(clean, 0, 1)) + rng.normal(0, 2 / 255, clean.shape), 0, 1) * 255) / 255
     start = pset.apply(scene, jnp.asarray(true * np.r_[0.8, 1.2, 0.9, 1.5, 0.7], scene.mesh.vertices.dtype))
-    r = fit(start, opts, codes, free, saturation=1.0, quantum=1 / 255, encoding="srgb")
+    r = fit(start, opts, Observations(codes, encoding="srgb", saturation=1.0, quantum=1 / 255), free)
     assert r.successful, r.result
     z = np.abs(r.values - true) / r.stderr
     assert np.all(z < 3), z
-    assert 0.8 < r.noise_ratio < 1.2 and abs(r.noise * 255 - 2.0) < 0.3  # σ in code values: 2/255
-    wrong = fit(start, opts, codes, free, saturation=1.0, quantum=1 / 255)  # the codes taken for linear values
+    assert 0.8 < r.residual.noise_ratio < 1.2 and abs(r.residual.noise * 255 - 2.0) < 0.3  # σ in code values: 2/255
+    wrong = fit(start, opts, Observations(codes, saturation=1.0, quantum=1 / 255), free)  # the codes taken for linear values
     zw = np.abs(wrong.values - true) / wrong.stderr
     assert not wrong.successful or zw.max() > 10, (wrong.result, zw)

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import diffshade as ds
-from fitting.fit import FitError, fit
-from fitting.params import ParamError, ParamSet
+from fitting import FitError, Observations, VarPro, fit
+from fitting import ParamError, ParamSet
 
 from conftest import small_default_scene
 
@@ -32,7 +32,7 @@ def test_parameter_names_and_domains():
         ParamSet(["point[0].cutoff"], scene)
     bad = ps.apply(scene, theta.at[0].set(1.5))
     with pytest.raises(ParamError, match=r"material.diffuse: start value .* outside its domain \[0, 1\]"):
-        fit(bad, ds.RenderOptions(), np.zeros((32, 32, 3)), ["material.diffuse"])
+        fit(bad, ds.RenderOptions(), Observations(np.zeros((32, 32, 3))), ["material.diffuse"])
 
 
 def test_a_positive_scalar_far_out_on_its_log_scale_stays_finite_and_flat():
@@ -55,22 +55,21 @@ def test_a_positive_scalar_far_out_on_its_log_scale_stays_finite_and_flat():
 def test_bad_targets_are_named():
     scene, opts = small_scene()
     with pytest.raises(FitError, match="image is 16x16 but the camera renders 32x32"):
-        fit(scene, opts, np.zeros((16, 16, 3)), ["material.diffuse"])
+        fit(scene, opts, Observations(np.zeros((16, 16, 3))), ["material.diffuse"])
     with pytest.raises(FitError, match="expected an RGB image"):
-        fit(scene, opts, np.zeros((32, 32, 4)), ["material.diffuse"])
+        fit(scene, opts, Observations(np.zeros((32, 32, 4))), ["material.diffuse"])
     with pytest.raises(FitError, match="NaN"):
-        fit(scene, opts, np.full((32, 32, 3), np.nan), ["material.diffuse"])
+        fit(scene, opts, Observations(np.full((32, 32, 3), np.nan)), ["material.diffuse"])
 
 
 def test_undetermined_parameter_and_gauge_are_reported():
     # No specular term: the image says nothing about m. k_a and I_a only appear as a product.
     scene, opts = small_scene(specular="none")
     target = jax.jit(ds.render, static_argnames="opts")(scene, opts)
-    r = fit(scene, opts, target, ["material.diffuse", "material.shininess", "material.ambient", "ambient_light"],
-            shared=["material.ambient", "ambient_light"], max_steps=20)
-    assert r.undetermined == ["material.shininess"]
+    r = fit(scene, opts, Observations(target), ["material.diffuse", "material.shininess", "material.ambient", "ambient_light"], shared=["material.ambient", "ambient_light"], strategy=VarPro(max_steps=20))
+    assert r.diagnostics.undetermined == ["material.shininess"]
     assert np.isinf(r.stderr[r.names.index("material.shininess")])
-    assert r.gauges and "material.ambient" in r.gauges[0] and "ambient_light" in r.gauges[0]
+    assert r.diagnostics.gauges and "material.ambient" in r.diagnostics.gauges[0] and "ambient_light" in r.diagnostics.gauges[0]
 
 
 def test_float32_scene_fits_in_a_float64_session():
@@ -80,11 +79,11 @@ def test_float32_scene_fits_in_a_float64_session():
     scene = jax.tree.map(lambda x: x.astype(np.float32) if np.issubdtype(x.dtype, np.floating) else x, scene)
     target = jax.jit(ds.render, static_argnames="opts")(scene, opts)
     assert target.dtype == np.float32
-    from fitting.params import ParamSet
+    from fitting import ParamSet
 
     ps = ParamSet(["material.diffuse"], scene)
     s0 = ps.apply(scene, ps.theta_of(scene) * 0.8)
-    r = fit(s0, opts, target, ["material.diffuse"])
+    r = fit(s0, opts, Observations(target), ["material.diffuse"])
     assert r.successful
     np.testing.assert_allclose(r.values, np.asarray(ps.theta_of(scene)), rtol=1e-5)
 
@@ -100,12 +99,12 @@ def test_a_float32_fit_names_what_float32_resolves_only_coarsely():
     free = ["material.diffuse", "point[0].a1", "point[0].a2"]
     ps = ParamSet(free, scene)
     true = np.asarray(ps.theta_of(scene), np.float64)
-    r = fit(ps.apply(scene, ps.theta_of(scene) * 1.3), opts, target, free)
+    r = fit(ps.apply(scene, ps.theta_of(scene) * 1.3), opts, Observations(target), free)
     assert r.successful, r.result
-    assert r.float_limited == ["point[0].a1", "point[0].a2"]
+    assert r.diagnostics.float_limited == ["point[0].a1", "point[0].a2"]
     assert any("float32 limits" in n and "point[0].a1" in n for n in r.notes)
     rel_se = r.stderr / np.abs(true)
-    lim = np.array([n in r.float_limited for n in r.names])
+    lim = np.array([n in r.diagnostics.float_limited for n in r.names])
     assert np.all(rel_se[lim] > 1e-4) and np.all(rel_se[~lim] <= 1e-4)
     assert np.all(np.abs(r.values - true)[lim] <= 3 * r.stderr[lim])
     np.testing.assert_allclose(r.values[~lim], true[~lim], rtol=1e-4)
@@ -121,13 +120,13 @@ def test_highlight_switched_off_is_found_or_honestly_reported():
     ps = ParamSet(free, scene)
     true = np.asarray(ps.theta_of(scene))
     s0 = ps.apply(scene, jax.numpy.asarray([0.3, 0.3, 0.3, 1e6]))
-    alone = fit(s0, opts, target, free, starts=1, restarts=0)
+    alone = fit(s0, opts, Observations(target), free, strategy=VarPro(starts=1, restarts=0))
     if alone.successful:
         np.testing.assert_allclose(alone.values, true, rtol=1e-4)
     else:
-        assert not alone.stderr_meaningful and alone.result
-    r = fit(s0, opts, target, free)
-    assert r.successful and r.converged and r.noise_ratio <= 1.02, (r.result, r.notes)
+        assert not alone.successful and alone.result
+    r = fit(s0, opts, Observations(target), free)
+    assert r.successful and r.converged and r.residual.noise_ratio <= 1.02, (r.result, r.notes)
     np.testing.assert_allclose(r.values, true, rtol=1e-4)
 
 
@@ -137,9 +136,9 @@ def test_step_limit_is_reported_and_the_default_fit_converges():
     free = ["material.diffuse", "material.shininess", "point[0].a1", "point[0].a2"]
     ps = ParamSet(free, scene)
     s0 = ps.apply(scene, ps.theta_of(scene) * jax.numpy.asarray([0.5, 1.5, 2.0, 3.0, 0.2, 4.0]))
-    capped = fit(s0, opts, target, free, max_steps=1, starts=1, restarts=0, polish_steps=0)
+    capped = fit(s0, opts, Observations(target), free, strategy=VarPro(max_steps=1, starts=1, restarts=0, polish_steps=0))
     assert not capped.successful and not capped.converged and "step limit" in capped.result
-    r = fit(s0, opts, target, free)
+    r = fit(s0, opts, Observations(target), free)
     assert r.successful, (r.result, r.notes)
     assert "variable projection" in r.method
     np.testing.assert_allclose(r.values, np.asarray(ps.theta_of(scene)), rtol=1e-4)
@@ -164,7 +163,7 @@ def test_starts_exactly_on_every_bound_move():
     true = np.asarray(ps.theta_of(scene))
     for side in (0, 1):
         start = np.array([side] * 6 + [(1.0, 4.0)[side], (0.0, 90.0)[side]], float)
-        r = fit(ps.apply(scene, jax.numpy.asarray(start)), opts, target, free)
+        r = fit(ps.apply(scene, jax.numpy.asarray(start)), opts, Observations(target), free)
         assert r.successful, (side, r.result, r.notes)
         np.testing.assert_allclose(r.values, true, rtol=1e-4)
 
@@ -174,10 +173,10 @@ def test_a_model_that_cannot_explain_the_image_is_not_called_a_success():
     # is far above the noise: the verdict says so and the standard errors are not meaningful.
     scene, opts = small_scene()
     target = jax.jit(ds.render, static_argnames="opts")(scene, opts)
-    r = fit(scene, opts.with_keys(specular="none"), target, ["material.ambient", "material.diffuse", "point[0].a1"])
-    assert r.converged and not r.successful and not r.stderr_meaningful
+    r = fit(scene, opts.with_keys(specular="none"), Observations(target), ["material.ambient", "material.diffuse", "point[0].a1"])
+    assert r.converged and not r.successful
     # (at 32² a missed highlight varies from pixel to pixel, so part of it counts as "white")
-    assert "× the noise" in r.result and r.noise_ratio > 2
+    assert "× the noise" in r.result and r.residual.noise_ratio > 2
 
 
 def test_noisy_target_verdict_and_given_noise():
@@ -186,11 +185,11 @@ def test_noisy_target_verdict_and_given_noise():
     rng = np.random.default_rng(5)
     noisy = np.round(np.clip(clean + rng.normal(0, 2 / 255, clean.shape), 0, 1) * 255) / 255
     free = ["material.diffuse", "material.shininess"]
-    r = fit(scene, opts, noisy, free, saturation=1.0, quantum=1 / 255)
-    assert r.successful and 0.8 < r.noise_ratio < 1.1, (r.result, r.noise_ratio)
+    r = fit(scene, opts, Observations(noisy, saturation=1.0, quantum=1 / 255), free)
+    assert r.successful and 0.8 < r.residual.noise_ratio < 1.1, (r.result, r.residual.noise_ratio)
     # a noise level given 5x too small: the chi-square test rejects the fit
-    r2 = fit(scene, opts, noisy, free, saturation=1.0, quantum=1 / 255, noise=0.4 / 255)
-    assert not r2.successful and r2.noise_source == "given" and r2.noise_ratio > 3
+    r2 = fit(scene, opts, Observations(noisy, saturation=1.0, quantum=1 / 255, noise=0.4 / 255), free)
+    assert not r2.successful and r2.residual.noise_source == "given" and r2.residual.noise_ratio > 3
 
 
 def test_white_noise_is_noise_spread_over_every_pixel_not_a_few_jumps():
@@ -198,7 +197,7 @@ def test_white_noise_is_noise_spread_over_every_pixel_not_a_few_jumps():
     # signal (photon noise), and quantised noise are taken whole; a residual carried by a few
     # pixels that jump (refracted rays crossing a tile edge: a fit that stopped next to the
     # truth) is not noise, and the fit is rejected rather than called a success
-    from fitting.report import noise_ratio_limit, verdict, white_noise
+    from fitting._report import noise_ratio_limit, verdict, white_noise
 
     rng = np.random.default_rng(0)
     H, W = 48, 64
@@ -227,7 +226,7 @@ def test_white_noise_is_noise_spread_over_every_pixel_not_a_few_jumps():
 def test_margin_leaves_out_the_pixels_next_to_the_silhouette_and_the_mask_edge():
     from skimage.morphology import erosion
 
-    from fitting.problem import Problem
+    from fitting._problem import Problem
 
     scene, opts = small_scene()
     target = np.zeros(scene.camera.resolution + (3,))
@@ -236,7 +235,7 @@ def test_margin_leaves_out_the_pixels_next_to_the_silhouette_and_the_mask_edge()
     ids = np.asarray(ds.scene_visibility(scene, opts)[0])
     base = (ids >= 0) & (mask > 0)
     for margin in (0, 1, 2):
-        prob = Problem.build(scene, opts, target, ["material.diffuse"], masks=[mask], margin=margin)
+        prob = Problem.build(scene, opts, Observations(target, masks=[mask], margin=margin), ["material.diffuse"])
         used = prob.used_masks()[0][..., 0]
         k = 2 * margin + 1
         expect = erosion(base, np.ones((k, k), bool), mode="ignore") if margin else base
@@ -244,14 +243,14 @@ def test_margin_leaves_out_the_pixels_next_to_the_silhouette_and_the_mask_edge()
         assert prob.counts()[0] == 3 * int(expect.sum())
     assert expect.sum() < base.sum() - 40  # a ring of two pixels around the sphere and the hole
     with pytest.raises(FitError, match="margin must be a whole number"):
-        Problem.build(scene, opts, target, ["material.diffuse"], margin=1.5)
+        Problem.build(scene, opts, Observations(target, margin=1.5), ["material.diffuse"])
 
 
 def test_margin_also_leaves_out_occlusion_edges_inside_the_object():
     """A small sheet in front of a large one: the pixels where one meets the other (a jump in
     depth far larger than the change from pixel to pixel) are an edge like the silhouette; a
     curved surface seen at any angle (the sphere) has none inside its silhouette."""
-    from fitting.problem import near_edges, pixel_depths
+    from fitting._problem import near_edges, pixel_depths
 
     back = ds.quad((2.0, 2.0), center=(0.0, 0.0, -0.5), divisions=4)
     front = ds.quad((0.8, 0.8), center=(0.0, 0.0, 0.5), divisions=2)
@@ -281,7 +280,7 @@ def test_clamp_falls_back_to_lm_on_all_parameters_and_says_so():
     target = jax.jit(ds.render, static_argnames="opts")(scene, opts)
     free = ["material.diffuse", "material.shininess"]
     ps = ParamSet(free, scene)
-    r = fit(ps.apply(scene, ps.theta_of(scene) * 0.8), opts, target, free)
+    r = fit(ps.apply(scene, ps.theta_of(scene) * 0.8), opts, Observations(target), free)
     assert "clamp" in r.method and r.successful, (r.method, r.result)
     np.testing.assert_allclose(r.values, np.asarray(ps.theta_of(scene)), rtol=1e-4)
 
@@ -290,12 +289,12 @@ def test_second_fit_of_the_same_structure_compiles_nothing():
     scene, opts = small_scene()
     target = jax.jit(ds.render, static_argnames="opts")(scene, opts)
     free = ["material.diffuse", "material.shininess"]
-    fit(scene, opts, target, free)
+    fit(scene, opts, Observations(target), free)
     ps = ParamSet(free, scene)
-    r = fit(ps.apply(scene, ps.theta_of(scene) * 0.7), opts, target * 0.9, free)
+    r = fit(ps.apply(scene, ps.theta_of(scene) * 0.7), opts, Observations(target * 0.9), free)
     assert r.compile_s == 0.0
     # the step limit, the tolerances and the polish's steps are numbers: still nothing compiled
-    r = fit(ps.apply(scene, ps.theta_of(scene) * 0.8), opts, target, free, max_steps=7, rtol=1e-5, polish_steps=3)
+    r = fit(ps.apply(scene, ps.theta_of(scene) * 0.8), opts, Observations(target), free, strategy=VarPro(max_steps=7, rtol=1e-5, polish_steps=3))
     assert r.compile_s == 0.0 and r.steps > 0
 
 
@@ -325,11 +324,11 @@ def test_recovers_transparency_absorption_transmission_and_kay():
     ps = ParamSet(names, truth)
     theta = np.asarray(ps.theta_of(truth))
     start = ps.apply(truth, theta * np.random.default_rng(0).uniform(0.75, 1.25, theta.size))
-    r = fit(start, opts, target, names, max_steps=60)
+    r = fit(start, opts, Observations(target), names, strategy=VarPro(max_steps=60))
     assert r.successful, r.result
     err = np.abs(np.asarray(r.values) - theta) / theta
     assert err.max() < 1e-4, dict(zip(ps.labels, err))
-    assert not r.undetermined
+    assert not r.diagnostics.undetermined
 
 
 def test_a_converged_fit_replaces_an_unconverged_one_when_both_are_below_the_float_floor():
@@ -338,15 +337,16 @@ def test_a_converged_fit_replaces_an_unconverged_one_when_both_are_below_the_flo
     float64: an unconverged polish at 0.007× the floor against a converged fit at 0.24× it);
     with noise, a converged attempt whose residual is larger by more than one unit of χ² does
     not replace a lower one."""
-    from fitting.report import better
+    from fitting._report import Candidate, better
 
     theta = np.zeros(5)
     n2 = 10_000
 
     def cand(converged, ratio, rss, source):
-        return dict(converged=converged, ratio=ratio, rss=rss, source=source, theta=theta)
+        return Candidate(theta=theta, r=None, J=None, img=None, fixed=None, res="", converged=converged, ratio=ratio,
+                         sigma=1.0, source=source, rss=rss, polish=0)
 
-    from fitting.report import FLOAT_FLOOR_SOURCE as floor
+    from fitting._report import FLOAT_FLOOR_SOURCE as floor
     assert better(cand(True, 0.24, 1e-24, floor), cand(False, 0.007, 1e-27, floor), n2)
     assert not better(cand(False, 0.24, 1e-24, floor), cand(False, 0.007, 1e-27, floor), n2)
     noisy = "white part of the residual"
@@ -361,16 +361,15 @@ def test_the_polish_leaves_an_exp2_fog_density_of_zero_that_the_image_does_not_w
     truth, 0.061 ± 0.005, had Δχ² = 33 less) with the reflectances compensating, called it a
     success and put k_a 26 s.e. from the truth. From that kind of point — density ~0, the
     reflectances at their best for it — the polish must find the fog again."""
-    from fitting.polish import polish
-    from fitting.problem import Problem
-    from fitting.solve import evaluator
-    from fitting.strategy import Reduced
+    from fitting._polish import polish
+    from fitting._problem import Problem
+    from fitting._varpro import evaluator
+    from fitting._linear import Reduced
 
     scene, opts = small_default_scene(32, 32, fog="exp2")
     clean = np.asarray(jax.jit(ds.render, static_argnames="opts")(scene, opts))
     noisy = np.round(np.clip(clean + np.random.default_rng(3).normal(0, 2 / 255, clean.shape), 0, 1) * 255) / 255
-    prob = Problem.build(scene, opts, [noisy], ["material.ambient", "material.diffuse", "fog.density"],
-                         saturation=1.0, quantum=1 / 255)
+    prob = Problem.build(scene, opts, Observations([noisy], saturation=1.0, quantum=1 / 255), ["material.ambient", "material.diffuse", "fog.density"])
     red = Reduced(prob)
     truth = np.asarray(prob.pset.theta_of(scene), np.float64)
     ev, _ = evaluator(prob, red, truth)
@@ -393,12 +392,12 @@ def test_a_polish_step_that_would_cross_a_bound_holds_that_variable_there():
     clipped after it was solved is no descent step there: the polish used to reject, damp and
     crawl (20 evaluations without converging from two of these starts); holding a1 at the
     bound and solving for a2 again reaches the optimum in a few, and a1 is reported on its bound."""
-    from fitting.polish import polish
-    from fitting.problem import Problem
-    from fitting.strategy import Reduced
+    from fitting._polish import polish
+    from fitting._problem import Problem
+    from fitting._linear import Reduced
 
     scene, opts = small_default_scene(8, 8)
-    prob = Problem.build(scene, opts, [np.zeros((8, 8, 3))], ["point[0].a1", "point[0].a2"])
+    prob = Problem.build(scene, opts, Observations([np.zeros((8, 8, 3))]), ["point[0].a1", "point[0].a2"])
     H = np.array([[1.0, 0.999], [0.999, 1.0]])
     L = np.linalg.cholesky(H).T
     x_free = np.array([-1.0, 2.0])
@@ -434,7 +433,7 @@ def _gouraud_highlight(m):
     truth = np.asarray(ps.theta_of(scene))
     start = truth.copy()
     start[6:9], start[9] = 0.01, 1.0
-    r = fit(ps.apply(scene, jnp.asarray(start)), opts, noisy, free, saturation=1.0, quantum=1 / 255)
+    r = fit(ps.apply(scene, jnp.asarray(start)), opts, Observations(noisy, saturation=1.0, quantum=1 / 255), free)
     return r, truth, ps, scene, opts, noisy
 
 
@@ -449,7 +448,7 @@ def test_a_solution_lower_by_more_than_the_noise_shows_is_found_by_the_scan_for_
     assert r.successful, r.result
     assert any("a solution with Δχ²" in n and "replaced the one found first" in n for n in r.notes), r.notes
     assert r.values[9] > 30 and np.all(r.values[6:9] > 0.03), r.values
-    assert r.within(truth).all(), (r.values, r.interval)
+    assert r.within(truth).all(), (r.values, r.intervals.bounds)
 
 
 def test_grid_points_within_the_level_widen_the_intervals_however_far_from_the_solution():
@@ -461,17 +460,17 @@ def test_grid_points_within_the_level_widen_the_intervals_however_far_from_the_s
 
     r, truth, ps, scene, opts, noisy = _gouraud_highlight(3000.0)
     assert r.successful, r.result
-    assert r.values[9] < 100 and r.interval[9, 1] >= 3000.0, (r.values, r.interval)
-    assert {"material.specular[r]", "material.specular[g]", "material.specular[b]"} <= set(r.ambiguous), r.ambiguous
+    assert r.values[9] < 100 and r.intervals.bounds[9, 1] >= 3000.0, (r.values, r.intervals.bounds)
+    assert {"material.specular[r]", "material.specular[g]", "material.specular[b]"} <= set(r.intervals.ambiguous), r.intervals.ambiguous
     # k_s in all three channels: the truth is inside now (green, 0 at the grid point, through the
     # linear reach there: at m = 10⁴ no pixel sees the highlight, so k_s is free across its box)
     for i in (6, 7, 8):
-        assert r.interval[i, 0] <= truth[i] <= r.interval[i, 1], r.interval[i]
+        assert r.intervals.bounds[i, 0] <= truth[i] <= r.intervals.bounds[i, 1], r.intervals.bounds[i]
     # what the note claims, checked on renders of its own: the point is within Δχ² = 9 of the fit
     render = jax.jit(ds.render, static_argnames="opts")
     rss = [float(np.sum((np.asarray(render(ps.apply(scene, jnp.asarray(th)), opts)) - noisy) ** 2))
-           for th in (r.values, r.alternative)]
-    assert 0.0 < (rss[1] - rss[0]) / r.noise ** 2 < 9.0, rss
+           for th in (r.values, r.intervals.alternative)]
+    assert 0.0 < (rss[1] - rss[0]) / r.residual.noise ** 2 < 9.0, rss
 
 
 def test_the_linear_reach_from_a_point_ends_at_the_level_inside_the_box():
@@ -482,7 +481,7 @@ def test_the_linear_reach_from_a_point_ends_at_the_level_inside_the_box():
     # within the level
     import types
 
-    from fitting.intervals import linear_reach
+    from fitting._intervals import linear_reach
 
     rng = np.random.default_rng(1)
     A = np.zeros((300, 4))
@@ -517,7 +516,7 @@ def test_the_linear_reach_from_a_point_ends_at_the_level_inside_the_box():
 
 
 def test_points_within_the_level_join_the_intervals():
-    from fitting.intervals import cover_points
+    from fitting._intervals import cover_points
 
     interval = np.array([[0.0, 0.02], [1.0, 30.0], [np.nan, np.nan]])
     points = [(4.0, np.array([0.01, 50.0, 3.0])), (0.5, np.array([0.9, 20.0, 3.0])), (8.0, np.array([0.01, 10.0, 0.0]))]
@@ -531,8 +530,8 @@ def test_points_within_the_level_join_the_intervals():
 def test_intervals_cover_a_second_solution_the_images_cannot_tell_apart():
     # the alternative's values and its own ±3 s.e. join the intervals of the scalars it moves;
     # the others are left alone, and the domain still bounds them
-    from fitting.intervals import cover_alternative
-    from fitting.report import uncertainty
+    from fitting._intervals import cover_alternative
+    from fitting._report import uncertainty
 
     labels = ["k_s", "m", "a1"]
     interval = np.array([[0.0, 0.02], [0.1, 0.6], [0.05, 0.15]])

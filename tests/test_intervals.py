@@ -10,8 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 
 import diffshade as ds
-from fitting.fit import fit
-from fitting.params import ParamSet
+from fitting import Observations, VarPro, fit
+from fitting import ParamSet
 
 from conftest import small_default_scene
 
@@ -27,15 +27,15 @@ def test_the_interval_is_three_standard_errors_where_the_image_is_linear():
     free = ["material.ambient", "material.diffuse"]
     target = _render(scene, opts)
     noisy = target + np.random.default_rng(0).normal(0, 0.01, target.shape)
-    r = fit(scene, opts, noisy, free, noise=0.01)
-    assert r.successful and r.interval is not None, (r.result, r.notes)
-    lo = (r.values - r.interval[:, 0]) / r.stderr
-    hi = (r.interval[:, 1] - r.values) / r.stderr
+    r = fit(scene, opts, Observations(noisy, noise=0.01), free)
+    assert r.successful and r.intervals is not None, (r.result, r.notes)
+    lo = (r.values - r.intervals.bounds[:, 0]) / r.stderr
+    hi = (r.intervals.bounds[:, 1] - r.values) / r.stderr
     np.testing.assert_allclose(lo, 3.0, rtol=0.05)
     np.testing.assert_allclose(hi, 3.0, rtol=0.05)
-    assert r.interval_s > 0 and any(n.startswith("profile-likelihood intervals") for n in r.notes)
+    assert r.intervals.seconds > 0 and any(n.startswith("profile-likelihood intervals") for n in r.notes)
     assert "interval" in r.as_dict()["parameters"]["material.diffuse[g]"]
-    assert fit(scene, opts, noisy, free, noise=0.01, intervals=False).interval is None
+    assert fit(scene, opts, Observations(noisy, noise=0.01), free, intervals=False).intervals is None
 
 
 def test_a_bending_trade_off_widens_the_interval_and_the_ends_are_where_an_independent_fit_says():
@@ -51,15 +51,14 @@ def test_a_bending_trade_off_widens_the_interval_and_the_ends_are_where_an_indep
     free = ["material.diffuse", "material.specular", "material.shininess"]
     target = _render(scene, opts)
     noisy = np.round(np.clip(target + np.random.default_rng(2).normal(0, 2 / 255, target.shape), 0, 1) * 255) / 255
-    kw = dict(shared=["material.specular"], saturation=1.0, quantum=1 / 255)
-    r = fit(scene, opts, noisy, free, **kw)
+    r = fit(scene, opts, Observations(noisy, saturation=1.0, quantum=1 / 255), free, shared=["material.specular"])
     assert r.successful, (r.result, r.notes)
     p = len(r.values)
-    s2 = max(r.rss / (r.n_residuals - p), r.noise ** 2)
+    s2 = max(r.residual.rss / (r.residual.n - p), r.residual.noise ** 2)
     i = r.names.index("material.specular")
-    se, ks, ks_hi = r.stderr[i], r.values[i], r.interval[i, 1]
-    assert ks_hi > ks + 3.6 * se, (ks, se, r.interval[i])  # wider than Wald
-    assert np.isclose(r.interval[i, 0], ks - 3 * se)  # the other side as Wald's: the model is straight there
+    se, ks, ks_hi = r.stderr[i], r.values[i], r.intervals.bounds[i, 1]
+    assert ks_hi > ks + 3.6 * se, (ks, se, r.intervals.bounds[i])  # wider than Wald
+    assert np.isclose(r.intervals.bounds[i, 0], ks - 3 * se)  # the other side as Wald's: the model is straight there
     assert any("wider than" in n and "material.specular" in n for n in r.notes)
 
     held = ["material.diffuse", "material.shininess"]
@@ -67,9 +66,9 @@ def test_a_bending_trade_off_widens_the_interval_and_the_ends_are_where_an_indep
 
     def dchi2(k_s):
         s = ps.apply(scene, jnp.asarray(np.r_[r.values[:i], k_s, r.values[i + 1:]]))
-        q = fit(s, opts, noisy, held, starts=1, intervals=False, saturation=1.0, quantum=1 / 255)
+        q = fit(s, opts, Observations(noisy, saturation=1.0, quantum=1 / 255), held, intervals=False, strategy=VarPro(starts=1))
         assert q.converged, q.result
-        return (q.rss - r.rss) / s2
+        return (q.residual.rss - r.residual.rss) / s2
 
     d_end, d_wald = dchi2(ks_hi), dchi2(ks + 3 * se)
     assert 0.9 * 9 <= d_end <= 1.2 * 9

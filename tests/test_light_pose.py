@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 import diffshade as ds
-from fitting.fit import fit
-from fitting.params import ParamError, ParamSet, direction_frame, direction_of, tilt_of
+from fitting import Observations, fit
+from fitting import ParamError, ParamSet, direction_frame, direction_of, tilt_of
 
 from conftest import check_grads
 
@@ -54,7 +54,7 @@ def test_a_directional_light_tilted_by_four_degrees_is_found():
     start = eqx.tree_at(lambda s: s.directional.direction, scene, jnp.asarray([_tilted(d_true, 3.0, -2.7)]))
     assert 3.9 < _angle_deg(start.directional.direction[0], d_true) < 4.1
     free = ["directional[0].direction", "material.diffuse"]
-    r = fit(start, opts, target, free)
+    r = fit(start, opts, Observations(target), free)
     assert r.successful, r.result
     ps = ParamSet(free, start)
     d_fit = np.asarray(ps.apply(start, jnp.asarray(r.values)).directional.direction[0])
@@ -83,7 +83,7 @@ def test_a_spot_pointing_straight_down_tilted_by_three_degrees_is_found():
     start = eqx.tree_at(lambda s: (s.spot.axis, s.spot.cutoff), scene,
                         (jnp.asarray([[0.0, -1.0, 0.0]]), jnp.asarray([26.0])))
     free = ["spot[0].axis", "spot[0].cutoff", "material.diffuse"]
-    r = fit(start, opts, target, free)
+    r = fit(start, opts, Observations(target), free)
     assert r.successful, r.result
     fitted = ParamSet(free, start).apply(start, jnp.asarray(r.values))
     assert _angle_deg(fitted.spot.axis[0], truth_axis) < 1e-4
@@ -109,7 +109,7 @@ def test_a_point_light_moved_by_centimetres_is_found(n_views):
     moved = jnp.asarray([p_true + [0.05, -0.03, 0.04]])
     starts = [eqx.tree_at(lambda s: s.point.position, v, moved) for v in views]
     free = ["point[0].position", "material.diffuse", "material.specular"]
-    r = fit(starts[0], opts, targets, free, views=starts)
+    r = fit(starts[0], opts, Observations(targets, views=starts), free)
     assert r.successful, r.result
     np.testing.assert_allclose(r.values[:3], p_true, atol=1e-5)
 

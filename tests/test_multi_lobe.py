@@ -157,8 +157,8 @@ def test_scene_file_multi_lobe_errors():
 
 
 def test_fit_names_and_recovery_of_lobe_colours_and_a_cutoff():
-    from fitting.fit import fit
-    from fitting.params import ParamError, ParamSet
+    from fitting import Observations, fit
+    from fitting import ParamError, ParamSet
 
     d = _dict([_multi()], size=24, specular="none", per_light_ambient=False)
     scene, opts = ds.scene_from_dict(d)
@@ -172,7 +172,7 @@ def test_fit_names_and_recovery_of_lobe_colours_and_a_cutoff():
     true = np.asarray(pset.theta_of(scene), np.float64)
     target = np.asarray(jax.jit(ds.render, static_argnames="opts")(scene, opts))
     start = pset.apply(scene, jnp.asarray(true * np.r_[[0.5] * 3, [1.6] * 3, 0.8, 2.0], scene.mesh.vertices.dtype))
-    r = fit(start, opts, target, free)
+    r = fit(start, opts, Observations(target), free)
     assert r.successful, r.result
     np.testing.assert_allclose(r.values, true, rtol=1e-3)
     assert "variable projection" in r.method  # the lobe colours are linear, the cutoff and a2 are not

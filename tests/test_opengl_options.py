@@ -94,8 +94,8 @@ def test_shadows_with_vertex_clamp_is_a_clear_error():
 
 
 def test_fit_names_and_recovery_of_a_separate_specular_colour():
-    from fitting.fit import fit
-    from fitting.params import ParamError, ParamSet
+    from fitting import Observations, fit
+    from fitting import ParamError, ParamSet
 
     d = dict(ds.DEFAULT_SCENE)
     d.pop("fog", None)
@@ -111,7 +111,7 @@ def test_fit_names_and_recovery_of_a_separate_specular_colour():
     true = np.asarray(pset.theta_of(scene), np.float64)
     target = np.asarray(jax.jit(ds.render, static_argnames="opts")(scene, opts))
     start = pset.apply(scene, jnp.asarray(true * np.r_[[1.5] * 3, [0.6] * 3, 2.0], scene.mesh.vertices.dtype))
-    r = fit(start, opts, target, free)
+    r = fit(start, opts, Observations(target), free)
     assert r.successful, r.result
     np.testing.assert_allclose(r.values, true, rtol=1e-4)
     assert "6 linear" in r.method  # both colours are linear: the specular one multiplies k_s, not k_d

@@ -16,7 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 
 import diffshade as ds
-from fitting.problem import Problem, ViewData, stack_views, view_devices
+from fitting import Observations
+from fitting._problem import Problem, ViewData, stack_views, view_devices
 
 from conftest import small_default_scene
 
@@ -62,7 +63,7 @@ def test_stacked_views_render_what_the_views_do_one_by_one():
     scene, opts, views = _views()
     targets = [np.asarray(ds.render(v, opts)) for v in views]
     free = ["material.diffuse", "material.shininess", "view[*].camera.exposure"]
-    prob = Problem.build(scene, opts, targets, free, views=views)
+    prob = Problem.build(scene, opts, Observations(targets, views=views), free)
     assert prob.stacked
     data = prob.device_data()
     assert isinstance(data, ViewData) and data.target.shape[0] == 3
@@ -89,7 +90,7 @@ def test_views_of_another_structure_are_not_stacked():
     big = eqx.tree_at(lambda s: s.camera, views[1], ds.Camera(eye=c.eye, target=c.target, up=c.up, fov_y=c.fov_y,
                                                                  near=c.near, far=c.far, width=40, height=40))
     targets = [np.asarray(ds.render(v, opts)) for v in (views[0], big)]
-    prob = Problem.build(scene, opts, targets, ["material.diffuse"], views=[views[0], big])
+    prob = Problem.build(scene, opts, Observations(targets, views=[views[0], big]), ["material.diffuse"])
     assert not prob.stacked and isinstance(prob.device_data(), list)
     assert stack_views(prob.data) is None
 

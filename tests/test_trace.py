@@ -214,8 +214,8 @@ def test_fit_recovers_the_index_of_glass_before_a_chequered_wall(tmp_path):
     # the verdict rejects it: see test_report's white-noise test)
     import trimesh
 
-    from fitting.fit import fit
-    from fitting.params import ParamSet
+    from fitting import Observations, fit
+    from fitting import ParamSet
 
     b = trimesh.creation.box(extents=[1.4, 1.2, 0.5])
     b.apply_transform(trimesh.transformations.rotation_matrix(np.deg2rad(30), [0, 1, 0]))
@@ -243,7 +243,7 @@ def test_fit_recovers_the_index_of_glass_before_a_chequered_wall(tmp_path):
     ids = np.asarray(ds.scene_visibility(scene, opts)[0])
     assert (ids >= 0).all() and len(np.unique((ids[ids >= 12] - 12) // 2)) >= 9  # the wall's tiles fill the frame
     start = pset.apply(scene, jnp.asarray(true * np.r_[1.05, 0.6, 1.5, 0.8, 2.0], scene.mesh.vertices.dtype))
-    r = fit(start, opts, target, free, shared=shared)
+    r = fit(start, opts, Observations(target), free, shared=shared)
     assert r.successful, r.result
     np.testing.assert_allclose(r.values[0], 1.5, rtol=1e-4)
     np.testing.assert_allclose(r.values, true, rtol=1e-4)
@@ -254,8 +254,8 @@ def test_fit_recovers_a_mirrors_weight_from_the_reflection_of_a_lit_ball():
     # black background: the floor shows nothing but the ball's reflection, so k_r is seen only
     # there; fitted with the ball's own k_d (their product is what the reflection shows, the
     # ball seen directly tells them apart), the mirror weight starting on its lower bound 0
-    from fitting.fit import fit
-    from fitting.params import ParamSet
+    from fitting import Observations, fit
+    from fitting import ParamSet
 
     d = {"camera": {"eye": [0, 0.8, 4], "target": [0, -0.3, 0], "up": [0, 1, 0], "fov_y": 40, "near": 0.1, "far": 50,
                     "width": 28, "height": 24},
@@ -278,10 +278,10 @@ def test_fit_recovers_a_mirrors_weight_from_the_reflection_of_a_lit_ball():
     assert reflected.sum() > 20 and (floor & ~reflected).sum() > 20  # the ball's reflection, and black floor
     assert np.abs(np.asarray(_render(scene, opts.with_keys(ray_depth=0)))[floor]).max() < 1e-12
     start = pset.apply(scene, jnp.asarray(np.r_[0.0, 0.0, 0.0, 0.5, 0.5, 0.5]))
-    r = fit(start, opts, target, free)
+    r = fit(start, opts, Observations(target), free)
     assert r.successful, r.result
     np.testing.assert_allclose(r.values, true, rtol=1e-6)
-    assert not r.undetermined
+    assert not r.diagnostics.undetermined
 
 
 def test_shadow_rays_over_many_lights_follow_the_light_axis_rule():

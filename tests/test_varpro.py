@@ -10,9 +10,9 @@ import jax.numpy as jnp
 import numpy as np
 
 import diffshade as ds
-from fitting.problem import Problem
-from fitting.strategy import Reduced, bounded_lsq, split_linear
-from fitting.params import ParamSet
+from fitting._problem import Problem
+from fitting._linear import Reduced, bounded_lsq, split_linear
+from fitting import Observations, ParamSet
 
 from conftest import small_default_scene
 
@@ -40,7 +40,7 @@ def test_term_images_are_the_jacobian_columns_of_the_linear_parameters():
     free = ["material.ambient", "material.diffuse", "material.specular", "material.shininess", "fog.color",
             "point[0].a1"]
     target = np.zeros(scene.camera.resolution + (3,))
-    prob = Problem.build(scene, opts, target, free, shared=["material.specular"])
+    prob = Problem.build(scene, opts, Observations(target), free, shared=["material.specular"])
     red = Reduced(prob)
     assert [prob.pset.params[i].name for i in red.linear_params] == ["material.ambient", "material.diffuse",
                                                                       "material.specular", "fog.color"]
@@ -117,10 +117,10 @@ def test_the_program_ranks_the_starts_by_their_reduced_cost_and_is_the_only_prog
     linear block projected out): against :meth:`Reduced.cost`, an independent path (a design matrix
     per view and a bounded solve). A fit of the same structure then compiles nothing more: the
     render is compiled once per fit, for the solve, the ranking and the polish alike."""
-    from fitting import strategy
-    from fitting.fit import fit
-    from fitting.solve import Program, compiled_program
-    from fitting.strategy import candidates
+    from fitting import _cache
+    from fitting import Observations, VarPro, fit
+    from fitting._varpro import Program, compiled_program
+    from fitting._starts import candidates
 
     scene, opts = small()
     free = ["material.ambient", "material.diffuse", "material.specular", "material.shininess", "point[0].a1"]
@@ -128,44 +128,44 @@ def test_the_program_ranks_the_starts_by_their_reduced_cost_and_is_the_only_prog
     ps = ParamSet(free, scene)
     start = ps.theta_of(scene) * jnp.asarray([1.0] * 9 + [2.0, 3.0])
     s0 = ps.apply(scene, start)
-    prob = Problem.build(s0, opts, [target], free)
+    prob = Problem.build(s0, opts, Observations([target]), free)
     red = Reduced(prob)
     theta0 = np.asarray(prob.pset.theta_of(s0), np.float64)
     theta_ref = jnp.asarray(theta0, prob.dtype)
     U = candidates(red, theta0, 6)
-    before = strategy.cache_info()["misses"]
+    before = _cache.cache_info()["misses"]
     fn, compile_s = compiled_program(prob, red, U, theta_ref)
-    assert compile_s > 0 and strategy.cache_info()["misses"] == before + 1
+    assert compile_s > 0 and _cache.cache_info()["misses"] == before + 1
     costs = Program(fn, prob, red, theta_ref, U).rank(theta0[red.idx_l])
     cost = jax.jit(red.cost)
     want = np.array([float(cost(jnp.asarray(u), (prob.data, theta_ref))) for u in U])
     np.testing.assert_allclose(costs, want, rtol=1e-8, atol=1e-20)
     assert len(set(np.argsort(costs)[:3])) == 3 and np.ptp(costs) > 0  # the starts differ
-    r = fit(s0, opts, target, free, starts=6)
-    assert r.compile_s == 0.0 and strategy.cache_info()["misses"] == before + 1
+    r = fit(s0, opts, Observations(target), free, strategy=VarPro(starts=6))
+    assert r.compile_s == 0.0 and _cache.cache_info()["misses"] == before + 1
     assert r.successful, (r.result, r.notes)
 
 
 def test_the_compiled_program_cache_keeps_only_the_most_recently_used(monkeypatch):
     # every compiled program keeps its machine code mapped, and a process may hold only 65,530
     # mappings: a session that fitted ~80 structures died in LLVM before the cache was bounded
-    from fitting import strategy
+    from fitting import _cache
 
-    monkeypatch.setattr(strategy, "CACHE_SIZE", 3)
-    monkeypatch.setattr(strategy, "_CACHE", type(strategy._CACHE)())
+    monkeypatch.setattr(_cache, "CACHE_SIZE", 3)
+    monkeypatch.setattr(_cache, "_CACHE", type(_cache._CACHE)())
     scene, opts = small()
-    prob = Problem.build(scene, opts, [np.zeros((20, 24, 3))], ["material.diffuse"])
+    prob = Problem.build(scene, opts, Observations([np.zeros((20, 24, 3))]), ["material.diffuse"])
     x = jnp.ones(2)
 
     def get(i):
-        return strategy.compiled(prob, f"probe {i}", lambda v: v * (i + 1), x)
+        return _cache.compiled(prob, f"probe {i}", lambda v: v * (i + 1), x)
 
     assert all(get(i)[1] > 0 for i in range(3))
     assert get(0)[1] == 0.0  # a hit, and now the most recent
     assert get(3)[1] > 0  # compiles, and evicts the least recently used: probe 1
-    assert len(strategy._CACHE) == 3
+    assert len(_cache._CACHE) == 3
     assert get(0)[1] == 0.0 and get(2)[1] == 0.0 and get(3)[1] == 0.0
     exe, dt = get(1)
     assert dt > 0 and float(exe(x)[0]) == 2.0
-    info = strategy.cache_info()
+    info = _cache.cache_info()
     assert info["size"] == 3 and info["capacity"] == 3

@@ -15,8 +15,8 @@ import diffshade as ds
 from conftest import opencv_look_at as _look_at
 from conftest import small_default_scene
 from fitting.cli import EXIT_INPUT, EXIT_OK, main
-from fitting.fit import fit
-from fitting.params import ParamError, ParamSet
+from fitting import Observations, fit
+from fitting import ParamError, ParamSet
 
 SIZE = 32
 EYES = [(0.0, 0.0, 3.0), (1.5, 0.5, 2.5), (-1.2, 1.0, 2.6)]
@@ -58,7 +58,7 @@ def test_per_view_white_balance_and_the_material_are_recovered(views):
     s0 = eqx.tree_at(lambda s: (s.material.diffuse, s.material.shininess), starts[0],
                      (jnp.asarray([0.5, 0.5, 0.5]), jnp.asarray(10.0)))
     free = ["material.diffuse", "material.specular", "material.shininess", "view[*].camera.white_balance"]
-    r = fit(s0, opts, targets, free, views=starts)
+    r = fit(s0, opts, Observations(targets, views=starts), free)
     assert r.successful, r.result
     assert r.names[-6:] == [f"view[{i}].camera.white_balance[{c}]" for i in (1, 2) for c in "rgb"]
     truth = np.r_[np.asarray(vs[0].material.diffuse), np.asarray(vs[0].material.specular), 30.0,
@@ -70,12 +70,12 @@ def test_per_view_white_balance_and_the_material_are_recovered(views):
 def test_gains_alone_are_linear(views):
     vs, opts, targets = views
     starts = [_unit_gains(v) for v in vs]
-    r = fit(starts[0], opts, targets, ["view[*].camera.exposure"], views=starts)
+    r = fit(starts[0], opts, Observations(targets, views=starts), ["view[*].camera.exposure"])
     assert "bounded linear least squares" in r.method
     # exposure alone cannot explain a white balance: the fit says so rather than succeed
     assert not r.successful and "the noise" in r.result
     targets_e = [t / np.asarray(wb) for t, (_, wb) in zip(targets, GAINS)]
-    r = fit(starts[0], opts, targets_e, ["view[*].camera.exposure"], views=starts)
+    r = fit(starts[0], opts, Observations(targets_e, views=starts), ["view[*].camera.exposure"])
     assert r.successful, r.result
     np.testing.assert_allclose(r.values, [GAINS[1][0], GAINS[2][0]], rtol=1e-9)
 
@@ -85,8 +85,8 @@ def test_the_reference_view_gain_is_a_gauge_of_the_k(views):
     view's white balance and the k's trade exactly, and the report names that combination."""
     vs, opts, targets = views
     free = ["material.ambient", "material.diffuse", "material.specular", "view[0].camera.white_balance"]
-    r = fit(vs[0], opts, targets[:1], free, views=vs[:1])
-    assert r.gauges and "view[0].camera.white_balance" in r.gauges[0]
+    r = fit(vs[0], opts, Observations(targets[:1], views=vs[:1]), free)
+    assert r.diagnostics.gauges and "view[0].camera.white_balance" in r.diagnostics.gauges[0]
 
 
 def test_per_view_names_are_checked(views):
@@ -205,11 +205,11 @@ def test_cli_fits_through_a_calibrated_distorting_camera(tmp_path, capsys):
 def test_each_view_keeps_its_index_with_a_margin(views):
     """The compacted data of view k applies view k's own parameters, whatever the options (a
     margin once renamed the loop's view index)."""
-    from fitting.problem import Problem
+    from fitting._problem import Problem
 
     vs, opts, targets = views
     for margin in (0, 1):
-        prob = Problem.build(vs[0], opts, targets, ["view[*].camera.exposure"], views=vs, margin=margin)
+        prob = Problem.build(vs[0], opts, Observations(targets, views=vs, margin=margin), ["view[*].camera.exposure"])
         assert [vd.index for vd in prob.data] == [0, 1, 2]
 
 
@@ -218,12 +218,12 @@ def test_relinearised_residuals_are_the_code_value_residuals(views):
     the residual in code values, encode(I) − v, at every uncensored entry (the first pass's
     weights, taken at the noisy code, only agree to first order)."""
     from diffshade import color as _color
-    from fitting.problem import Problem
+    from fitting._problem import Problem
 
     vs, opts, targets = views
     rng = np.random.default_rng(4)
     codes = [np.clip(np.asarray(_color.encode(t, "srgb")) + rng.normal(0, 0.01, t.shape), 0, 1) for t in targets]
-    prob = Problem.build(vs[0], opts, codes, ["material.diffuse"], views=vs, encoding="srgb", saturation=1.0)
+    prob = Problem.build(vs[0], opts, Observations(codes, views=vs, encoding="srgb", saturation=1.0), ["material.diffuse"])
     theta = prob.pset.theta_of(vs[0])
     model = [np.asarray(prob.image(vd, theta), np.float64) for vd in prob.data]
     flat = np.concatenate([m.reshape(-1) for m in model])

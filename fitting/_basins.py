@@ -5,23 +5,23 @@ search range (widened a decade each way on a log scale) ranks grid points by the
 the linear block re-solved at each, in one call of the compiled program's ranking mode. From the
 best grid point, variable projection and the polish run again: a lower solution replaces the fit's,
 one within the intervals' level is reported, and so are the grid points within it, which the
-intervals must cover (:mod:`fitting.intervals`).
+intervals must cover (:mod:`fitting._intervals`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .intervals import INTERVAL_LEVEL
-from .polish import polish
-from .report import FLOAT_FLOOR_SOURCE, candidate, noise_ratio_limit
-from .strategy import inside, search_ranges
+from ._intervals import INTERVAL_LEVEL
+from ._polish import polish
+from ._report import FLOAT_FLOOR_SOURCE, Alternative, Candidate, candidate
+from ._starts import inside, search_ranges
 
 SCAN_POINTS = 16  # grid points per nonlinear scalar in the search for other basins (at most)
 SCAN_WIDEN = 10.0  # the scan's log ranges: the search ranges widened by this factor each way
 
 
-def other_basins(program, ev, prob, red, best, theta0, n2, noise, polish_steps, max_steps, rtol, notes):
+def other_basins(program, ev, prob, red, best: Candidate, theta0, n2, noise, polish_steps, max_steps, rtol):
     """Is there another solution the images cannot tell from this one? For a fit the verdict
     accepts on a target with noise: the reduced cost (the linear block re-solved) along a grid over
     each nonlinear scalar's search range, the others at the solution, one call of the program's
@@ -31,19 +31,14 @@ def other_basins(program, ev, prob, red, best, theta0, n2, noise, polish_steps, 
     is returned as the alternative whose values the intervals must cover. So are the grid points
     of least and greatest value along each scalar whose Δχ² is below that level (the linear block
     solved there): the profile of the scalar at such a value is at most that Δχ², so the value is
-    inside the profile interval, however far from the solution (measured: a Gouraud highlight of
-    m = 3000 caught by no vertex; from the truth the fit went on to m = 14, Δχ² 6 lower, and a grid
-    point at m = 10⁴ had Δχ² 0.2, while the local intervals excluded the truth). Measured on the suite's
-    case 137 (Gouraud, m = 107): the fit stopped at k_s = 0.005 ± 0.002, m = 0.33, with the truth
-    161 s.e. away; the highlight at m ≈ 87, k_s ≈ 0.2 had Δχ² = 0.7 more: the images cannot tell.
-    Returns ``(best, alternative or None, [(Δχ², θ) of grid points], evaluations)``."""
+    inside the profile interval, however far from the solution (design notes: docs/fit-design-notes.md, "Other basins").
+    Returns ``(best, alternative or None, [(Δχ², θ) of grid points], evaluations, notes)``."""
     n_n = len(red.idx_n)
     C = len(program.U)
-    ok = best["converged"] and best["ratio"] <= noise_ratio_limit(n2)
-    if not n_n or C < 2 * n_n + 1 or not ok or best["source"] == FLOAT_FLOOR_SOURCE:
-        return best, None, [], 0
+    if not n_n or C < 2 * n_n + 1 or not best.accepted(n2) or best.source == FLOAT_FLOOR_SOURCE:
+        return best, None, [], 0, []
     pset = prob.pset
-    theta = best["theta"]
+    theta = best.theta
     u_sol = pset.u_from_theta_np(inside(pset, theta))[red.idx_n]
     G = min((C - 1) // n_n, SCAN_POINTS)
     rows, axis = [u_sol], []
@@ -59,16 +54,15 @@ def other_basins(program, ev, prob, red, best, theta0, n2, noise, polish_steps, 
         rows.extend(u[far])
         axis.extend([k] * int(far.sum()))
     if len(rows) == 1:
-        return best, None, [], 0
+        return best, None, [], 0, []
     costs = program.rank(theta[red.idx_l], np.asarray(rows))
-    s2 = best["sigma"] ** 2
+    s2 = best.sigma ** 2
     dchi2 = (costs[1:] - costs[0]) / s2
     i = int(np.argmin(dchi2))
     label = pset.labels[red.idx_n[axis[i]]]
     if not dchi2[i] < INTERVAL_LEVEL ** 2:
-        notes.append(f"other basins: none within Δχ² = {INTERVAL_LEVEL ** 2:g} along any nonlinear parameter "
-                     f"({len(rows) - 1} points, the others at the solution; least Δχ² {dchi2[i]:.3g}, {label})")
-        return best, None, [], 1
+        return best, None, [], 1, [f"other basins: none within Δχ² = {INTERVAL_LEVEL ** 2:g} along any nonlinear parameter "
+                     f"({len(rows) - 1} points, the others at the solution; least Δχ² {dchi2[i]:.3g}, {label})"]
     # the extreme grid points inside the Δχ² level along each scalar, the linear block solved there
     near = np.flatnonzero(dchi2 < INTERVAL_LEVEL ** 2)
     ends = set()
@@ -76,26 +70,24 @@ def other_basins(program, ev, prob, red, best, theta0, n2, noise, polish_steps, 
         on_k = [j for j in near if axis[j] == k]
         if on_k:
             ends |= {min(on_k, key=lambda j: rows[1 + j][k]), max(on_k, key=lambda j: rows[1 + j][k])}
-    points = [(float(dchi2[j]), np.asarray(program.solve(np.concatenate([theta[red.idx_l], rows[1 + j]]), 1, rtol)["theta"],
+    points = [(float(dchi2[j]), np.asarray(program.solve(np.concatenate([theta[red.idx_l], rows[1 + j]]), 1, rtol).theta,
                                           np.float64)) for j in sorted(ends)]
     out = program.solve(np.concatenate([theta[red.idx_l], rows[1 + i]]), max_steps, rtol)
-    k0 = int(out["k"])
-    th2, r, J, img, fixed, k1, converged = polish(ev, prob, red, np.asarray(out["theta"], np.float64),
-                                                  polish_steps, rtol)
-    cand = candidate(prob, th2, r, J, img, fixed, "" if converged else
-                     f"the polish did not converge in {polish_steps} steps", converged, k1, n2, noise)
-    d = (cand["rss"] - best["rss"]) / s2
+    k0 = int(out.k)
+    p = polish(ev, prob, red, np.asarray(out.theta, np.float64), polish_steps, rtol)
+    th2, k1 = p.theta, p.evaluations
+    cand = candidate(prob, p, "" if p.converged else f"the polish did not converge in {polish_steps} steps", n2, noise)
+    d = (cand.rss - best.rss) / s2
     u2 = pset.u_from_theta_np(inside(pset, th2))[red.idx_n]
     start = f"from the grid point on {label} with Δχ² {dchi2[i]:.3g}"
     evals = 1 + k0 + k1 + len(points)  # the ranking, the solve and polish, and the grid points' solves
     if np.max(np.abs(u2 - u_sol)) < 0.25 and d > -1.0:
-        notes.append(f"other basins: {start}, variable projection and the polish came back to this solution")
-        return best, None, points, evals
-    if d < -1.0 and cand["converged"]:
-        notes.append(f"other basins: {start}, a solution with Δχ² {d:.3g} (lower) replaced the one found first")
-        return cand, None, [], evals
-    if d <= INTERVAL_LEVEL ** 2 and cand["converged"]:
-        return best, dict(cand, dchi2=d, start=start), points, evals
-    notes.append(f"other basins: {start}, variable projection and the polish reached Δχ² {d:.3g}"
-                 + ("" if cand["converged"] else " (not converged)"))
-    return best, None, points, evals
+        return best, None, points, evals, [f"other basins: {start}, variable projection and the polish came back to "
+                                           "this solution"]
+    if d < -1.0 and cand.converged:
+        return cand, None, [], evals, [f"other basins: {start}, a solution with Δχ² {d:.3g} (lower) replaced the one "
+                                       "found first"]
+    if d <= INTERVAL_LEVEL ** 2 and cand.converged:
+        return best, Alternative(cand, d, start), points, evals, []
+    return best, None, points, evals, [f"other basins: {start}, variable projection and the polish reached Δχ² {d:.3g}"
+                                       + ("" if cand.converged else " (not converged)")]

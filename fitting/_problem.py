@@ -22,21 +22,14 @@ import jax.numpy as jnp
 import numpy as np
 
 import diffshade as ds
-from diffshade import color as _color
+from diffshade import color
 from diffshade import pixel_neighbours
 
-from .params import ParamSet
+from . import _options
+from ._observations import FitError, Observations, as_list
+from ._params import ParamSet
 
 PAD = 1024  # covered-pixel counts are padded up to a multiple of this
-
-
-class FitError(ValueError):
-    """Observations that do not match the scene (size, channels, count)."""
-
-
-def as_list(targets) -> list:
-    """One image or a list of images, as a list."""
-    return [targets] if hasattr(targets, "shape") else list(targets)
 
 
 def check_target(t, scene, k):
@@ -130,7 +123,7 @@ def near_edges(depth: np.ndarray, margin: int, ratio: float = 4.0) -> np.ndarray
 @jax.jit
 def _edges_at(scene, ids, px, py, right, down):
     """The antialiasing's silhouette edges of a view's compacted pixels at its scene's values
-    (:func:`diffshade._antialias.silhouette_edges`): held fixed through a fit's pass, as the
+    (:func:`diffshade.silhouette_edges`): held fixed through a fit's pass, as the
     visibility is."""
     from diffshade import silhouette_edges
 
@@ -218,6 +211,120 @@ def censored_residual(img, t, hi, lo):
     return jnp.where(hi, jnp.minimum(d, 0.0), jnp.where(lo, jnp.maximum(d, 0.0), d))
 
 
+def _read_target(t, v, k, enc, obs: Observations, lower: bool):
+    """A target in linear values with its per-channel weight and censoring masks. An encoded
+    target: clipping is decided on the code values; the residual is taken in linear values weighted
+    per channel by 1/(dL/dv), i.e. in code values to first order, where quantisation and the
+    file's noise are uniform."""
+    t = np.asarray(check_target(t, v, k), np.float64)
+    hi = (t >= obs.saturation) if obs.saturation is not None else np.zeros(t.shape, bool)
+    lo = (t <= 0.0) if lower else np.zeros(t.shape, bool)
+    chan_w = np.ones_like(t)
+    if enc is not None and enc != "linear":
+        try:
+            color.parse_encoding(enc)
+        except color.EncodingError as exc:
+            raise FitError(f"target {k}: {exc}") from exc
+        chan_w = 1.0 / color.decode_slope(np.clip(t, 0.0, 1.0), enc, floor=(obs.quantum or 1 / 255) / 2)
+        t = np.asarray(color.decode(t, enc), np.float64)
+    return t, chan_w, hi, lo
+
+
+def _read_mask(m, k, shape) -> np.ndarray:
+    if m is None:
+        return np.ones(shape)
+    m = np.asarray(m, np.float64)
+    if m.shape != shape:
+        raise FitError(f"mask {k}: shape {m.shape}, expected {shape}")
+    return np.clip(m, 0, None)
+
+
+@dataclass(frozen=True)
+class _Cover:
+    """One view before compaction: its linear target, visibility and which pixels are kept."""
+
+    t: np.ndarray  # [H, W, 3] linear target
+    view: ds.Scene
+    enc: str | None
+    ids: np.ndarray  # visibility ids
+    covered: np.ndarray  # [H, W] the compacted pixels
+    used: np.ndarray  # [H, W] those fitted
+    wgt: np.ndarray  # [H, W] √mask
+    chan_w: np.ndarray  # [H, W, 3] the encoding's weight
+    hi: np.ndarray
+    lo: np.ndarray
+
+
+def _cover(k, t, v, m, enc, obs: Observations, lower, opts, vis) -> _Cover:
+    """Which pixels of view ``k`` are compacted (covered, or beside the silhouette when
+    antialiased) and which of them are fitted (away from edges by the margin, weighted)."""
+    t, chan_w, hi, lo = _read_target(t, v, k, enc, obs, lower)
+    h, w = v.camera.resolution
+    wgt = np.sqrt(_read_mask(m, k, (h, w)))
+    ids = np.asarray(vis(v, opts))
+    covered = (ids[0] >= 0) & (wgt > 0)
+    margin = int(obs.margin)
+    if margin:
+        covered = covered & ~near_edges(pixel_depths(v, ids[0]), margin)
+        from skimage.morphology import erosion
+
+        # away from the silhouette and the mask's edge by `margin` 8-neighbour steps (a
+        # square footprint; the image border is not an edge)
+        side = 2 * margin + 1
+        covered = erosion(covered, np.ones((side, side), bool), mode="ignore")
+    used = covered
+    if _options.antialias(opts):
+        # the background pixels beside the silhouette depend on the parameters too (the
+        # antialiasing blends the surface into them): they are shaded with the rest and,
+        # without a margin, fitted
+        from skimage.morphology import dilation
+
+        ring = dilation(ids[0] >= 0, np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool)) & (ids[0] < 0)
+        covered = covered | ring | ((ids[0] >= 0) & (wgt > 0))
+        used = used | (ring & (wgt > 0) & (not margin))
+    return _Cover(t, v, enc, ids, covered, used, wgt, chan_w, hi, lo)
+
+
+def _compact(k, c: _Cover, codes, n, dtype, opts):
+    """``(ViewData, View)`` of view ``k``: its covered pixels gathered and padded to ``n``."""
+    v, ids = c.view, c.ids
+    h, w = v.camera.resolution
+    rows = np.flatnonzero(c.covered.reshape(-1))
+    pad = n - len(rows)
+    cw_all = c.wgt[..., None] * c.chan_w  # [H, W, 3]
+    cw = cw_all * c.used[..., None]  # compacted pixels that are not fitted (antialias ring, masked) weigh 0
+    right, down = pixel_neighbours(rows, h, w)
+    xs, ys = (np.asarray(a, np.float64) for a in ds.pixel_centres(h, w, np.float64))
+    r_idx, c_idx = rows // w, rows % w
+    flat = lambda a: a.reshape(h * w, *a.shape[2:])[rows]  # noqa: E731
+    padn = lambda a, val: np.concatenate([a, np.full((pad, *a.shape[1:]), val, a.dtype)])  # noqa: E731
+    kids = ids.reshape(ids.shape[0], h * w)[:, rows]
+    kids = np.concatenate([kids, np.full((ids.shape[0], pad), -1, kids.dtype)], axis=1)[:, None, :]
+    px_c, py_c = jnp.asarray(padn(xs[c_idx], 0.0)[None], dtype), jnp.asarray(padn(ys[r_idx], 0.0)[None], dtype)
+    right_c, down_c = padn(right, -1)[None], padn(down, -1)[None]
+    edges = (np.asarray(_edges_at(v, jnp.asarray(kids), px_c, py_c, jnp.asarray(right_c), jnp.asarray(down_c)))
+             if _options.antialias(opts) else np.full((2, 2, n), -1, np.int32))
+    vd = ViewData(scene=v, ids=jnp.asarray(kids), px=px_c, py=py_c,
+                  target=jnp.asarray(padn(flat(c.t), 0.0), dtype), weight=jnp.asarray(padn(flat(cw), 0.0), dtype),
+                  hi=jnp.asarray(padn(flat(c.hi), False)), lo=jnp.asarray(padn(flat(c.lo), False)),
+                  right=jnp.asarray(right_c), down=jnp.asarray(down_c), edges=jnp.asarray(edges),
+                  index=jnp.asarray(k, jnp.int32))
+    # what the model shows where no surface is (the camera's gain at its start values)
+    bg = np.broadcast_to(np.asarray(v.background, np.float64) * np.asarray(v.camera.gain(), np.float64), c.t.shape)
+    d = censored_residual_np(bg - c.t, c.hi, c.lo) * cw_all
+    const = np.where(~c.covered[..., None], d, 0.0)
+    encoded = c.enc is not None and c.enc != "linear"
+    book = View(rows=rows, shape=(h, w), const=const, encoding=c.enc if encoded else None,
+                codes=padn(flat(np.asarray(codes, np.float64)), 0.0) if encoded else None,
+                sqrt_mask=padn(flat((c.wgt * c.used)[..., None]), 0.0) if encoded else None)
+    return vd, book
+
+
+def censored_residual_np(d, hi, lo) -> np.ndarray:
+    """A host residual ``d = I − t``, one-sided where the target is censored."""
+    return np.where(hi, np.minimum(d, 0), np.where(lo, np.maximum(d, 0), d))
+
+
 @dataclass
 class Problem:
     """Views, targets, weights and censoring; the free parameters; the residual functions."""
@@ -234,111 +341,26 @@ class Problem:
     _placed: dict = field(default_factory=dict, repr=False)  # device copies of the data, by what
 
     @classmethod
-    def build(cls, scene, opts, targets, free, *, views=None, masks=None, shared=(), saturation=None,
-              quantum=None, lower_censor=None, encoding=None, margin: int = 0, devices=None):
-        targets = as_list(targets)
-        encodings = list(encoding) if isinstance(encoding, (list, tuple)) else [encoding] * len(targets)
-        if len(encodings) != len(targets):
-            raise FitError(f"{len(targets)} targets but {len(encodings)} encodings")
-        views = list(views) if views is not None else [scene] * len(targets)
-        if len(views) != len(targets):
-            raise FitError(f"{len(targets)} targets but {len(views)} views")
-        if opts.antialias:  # the stage reads the mesh's edge topology; the programs get traced faces
+    def build(cls, scene: ds.Scene, opts: ds.RenderOptions, obs: Observations, free, *, shared=(),
+              devices=None, lower_censor: bool | None = None) -> Problem:
+        """The problem of fitting ``free`` of ``scene`` to the observations ``obs``: every view
+        compacted to its covered pixels (padded to a common count, so that the views stack)."""
+        views = obs.views_of(scene)
+        if _options.antialias(opts):  # the stage reads the mesh's edge topology; the programs get traced faces
             views = [v if v.mesh.adjacency is not None else eqx.tree_at(lambda s: s.mesh, v, v.mesh.with_adjacency())
                      for v in views]
-        if masks is None:
-            masks = [None] * len(targets)
-        if len(masks) != len(targets):
-            raise FitError(f"{len(targets)} targets but {len(masks)} masks")
+        masks = list(obs.masks) if obs.masks is not None else [None] * len(obs.targets)
         dtype = scene.mesh.vertices.dtype
-        pset = ParamSet(list(free), scene, shared, n_views=len(targets))
-        lower = (saturation is not None) if lower_censor is None else lower_censor
+        pset = ParamSet(list(free), scene, shared, n_views=len(obs.targets))
+        lower = (obs.saturation is not None) if lower_censor is None else lower_censor
         vis = jax.jit(ds.scene_visibility, static_argnums=1)
-        data, books, full, covers = [], [], [], []
-        for k, (t, v, m, enc) in enumerate(zip(targets, views, masks, encodings)):
-            t = np.asarray(check_target(t, v, k), np.float64)
-            # an encoded target: clipping is decided on the code values; the residual is taken in
-            # linear values weighted per channel by 1/(dL/dv), i.e. in code values to first order,
-            # where quantisation and the file's noise are uniform
-            hi = (t >= saturation) if saturation is not None else np.zeros(t.shape, bool)
-            lo = (t <= 0.0) if lower else np.zeros(t.shape, bool)
-            chan_w = np.ones_like(t)
-            if enc is not None and enc != "linear":
-                try:
-                    _color.parse_encoding(enc)
-                except _color.EncodingError as exc:
-                    raise FitError(f"target {k}: {exc}") from exc
-                chan_w = 1.0 / _color.decode_slope(np.clip(t, 0.0, 1.0), enc, floor=(quantum or 1 / 255) / 2)
-                t = np.asarray(_color.decode(t, enc), np.float64)
-            full.append(t)
-            h, w = v.camera.resolution
-            if m is None:
-                m = np.ones((h, w))
-            else:
-                m = np.asarray(m, np.float64)
-                if m.shape != (h, w):
-                    raise FitError(f"mask {k}: shape {m.shape}, expected {(h, w)}")
-                m = np.clip(m, 0, None)
-            wgt = np.sqrt(m)
-            ids = np.asarray(vis(v, opts))
-            covered = (ids[0] >= 0) & (wgt > 0)
-            if margin:
-                if int(margin) != margin or margin < 0:
-                    raise FitError(f"margin must be a whole number of pixels >= 0, got {margin!r}")
-                covered = covered & ~near_edges(pixel_depths(v, ids[0]), int(margin))
-                from skimage.morphology import erosion
-
-                # away from the silhouette and the mask's edge by `margin` 8-neighbour steps (a
-                # square footprint; the image border is not an edge)
-                side = 2 * int(margin) + 1
-                covered = erosion(covered, np.ones((side, side), bool), mode="ignore")
-            used = covered
-            if opts.antialias:
-                # the background pixels beside the silhouette depend on the parameters too (the
-                # antialiasing blends the surface into them): they are shaded with the rest and,
-                # without a margin, fitted
-                from skimage.morphology import dilation
-
-                ring = dilation(ids[0] >= 0, np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool)) & (ids[0] < 0)
-                covered = covered | ring | ((ids[0] >= 0) & (wgt > 0))
-                used = used | (ring & (wgt > 0) & (not margin))
-            covers.append((t, v, m, enc, ids, covered, used, wgt, chan_w, hi, lo))
+        covers = [_cover(k, t, v, m, enc, obs, lower, opts, vis)
+                  for k, (t, v, m, enc) in enumerate(zip(obs.targets, views, masks, obs.encodings))]
         # every view padded to the same count, so that the views stack into one batch
-        n = max(PAD, max(-(-int(c[5].sum()) // PAD) * PAD for c in covers))  # c[5]: the compacted pixels
-        for k, (t, v, m, enc, ids, covered, used, wgt, chan_w, hi, lo) in enumerate(covers):
-            h, w = v.camera.resolution
-            rows = np.flatnonzero(covered.reshape(-1))
-            pad = n - len(rows)
-            cw_all = wgt[..., None] * chan_w  # [H, W, 3]
-            cw = cw_all * used[..., None]  # compacted pixels that are not fitted (antialias ring, masked) weigh 0
-            right, down = pixel_neighbours(rows, h, w)
-            xs, ys = (np.asarray(c, np.float64) for c in ds.pixel_centres(h, w, np.float64))
-            r_idx, c_idx = rows // w, rows % w
-            flat = lambda a: a.reshape(h * w, *a.shape[2:])[rows]  # noqa: E731
-            padn = lambda a, val: np.concatenate([a, np.full((pad, *a.shape[1:]), val, a.dtype)])  # noqa: E731
-            kids = ids.reshape(ids.shape[0], h * w)[:, rows]
-            kids = np.concatenate([kids, np.full((ids.shape[0], pad), -1, kids.dtype)], axis=1)[:, None, :]
-            px_c, py_c = jnp.asarray(padn(xs[c_idx], 0.0)[None], dtype), jnp.asarray(padn(ys[r_idx], 0.0)[None], dtype)
-            right_c, down_c = padn(right, -1)[None], padn(down, -1)[None]
-            edges = (np.asarray(_edges_at(v, jnp.asarray(kids), px_c, py_c, jnp.asarray(right_c), jnp.asarray(down_c)))
-                     if opts.antialias else np.full((2, 2, n), -1, np.int32))
-            data.append(ViewData(
-                scene=v, ids=jnp.asarray(kids), px=px_c, py=py_c,
-                target=jnp.asarray(padn(flat(t), 0.0), dtype), weight=jnp.asarray(padn(flat(cw), 0.0), dtype),
-                hi=jnp.asarray(padn(flat(hi), False)), lo=jnp.asarray(padn(flat(lo), False)),
-                right=jnp.asarray(right_c), down=jnp.asarray(down_c), edges=jnp.asarray(edges),
-                index=jnp.asarray(k, jnp.int32)))
-            # what the model shows where no surface is (the camera's gain at its start values)
-            bg = np.broadcast_to(np.asarray(v.background, np.float64) * np.asarray(v.camera.gain(), np.float64), t.shape)
-            d = bg - t
-            d = np.where(hi, np.minimum(d, 0), np.where(lo, np.maximum(d, 0), d)) * cw_all
-            unc = ~covered
-            const = np.where(unc[..., None], d, 0.0)
-            encoded = enc is not None and enc != "linear"
-            books.append(View(rows=rows, shape=(h, w), const=const, encoding=enc if encoded else None,
-                              codes=padn(flat(np.asarray(targets[k], np.float64)), 0.0) if encoded else None,
-                              sqrt_mask=padn(flat((wgt * used)[..., None]), 0.0) if encoded else None))
-        return cls(pset, opts, data, books, dtype, saturation, quantum, full, devices=view_devices(devices, len(data)))
+        n = max(PAD, max(-(-int(c.covered.sum()) // PAD) * PAD for c in covers))
+        data, books = zip(*[_compact(k, c, obs.targets[k], n, dtype, opts) for k, c in enumerate(covers)])
+        return cls(pset, opts, list(data), list(books), dtype, obs.saturation, obs.quantum, [c.t for c in covers],
+                   devices=view_devices(devices, len(data)))
 
     @property
     def encoded(self) -> bool:
@@ -349,11 +371,9 @@ class Problem:
         r"""Re-take each encoded target's linear target and weight at the model ``img_flat`` (flat,
         the order of :meth:`residual`): weight :math:`v'(I)` and working target
         :math:`I + (v - v(I))/v'(I)`, so that :math:`(I - t')\,w = v(I) - v`, the residual in code
-        values, exactly at the model. Weights taken at the noisy target's own code (the first
-        pass) correlate with its noise and bias a fit through a curved encoding (measured: 0.25 %
-        in the gains of a multi-view sRGB fit, 4 standard errors); a pass or two of this
-        (iteratively reweighted least squares, Gauss–Newton on the code-value residual) removes
-        that. Censored entries keep theirs (they are one-sided at the clip)."""
+        values, exactly at the model. A pass or two of this (iteratively reweighted least squares, Gauss–Newton on the
+        code-value residual) removes the bias of weights taken at the noisy target's own code
+        (design notes: docs/fit-design-notes.md, "Encoded targets"). Censored entries keep theirs (they are one-sided at the clip)."""
         off = 0
         for k, (vd, b) in enumerate(zip(self.data, self.views)):
             n = vd.target.shape[0]
@@ -362,8 +382,8 @@ class Problem:
             if b.encoding is None:
                 continue
             floor = (self.quantum or 1 / 255) / 2
-            e = np.asarray(_color.encode(np.clip(I, 0.0, None), b.encoding), np.float64)
-            slope = _color.decode_slope(np.clip(e, 0.0, 1.0), b.encoding, floor=floor)  # dL/dv at the model
+            e = np.asarray(color.encode(np.clip(I, 0.0, None), b.encoding), np.float64)
+            slope = color.decode_slope(np.clip(e, 0.0, 1.0), b.encoding, floor=floor)  # dL/dv at the model
             cens = np.asarray(vd.hi | vd.lo)
             t_new = np.where(cens, np.asarray(vd.target, np.float64), I + (b.codes - e) * slope)
             w_new = np.where(cens, np.asarray(vd.weight, np.float64), b.sqrt_mask / slope)
@@ -404,10 +424,7 @@ class Problem:
 
     def map_views(self, fn, data: ViewData, *args):
         """``fn(view, *args)`` for every stacked view, stacked: the views taken one by one, each
-        its own piece of the program. (Measured at 256², 4 views, a 13-tangent Jacobian: 61 ms
-        so; 371 ms in a ``lax.map`` loop and 407 ms under ``vmap``, whose batched gathers XLA's
-        CPU backend runs several times slower, up to 100× for a pose fit. The compile grows
-        with the views per device, as for views of different structures.) Over several devices
+        its own piece of the program. (Not ``lax.map`` or ``vmap``: design notes: docs/fit-design-notes.md, "Stacked views".) Over several devices
         this runs inside ``shard_map``: each device takes its own views."""
         def body(d, *a):
             return jnp.stack([fn(jax.tree.map(lambda x: x[i], d), *a) for i in range(d.target.shape[0])])
@@ -423,7 +440,7 @@ class Problem:
     # -- evaluation ----------------------------------------------------------------------------
     def image(self, vd: ViewData, theta):
         """The model at a view's compacted pixels, ``[N, 3]``."""
-        pixels = (vd.px, vd.py, vd.right, vd.down, vd.edges) if self.opts.antialias else (vd.px, vd.py)
+        pixels = (vd.px, vd.py, vd.right, vd.down, vd.edges) if _options.antialias(self.opts) else (vd.px, vd.py)
         img = ds.render(self.pset.apply(vd.scene, theta, vd.index), self.opts, ids=vd.ids, pixels=pixels)
         return img[0]
 

@@ -24,7 +24,7 @@ receiver, which sees only the power); ``multi_lobe[i].<position|a0|a1|a2>`` (sha
 ``directional[i].direction`` and ``spot[i].axis``: two angles in degrees, the tilt from the
 start direction about two axes normal to it (a chart of the sphere centred on the start: no pole
 where a light points straight down; the fitted direction is ``direction_of(tilt, frame)``);
-``mesh.colors`` (per-vertex albedo, ``[0, 1]``, 3 per vertex; fitted by :mod:`fitting.albedo`);
+``mesh.colors`` (per-vertex albedo, ``[0, 1]``, 3 per vertex; fitted by :mod:`fitting._albedo`);
 ``camera.exposure`` (one gain), ``camera.white_balance`` (RGB gains) and, for an OpenCV camera,
 ``camera.rvec``/``camera.tvec`` (its pose). RGB fields are per channel unless listed as shared
 (one value for the three channels).
@@ -229,87 +229,86 @@ class Param:
         return [f"{self.name}[{axes[c]}]" for c in range(3)] if self.size == 3 else [self.name]
 
 
-def parse(name: str, scene: ds.Scene, shared: bool = False, n_views: int | None = None) -> Param:
-    """The :class:`Param` called ``name`` in ``scene`` (raises :class:`ParamError`); ``n_views``
-    (when known) bounds a ``view[i].`` prefix."""
-    m = _VIEW_RE.match(name)
-    if m:
-        if m.group(1) == "*":
-            raise ParamError(f"{name}: view[*] is expanded by the parameter set (it needs the number of views)")
-        i = int(m.group(1))
-        if n_views is not None and i >= n_views:
-            raise ParamError(f"unknown parameter {name!r}: the fit has {n_views} view(s)")
-        return dataclasses.replace(parse(m.group(2), scene, shared), name=name, view=i)
+def _parse_mesh_colors(name, scene, shared):
+    if scene.mesh.colors is None:
+        raise ParamError("mesh.colors: the mesh has no vertex colours to fit (load a mesh with colours, or give "
+                         "Mesh(colors=...) a start)")
+    if shared:
+        raise ParamError("mesh.colors has no shared form")
+    return Param(name, ("mesh", "colors"), 3 * int(scene.mesh.colors.shape[0]), "unit")
+
+
+def _parse_camera(name, scene, shared):
     parts = name.split(".")
-    if name == "mesh.colors":
-        if scene.mesh.colors is None:
-            raise ParamError("mesh.colors: the mesh has no vertex colours to fit (load a mesh with colours, or give "
-                             "Mesh(colors=...) a start)")
-        if shared:
-            raise ParamError("mesh.colors has no shared form")
-        return Param(name, ("mesh", "colors"), 3 * int(scene.mesh.colors.shape[0]), "unit")
-    if parts[0] == "camera":
-        if len(parts) != 2 or parts[1] not in _CAMERA:
-            raise ParamError(f"unknown parameter {name!r}: a camera has {', '.join(_CAMERA)}")
-        if parts[1] in ("rvec", "tvec") and not isinstance(scene.camera, ds.OpenCVCamera):
-            raise ParamError(f"{name}: only an OpenCV camera (model = \"opencv\") has a pose vector")
-        rgb = parts[1] == "white_balance" and not shared
-        if parts[1] in ("rvec", "tvec") and shared:
-            raise ParamError(f"{name}: a pose vector has no shared form")
-        return Param(name, tuple(parts), 3 if rgb or parts[1] in ("rvec", "tvec") else 1, _CAMERA[parts[1]])
-    m = _LOBE_RE.match(name)
-    if m:
-        i, j, field = int(m.group(1)), int(m.group(2)), m.group(3)
-        lights = scene.multi_lobe
-        if field not in _LOBE:
-            raise ParamError(f"unknown parameter {name!r}: a lobe has the fields {sorted(_LOBE)}")
-        if i >= lights.count:
-            raise ParamError(f"unknown parameter {name!r}: the scene has {lights.count} multi-lobe light(s)")
-        if j >= lights.lobes:
-            raise ParamError(f"unknown parameter {name!r}: multi-lobe light {i} has {lights.lobes} lobe slot(s)")
-        size = 3 if field in _RGB and not shared else 1
-        return Param(name, ("multi_lobe", i, j, field), size, _LIGHT[field])
-    m = _MULTI_RE.match(name)
-    if m:
-        i, field = int(m.group(1)), m.group(2)
-        if field not in ("a0", "a1", "a2", "position"):
-            raise ParamError(f"unknown parameter {name!r}: a multi-lobe light has position, a0, a1, a2; its lobes have "
-                             f"multi_lobe[{i}].lobe[j].<{'|'.join(sorted(_LOBE))}>")
-        if i >= scene.multi_lobe.count:
-            raise ParamError(f"unknown parameter {name!r}: the scene has {scene.multi_lobe.count} multi-lobe light(s)")
-        return Param(name, ("multi_lobe", i, field), 3 if field == "position" else 1, _LIGHT[field])
-    m = _LIGHT_RE.match(name)
-    if m:
-        kind, i, field = m.group(1), int(m.group(2)), m.group(3)
-        count = getattr(scene, kind).count
-        direction = (kind, field) in (("directional", "direction"), ("spot", "axis"))
-        if not direction and (field not in _LIGHT or (kind != "spot" and field in ("cutoff", "exponent", "edge"))
-                              or (kind == "directional" and (field[0] == "a" and field != "ambient"
-                                                             or field == "position"))
-                              or (kind != "area" and field in _SIZE)):
-            raise ParamError(f"unknown parameter {name!r}: a {kind} light has no field {field!r}")
-        if i >= count:
-            raise ParamError(f"unknown parameter {name!r}: the scene has {count} {kind} light(s)")
-        if field == "specular" and getattr(getattr(scene, kind), "specular", None) is None:
-            raise ParamError(f"{name}: the scene's {kind} lights have no separate specular colour (their colour sets "
-                             "both); give one with `specular = [r, g, b]` in the scene file")
-        size = 3 if (field in _RGB and not shared) or field == "position" else 1
-        if field in ("position", "direction", "axis") and shared:
-            raise ParamError(f"{name}: a {field} has no shared form")
-        if direction:
-            d0 = np.asarray(getattr(getattr(scene, kind), field)[i], np.float64)
-            return Param(name, (kind, i, field), 2, "real", frame=direction_frame(d0))
-        return Param(name, (kind, i, field), size, _LIGHT[field])
-    m = _MATERIAL_RE.match(name)
-    if m:
-        i, field = int(m.group(1)), m.group(2)
-        count = len(scene.all_materials())
-        if field not in _MATERIAL:
-            raise ParamError(f"unknown parameter {name!r}: a material has no field {field!r}")
-        if i >= count:
-            raise ParamError(f"unknown parameter {name!r}: the scene has {count} material(s)")
-        path = ("material", field) if i == 0 else ("materials", i - 1, field)
-        return Param(name, path, 3 if field in _RGB and not shared else 1, _MATERIAL[field])
+    if len(parts) != 2 or parts[1] not in _CAMERA:
+        raise ParamError(f"unknown parameter {name!r}: a camera has {', '.join(_CAMERA)}")
+    if parts[1] in ("rvec", "tvec") and not isinstance(scene.camera, ds.OpenCVCamera):
+        raise ParamError(f"{name}: only an OpenCV camera (model = \"opencv\") has a pose vector")
+    rgb = parts[1] == "white_balance" and not shared
+    if parts[1] in ("rvec", "tvec") and shared:
+        raise ParamError(f"{name}: a pose vector has no shared form")
+    return Param(name, tuple(parts), 3 if rgb or parts[1] in ("rvec", "tvec") else 1, _CAMERA[parts[1]])
+
+
+def _parse_lobe(name, scene, shared, m):
+    i, j, field = int(m.group(1)), int(m.group(2)), m.group(3)
+    lights = scene.multi_lobe
+    if field not in _LOBE:
+        raise ParamError(f"unknown parameter {name!r}: a lobe has the fields {sorted(_LOBE)}")
+    if i >= lights.count:
+        raise ParamError(f"unknown parameter {name!r}: the scene has {lights.count} multi-lobe light(s)")
+    if j >= lights.lobes:
+        raise ParamError(f"unknown parameter {name!r}: multi-lobe light {i} has {lights.lobes} lobe slot(s)")
+    size = 3 if field in _RGB and not shared else 1
+    return Param(name, ("multi_lobe", i, j, field), size, _LIGHT[field])
+
+
+def _parse_multi(name, scene, shared, m):
+    i, field = int(m.group(1)), m.group(2)
+    if field not in ("a0", "a1", "a2", "position"):
+        raise ParamError(f"unknown parameter {name!r}: a multi-lobe light has position, a0, a1, a2; its lobes have "
+                         f"multi_lobe[{i}].lobe[j].<{'|'.join(sorted(_LOBE))}>")
+    if i >= scene.multi_lobe.count:
+        raise ParamError(f"unknown parameter {name!r}: the scene has {scene.multi_lobe.count} multi-lobe light(s)")
+    return Param(name, ("multi_lobe", i, field), 3 if field == "position" else 1, _LIGHT[field])
+
+
+def _parse_light(name, scene, shared, m):
+    kind, i, field = m.group(1), int(m.group(2)), m.group(3)
+    count = getattr(scene, kind).count
+    direction = (kind, field) in (("directional", "direction"), ("spot", "axis"))
+    if not direction and (field not in _LIGHT or (kind != "spot" and field in ("cutoff", "exponent", "edge"))
+                          or (kind == "directional" and (field[0] == "a" and field != "ambient"
+                                                         or field == "position"))
+                          or (kind != "area" and field in _SIZE)):
+        raise ParamError(f"unknown parameter {name!r}: a {kind} light has no field {field!r}")
+    if i >= count:
+        raise ParamError(f"unknown parameter {name!r}: the scene has {count} {kind} light(s)")
+    if field == "specular" and getattr(getattr(scene, kind), "specular", None) is None:
+        raise ParamError(f"{name}: the scene's {kind} lights have no separate specular colour (their colour sets "
+                         "both); give one with `specular = [r, g, b]` in the scene file")
+    size = 3 if (field in _RGB and not shared) or field == "position" else 1
+    if field in ("position", "direction", "axis") and shared:
+        raise ParamError(f"{name}: a {field} has no shared form")
+    if direction:
+        d0 = np.asarray(getattr(getattr(scene, kind), field)[i], np.float64)
+        return Param(name, (kind, i, field), 2, "real", frame=direction_frame(d0))
+    return Param(name, (kind, i, field), size, _LIGHT[field])
+
+
+def _parse_material_i(name, scene, shared, m):
+    i, field = int(m.group(1)), m.group(2)
+    count = len(scene.all_materials())
+    if field not in _MATERIAL:
+        raise ParamError(f"unknown parameter {name!r}: a material has no field {field!r}")
+    if i >= count:
+        raise ParamError(f"unknown parameter {name!r}: the scene has {count} material(s)")
+    path = ("material", field) if i == 0 else ("materials", i - 1, field)
+    return Param(name, path, 3 if field in _RGB and not shared else 1, _MATERIAL[field])
+
+
+def _parse_other(name, scene, shared):
+    """Materials by name, fog, the ambient light; else the list of every known name."""
     parts = name.split(".")
     if parts[0] in ("material", "back_material") and len(parts) == 2 and parts[1] in _MATERIAL:
         if parts[0] == "back_material" and scene.back_material is None:
@@ -327,6 +326,32 @@ def parse(name: str, scene: ds.Scene, shared: bool = False, n_views: int | None 
         "exponent|edge|width|height>, directional[i].direction, spot[i].axis, multi_lobe[i].<position|a0|a1|a2>, multi_lobe[i].lobe[j].<color|ambient|cutoff|exponent|edge>, "
         "fog.<color|start|end|density>, camera.<exposure|white_balance|rvec|tvec>, mesh.colors, view[i].<any of these>"
     )
+
+
+_PATTERNS = ((_LOBE_RE, _parse_lobe), (_MULTI_RE, _parse_multi), (_LIGHT_RE, _parse_light),
+             (_MATERIAL_RE, _parse_material_i))
+
+
+def parse(name: str, scene: ds.Scene, shared: bool = False, n_views: int | None = None) -> Param:
+    """The :class:`Param` called ``name`` in ``scene`` (raises :class:`ParamError`); ``n_views``
+    (when known) bounds a ``view[i].`` prefix."""
+    m = _VIEW_RE.match(name)
+    if m:
+        if m.group(1) == "*":
+            raise ParamError(f"{name}: view[*] is expanded by the parameter set (it needs the number of views)")
+        i = int(m.group(1))
+        if n_views is not None and i >= n_views:
+            raise ParamError(f"unknown parameter {name!r}: the fit has {n_views} view(s)")
+        return dataclasses.replace(parse(m.group(2), scene, shared), name=name, view=i)
+    if name == "mesh.colors":
+        return _parse_mesh_colors(name, scene, shared)
+    if name.split(".")[0] == "camera":
+        return _parse_camera(name, scene, shared)
+    for pattern, fn in _PATTERNS:
+        m = pattern.match(name)
+        if m:
+            return fn(name, scene, shared, m)
+    return _parse_other(name, scene, shared)
 
 
 def direction_frame(d0) -> tuple:

@@ -1,7 +1,7 @@
 """The polish: projected Levenberg–Marquardt on every free scalar, in natural units and float64,
 on the host, with the whole (censored) residual from the compiled program's evaluation.
 
-Variable projection (:mod:`fitting.program`) runs in the problem's float type on the reduced
+Variable projection (:mod:`fitting._varpro`) runs in the problem's float type on the reduced
 problem; the polish finishes on the full one (float32 normal equations cannot resolve the weakly
 determined directions it must still move: measured, noisy fits stopped short with |z| up to
 70), holds a scalar at a bound its step would carry across, and gives the Jacobian the report
@@ -10,9 +10,12 @@ uses.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
-from .report import float_floor
+from . import _options
+from ._report import candidate, float_floor
 
 
 def squared_scalars(prob) -> np.ndarray:
@@ -22,7 +25,7 @@ def squared_scalars(prob) -> np.ndarray:
     truth, 0.061 ± 0.005, had Δχ² = 33 less, and called the other parameters 26 s.e. off right);
     the polish steps their square, whose column does not vanish."""
     out = np.zeros(prob.pset.offsets[-1], bool)
-    if prob.opts.fog == "exp2":
+    if _options.fog(prob.opts) == "exp2":
         for p, off in zip(prob.pset.params, prob.pset.offsets[:-1]):
             if p.path == ("fog", "density"):
                 out[off:off + p.size] = True
@@ -55,7 +58,19 @@ def bounded_step(H, g, free, v, lo, hi, lam):
     return np.where(held, at, v + s), -(2.0 * float(g @ s) + float(s @ H @ s))
 
 
-def polish(ev, prob, red, theta, steps, rtol):
+class Polished(NamedTuple):
+    """The polish's end: ``(θ, r, J, img, fixed, evaluations, converged)``."""
+
+    theta: np.ndarray
+    r: np.ndarray
+    J: np.ndarray
+    img: np.ndarray
+    fixed: np.ndarray  # bool: scalars held on a bound
+    evaluations: int
+    converged: bool
+
+
+def polish(ev, prob, red, theta, steps, rtol) -> Polished:
     """Projected Levenberg–Marquardt on all parameters in natural units with the full (censored)
     residual, in float64 on the program's evaluation ``ev``; the scalars of
     :func:`squared_scalars` by their square. Scalars on a bound whose gradient points outside stay there. Returns
@@ -132,4 +147,24 @@ def polish(ev, prob, red, theta, steps, rtol):
     # floor, a hair above 0, is on its bound 0)
     fixed = ((theta <= floor) & (g >= 0)) | (theta >= hi)
     fixed &= lin | np.isfinite(hi) | pos
-    return theta, r, J, img, fixed, n_ev, conv
+    return Polished(theta, r, J, img, fixed, n_ev, conv)
+
+
+RELINEARISE_PASSES = 2
+
+
+def relinearise(prob, ev, red, best, polish_steps, rtol, n2, noise):
+    """For encoded targets: residuals in code values, exactly at the model (IRLS passes of
+    :meth:`Problem.relinearise`, each followed by the polish from the current best). Returns
+    ``(best, evaluations, notes)``."""
+    if not prob.encoded:
+        return best, 0, []
+    steps = 0
+    for _ in range(RELINEARISE_PASSES):
+        prob.relinearise(best.img)
+        ev.refresh()
+        p = polish(ev, prob, red, best.theta, polish_steps, rtol)
+        steps += p.evaluations
+        best = candidate(prob, p, best.res if not p.converged else "", n2, noise)
+    return best, steps, [f"code values: weights and targets re-taken at the model {RELINEARISE_PASSES}× (Gauss–Newton "
+                         f"on the code-value residual); residual {best.ratio:.3g}× the noise"]

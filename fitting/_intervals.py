@@ -3,9 +3,7 @@ r"""Profile-likelihood intervals: where the χ² rises by :math:`k^2` with the o
 Gauss–Newton's standard error :math:`\sigma_i` gives the interval :math:`\hat\theta_i \pm k\sigma_i`
 only where the image is close to linear in the parameters over that range. A trade-off that
 bends breaks that: under flat shading a highlight is a few facets, and :math:`k_s` and :math:`m`
-trade off along a curve, not a line. Measured on such a fit (8-bit target, σ = 2/255): the
-profile's :math:`\Delta\chi^2` at :math:`\hat k_s + 3\sigma` was 2.0, not 9, and the truth lay
-4.9 standard errors away while its joint :math:`\Delta\chi^2` was ordinary.
+trade off along a curve, not a line. (design notes: docs/fit-design-notes.md, "Profile-likelihood intervals").
 
 The profile of scalar :math:`i` is :math:`\Delta\chi^2_i(v) = (\min_{\theta_{-i}} \|r(\theta)\|^2
 |_{\theta_i = v} - \|r(\hat\theta)\|^2)/s^2`; the level-:math:`k` interval is where it is below
@@ -155,7 +153,7 @@ def profile_intervals(ev, theta, r, J, s2, stderr, lo, hi, k: float = 3.0):
 
 
 # ------------------------------------------------------------------------------------------
-# Points known to lie within the level widen the intervals (fitting.basins)
+# Points known to lie within the level widen the intervals (fitting._basins)
 # ------------------------------------------------------------------------------------------
 
 

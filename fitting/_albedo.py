@@ -32,13 +32,17 @@ view, an attenuation seen at one distance only) shows as a near-singular
 from __future__ import annotations
 
 import time
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .problem import FitError, Problem
-from .report import FitResult, image_quality, noise_level, uncertainty, verdict
+from . import _options
+from ._problem import FitError, Problem
+from ._polish import RELINEARISE_PASSES
+from ._report import (Diagnostics, FitResult, ResidualStats, Run, image_quality, noise_level, uncertainty,
+                      verdict)
 
 
 def vertex_colouring(faces: np.ndarray, n_vertices: int) -> np.ndarray:
@@ -67,7 +71,7 @@ def _edges(faces: np.ndarray) -> np.ndarray:
 
 
 class AlbedoProblem:
-    """The albedo block of a :class:`fitting.problem.Problem`: the colouring, the compiled
+    """The albedo block of a :class:`fitting._problem.Problem`: the colouring, the compiled
     evaluation (image, compressed albedo tangents, other tangents) and the sparse assembly."""
 
     def __init__(self, prob: Problem, smoothness: float = 0.0):
@@ -77,11 +81,11 @@ class AlbedoProblem:
         self.prob = prob
         pset = prob.pset
         opts = prob.opts
-        if opts.vertex_color == "none":
+        if _options.vertex_color(opts) == "none":
             raise FitError("mesh.colors is free but render.vertex_color is 'none': the colours are not in the image")
-        if opts.clamp:
+        if _options.clamp(opts):
             raise FitError("mesh.colors with clamp = true: the image is not linear in the colours; fit without clamping")
-        if opts.layered:
+        if _options.layered(opts):
             raise FitError("mesh.colors with transparency layers is not supported")
         k = [i for i, p in enumerate(pset.params) if p.path == ("mesh", "colors")]
         if len(k) != 1 or pset.params[k[0]].view is not None:
@@ -171,58 +175,59 @@ class AlbedoProblem:
         return sp.csr_matrix((vals, (rows, cols)), shape=(3 * m, self.n_alb))
 
 
-def fit_albedo(prob: Problem, theta0, *, smoothness: float = 0.0, max_steps: int = 50, rtol: float = 1e-10,
-               noise=None, verbose: bool = False) -> FitResult:
-    """Fit the per-vertex albedo and the other free parameters of ``prob`` (see the module)."""
-    from scipy.sparse.linalg import factorized
+class _Reduced(NamedTuple):
+    """The reduced problem at one θ: the albedo solved, the residual and Kaufman's Jacobian."""
 
-    ap = AlbedoProblem(prob, smoothness)
-    sp = ap.sp
-    pset = prob.pset
-    theta = np.array(pset.theta_from_u(pset.u_from_theta(jnp.asarray(theta0))), np.float64)  # inside the domain
-    theta[ap.sl] = np.clip(np.asarray(theta0, np.float64)[ap.sl], 0.0, 1.0)
-    compile_s = ap._compile(theta)
-    t0 = time.perf_counter()
-    y = ap.target()
-    Lp = ap.prior() if smoothness > 0 else None
-    lo = np.concatenate([np.full(p.size, p.box[0]) for p in pset.params])[ap.other]
-    hi = np.concatenate([np.full(p.size, p.box[1]) for p in pset.params])[ap.other]
-    param_of = np.repeat(np.arange(len(pset.params)), pset.sizes)
-    pos = np.asarray([pset.params[param_of[i]].domain == "positive" for i in ap.other], bool)
-    notes = [f"albedo: {ap.nv} vertices in {ap.n_col} colour classes ({ap.n_col + len(ap.other)} tangents per "
-             f"evaluation), smoothness λ = {smoothness:g}"]
+    th: np.ndarray
+    r: np.ndarray
+    Jr: np.ndarray
+    cost: float
+    A: object  # sparse [M, n_alb]
+    seen: np.ndarray
+    free: np.ndarray
+    img: np.ndarray
 
-    def normal(A, idx):
+
+class _AlbedoSolver:
+    """Variable projection on the host in float64: the bounded sparse albedo solve at given
+    other parameters, and Levenberg–Marquardt on those."""
+
+    def __init__(self, ap: AlbedoProblem, smoothness, rtol, verbose):
+        pset = ap.prob.pset
+        self.ap, self.rtol, self.verbose = ap, rtol, verbose
+        self.y = ap.target()
+        self.Lp = ap.prior() if smoothness > 0 else None
+        self.lo = np.concatenate([np.full(p.size, p.box[0]) for p in pset.params])[ap.other]
+        self.hi = np.concatenate([np.full(p.size, p.box[1]) for p in pset.params])[ap.other]
+        param_of = np.repeat(np.arange(len(pset.params)), pset.sizes)
+        self.pos = np.asarray([pset.params[param_of[i]].domain == "positive" for i in ap.other], bool)
+
+    def normal(self, A, idx):
         """A sparse factorisation of ``A_I^T A_I + λ L_I^T L_I`` over the scalars ``idx``."""
+        from scipy.sparse.linalg import factorized
+
         Af = A[:, idx]
         G = Af.T @ Af
-        if Lp is not None:
-            Lf = Lp[:, idx]
+        if self.Lp is not None:
+            Lf = self.Lp[:, idx]
             G = G + Lf.T @ Lf
-        G = G + sp.identity(G.shape[0]) * (1e-13 * max(G.diagonal().max(), 1e-300))
+        G = G + self.ap.sp.identity(G.shape[0]) * (1e-13 * max(G.diagonal().max(), 1e-300))
         return factorized(G.tocsc())
 
-    def solve_x(theta, x0):
-        """The bounded optimum over the albedo (primal active set: Newton steps on the free set
-        by a sparse factorisation, variables that leave [0, 1] fixed on the bound they cross,
-        released when their multiplier says so), and the pieces the reduced problem needs."""
-        img, A, Jo, w = ap.evaluate(theta)
-        b = img * w - A @ theta[ap.sl]  # the (weighted) image with the albedo at 0
-        seen = np.asarray(abs(A).sum(axis=0)).ravel() > 0
-        det = seen | (Lp is not None)
-        x = np.clip(x0, 0.0, 1.0)
-        at_lo, at_hi = np.zeros(ap.n_alb, bool), np.zeros(ap.n_alb, bool)
+    def grad(self, x, A, b):
+        g = A.T @ (A @ x + b - self.y)
+        return g + (self.Lp.T @ (self.Lp @ x) if self.Lp is not None else 0.0)
 
-        def grad(x):
-            g = A.T @ (A @ x + b - y)
-            return g + (Lp.T @ (Lp @ x) if Lp is not None else 0.0)
-
+    def active_set(self, x, A, b, det):
+        """The primal active set over [0, 1]: Newton steps on the free set, variables that leave
+        the box fixed on the bound they cross, released when their multiplier says so."""
+        at_lo, at_hi = np.zeros(self.ap.n_alb, bool), np.zeros(self.ap.n_alb, bool)
         for _ in range(4 * 20):
             free = det & ~at_lo & ~at_hi
             idx = np.flatnonzero(free)
             if len(idx):
                 x_new = x.copy()
-                x_new[idx] = x[idx] - normal(A, idx)(grad(x)[idx])
+                x_new[idx] = x[idx] - self.normal(A, idx)(self.grad(x, A, b)[idx])
             else:
                 x_new = x
             out = free & ((x_new < 0) | (x_new > 1))
@@ -232,23 +237,32 @@ def fit_albedo(prob: Problem, theta0, *, smoothness: float = 0.0, max_steps: int
                 x = np.clip(x_new, 0.0, 1.0)
                 continue
             x = x_new
-            g = grad(x)
+            g = self.grad(x, A, b)
             release = (at_lo & (g < 0)) | (at_hi & (g > 0))
             if not release.any():
                 break
             at_lo &= ~release
             at_hi &= ~release
-        free = det & ~at_lo & ~at_hi
+        return x, det & ~at_lo & ~at_hi
+
+    def solve_x(self, theta, x0):
+        """The bounded optimum over the albedo, and the pieces the reduced problem needs."""
+        ap = self.ap
+        img, A, Jo, w = ap.evaluate(theta)
+        b = img * w - A @ theta[ap.sl]  # the (weighted) image with the albedo at 0
+        seen = np.asarray(abs(A).sum(axis=0)).ravel() > 0
+        x, free = self.active_set(np.clip(x0, 0.0, 1.0), A, b, seen | (self.Lp is not None))
         idx = np.flatnonzero(free)
-        solve = normal(A, idx) if len(idx) else None  # the factorisation of the final free set
+        solve = self.normal(A, idx) if len(idx) else None  # the factorisation of the final free set
         for _ in range(2):  # iterative refinement: the normal equations lose cond² digits
             if solve is not None:
-                x[idx] = np.clip(x[idx] - solve(grad(x)[idx]), 0.0, 1.0)
-        r = A @ x + b - y
+                x[idx] = np.clip(x[idx] - solve(self.grad(x, A, b)[idx]), 0.0, 1.0)
+        r = A @ x + b - self.y
         return x, r, A, Jo, seen, img, free, solve
 
-    def reduced(theta):
-        x, r, A, Jo, seen, img, free, solve = solve_x(theta, theta[ap.sl])
+    def reduced(self, theta) -> _Reduced:
+        ap, Lp = self.ap, self.Lp
+        x, r, A, Jo, seen, img, free, solve = self.solve_x(theta, theta[ap.sl])
         th = theta.copy()
         th[ap.sl] = x
         Af = A[:, free]
@@ -258,91 +272,73 @@ def fit_albedo(prob: Problem, theta0, *, smoothness: float = 0.0, max_steps: int
         else:
             Jr = Jo
         cost = float(r @ r) + (float(np.sum((Lp @ x) ** 2)) if Lp is not None else 0.0)
-        return th, r, Jr, cost, A, seen, free, img
+        return _Reduced(th, r, Jr, cost, A, seen, free, img)
 
-    def lm(theta, max_steps):
-        """Levenberg–Marquardt on the other parameters of the reduced problem."""
-        th, r, Jr, cost, A, seen, free, img = reduced(theta)
+    def lm_step(self, red: _Reduced, lam, act, H, g):
+        """A damped step from ``red`` that lowers the cost (damping raised until one does, at most
+        12 times): ``(reduced or None, λ)``."""
+        ap = self.ap
+        d = np.sqrt(np.maximum(np.diag(H), 1e-300))
+        Hs = (H / d[:, None] / d[None, :])[np.ix_(act, act)]
+        gs = (g / d)[act]
+        for _ in range(12):
+            step = np.zeros_like(g)
+            step[act] = -np.linalg.solve(Hs + lam * np.eye(int(act.sum())), gs) / d[act]
+            cand = red.th[ap.other] + step
+            cand = np.where(self.pos, np.maximum(cand, np.maximum(red.th[ap.other] * 1e-3, 1e-12)), cand)
+            cand = np.clip(cand, self.lo, self.hi)
+            t2 = red.th.copy()
+            t2[ap.other] = cand
+            res = self.reduced(t2)
+            if res.cost < red.cost:
+                return res, max(lam / 3, 1e-9)
+            lam *= 4
+        return None, lam
+
+    def lm(self, theta, max_steps):
+        """Levenberg–Marquardt on the other parameters of the reduced problem: ``(reduced, steps,
+        converged)``. A scalar on its bound (a positive one at its floor) whose gradient points out
+        stays there: the step and the convergence test are over the others (a projected LM)."""
+        ap = self.ap
+        red = self.reduced(theta)
         lam, steps, converged = 1e-3, 0, len(ap.other) == 0
-        n_res = max(int(np.count_nonzero(y)) - ap.n_alb - len(ap.other), 1)
+        n_res = max(int(np.count_nonzero(self.y)) - ap.n_alb - len(ap.other), 1)
         while not converged and steps < max_steps:
             steps += 1
-            H, g = Jr.T @ Jr, Jr.T @ r
-            # a scalar on its bound (a positive one at its floor) whose gradient points out stays
-            # there: the step and the convergence test are over the others (a projected LM)
-            x_o = th[ap.other]
-            low = np.where(pos, np.maximum(x_o * 0 + 1e-12, 0.0), lo)
-            act = ~(((x_o <= low * (1 + 1e-9) + 1e-15) & (g > 0)) | ((x_o >= hi) & (g < 0)))
+            H, g = red.Jr.T @ red.Jr, red.Jr.T @ red.r
+            x_o = red.th[ap.other]
+            low = np.where(self.pos, np.maximum(x_o * 0 + 1e-12, 0.0), self.lo)
+            act = ~(((x_o <= low * (1 + 1e-9) + 1e-15) & (g > 0)) | ((x_o >= self.hi) & (g < 0)))
             d = np.sqrt(np.maximum(np.diag(H), 1e-300))
-            Hs = (H / d[:, None] / d[None, :])[np.ix_(act, act)]
-            gs = (g / d)[act]
             gn = np.zeros_like(g)
-            gn[act] = -np.linalg.lstsq(Hs, gs, rcond=1e-12)[0] / d[act]
+            gn[act] = -np.linalg.lstsq((H / d[:, None] / d[None, :])[np.ix_(act, act)], (g / d)[act],
+                                       rcond=1e-12)[0] / d[act]
             # Gauss–Newton's predicted gain below a hundredth of the residual variance: converged
-            if -(g @ gn) < max(1e-2 * cost / n_res, rtol * cost):
+            if -(g @ gn) < max(1e-2 * red.cost / n_res, self.rtol * red.cost):
                 converged = True
                 break
-            accepted = False
-            for _ in range(12):
-                step = np.zeros_like(g)
-                step[act] = -np.linalg.solve(Hs + lam * np.eye(int(act.sum())), gs) / d[act]
-                cand = th[ap.other] + step
-                cand = np.where(pos, np.maximum(cand, np.maximum(th[ap.other] * 1e-3, 1e-12)), cand)
-                cand = np.clip(cand, lo, hi)
-                t2 = th.copy()
-                t2[ap.other] = cand
-                res = reduced(t2)
-                if res[3] < cost:
-                    th, r, Jr, cost, A, seen, free, img = res
-                    lam = max(lam / 3, 1e-9)
-                    accepted = True
-                    break
-                lam *= 4
-            if verbose:
-                print(f"albedo LM step {steps}: cost {cost:.6e}, λ {lam:.1e}")
-            if not accepted:
+            new, lam = self.lm_step(red, lam, act, H, g)
+            red = new if new is not None else red
+            if self.verbose:
+                print(f"albedo LM step {steps}: cost {red.cost:.6e}, λ {lam:.1e}")
+            if new is None:
                 converged = True  # no step lowers the cost: at the optimum to float precision
                 break
-        return th, r, Jr, cost, A, seen, free, img, steps, converged
+        return red, steps, converged
 
-    th, r, Jr, cost, A, seen, free, img, steps, converged = lm(theta, max_steps)
-    if prob.encoded:  # residuals in code values, exactly at the model (see Problem.relinearise)
-        from .solve import RELINEARISE_PASSES
 
-        for _ in range(RELINEARISE_PASSES):
-            prob.relinearise(img)
-            y = ap.target()
-            th, r, Jr, cost, A, seen, free, img, k, converged = lm(th, max_steps)
-            steps += k
-        notes.append(f"code values: weights and targets re-taken at the model {RELINEARISE_PASSES}× (Gauss–Newton "
-                     "on the code-value residual)")
-    solve_s = time.perf_counter() - t0
+def _albedo_stderr(ap: AlbedoProblem, solver: _AlbedoSolver, red: _Reduced, s2_eff) -> np.ndarray:
+    r"""The albedo's standard errors: the marginal covariance of the full problem
+    :math:`[x; \theta_o]` through its Schur complement, :math:`\mathrm{cov}_x = M^{-1} + Z S^{-1}
+    Z^T`, :math:`M = A^TA (+ \lambda L^TL)` over the determined scalars, :math:`Z = M^{-1}A^TJ_o`,
+    :math:`S = J_o^TJ_o - J_o^TA Z` (the other parameters' information with the albedo projected
+    out); :math:`\mathrm{diag}(M^{-1})` per channel (M is block diagonal by channel), dense up to
+    4000 vertices, the diagonal approximation beyond."""
+    from scipy.sparse.linalg import factorized
 
-    # -- the report ------------------------------------------------------------------------------
-    labels = pset.labels
-    n2, n_cens = prob.counts()
-    res_imgs = prob.residual_images(r)
-    sigma, source = noise_level(prob, res_imgs, noise)
-    p_eff = int(free.sum()) + len(ap.other)
-    s2 = float(r @ r) / max(n2 - p_eff, 1)
-    ratio = float(np.sqrt(s2) / max(sigma, 1e-300))
-    successful, msg = verdict(converged, "" if converged else f"no convergence in {max_steps} steps", ratio, sigma,
-                              source, n2)
-    stderr = np.full(len(th), np.inf)
-    gauges, undetermined = [], []
-    if len(ap.other):
-        o_labels = [labels[i] for i in ap.other]
-        se_o, und_o, gauges, _ = uncertainty(Jr, r, n2, o_labels, sigma)
-        stderr[ap.other] = se_o
-        undetermined += und_o
-    s2_eff = max(s2, sigma**2)
-    # albedo: the marginal covariance of the full problem [x; θ_o] through its Schur complement:
-    # cov_x = M⁻¹ + Z S⁻¹ Zᵀ, M = AᵀA (+ λLᵀL) over the determined scalars, Z = M⁻¹AᵀJ_o,
-    # S = J_oᵀJ_o − J_oᵀA Z (the other parameters' information with the albedo projected out);
-    # diag(M⁻¹) per channel (M is block diagonal by channel), dense up to 4000 vertices
-    Jo_fin = ap.evaluate(th)[2]  # at the final albedo (reduced() took the columns at the incoming one)
-    det = seen | (Lp is not None)
-    idx_det = np.flatnonzero(det)
+    A, Lp = red.A, solver.Lp
+    Jo_fin = ap.evaluate(red.th)[2]  # at the final albedo (reduced() took the columns at the incoming one)
+    idx_det = np.flatnonzero(red.seen | (Lp is not None))
     G = (A.T @ A)
     if Lp is not None:
         G = G + Lp.T @ Lp
@@ -365,27 +361,80 @@ def fit_albedo(prob: Problem, theta0, *, smoothness: float = 0.0, max_steps: int
         diag_inv = diag_inv + np.sum((Z @ np.linalg.pinv(S)) * Z, axis=1)
     se_alb = np.full(ap.n_alb, np.inf)
     se_alb[idx_det] = np.sqrt(np.clip(diag_inv, 0, None) * s2_eff)
-    stderr[ap.sl] = se_alb
-    unseen = np.flatnonzero(~seen.reshape(-1, 3).any(axis=1))
+    return se_alb
+
+
+def _unseen_notes(ap, red: _Reduced, prior: bool, steps) -> tuple[list[str], list[str]]:
+    """The vertices no covered pixel depends on, as undetermined labels and notes."""
+    notes, undetermined = [], []
+    unseen = np.flatnonzero(~red.seen.reshape(-1, 3).any(axis=1))
     if len(unseen):
-        if Lp is None:
-            undetermined += [f"mesh.colors[{v}]" for v in unseen]
-            notes.append(f"albedo: the images do not depend on {len(unseen)} of {ap.nv} vertices (seen by no view, "
-                         "or unlit where seen): kept at their start, undetermined")
+        what = (f"albedo: the images do not depend on {len(unseen)} of {ap.nv} vertices (seen by no view, "
+                "or unlit where seen): ")
+        if not prior:
+            undetermined = [f"mesh.colors[{v}]" for v in unseen]
+            notes.append(what + "kept at their start, undetermined")
         else:
-            notes.append(f"albedo: the images do not depend on {len(unseen)} of {ap.nv} vertices (seen by no view, "
-                         "or unlit where seen): their values come from the smoothness prior alone")
-    on_bound = int((~free & seen.reshape(-1)).sum()) if ap.n_alb else 0
-    notes.append(f"albedo: {int(seen.sum()) // 3} vertices seen; {on_bound} albedo scalars on a bound (0 or 1); "
+            notes.append(what + "their values come from the smoothness prior alone")
+    on_bound = int((~red.free & red.seen.reshape(-1)).sum()) if ap.n_alb else 0
+    notes.append(f"albedo: {int(red.seen.sum()) // 3} vertices seen; {on_bound} albedo scalars on a bound (0 or 1); "
                  f"{steps} LM steps on the {len(ap.other)} other scalar(s)")
-    psnr, ssim = image_quality(prob.full_images(img)[0], prob.targets[0])
+    return undetermined, notes
+
+
+def _albedo_result(ap, solver, red: _Reduced, theta0, converged, max_steps, noise, run: Run) -> FitResult:
+    """The report of an albedo fit: the verdict, the standard errors of both blocks, what the
+    images do not determine."""
+    prob, r = ap.prob, red.r
+    labels = prob.pset.labels
+    n2 = run.n_residuals
+    sigma, source = noise_level(prob, prob.residual_images(r), noise)
+    s2 = float(r @ r) / max(n2 - (int(red.free.sum()) + len(ap.other)), 1)
+    ratio = float(np.sqrt(s2) / max(sigma, 1e-300))
+    successful, msg = verdict(converged, "" if converged else f"no convergence in {max_steps} steps", ratio, sigma,
+                              source, n2)
+    stderr = np.full(len(red.th), np.inf)
+    gauges, undetermined = [], []
+    if len(ap.other):
+        se_o, undetermined, gauges, _ = uncertainty(red.Jr, r, n2, [labels[i] for i in ap.other], sigma)
+        stderr[ap.other] = se_o
+    stderr[ap.sl] = _albedo_stderr(ap, solver, red, max(s2, sigma ** 2))
+    unseen, notes = _unseen_notes(ap, red, solver.Lp is not None, run.steps)
+    psnr, ssim = image_quality(prob.full_images(red.img)[0], prob.targets[0])
     method = (f"variable projection with a sparse linear block: {ap.n_alb} per-vertex albedo scalars "
-              f"(bounded sparse least squares{', smoothness prior' if Lp is not None else ''}), "
+              f"(bounded sparse least squares{', smoothness prior' if solver.Lp is not None else ''}), "
               f"Levenberg–Marquardt on {len(ap.other)} other scalar(s)")
-    return FitResult(
-        names=labels, values=th, start=np.asarray(theta0, np.float64), stderr=stderr, result=msg,
-        successful=successful, steps=steps, compile_s=compile_s, solve_s=solve_s,
-        rms=float(np.sqrt(float(r @ r) / max(n2, 1))), psnr=psnr, ssim=ssim, rss=float(r @ r), n_residuals=n2,
-        undetermined=undetermined, gauges=gauges, notes=notes, method=method, noise=sigma, noise_source=source,
-        noise_ratio=ratio, converged=converged, stderr_meaningful=successful, on_bound=[], censored=n_cens,
-    )
+    residual = ResidualStats(rss=float(r @ r), rms=float(np.sqrt(float(r @ r) / max(n2, 1))), n=n2,
+                             censored=run.censored, noise=sigma, noise_source=source, noise_ratio=ratio, psnr=psnr,
+                             ssim=ssim)
+    return FitResult(names=labels, values=red.th, start=np.asarray(theta0, np.float64), stderr=stderr, result=msg,
+                     successful=successful, converged=converged, method=method, steps=run.steps,
+                     compile_s=run.compile_s, solve_s=run.solve_s, residual=residual,
+                     diagnostics=Diagnostics(undetermined + unseen, gauges), notes=list(run.notes) + notes)
+
+
+def fit_albedo(prob: Problem, theta0, *, smoothness: float = 0.0, max_steps: int = 50, rtol: float = 1e-10,
+               noise=None, verbose: bool = False) -> FitResult:
+    """Fit the per-vertex albedo and the other free parameters of ``prob`` (see the module)."""
+    ap = AlbedoProblem(prob, smoothness)
+    pset = prob.pset
+    theta = np.array(pset.theta_from_u(pset.u_from_theta(jnp.asarray(theta0))), np.float64)  # inside the domain
+    theta[ap.sl] = np.clip(np.asarray(theta0, np.float64)[ap.sl], 0.0, 1.0)
+    compile_s = ap._compile(theta)
+    t0 = time.perf_counter()
+    solver = _AlbedoSolver(ap, smoothness, rtol, verbose)
+    notes = [f"albedo: {ap.nv} vertices in {ap.n_col} colour classes ({ap.n_col + len(ap.other)} tangents per "
+             f"evaluation), smoothness λ = {smoothness:g}"]
+    red, steps, converged = solver.lm(theta, max_steps)
+    if prob.encoded:  # residuals in code values, exactly at the model (see Problem.relinearise)
+        for _ in range(RELINEARISE_PASSES):
+            prob.relinearise(red.img)
+            solver.y = ap.target()
+            red, k, converged = solver.lm(red.th, max_steps)
+            steps += k
+        notes.append(f"code values: weights and targets re-taken at the model {RELINEARISE_PASSES}× (Gauss–Newton "
+                     "on the code-value residual)")
+    solve_s = time.perf_counter() - t0
+    n2, n_cens = prob.counts()
+    run = Run(notes, [], steps, compile_s, solve_s, "", n2, n_cens)
+    return _albedo_result(ap, solver, red, theta0, converged, max_steps, noise, run)

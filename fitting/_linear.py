@@ -1,4 +1,5 @@
-r"""How a fit is solved: variable projection, a global start, Levenberg–Marquardt, a polish.
+r"""The linear block: which parameters the image is linear in, the bounded linear least squares
+that solves them, and the reduced problem of the others (variable projection).
 
 **Variable projection** (Golub & Pereyra 1973; Kaufman's Jacobian). The image is affine in the
 *linear* parameters :math:`x` (reflectances :math:`k_a, k_d, k_s, k_t`, emission, fog colour, and
@@ -10,19 +11,7 @@ tangent with ones in a field's three channels gives its three columns at once). 
 is then solved exactly under its bounds (:func:`bounded_lsq`; :math:`k \in [0, 1]`, colours
 :math:`\ge 0`), so it needs no start and reaches or leaves a bound exactly, and optimistix's
 Levenberg–Marquardt moves only :math:`\theta` on the reduced residual
-:math:`r(x^*(\theta), \theta)` with Kaufman's Jacobian :math:`P^\perp_{A_f} \partial_\theta r`
-(:math:`A_f` the columns of the variables not on a bound).
-
-**Global start.** With :math:`x` projected out, each evaluation of the reduced cost is one render
-with a few tangents. LM runs from the user's start first; if the verdict rejects its result
-(not converged, or a residual above the noise), a quasi-random (Halton) set of starts over each
-nonlinear parameter's plausible range (log scale for positive ones) is ranked by that cost over
-the whole image (the program's mode 2: :mod:`fitting.program`), and LM runs again from the best
-start outside the basins already explored.
-
-**Polish.** Censored (clipped) pixels make the image non-linear in :math:`x` (the VarPro stage
-leaves them out), so the last stage is a projected Gauss–Newton on all parameters in their natural
-units with the full, censored residual; it also produces the Jacobian for the standard errors.
+:math:`r(x^*(\theta), \theta)` with Kaufman's Jacobian :math:`P^\perp_{A_ full, censored residual; it also produces the Jacobian for the standard errors.
 
 With ``clamp`` on, nothing is linear: the same machinery runs with every parameter nonlinear
 (plain LM from the global start); the result says so.
@@ -30,19 +19,16 @@ With ``clamp`` on, nothing is linear: the same machinery runs with every paramet
 
 from __future__ import annotations
 
-import time
-from collections import OrderedDict
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from diffshade import keep
 
-from .params import Param
-from .problem import Problem, view_list
+from . import _options
+from ._problem import Problem, view_list
 
 _LINEAR_MATERIAL = {"emission", "ambient", "diffuse", "specular", "transmission"}
 # which material fields a light field multiplies (both free: the light's side is nonlinear)
@@ -67,7 +53,7 @@ def split_linear(pset, opts, scene=None) -> tuple[list[int], dict[str, str]]:
     linear, why = [], {}
     for i, p in enumerate(pset.params):
         kind, field = p.path[0], p.path[-1]
-        if opts.clamp:
+        if _options.clamp(opts):
             why[p.name] = "clamp = true: the image is not linear in any parameter"
             continue
         if kind in ("material", "materials", "back_material"):
@@ -310,199 +296,3 @@ class Reduced:
         x, _, A, r0 = self.solve_linear(theta, data)
         return jnp.sum((A @ x + r0) ** 2)
 
-
-# --------------------------------------------------------------------------------------------
-# Global start
-# --------------------------------------------------------------------------------------------
-
-_RANGES = {  # plausible ranges (natural units) searched on a log scale for positive parameters
-    "shininess": (1.0, 1000.0), "a0": (1e-3, 10.0), "a1": (1e-3, 10.0), "a2": (1e-3, 10.0),
-    "density": (1e-3, 3.0), "exponent": (0.1, 100.0), "absorption": (1e-3, 10.0), "kay_power": (0.1, 10.0),
-}
-
-
-def _halton(n: int, d: int, skip: int = 1) -> np.ndarray:
-    primes = [2, 3, 5, 7, 11, 13, 17, 19, 23, 29, 31, 37, 41, 43, 47, 53, 59, 61, 67, 71, 73, 79, 83, 89]
-    out = np.zeros((n, d))
-    for j in range(d):
-        b = primes[j % len(primes)]
-        for i in range(n):
-            k, f, x = i + skip, 1.0, 0.0
-            while k > 0:
-                f /= b
-                x += f * (k % b)
-                k //= b
-            out[i, j] = x
-    return out
-
-
-def search_ranges(red: Reduced, theta0) -> list[tuple[str, float, float]]:
-    """``(scale, lo, hi)`` per nonlinear scalar: ``log`` for positive parameters, else ``lin``
-    (a position: within half its distance from the origin, at least 0.5, of the start)."""
-    out = []
-    pset = red.prob.pset
-    for j in red.idx_n:
-        k = red.param_of[j]
-        p: Param = pset.params[k]
-        field, x0 = p.path[-1], float(theta0[j])
-        if p.frame is not None:  # a direction's tilt, degrees
-            out.append(("lin", x0 - 30.0, x0 + 30.0))
-        elif p.domain == "real":
-            r = max(0.5, 0.5 * float(np.linalg.norm(np.asarray(theta0)[pset.offsets[k]:pset.offsets[k + 1]])))
-            out.append(("lin", x0 - r, x0 + r))
-        elif p.bounds is None:
-            lo, hi = _RANGES.get(field, (x0 / 30.0, x0 * 30.0))
-            if field == "shininess" and red.prob.opts.specular == "blinn":
-                lo, hi = 4 * lo, 4 * hi
-            out.append(("log", lo, hi))
-        else:
-            lo, hi = p.bounds
-            m = 0.02 * (hi - lo)
-            out.append(("lin", lo + m, hi - m))
-    return out
-
-
-def inside(pset, theta) -> np.ndarray:
-    """``theta`` with every bounded scalar moved at least 1 % of its range inside its bounds and
-    every positive one above 1e-6: a start on a bound, where the logistic or log map has no
-    gradient, moves."""
-    th = np.asarray(theta, np.float64).copy()
-    for p, off in zip(pset.params, pset.offsets[:-1]):
-        sl = slice(off, off + p.size)
-        if p.domain == "real":
-            continue
-        if p.bounds is None:
-            th[sl] = np.maximum(th[sl], 1e-6)
-        else:
-            lo, hi = p.bounds
-            m = 0.01 * (hi - lo)
-            th[sl] = np.clip(th[sl], lo + m, hi - m)
-    return th
-
-
-def candidates(red: Reduced, theta0, count: int) -> np.ndarray:
-    """``[count, n_nonlinear]`` starts in ``u``: the user's (moved inside), then Halton points."""
-    pset = red.prob.pset
-    u_start = pset.u_from_theta_np(inside(pset, theta0))[red.idx_n]
-    if count <= 1 or not len(red.idx_n):
-        return u_start[None]
-    h = _halton(count - 1, len(red.idx_n))
-    th = np.empty_like(h)
-    for k, (scale, lo, hi) in enumerate(search_ranges(red, theta0)):
-        th[:, k] = np.exp(np.log(lo) + h[:, k] * np.log(hi / lo)) if scale == "log" else lo + h[:, k] * (hi - lo)
-    full = np.tile(inside(pset, theta0), (count - 1, 1))
-    full[:, red.idx_n] = th
-    u = pset.u_from_theta_np(full)[:, red.idx_n]
-    return np.concatenate([u_start[None], u])
-
-
-# --------------------------------------------------------------------------------------------
-# Levenberg–Marquardt with the history carried through the loop
-# --------------------------------------------------------------------------------------------
-
-
-SOLVERS = {"lm": optx.LevenbergMarquardt, "dogleg": optx.Dogleg, "gauss-newton": optx.GaussNewton}
-
-
-def lm_solve(fn, u0, args, *, rtol, atol, max_steps: int, history: bool, verbose: bool = False, solver: str = "lm"):
-    """optimistix's Levenberg–Marquardt (or Dogleg, Gauss–Newton: ``solver``) on
-    ``fn(u, args) -> (residual, aux)``, iterated here so
-    that each accepted step's loss, ``u`` and aux are carried out of the loop (``history``).
-
-    Returns ``(u, aux, result code, steps, hist, loss)`` (code 0 = successful); ``hist`` is ``(loss [S], u [S, n], aux [S, m],
-    count)`` with ``S = max_steps + 1``, or None."""
-    def show(**kw):
-        got = [kw[n] for n in ("num_steps", "loss_this_step", "step_size") if n in kw]
-        jax.debug.print("  " + ", ".join(f"{label.lower()} {{}}" for label, _ in got), *[v for _, v in got])
-
-    verbose_fn = show if verbose else False
-    solver = SOLVERS[solver](rtol=rtol, atol=atol, verbose=verbose_fn)
-    f_struct, aux_struct = jax.eval_shape(lambda: fn(u0, args))
-    tags = frozenset()
-    state = solver.init(fn, u0, args, {}, f_struct, aux_struct, tags)
-    dyn0, static = eqx.partition(state, eqx.is_array)
-    S = max_steps + 1
-    aux0 = jnp.zeros(aux_struct.shape, aux_struct.dtype)
-
-    def record(h, k, y, st):
-        if h is None:
-            return None
-        loss = 0.5 * jnp.sum(st.f_info.residual ** 2)
-        return (h[0].at[k].set(loss), h[1].at[k].set(y), h[2].at[k].set(st.aux), k + 1)
-
-    def cond(c):
-        y, k, dyn, aux, term, res, h = c
-        return ~term & (res == optx.RESULTS.successful) & (k < max_steps)
-
-    def body(c):
-        y, k, dyn, aux, _, _, h = c
-        st = eqx.combine(static, dyn)
-        y2, st2, aux2 = solver.step(fn, y, args, {}, st, tags)
-        term, res = solver.terminate(fn, y2, args, {}, st2, tags)
-        dyn2 = eqx.partition(st2, eqx.is_array)[0]
-        h = record(h, h[3], y2, st2) if h is not None else None
-        return (y2, k + 1, dyn2, aux2, term, res, h)
-
-    term0, res0 = solver.terminate(fn, u0, args, {}, state, tags)
-    h0 = None
-    if history:
-        h0 = (jnp.full((S,), jnp.nan, u0.dtype), jnp.zeros((S, u0.shape[0]), u0.dtype),
-              jnp.zeros((S,) + aux_struct.shape, aux_struct.dtype), jnp.array(0))
-    c = jax.lax.while_loop(cond, body, (u0, jnp.array(0), dyn0, aux0, term0, res0, h0))
-    y, k, dyn, aux, term, res, h = c
-    loss = 0.5 * jnp.sum(eqx.combine(static, dyn).f_info.residual ** 2)
-    res = optx.RESULTS.where((res == optx.RESULTS.successful) & ~term, optx.RESULTS.nonlinear_max_steps_reached, res)
-    return y, aux, res._value, k, h, loss
-
-
-def result_message(code) -> str:
-    """optimistix's message for a result code returned by :func:`lm_solve` ("" = successful)."""
-    return optx.RESULTS._index_to_message[int(code)]
-
-
-# --------------------------------------------------------------------------------------------
-# Compiled pieces, cached per problem structure
-# --------------------------------------------------------------------------------------------
-
-# Each compiled program keeps its machine code mapped (measured: ~800 memory mappings for a fit's
-# program), and Linux allows a process 65,530: unbounded, a session that fits ~80 structures died
-# in LLVM ("Cannot allocate memory"). So the cache keeps the most recently used few.
-CACHE_SIZE = 16
-_CACHE: OrderedDict = OrderedDict()
-_STATS = {"hits": 0, "misses": 0}
-
-
-def cache_info() -> dict:
-    """Hits, misses (compiles), current size and capacity of the compiled-program cache."""
-    return dict(_STATS, size=len(_CACHE), capacity=CACHE_SIZE)
-
-
-def _key(prob: Problem, what, *extra, args=()):
-    leaves, treedef = jax.tree.flatten(args)
-    pset = prob.pset
-    return (what, tuple(pset.labels), tuple(p.path for p in pset.params), tuple(pset.sizes), prob.opts, treedef,
-            tuple((x.shape, x.dtype, getattr(x, "sharding", None)) for x in leaves), *extra)
-
-
-def compiled(prob: Problem, what: str, fn, *args, extra=()):
-    """``jax.jit(fn).lower(*args).compile()``, cached on the problem's structure (the
-    :data:`CACHE_SIZE` most recently used); returns ``(compiled, compile_seconds)`` (0 when
-    cached)."""
-    key = _key(prob, what, *extra, args=args)
-    if key in _CACHE:
-        _STATS["hits"] += 1
-        _CACHE.move_to_end(key)
-        return _CACHE[key], 0.0
-    _STATS["misses"] += 1
-    t0 = time.perf_counter()
-    exe = jax.jit(fn).lower(*args).compile()
-    dt = time.perf_counter() - t0
-    _CACHE[key] = exe
-    while len(_CACHE) > CACHE_SIZE:
-        _CACHE.popitem(last=False)
-    if _VERBOSE_COMPILE:
-        print(f"compiled {what} in {dt:.2f} s")
-    return exe, dt
-
-
-_VERBOSE_COMPILE = False

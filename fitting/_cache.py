@@ -1,0 +1,70 @@
+"""Compiled programs, cached per problem structure (the :data:`CACHE_SIZE` most recently used),
+and JAX's persistent compilation cache.
+
+Each compiled program keeps its machine code mapped, and Linux allows a process a bounded number
+of memory mappings: unbounded, a session that fits many structures runs out (design notes:
+docs/fit-design-notes.md, "The compiled-program cache")."""
+
+from __future__ import annotations
+
+import os
+import time
+from collections import OrderedDict
+from typing import TYPE_CHECKING
+
+import jax
+
+if TYPE_CHECKING:
+    from ._problem import Problem
+
+CACHE_SIZE = 16
+_CACHE: OrderedDict = OrderedDict()
+_STATS = {"hits": 0, "misses": 0}
+
+
+def cache_info() -> dict:
+    """Hits, misses (compiles), current size and capacity of the compiled-program cache."""
+    return dict(_STATS, size=len(_CACHE), capacity=CACHE_SIZE)
+
+
+def _key(prob: Problem, what, *extra, args=()):
+    leaves, treedef = jax.tree.flatten(args)
+    pset = prob.pset
+    return (what, tuple(pset.labels), tuple(p.path for p in pset.params), tuple(pset.sizes), prob.opts, treedef,
+            tuple((x.shape, x.dtype, getattr(x, "sharding", None)) for x in leaves), *extra)
+
+
+def compiled(prob: Problem, what: str, fn, *args, extra=()):
+    """``jax.jit(fn).lower(*args).compile()``, cached on the problem's structure (the
+    :data:`CACHE_SIZE` most recently used); returns ``(compiled, compile_seconds)`` (0 when
+    cached)."""
+    key = _key(prob, what, *extra, args=args)
+    if key in _CACHE:
+        _STATS["hits"] += 1
+        _CACHE.move_to_end(key)
+        return _CACHE[key], 0.0
+    _STATS["misses"] += 1
+    t0 = time.perf_counter()
+    exe = jax.jit(fn).lower(*args).compile()
+    dt = time.perf_counter() - t0
+    _CACHE[key] = exe
+    while len(_CACHE) > CACHE_SIZE:
+        _CACHE.popitem(last=False)
+    if _VERBOSE_COMPILE:
+        print(f"compiled {what} in {dt:.2f} s")
+    return exe, dt
+
+
+_VERBOSE_COMPILE = False
+
+
+def enable_compilation_cache(path: str | None = None) -> str:
+    """Turn on JAX's persistent compilation cache (default ``~/.cache/diffshade/xla``, or
+    ``$DIFFSHADE_CACHE``): a second run of a fit of the same structure loads its programs
+    instead of compiling them."""
+    path = path or os.environ.get("DIFFSHADE_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "diffshade", "xla")
+    os.makedirs(path, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", path)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return path

@@ -1,0 +1,424 @@
+r"""What a fit reports: the verdict, standard errors, identifiability, image quality.
+
+**Verdict.** A fit is *successful* when the solver converged **and** the residual is what the
+noise explains. The noise level :math:`\sigma` is, in this order: the user's (``noise``); else
+the larger of the quantisation floor of an integer target (:math:`q/\sqrt{12}` for a code step
+:math:`q`), the float floor of a float target (:math:`30\,\varepsilon \max|y|`: the render's own rounding) and the *white*
+part of the residual, estimated from differences of neighbouring pixels,
+:math:`\hat\sigma_w^2 = \overline{(r_i - r_j)^2}/2` (pixel noise is independent from pixel to
+pixel; a model that misses — a wrong highlight, a wrong falloff — leaves a residual that is smooth
+over neighbours and adds to the variance, not to the differences). Noise spreads over every pixel,
+so this estimate is capped at twice its robust counterpart (from the median of the absolute
+differences; at least one code step of an integer target): a residual carried by a few pixels
+with jumps — refracted rays crossing a tile edge, a misplaced silhouette — is not taken for noise
+(:func:`white_noise`). With
+:math:`s^2 = \mathrm{RSS}/(n - p)` over the two-sided residuals, the fit is rejected when
+:math:`s/\sigma > 1 + 3\sqrt{2/n} + 0.01` (:func:`noise_ratio_limit`: three standard deviations
+of the ratio of two variance estimates; "converged, but the residual is 40× the noise"); its
+standard errors are then marked as not meaningful.
+
+**Standard errors** are Gauss–Newton's, :math:`\max(s^2, \sigma^2) (J^T J)^{-1}` in the natural
+parameters with the full (censored) residual at the solution (:math:`\sigma` the verdict's noise
+level: a noise-free float fit is as precise as the float floor, not as its rounding-level residual); a parameter whose column is zero is *undetermined*
+(s.e. inf) and a near-singular scaled Jacobian is reported as a gauge (its weakest combination).
+Where that weakest combination bends, they overstate the spread; the profile intervals
+(:mod:`fitting._intervals`) follow the curve (design notes: docs/fit-design-notes.md, "Standard errors where the model bends").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from jaxtyping import Float
+
+from ._intervals import INTERVAL_LEVEL, cover_alternative, cover_points, linear_reach, profile_intervals
+
+FLOAT_ROUNDING = 30  # the render's own rounding, in units of ε·max|y| (measured)
+FLOAT_FLOOR_SOURCE = "float rounding of the target"  # the noise source of a noise-free float target
+
+
+def float_floor(dtype, tmax: float) -> float:
+    """The noise level float rounding alone gives a render of peak value ``tmax``."""
+    return FLOAT_ROUNDING * float(np.finfo(dtype).eps) * max(float(tmax), 1e-30)
+
+
+def noise_ratio_limit(n: int) -> float:
+    r"""The largest ``s/σ`` a fit with ``n`` two-sided residuals may have: 1 + three standard
+    deviations of the ratio of two variance estimates (:math:`\approx 3\sqrt{2/n}`) + 1 %."""
+    return 1.0 + 3.0 * float(np.sqrt(2.0 / max(n, 1))) + 0.01
+
+
+@dataclass(frozen=True)
+class ResidualStats:
+    """The residual at the solution, and the noise the verdict compared it with."""
+
+    rss: float  # residual sum of squares
+    rms: float  # root-mean-square of the two-sided residuals
+    n: int  # two-sided residual entries with non-zero weight
+    censored: int  # censored residual entries (clipped target channels)
+    noise: float  # σ the verdict compared the residual with
+    noise_source: str  # where σ came from
+    noise_ratio: float  # s / σ
+    psnr: float  # of the first view
+    ssim: float
+
+
+@dataclass(frozen=True)
+class Diagnostics:
+    """What the images do not determine, or determine only barely."""
+
+    undetermined: list[str] = field(default_factory=list)  # labels the images do not determine
+    gauges: list[str] = field(default_factory=list)  # near-degenerate combinations, described
+    on_bound: list[str] = field(default_factory=list)  # labels fitted exactly on a bound
+    # labels a float32 fit of a noise-free float target resolves only to a relative standard error
+    # above 1e-4 at the float floor (the image's own rounding): their precision is that s.e.
+    float_limited: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class Intervals:
+    """Profile-likelihood intervals at Δχ² = ``level``² (:mod:`fitting._intervals`)."""
+
+    bounds: Float[np.ndarray, "p 2"]  # [p, 2] lower and upper end per scalar (NaN: none)
+    level: float = INTERVAL_LEVEL
+    seconds: float = 0.0  # what the intervals and the scan for other basins took (not in solve_s)
+    # labels whose intervals were widened to hold a second solution within Δχ² = level² of this
+    # one, or a point of the scan for other basins within it: the images cannot tell those values
+    # apart (``alternative``: the second solution's values, or the point's)
+    ambiguous: list[str] = field(default_factory=list)
+    alternative: Float[np.ndarray, " p"] | None = None
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """A fit's values, standard errors and verdict; the residual (:class:`ResidualStats`), what
+    the images do not determine (:class:`Diagnostics`) and the intervals (:class:`Intervals`,
+    None when not computed)."""
+
+    names: list[str]  # one label per scalar (RGB fields as name[r], name[g], name[b])
+    values: Float[np.ndarray, " p"]  # fitted θ
+    start: Float[np.ndarray, " p"]
+    stderr: Float[np.ndarray, " p"]  # Gauss–Newton standard errors (inf where not determined)
+    result: str  # "" = successful, else why not
+    successful: bool  # converged and explained by the noise (the standard errors are meaningful)
+    converged: bool  # the solver's own criterion
+    method: str  # which method ran, and why
+    steps: int
+    compile_s: float
+    solve_s: float
+    residual: ResidualStats
+    diagnostics: Diagnostics = field(default_factory=Diagnostics)
+    intervals: Intervals | None = None
+    notes: list[str] = field(default_factory=list)  # the strategy's steps: starts, restarts, polish
+    history: list = field(default_factory=list)  # (loss, θ) of every accepted step, with ``history=True``
+
+    def replace(self, **changes) -> FitResult:
+        return dataclasses.replace(self, **changes)
+
+    def within(self, values, k: float | None = None) -> np.ndarray:
+        """Whether each of ``values`` (the truth, in a test) lies within the reported uncertainty:
+        the profile-likelihood interval where there is one, else ±k standard errors (k defaults
+        to the interval's level)."""
+        level = self.intervals.level if self.intervals is not None else INTERVAL_LEVEL
+        k = level if k is None else k
+        v = np.asarray(values, np.float64)
+        wald = np.abs(v - self.values) <= k * self.stderr
+        if self.intervals is None or k != level:
+            return wald
+        iv = self.intervals.bounds
+        have = ~np.isnan(iv).any(axis=1)
+        prof = (v >= iv[:, 0]) & (v <= iv[:, 1])
+        return np.where(have, prof, wald)
+
+    def as_dict(self) -> dict:
+        """The result as JSON-ready values (the CLI's fit.json)."""
+        iv, res, diag = self.intervals, self.residual, self.diagnostics
+        return {
+            "parameters": {n: {"value": float(v), "stderr": float(e), "start": float(s),
+                               **({"interval": [float(iv.bounds[i, 0]), float(iv.bounds[i, 1])]}
+                                  if iv is not None else {})}
+                           for i, (n, v, e, s) in enumerate(zip(self.names, self.values, self.stderr, self.start))},
+            "interval_level": iv.level if iv is not None else INTERVAL_LEVEL,
+            "result": self.result or "successful", "successful": self.successful, "converged": self.converged,
+            "method": self.method, "steps": self.steps, "compile_s": self.compile_s, "solve_s": self.solve_s,
+            "rms": res.rms, "rss": res.rss, "n_residuals": res.n, "censored": res.censored,
+            "noise": res.noise, "noise_source": res.noise_source, "noise_ratio": res.noise_ratio,
+            "stderr_meaningful": self.successful, "on_bound": diag.on_bound, "psnr": res.psnr,
+            "ssim": res.ssim, "undetermined": diag.undetermined, "gauges": diag.gauges,
+            "float_limited": diag.float_limited, "ambiguous": iv.ambiguous if iv is not None else [],
+            **({"alternative": dict(zip(self.names, map(float, iv.alternative)))}
+               if iv is not None and iv.alternative is not None else {}),
+            "notes": self.notes,
+        }
+
+
+def white_noise(res_images, used_masks, quantum: float | None = None) -> tuple[float, int, float]:
+    """``(σ̂_w, pairs, σ̂_rms)``: the white part of the residual from horizontal and vertical
+    neighbour differences where both residuals are two-sided and weighted.
+
+    ``σ̂_rms`` is the root-mean-square estimate; ``σ̂_w`` is the same capped at twice its robust
+    (median-based) counterpart, and at no less than one code step ``quantum`` of an integer
+    target: pixel noise spreads over every pixel, so the two agree (Gaussian noise: ratio 1.0;
+    photon noise that varies with the signal, measured 1.2). A residual carried by a few pixels
+    with jumps — refracted rays that cross a tile edge, a misplaced silhouette — has a large RMS
+    and a small median, and is not noise."""
+    diffs = []
+    for r, m in zip(res_images, used_masks):
+        for ax in (0, 1):
+            a = np.take(r, range(1, r.shape[ax]), axis=ax) - np.take(r, range(r.shape[ax] - 1), axis=ax)
+            ok = np.take(m, range(1, m.shape[ax]), axis=ax) & np.take(m, range(m.shape[ax] - 1), axis=ax)
+            diffs.append(np.asarray(a[ok], np.float64).reshape(-1))
+    d = np.concatenate(diffs) if diffs else np.zeros(0)
+    n = len(d)
+    if not n:
+        return 0.0, 0, 0.0
+    rms = float(np.sqrt(np.mean(d * d) / 2))
+    robust = 1.4826 * float(np.median(np.abs(d))) / np.sqrt(2.0)  # MAD of a zero-median difference
+    return min(rms, max(WHITE_SPREAD * robust, quantum or 0.0)), n, rms
+
+
+WHITE_SPREAD = 2.0  # the largest RMS / robust ratio of the residual's differences taken for noise
+
+
+def noise_level(prob, res_images, noise=None) -> tuple[float, str]:
+    """σ for the verdict and a phrase saying where it came from."""
+    if noise is not None:
+        return float(noise), "given"
+    sw, _, rms = white_noise(res_images, prob.used_masks(), prob.quantum)
+    if sw < rms:
+        cands = [(sw, f"white part of the residual, robust estimate (the RMS estimate {rms:.3g} is "
+                      f"{rms / max(sw, 1e-300):.3g}× that: a few pixels with jumps, not noise)")]
+    else:
+        cands = [(sw, "white part of the residual")]
+    if prob.quantum:
+        cands.append((prob.quantum / np.sqrt(12.0), f"quantisation of {round(1 / prob.quantum) + 1}-level codes"))
+    else:
+        tmax = max(float(np.max(np.abs(np.asarray(vd.target)))) for vd in prob.data)
+        cands.append((float_floor(prob.dtype, tmax), FLOAT_FLOOR_SOURCE))
+    return max(cands, key=lambda c: c[0])
+
+
+def verdict(converged: bool, solver_msg: str, ratio: float, sigma: float, source: str, n: int) -> tuple[bool, str]:
+    limit = noise_ratio_limit(n)
+    if not converged:
+        msg = solver_msg or "did not converge"
+        if ratio > limit:
+            msg += f"; the residual is {ratio:.3g}× the noise (σ = {sigma:.3g}, {source})"
+        return False, msg
+    if ratio > limit:
+        return False, (f"converged, but the residual is {ratio:.3g}× the noise (σ = {sigma:.3g}, {source}): "
+                       "a local minimum or a model that cannot explain the image")
+    return True, ""
+
+
+def uncertainty(J, r, n_two_sided, labels, sigma: float = 0.0):
+    r"""Standard errors, undetermined labels and gauge descriptions from the Jacobian ``J`` (natural
+    parameters) and residual ``r`` at the solution. Scalars fitted on a bound are kept in the
+    covariance, and the variance is no less than ``sigma``², the noise level the verdict used
+    (:math:`s^2 = \max(\mathrm{RSS}/(n - p), \sigma^2)`; design notes: docs/fit-design-notes.md, "Standard errors: bounds and the float floor")."""
+    n, p = J.shape
+    s2 = max(float(r @ r) / max(n_two_sided - p, 1), float(sigma) ** 2)
+    col = np.linalg.norm(J, axis=0)
+    undetermined_mask = col <= 1e-10 * max(col.max(), 1e-300)
+    stderr = np.full(p, np.inf)
+    gauges = []
+    keep = ~undetermined_mask
+    if keep.any():
+        Js = J[:, keep] / col[keep]
+        _, sv, vt = np.linalg.svd(Js, full_matrices=False)
+        cond = sv[0] / max(sv[-1], 1e-300)
+        if cond > 1e6:
+            v = vt[-1]
+            lab = [labels[i] for i in np.flatnonzero(keep)]
+            big = np.argsort(-np.abs(v))[:4]
+            gauges.append("condition number %.1e; weakest combination: %s" % (
+                cond, " ".join(f"{v[i]:+.2f}·{lab[i]}" for i in big if abs(v[i]) > 0.1)))
+        cov = np.linalg.pinv(Js.T @ Js) * s2
+        stderr[keep] = np.sqrt(np.clip(np.diag(cov), 0, None)) / col[keep]
+    undetermined = [labels[i] for i in np.flatnonzero(undetermined_mask)]
+    return stderr, undetermined, gauges, s2
+
+
+def image_quality(fitted, target) -> tuple[float, float]:
+    """PSNR and SSIM of the first view (scikit-image)."""
+    from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+    fitted = np.asarray(fitted, np.float64)
+    tgt = np.asarray(target, np.float64)
+    rng = max(float(tgt.max() - tgt.min()), 1e-12)
+    mse = float(np.mean((fitted - tgt) ** 2))
+    psnr = float("inf") if mse == 0 else float(peak_signal_noise_ratio(tgt, fitted, data_range=rng))
+    ssim = float(structural_similarity(tgt, fitted, channel_axis=-1, data_range=rng))
+    return psnr, ssim
+
+
+# ------------------------------------------------------------------------------------------
+# A solution, which of two to keep, and the result
+# ------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A polished solution with its noise level and residual-to-noise ratio."""
+
+    theta: np.ndarray  # natural θ
+    r: np.ndarray  # the weighted, censored residual
+    J: np.ndarray  # its Jacobian in θ
+    img: np.ndarray  # the model at the compacted pixels, flat
+    fixed: np.ndarray  # bool: scalars held on a bound
+    res: object  # why the solver stopped short ("" or an optimistix result code; falsy: it did not)
+    converged: bool
+    ratio: float  # s / σ
+    sigma: float
+    source: str  # where σ came from
+    rss: float
+    polish: int  # evaluations of the polish
+
+    def accepted(self, n2: int) -> bool:
+        """What the verdict accepts: converged, and a residual the noise explains."""
+        return self.converged and self.ratio <= noise_ratio_limit(n2)
+
+
+@dataclass(frozen=True)
+class Alternative:
+    """A second solution within the intervals' level (:mod:`fitting._basins`)."""
+
+    cand: Candidate
+    dchi2: float  # its Δχ² against the fit's
+    start: str  # where the scan started it, in words
+
+
+def candidate(prob, p, res, n2, noise) -> Candidate:
+    """The polished result ``p`` (:class:`fitting._polish.Polished`) with its noise level and
+    residual-to-noise ratio; ``res``: why the solver stopped short (falsy: it did not)."""
+    theta, r, J, img, fixed, p_steps, converged = p
+    sigma, source = noise_level(prob, prob.residual_images(r), noise)
+    s2 = float(r @ r) / max(n2 - len(theta), 1)
+    return Candidate(theta=theta, r=r, J=J, img=img, fixed=fixed, res=res, converged=bool(converged),
+                     ratio=float(np.sqrt(s2) / max(sigma, 1e-300)), sigma=sigma, source=source, rss=float(r @ r),
+                     polish=p_steps)
+
+
+def better(cand: Candidate, best: Candidate | None, n2) -> bool:
+    """Whether ``cand`` replaces ``best``: a lower residual, or one the verdict accepts (converged,
+    explained by the noise) against one it does not whose residual is lower by less than one
+    unit of χ² (no evidence that its extra descent means anything) or is, like its own, below the
+    float floor of a noise-free target (rounding; design notes: docs/fit-design-notes.md,
+    "Which of two solutions")."""
+    if best is None:
+        return True
+    if cand.accepted(n2) and not best.accepted(n2):
+        rounding = best.source == FLOAT_FLOOR_SOURCE and best.ratio <= 1.0
+        return rounding or cand.rss <= best.rss * (1.0 + 1.0 / max(n2 - len(best.theta), 1))
+    return cand.rss < best.rss
+
+
+FLOAT32_NOTE = 1e-4  # relative s.e. at the float floor above which a float32 fit says float32 limits it
+
+
+@dataclass(frozen=True)
+class Run:
+    """What the strategy did: its notes and path, its effort, and the solver's message."""
+
+    notes: list[str]
+    history: list
+    steps: int
+    compile_s: float
+    solve_s: float
+    message: str  # why the solver stopped short ("" if it converged)
+    n_residuals: int  # two-sided residual entries
+    censored: int
+
+
+@dataclass(frozen=True)
+class Basins:
+    """What the scan for other basins found (:mod:`fitting._basins`)."""
+
+    alternative: Alternative | None = None
+    points: list = field(default_factory=list)  # (Δχ², θ) of grid points within the level
+    seconds: float = 0.0
+
+
+def _float_limited(prob, best: Candidate, stderr, successful, labels) -> tuple[list[str], list[str]]:
+    """The scalars whose precision float32 limits on a noise-free float target, and the note."""
+    if not (successful and best.source == FLOAT_FLOOR_SOURCE and np.dtype(prob.dtype) == np.float32):
+        return [], []
+    rel = stderr / np.maximum(np.abs(best.theta), 1e-300)
+    coarse = np.flatnonzero(np.isfinite(rel) & (rel > FLOAT32_NOTE))
+    if not len(coarse):
+        return [], []
+    listed = ", ".join(f"{labels[i]} ({rel[i]:.1e})" for i in coarse)
+    return [labels[i] for i in coarse], [
+        f"float32 limits the relative precision of {listed} (the standard error at the float "
+        "floor); render in float64 (jax_enable_x64) to resolve them further"]
+
+
+def _intervals(ev, red, best: Candidate, s2, stderr, labels, basins: Basins, n2, bounds):
+    """The profile-likelihood intervals widened to the other basins' alternative and points;
+    returns ``(Intervals, notes)``."""
+    theta, r, J = best.theta, best.r, best.J
+    floor, hi = bounds
+    notes, ambiguous, alt_theta = [], [], None
+    t0 = time.perf_counter()
+    interval, n_ev = profile_intervals(ev, theta, r, J, s2, stderr, floor, hi, k=INTERVAL_LEVEL)
+    wide = [labels[i] for i in range(len(theta)) if np.isfinite(stderr[i])
+            and max(theta[i] - interval[i, 0], interval[i, 1] - theta[i]) > 1.2 * INTERVAL_LEVEL * stderr[i]]
+    alt = basins.alternative
+    if alt is not None:
+        se2 = uncertainty(alt.cand.J, alt.cand.r, n2, labels, alt.cand.sigma)[0]
+        interval, ambiguous = cover_alternative(interval, alt.cand.theta, se2, floor, hi)
+        alt_theta = alt.cand.theta if ambiguous else None
+        notes.append(f"other basins: {alt.start}, a second solution explains the images as well "
+                     f"(Δχ² {alt.dchi2:+.3g}): the images cannot tell them apart in "
+                     + ", ".join(f"{labels[i]} ({theta[i]:.4g} or {alt.cand.theta[i]:.4g})" for i in ambiguous)
+                     + "; the intervals cover both")
+    points = list(basins.points)
+    far = [(d, th) for d, th in points if ((th < interval[:, 0]) | (th > interval[:, 1])).any()]
+    interval, grown, best_point = cover_points(interval, points + linear_reach(ev, red, far, interval, r, s2, floor, hi))
+    if grown:
+        ambiguous = sorted(set(ambiguous) | set(grown))
+        alt_theta = best_point if alt_theta is None else alt_theta
+        notes.append("other basins: the scan met points within Δχ² = "
+                     f"{INTERVAL_LEVEL ** 2:g} beyond the intervals (the linear block solved there, or moved from "
+                     "there), so the images do not tell these apart: " + ", ".join(
+                         f"{labels[i]} [{interval[i, 0]:.4g}, {interval[i, 1]:.4g}]" for i in grown) + " now cover them")
+    seconds = time.perf_counter() - t0 + basins.seconds
+    notes.append(f"profile-likelihood intervals (Δχ² = {INTERVAL_LEVEL ** 2:g}): {n_ev} evaluations, "
+                 f"{seconds:.3g} s" + (f"; wider than ±{INTERVAL_LEVEL:g} s.e. (the model bends there): "
+                                       f"{', '.join(wide)}" if wide else ""))
+    return Intervals(interval, INTERVAL_LEVEL, seconds, [labels[i] for i in ambiguous], alt_theta), notes
+
+
+def build_result(prob, red, best: Candidate, theta0, run: Run, ev=None, intervals: bool = True,
+                 basins: Basins = Basins()) -> FitResult:
+    """The :class:`FitResult` of the chosen solution ``best``: the verdict, standard errors,
+    identifiability and gauges, scalars on a bound, image quality, float32's limits, and with
+    ``intervals`` the profile-likelihood intervals (:mod:`fitting._intervals`) widened to what
+    the scan for other ``basins`` found (:mod:`fitting._basins`)."""
+    labels, theta, n2 = prob.pset.labels, best.theta, run.n_residuals
+    stderr, undetermined, gauges, s2 = uncertainty(best.J, best.r, n2, labels, best.sigma)
+    successful, msg = verdict(best.converged, run.message, best.ratio, best.sigma, best.source, n2)
+    _, floor, hi, _ = prob.bounds(theta)
+    on_bound = [f"{labels[i]} = {theta[i]:.6g} ({'upper' if theta[i] >= hi[i] else 'lower'} bound)"
+                for i in np.flatnonzero(best.fixed)]
+    psnr, ssim = image_quality(prob.full_images(best.img)[0], prob.targets[0])
+    float_limited, notes = _float_limited(prob, best, stderr, successful, labels)
+    notes = list(run.notes) + notes
+    found = None
+    if intervals and successful and ev is not None and best.source == FLOAT_FLOOR_SOURCE:
+        notes.append("no profile-likelihood intervals: the target is noise-free (σ is the float floor), so the "
+                     "standard errors are bounds from rounding, not from noise")
+    elif intervals and successful and ev is not None:
+        found, more = _intervals(ev, red, best, s2, stderr, labels, basins, n2, (floor, hi))
+        notes += more
+    residual = ResidualStats(rss=best.rss, rms=float(np.sqrt(best.rss / max(n2, 1))), n=n2, censored=run.censored,
+                             noise=best.sigma, noise_source=best.source, noise_ratio=best.ratio, psnr=psnr, ssim=ssim)
+    return FitResult(
+        names=labels, values=theta, start=np.asarray(theta0, np.float64), stderr=stderr, result=msg,
+        successful=successful, converged=best.converged, method=red.method, steps=run.steps,
+        compile_s=run.compile_s, solve_s=run.solve_s, residual=residual,
+        diagnostics=Diagnostics(undetermined, gauges, on_bound, float_limited), intervals=found, notes=notes,
+        history=run.history)

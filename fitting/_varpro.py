@@ -1,0 +1,382 @@
+r"""The solve as one compiled program with three modes: variable-projection LM, evaluation, and
+the ranking of the global start's candidates.
+
+Every evaluation is **one** forward-mode pass of the render at :math:`z = (x, u)` (linear
+scalars :math:`x` in natural units, nonlinear ones in the solver's unconstrained :math:`u`) along
+one tangent per linear field and one per nonlinear scalar. It gives the image, the columns of
+:math:`A` (exact: the image is affine in :math:`x`) and :math:`J_u` at the current :math:`x`.
+The render appears once in the program, inside its loop, and the loop is XLA's, not the host's
+(why, with the alternatives measured: design notes: docs/fit-design-notes.md, "The solve as one compiled program").
+
+The modes:
+
+- ``mode = 0`` runs **variable projection** from ``z0``: at each trial :math:`u` the
+  linear block is solved exactly under its bounds (:func:`fitting._linear.bounded_lsq`) and
+  Levenberg–Marquardt steps :math:`u` with Kaufman's Jacobian :math:`P^\perp_{A_f} J_u`
+  (:math:`J_u` taken at the previous :math:`x^*`, exact at convergence); the damping is
+  Marquardt's (scaled by :math:`\mathrm{diag}\,J^TJ`). It ends when even an undamped
+  Gauss–Newton step would lower the cost by less than a hundredth of the residual variance
+  (Δχ² = 0.01), or what float rounding of the residual explains.
+- ``mode = 1`` only **evaluates**: the image and its tangents at ``z0`` given in natural units
+  (:math:`\theta` for every scalar, so a bound is no singularity), which is everything the
+  float64 polish and the report need (:func:`fitting.fit`).
+- ``mode = 2`` **ranks** the rows of ``U`` (candidate ``u``, the linear values of ``z0``
+  as the warm start of each bounded solve): the reduced cost
+  :math:`\min_{lo \le x \le hi}\|Ax + r_0\|^2` of each, over every pixel.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from diffshade import keep
+
+from ._cache import compiled
+from ._linear import Reduced, _masked_solve, bounded_lsq
+from ._problem import ViewData, to_host
+from ._starts import candidates
+
+
+def _tangents(red: Reduced):
+    """``(E, E_lin)``: one tangent per linear field (ones over its scalars) and one per nonlinear
+    scalar, over ``z = (x, u)``; ``E_lin`` the linear ones alone."""
+    n_l, n_n, G = len(red.idx_l), len(red.idx_n), red.n_groups
+    E = np.zeros((G + n_n, n_l + n_n))
+    E[red.group, np.arange(n_l)] = 1.0
+    E[G + np.arange(n_n), n_l + np.arange(n_n)] = 1.0
+    return E, E[:G]
+
+
+def flat_data(data):
+    """Target, weight and censoring masks of every view's compacted pixels, flat ``[M]`` (``data``
+    a list of views or the views stacked: :meth:`fitting._problem.Problem.device_data`)."""
+    if isinstance(data, ViewData):
+        return (data.target.reshape(-1), jnp.broadcast_to(data.weight, data.target.shape).reshape(-1),
+                data.hi.reshape(-1), data.lo.reshape(-1))
+    t = jnp.concatenate([vd.target.reshape(-1) for vd in data])
+    w = jnp.concatenate([jnp.broadcast_to(vd.weight, vd.target.shape).reshape(-1) for vd in data])
+    hi = jnp.concatenate([vd.hi.reshape(-1) for vd in data])
+    lo = jnp.concatenate([vd.lo.reshape(-1) for vd in data])
+    return t, w, hi, lo
+
+
+def columns(red: Reduced, T, M, dt):
+    """``A`` ``[n_l, M]`` (unweighted) from the tangents (the first ``G`` rows: one per linear
+    field; an RGB field's scalar ``c`` shows in channel ``c`` only)."""
+    if not len(red.idx_l):
+        return jnp.zeros((0, M), dt)
+    rowchan = jnp.arange(M) % 3
+    colmask = jnp.asarray(red.chan, dt)[:, rowchan]
+    return T[:red.n_groups][red.group] * colmask
+
+
+def _damped_steps(H, g, lam, rcond):
+    r"""The undamped (Gauss–Newton, pseudo-inverse) and the Marquardt-damped step for ``H d = -g``
+    from one eigendecomposition of the Jacobi-scaled ``H`` (Marquardt's damping
+    :math:`\lambda\,\mathrm{diag} H` is :math:`\lambda I` there)."""
+    if H.shape[0] == 0:  # every parameter linear
+        return g, g
+    dg = jnp.diag(H)
+    ok = dg > 0
+    dsc = jnp.where(ok, 1.0 / jnp.sqrt(jnp.where(ok, dg, 1.0)), 0.0)
+    Ms = H * dsc[:, None] * dsc[None, :] + jnp.diag(jnp.where(ok, 0.0, 1.0))
+    w, V = jnp.linalg.eigh(Ms)
+    keep_ = w > rcond * jnp.max(w)
+    c = V.T @ (g * dsc)
+    gn = -(V @ (jnp.where(keep_, 1.0 / jnp.where(keep_, w, 1.0), 0.0) * c)) * dsc
+    wl = w + lam
+    dm = -(V @ (jnp.where(keep_, 1.0 / jnp.where(keep_, wl, 1.0), 0.0) * c)) * dsc
+    return gn, dm
+
+
+class ProgramOut(NamedTuple):
+    """What the compiled program returns (the history fields None without a history)."""
+
+    z: jax.Array  # the solution (x, u)
+    theta: jax.Array  # and in natural units
+    conv: jax.Array  # bool: the solve converged
+    k: jax.Array  # evaluations
+    img: jax.Array  # [M] the image at the last evaluation
+    T: jax.Array  # [tangents, M] its tangents
+    costs: jax.Array  # [C] mode 2: the reduced cost of every start
+    hz: jax.Array | None = None  # [S, p] θ of the accepted steps
+    hc: jax.Array | None = None  # [S] their costs
+    nh: jax.Array | None = None  # how many
+
+
+class _State(NamedTuple):
+    """The solve loop's carry."""
+
+    zt: jax.Array  # the trial point
+    zc: jax.Array  # the current (accepted) point
+    costs: jax.Array
+    cc: jax.Array  # the current cost
+    first: jax.Array
+    lam: jax.Array
+    H: jax.Array
+    g: jax.Array
+    k: jax.Array
+    done: jax.Array
+    conv: jax.Array
+    img: jax.Array
+    T: jax.Array
+    hz: jax.Array | None = None
+    hc: jax.Array | None = None
+    nh: jax.Array | None = None
+
+
+class _Program:
+    """The pieces of ``program`` for one reduced problem (static: index sets, tangents, history
+    capacity ``S``); the data, the tolerances and the starts come in traced at each call."""
+
+    def __init__(self, red: Reduced, history: int, verbose: bool):
+        self.red, self.prob, self.S, self.verbose = red, red.prob, history, verbose
+        self.E_all, _ = _tangents(red)
+        self.n_l, self.n_n = len(red.idx_l), len(red.idx_n)
+        self.p = self.n_l + self.n_n
+
+    def to_theta(self, zz, natural, theta_ref):
+        """θ from ``z``: the nonlinear part is ``u`` (``natural`` False) or already θ (True)."""
+        n_l, idx_n = self.n_l, self.red.idx_n
+        un = zz[n_l:]
+        th = self.red.theta(jnp.where(natural, 0.0, un), zz[:n_l], theta_ref)  # double where: exp(θ) may overflow
+        return th.at[idx_n].set(jnp.where(natural, un.astype(th.dtype), th[idx_n]))
+
+    def images(self, z, c):
+        """Flat image and its tangents, one per linear field and one per nonlinear scalar."""
+        def f(zz):
+            return self.prob.images(self.to_theta(zz, c.natural, c.theta_ref), c.data)
+        img, T = jax.vmap(lambda e: jax.jvp(f, (z,), (e,)), out_axes=(None, 0))(jnp.asarray(self.E_all, c.dt))
+        return keep(img, T)
+
+    def evaluate(self, z, c):
+        """The linear block solved at ``z``'s ``u``; the reduced cost, ``J^T J`` and ``J^T r`` of
+        Kaufman's Jacobian; and the raw image and tangents."""
+        n_l, red, dt = self.n_l, self.red, c.dt
+        img, T = self.images(z, c)
+        A = columns(red, T, c.M, dt)
+        Juw = T[red.n_groups:] * c.wu
+        d = (img - c.t) * c.wu
+        if n_l:
+            def project(_):
+                Aw = A * c.wu
+                r0 = d - Aw.T @ z[:n_l]
+                x_new, free = bounded_lsq(Aw.T, r0, c.lo_x, c.hi_x, z[:n_l])
+                r_red = r0 + Aw.T @ x_new
+                Af = Aw * free[:, None].astype(dt)
+                coef = _masked_solve(Af @ Af.T, Af @ Juw.T, free, c.rcond)  # [n_l, n_n]
+                return x_new, r_red, Juw - coef.T @ Af
+
+            # evaluation mode wants the image and tangents only
+            x_new, r_red, Jred = jax.lax.cond(c.natural, lambda _: (z[:n_l], d, Juw), project, None)
+        else:
+            x_new, r_red, Jred = z[:0], d, Juw
+        z_new = jnp.concatenate([x_new, z[n_l:]])
+        return z_new, r_red @ r_red, Jred @ Jred.T, Jred @ r_red, img, T
+
+    def start(self, k, c):
+        """Mode 2's k-th trial point: the given linear values with the k-th start's ``u``."""
+        return jnp.concatenate([c.z0[:self.n_l], c.U[jnp.minimum(k, c.C - 1)]])
+
+    def record(self, s: _State, z_new, c_new, ok, c):
+        """The accepted step's θ and cost into the history."""
+        i = s.nh
+        th_new = self.red.theta(z_new[self.n_l:], z_new[:self.n_l], c.theta_ref)
+        return s._replace(hz=s.hz.at[i].set(jnp.where(ok, th_new, s.hz[i])),
+                          hc=s.hc.at[i].set(jnp.where(ok, c_new, s.hc[i])),
+                          nh=jnp.minimum(i + (ok & ~c.rank), self.S - 1))
+
+    def body(self, s: _State, c) -> _State:
+        """One evaluation: accept or reject the trial point, then the next trial point."""
+        z_new, c_new, H, g, img, T = self.evaluate(s.zt, c)
+        ok = jnp.isfinite(c_new) & ((c_new <= s.cc) | s.first)
+        upd = lambda a, b: jnp.where(ok, a, b)  # noqa: E731
+        s = s._replace(img=img, T=T, first=jnp.asarray(False), k=s.k + 1)
+        # mode 2 ranks the starts: the reduced cost of each, then the next
+        i = jnp.minimum(s.k - 1, c.C - 1)
+        s = s._replace(costs=jnp.where(c.rank, s.costs.at[i].set(jnp.where(jnp.isfinite(c_new), c_new, jnp.inf)),
+                                       s.costs),
+                       zc=upd(z_new, s.zc), cc=upd(c_new, s.cc), H=upd(H, s.H), g=upd(g, s.g))
+        s = s._replace(lam=jnp.where(ok, jnp.maximum(s.lam * 0.1, 1e-9), s.lam * 10.0))
+        if self.verbose:
+            jax.debug.print("  variable projection: cost {}, accepted {}, lambda {}", c_new, ok, s.lam)
+        if self.S:
+            s = self.record(s, z_new, c_new, ok, c)
+        # converged: the undamped Gauss–Newton step would gain less than a hundredth of the residual
+        # variance plus what float rounding of the residual explains (ε², not the residual's own
+        # variance as in the float64 polish: design notes, docs/fit-design-notes.md), or move no
+        # nonlinear variable by more than rtol
+        gn, dm = _damped_steps(s.H, s.g, s.lam, c.rcond)
+        gain = -(s.g @ gn)
+        s2 = s.cc / jnp.maximum(c.n_res - self.p, 1)
+        conv = gain <= 1e-2 * s2 + 10.0 * self.p * c.float_var
+        conv = conv | (jnp.max(jnp.abs(gn), initial=0.0) <= c.rtol)
+        zc, n_l = s.zc, self.n_l
+        return s._replace(zt=jnp.where(c.rank, self.start(s.k, c), jnp.concatenate([zc[:n_l], zc[n_l:] + dm])),
+                          conv=conv,
+                          done=jnp.where(c.rank, s.k >= c.C,
+                                         c.natural | conv | (s.lam > 1e12) | (s.k >= c.max_steps)))
+
+    def init(self, c) -> _State:
+        dt, n_n = c.dt, self.n_n
+        z_first = jnp.where(c.rank, self.start(0, c), c.z0)
+        hist = {}
+        if self.S:
+            hist = dict(hz=jnp.zeros((self.S, len(c.theta_ref)), dt), hc=jnp.full((self.S,), jnp.nan, dt),
+                        nh=jnp.asarray(0))
+        return _State(zt=z_first, zc=z_first, costs=jnp.full((c.C,), jnp.inf, dt), cc=jnp.asarray(jnp.inf, dt),
+                      first=jnp.asarray(True), lam=jnp.asarray(1e-3, dt), H=jnp.zeros((n_n, n_n), dt),
+                      g=jnp.zeros(n_n, dt), k=jnp.asarray(0), done=jnp.asarray(False), conv=jnp.asarray(False),
+                      img=jnp.zeros(c.M, dt), T=jnp.zeros((self.E_all.shape[0], c.M), dt), **hist)
+
+    def __call__(self, z0, data, theta_ref, n_res, mode, max_steps, rtol, U) -> ProgramOut:
+        c = _Call.of(self.red, z0, data, theta_ref, n_res, mode, max_steps, rtol, U)
+        s = jax.lax.while_loop(lambda s: ~s.done, lambda s: self.body(s, c), self.init(c))
+        zc, n_l = s.zc, self.n_l
+        return ProgramOut(z=zc, theta=self.red.theta(zc[n_l:], zc[:n_l], theta_ref), conv=s.conv, k=s.k, img=s.img,
+                          T=s.T, costs=s.costs, hz=s.hz, hc=s.hc, nh=s.nh)
+
+
+class _Call(NamedTuple):
+    """One call's traced inputs and what follows from them."""
+
+    z0: jax.Array
+    data: object
+    theta_ref: jax.Array
+    n_res: jax.Array
+    max_steps: jax.Array
+    rtol: jax.Array
+    U: jax.Array
+    C: int
+    dt: object
+    rcond: float
+    lo_x: jax.Array
+    hi_x: jax.Array
+    t: jax.Array
+    wu: jax.Array
+    M: int
+    float_var: jax.Array  # rounding of one residual entry, squared
+    natural: jax.Array  # mode 1
+    rank: jax.Array  # mode 2
+
+    @classmethod
+    def of(cls, red, z0, data, theta_ref, n_res, mode, max_steps, rtol, U):
+        dt = theta_ref.dtype
+        eps = float(jnp.finfo(dt).eps)
+        t, w, hi, lo = flat_data(data)
+        U = U.astype(dt)
+        return cls(z0=z0.astype(dt), data=data, theta_ref=theta_ref, n_res=n_res, max_steps=max_steps, rtol=rtol, U=U,
+                   C=U.shape[0], dt=dt, rcond=1e2 * eps, lo_x=jnp.asarray(red.lo, dt), hi_x=jnp.asarray(red.hi, dt),
+                   t=t, wu=w * ~(hi | lo), M=t.shape[0], float_var=(eps * jnp.max(jnp.abs(t) * (w > 0))) ** 2,
+                   natural=mode == 1, rank=mode == 2)
+
+
+def make_program(red: Reduced, *, history: int = 0, verbose: bool = False):
+    """``program(z0, data, theta_ref, n_res, mode, max_steps, rtol, U) -> ProgramOut`` (see the
+    module docstring). ``mode`` 0: variable projection from ``z0 = (x, u)``; 1: evaluate at ``z0``
+    given in natural units and return ``img`` and the tangents ``T``; 2: the reduced cost of
+    every row of ``U`` (``[C, n_nonlinear]``) in ``costs``. The step limit and the
+    tolerance are data (changing them compiles nothing); ``history`` (static) is the capacity of
+    the recorded path, 0 for none."""
+    return _Program(red, history, verbose)
+
+
+def limits(max_steps, rtol, dtype):
+    """The solve program's step limit and tolerance, as the data they are."""
+    return jnp.asarray(max_steps, jnp.int32), jnp.asarray(rtol, dtype)
+
+
+def compiled_program(prob, red, U, theta_ref, history=0, verbose=False):
+    """The compiled program (:mod:`fitting._varpro`) for these shapes (``U``: the candidate
+    starts, ``[C, n_nonlinear]``) and the seconds its compile took (0 when cached).
+    ``history``: the capacity of the recorded path (0: none)."""
+    dtype = prob.dtype
+    n2, _ = prob.counts()
+    z = jnp.zeros(len(red.idx_l) + len(red.idx_n), dtype)
+    args = (z, prob.device_data(), theta_ref, jnp.asarray(n2, dtype), jnp.asarray(0), *limits(0, 0.0, dtype),
+            jnp.asarray(U, dtype))
+    return compiled(prob, "program", make_program(red, history=history, verbose=verbose), *args,
+                    extra=(history, verbose, red.idx_n.tobytes()))
+
+
+class Program:
+    """The compiled program's three modes, called with the problem's data."""
+
+    def __init__(self, fn, prob, red, theta_ref, U):
+        self.fn, self.prob, self.red, self.theta_ref = fn, prob, red, theta_ref
+        self.dtype = prob.dtype
+        self.U = jnp.asarray(U, self.dtype)
+        self.n2 = jnp.asarray(prob.counts()[0], self.dtype)
+
+    def _call(self, z, mode, max_steps=0, rtol=0.0):
+        return self.fn(jnp.asarray(z, self.dtype), self.prob.device_data(), self.theta_ref, self.n2,
+                       jnp.asarray(mode), *limits(max_steps, rtol, self.dtype), self.U)
+
+    def solve(self, z0, max_steps, rtol):
+        """Variable-projection LM from ``z0 = (x, u)``."""
+        return self._call(z0, 0, max_steps, rtol)
+
+    def evaluate(self, z):
+        """Image and tangents at ``z`` in natural units."""
+        return self._call(z, 1)
+
+    def rank(self, x0, rows=None):
+        """The reduced cost of every candidate start (``x0``: the linear block's warm start), or of
+        the given ``rows`` of ``u`` (at most as many as the candidates: the program's shape)."""
+        z = np.concatenate([np.asarray(x0, np.float64), np.zeros(len(self.red.idx_n))])
+        if rows is None:
+            costs = np.asarray(self._call(z, 2).costs, np.float64)
+        else:
+            n = len(rows)
+            pad = np.concatenate([rows, np.repeat(rows[:1], len(self.U) - n, axis=0)])
+            U, self.U = self.U, jnp.asarray(pad, self.dtype)
+            try:
+                costs = np.asarray(self._call(z, 2).costs, np.float64)[:n]
+            finally:
+                self.U = U
+        return np.where(np.isfinite(costs), costs, np.inf)
+
+
+class Evaluator:
+    """The program in evaluation mode: ``ev(θ) -> (r, J, img)`` in float64, with ``r`` the
+    weighted, censored residual of the compacted pixels, ``J`` its Jacobian in the natural
+    parameters (censored entries that agree with the clipping have zero rows) and ``img`` the
+    model there."""
+
+    def __init__(self, program: Program):
+        self.program, self.red, self.prob = program, program.red, program.prob
+        self.refresh()
+        M = len(self.t)
+        self.lin_cols = (self.red.chan[:, np.arange(M) % 3] > 0) if len(self.red.idx_l) else None
+
+    def refresh(self):
+        """Take the problem's targets and weights again (after :meth:`Problem.relinearise`)."""
+        t, w, hi, lo = (np.asarray(a) for a in flat_data(self.prob.data))
+        self.t, self.w, self.hi, self.lo = t.astype(np.float64), w.astype(np.float64), hi, lo
+
+    def __call__(self, theta):
+        red = self.red
+        theta = np.asarray(theta, np.float64)
+        z = np.concatenate([theta[red.idx_l], theta[red.idx_n]])
+        out = self.program.evaluate(z)
+        img = to_host(out.img).astype(np.float64)
+        T = to_host(out.T)
+        d = img - self.t
+        r = np.where(self.hi, np.minimum(d, 0), np.where(self.lo, np.maximum(d, 0), d)) * self.w
+        act = ~((self.hi & (d > 0)) | (self.lo & (d < 0)))
+        JT = np.empty((len(theta), len(d)))  # rows contiguous: the Jacobian's transpose
+        if len(red.idx_l):
+            JT[red.idx_l] = T[red.group] * self.lin_cols
+        JT[red.idx_n] = T[red.n_groups:]
+        JT *= self.w * act
+        return r, JT.T, img
+
+
+def evaluator(prob, red, theta_ref):
+    U = candidates(red, np.asarray(theta_ref, np.float64), 1)
+    fn, c = compiled_program(prob, red, U, theta_ref)
+    return Evaluator(Program(fn, prob, red, theta_ref, U)), c
