@@ -256,6 +256,22 @@ _KEYS: dict[str, tuple[str, str]] = {
 }
 # the switches: shadows, shadow_rays, fog, transparency, clamp
 KEYS = (*_KEYS, "shadows", "shadow_rays", "fog", "transparency", "clamp")
+_KEY_OF = {(g, f): key for key, (g, f) in _KEYS.items()}
+_GROUP_OF = {"Raster": "raster", "Lighting": "lighting", "ShadowMaps": "shadows", "ShadowRays": "shadows",
+             "Rays": "rays", "FogModel": "fog", "Transparency": "transparency", "Output": "output"}
+
+
+def _group(cls, fields: dict):
+    """``cls(**fields)``; a value it refuses is named by its scene-file key as well."""
+    try:
+        return cls(**fields)
+    except ValueError as exc:
+        msg = str(exc)
+        for f in fields:
+            key = _KEY_OF.get((_GROUP_OF[cls.__name__], f))
+            if key is not None and msg.startswith(f"{cls.__name__}.{f} "):
+                raise ValueError(f"{key} ({msg})") from None
+        raise
 
 # OpenGL's fixed-function pipeline, as flat keys (RenderOptions.opengl)
 _OPENGL = dict(shading="gouraud", specular="blinn", per_light_ambient=True, emission=True, clamp=True,
@@ -327,7 +343,10 @@ class RenderOptions:
         return replace(self, **groups)
 
     def with_keys(self, **keys) -> RenderOptions:
-        """These options with some scene-file keys changed (``opts.with_keys(shading="flat")``)."""
+        """These options with some scene-file keys changed (``opts.with_keys(shading="flat")``).
+        A group that is off keeps no keys: turning it on takes its defaults unless they are given
+        (``RenderOptions.opengl().with_keys(fog="exp2")`` fogs by Euclidean distance; give
+        ``fog_distance="depth"`` too, or ``RenderOptions.opengl(fog="exp2")``)."""
         return RenderOptions.from_keys({**self.keys(), **keys})
 
     @classmethod
@@ -350,29 +369,32 @@ class RenderOptions:
         unknown = sorted(set(k) - set(KEYS))
         if unknown:
             raise ValueError(f"unknown render key(s) {unknown}; allowed: {sorted(KEYS)}")
-        groups: dict[str, dict] = {g: {} for g in ("raster", "lighting", "shadows", "rays", "fog", "transparency",
-                                                   "output")}
-        for key, x in k.items():
-            if key in _KEYS:
-                g, f = _KEYS[key]
-                groups[g][f] = tuple(x) if key == "area_grid" and isinstance(x, list) else x
         if k.get("shadows") and k.get("shadow_rays"):
             raise ValueError("shadows (maps) and shadow_rays are two ways to the same shadows: choose one")
         if k.get("absorption") and not k.get("transparency"):
             raise ValueError("absorption needs transparency = true (light reaches the eye through the entry surface)")
-        sh = groups["shadows"]
-        shadows = (ShadowMaps(**{f: sh[f] for f in ("resolution", "pcf") if f in sh}) if k.get("shadows")
-                   else ShadowRays(**{f: sh[f] for f in ("crossings",) if f in sh}) if k.get("shadow_rays") else None)
         fog_mode = k.get("fog", "none")
         if fog_mode not in ("none", "linear", "exp", "exp2"):
             raise ValueError(f"fog must be one of ('none', 'linear', 'exp', 'exp2'), got {fog_mode!r}")
-        fog = None if fog_mode == "none" else FogModel(mode=fog_mode, **groups["fog"])
-        tr = groups["transparency"]
-        transparency = Transparency(**{"layers": 1, **tr}) if k.get("transparency") else None
-        out = dict(groups["output"])
-        out["clamp"] = out.get("clamp", "pixel") if k.get("clamp") else None
-        return cls(raster=Raster(**groups["raster"]), lighting=Lighting(**groups["lighting"]), shadows=shadows,
-                   rays=Rays(**groups["rays"]), fog=fog, transparency=transparency, output=Output(**out))
+        g: dict[str, dict] = {name: {} for name in ("raster", "lighting", "shadows", "rays", "fog", "transparency",
+                                                    "output")}
+        for key, x in k.items():
+            if key in _KEYS:
+                group, f = _KEYS[key]
+                g[group][f] = tuple(x) if key == "area_grid" and isinstance(x, list) else x
+        sh = g["shadows"]
+        # every group is built, switched on or not, so a bad value is named even where it is unused
+        maps = _group(ShadowMaps, {f: sh[f] for f in ("resolution", "pcf") if f in sh})
+        rays = _group(ShadowRays, {f: sh[f] for f in ("crossings",) if f in sh})
+        fog = _group(FogModel, {"mode": "exp" if fog_mode == "none" else fog_mode, **g["fog"]})
+        transparency = _group(Transparency, {"layers": 1, **g["transparency"]})
+        output = _group(Output, {**g["output"], "clamp": g["output"].get("clamp", "pixel")})
+        if not k.get("clamp"):
+            output = replace(output, clamp=None)
+        return cls(raster=_group(Raster, g["raster"]), lighting=_group(Lighting, g["lighting"]),
+                   shadows=maps if k.get("shadows") else rays if k.get("shadow_rays") else None,
+                   rays=_group(Rays, g["rays"]), fog=None if fog_mode == "none" else fog,
+                   transparency=transparency if k.get("transparency") else None, output=output)
 
     def keys(self) -> dict[str, Any]:
         """The flat scene-file keys of these options (:meth:`from_keys` of them gives them back)."""

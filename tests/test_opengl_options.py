@@ -57,7 +57,7 @@ def test_compat_preset_from_scene_files_and_overrides():
     assert (default.output.clamp, default.raster.flat_source, default.lighting.viewer, default.output.color_sum) == (
         None, "centroid", "local", "single")
     for render, message in [({"compat": "gl"}, "render.compat"), ({"viewer": "far"}, "viewer"),
-                            ({"clamp": True, "clamp_at": "face"}, r"Output.clamp must be one of .*'face'"), ({"color_sum": "both"}, "color_sum")]:
+                            ({"clamp_at": "face"}, r"clamp_at \(Output.clamp must be one of .*'face'"), ({"color_sum": "both"}, "color_sum")]:
         with pytest.raises(ds.SceneError, match=message):
             ds.scene_from_dict({**d, "render": render})
 
