@@ -1,11 +1,11 @@
 # Two commands do everything on a fresh machine (Python 3.11+, nothing else installed):
 #   make demo   - set up .venv and run the main job on the built-in default scene
-#   make test   - set up .venv, build the docs site (mkdocs --strict) and run the test suite
+#   make test   - set up .venv, lint (ruff), build the docs site (mkdocs --strict) and run the test suite
 PYTHON ?= python3
 VENV := .venv
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-all bench setup docs
+.PHONY: demo test test-all bench setup docs lint
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -24,11 +24,16 @@ demo: $(STAMP)
 docs: $(STAMP)
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/python -m mkdocs build --strict
 
-test: $(STAMP) docs
+# ruff: the lint rules and the formatting of pyproject.toml's [tool.ruff]
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+
+test: $(STAMP) lint docs
 	$(VENV)/bin/python -m pytest -n 2 -q
 
 # every test, the slow variants too (the default run leaves them out, to keep it short on 2 cores)
-test-all: $(STAMP) docs
+test-all: $(STAMP) lint docs
 	$(VENV)/bin/python -m pytest -n 2 -q -m ""
 
 # Transparent huge pages for malloc: XLA's large per-call buffers are otherwise page-faulted in

@@ -89,9 +89,9 @@ class DeodrProblem:
 
     def colors(self, p, with_jac=False):
         ka, kd, ks, m, a1, a2 = p[0:3], p[3:6], p[6], p[7], p[8], p[9]
-        att = 1.0 / (1.0 + a1 * self.d + a2 * self.d ** 2)
+        att = 1.0 / (1.0 + a1 * self.d + a2 * self.d**2)
         s = self.rv
-        spow = np.where(s > 0, s ** m, 0.0)
+        spow = np.where(s > 0, s**m, 0.0)
         direct = kd[None, :] * self.diff[:, None] + ks * spow[:, None]
         col = AMBIENT * ka[None, :] + att[:, None] * direct
         if not with_jac:
@@ -104,8 +104,8 @@ class DeodrProblem:
         J[6] = (att * spow)[:, None]
         logs = np.log(np.where(s > 0, s, 1.0))
         J[7] = (att * ks * spow * logs)[:, None]
-        J[8] = (-att ** 2 * self.d)[:, None] * direct
-        J[9] = (-att ** 2 * self.d ** 2)[:, None] * direct
+        J[8] = (-(att**2) * self.d)[:, None] * direct
+        J[9] = (-(att**2) * self.d**2)[:, None] * direct
         return col, J
 
     def fit(self, target, x0):
@@ -131,8 +131,9 @@ class DeodrProblem:
         lo, hi = LO.copy(), HI.copy()
         lo[7], hi[7] = 0.0, np.log(1000.0)
         t0 = time.perf_counter()
-        res = least_squares(fun, np.clip(y0, lo, hi), jac=jac, bounds=(lo, hi), method="trf", x_scale="jac",
-                            max_nfev=300)  # scipy's default tolerances (1e-8)
+        res = least_squares(
+            fun, np.clip(y0, lo, hi), jac=jac, bounds=(lo, hi), method="trf", x_scale="jac", max_nfev=300
+        )  # scipy's default tolerances (1e-8)
         return to_p(res.x), time.perf_counter() - t0, res.nfev
 
 
@@ -145,17 +146,39 @@ FREE = ["material.ambient", "material.diffuse", "material.specular", "material.s
 
 def diffshade_scene(size):
     import diffshade as ds
-    return ds.scene_from_dict({
-        "mesh": {"icosphere": 4},
-        "camera": {"eye": list(EYE), "target": [0, 0, 0], "up": [0, 1, 0], "fov_y": 45.0, "near": 0.5, "far": 10.0,
-                   "width": size, "height": size},
-        "render": {"shading": "gouraud", "specular": "phong", "fog": "none"},
-        "material": {"ambient": list(TRUTH[0:3]), "diffuse": list(TRUTH[3:6]), "specular": [TRUTH[6]] * 3,
-                     "shininess": float(TRUTH[7])},
-        "light": [{"type": "point", "color": [1.0, 1.0, 1.0], "position": list(LIGHT),
-                   "attenuation": [1.0, float(TRUTH[8]), float(TRUTH[9])]}],
-        "ambient_light": [AMBIENT] * 3,
-    }, "side-by-side scene")
+
+    return ds.scene_from_dict(
+        {
+            "mesh": {"icosphere": 4},
+            "camera": {
+                "eye": list(EYE),
+                "target": [0, 0, 0],
+                "up": [0, 1, 0],
+                "fov_y": 45.0,
+                "near": 0.5,
+                "far": 10.0,
+                "width": size,
+                "height": size,
+            },
+            "render": {"shading": "gouraud", "specular": "phong", "fog": "none"},
+            "material": {
+                "ambient": list(TRUTH[0:3]),
+                "diffuse": list(TRUTH[3:6]),
+                "specular": [TRUTH[6]] * 3,
+                "shininess": float(TRUTH[7]),
+            },
+            "light": [
+                {
+                    "type": "point",
+                    "color": [1.0, 1.0, 1.0],
+                    "position": list(LIGHT),
+                    "attenuation": [1.0, float(TRUTH[8]), float(TRUTH[9])],
+                }
+            ],
+            "ambient_light": [AMBIENT] * 3,
+        },
+        "side-by-side scene",
+    )
 
 
 def main():
@@ -170,9 +193,9 @@ def main():
     if args.only != "deodr":
         import jax
         import jax.numpy as jnp
+
         import diffshade as ds
-        from fitting import Observations, fit
-        from fitting import ParamSet
+        from fitting import Observations, ParamSet, fit
 
         scene, opts = diffshade_scene(args.size)
         shared = ["material.specular"]
@@ -188,8 +211,11 @@ def main():
             compile_s = r.compile_s if compile_s is None else compile_s
             times.append(r.solve_s)
             steps.append(r.steps)
-            print(f"diffshade start {k:2d}: solve {r.solve_s:6.3f} s steps {r.steps:3d} max rel. err {err:.1e} "
-                  f"{'ok' if good else 'FAIL: ' + (r.result or 'error above 1e-4')[:70]}", flush=True)
+            print(
+                f"diffshade start {k:2d}: solve {r.solve_s:6.3f} s steps {r.steps:3d} max rel. err {err:.1e} "
+                f"{'ok' if good else 'FAIL: ' + (r.result or 'error above 1e-4')[:70]}",
+                flush=True,
+            )
         rows["diffshade (variable projection, float32)"] = (ok, times, steps, f"compile {compile_s:.1f} s once")
 
     if args.only != "diffshade":
@@ -203,16 +229,21 @@ def main():
             ok += good
             times.append(dt)
             steps.append(nfev)
-            print(f"deodr+scipy start {k:2d}: solve {dt:6.3f} s nfev {nfev:3d} max rel. err {err:.1e} "
-                  f"{'ok' if good else 'FAIL'}", flush=True)
+            print(
+                f"deodr+scipy start {k:2d}: solve {dt:6.3f} s nfev {nfev:3d} max rel. err {err:.1e} "
+                f"{'ok' if good else 'FAIL'}",
+                flush=True,
+            )
         rows["DEODR + scipy least_squares (trf, log m, exact J, float64)"] = (ok, times, steps, "")
 
     print(f"\n{args.size}², {args.starts} starts (truth x U(0.3, 3), clipped)\n")
     print("| method | success | median solve | worst | median evaluations | |")
     print("|---|---|---|---|---|---|")
     for name, (ok, times, steps, extra) in rows.items():
-        print(f"| {name} | {ok}/{len(times)} | {statistics.median(times):.3f} s | {max(times):.3f} s | "
-              f"{statistics.median(steps)} | {extra} |")
+        print(
+            f"| {name} | {ok}/{len(times)} | {statistics.median(times):.3f} s | {max(times):.3f} s | "
+            f"{statistics.median(steps)} | {extra} |"
+        )
     if len(rows) == 2:
         (a, b) = rows.values()
         print(f"\nmedian time ratio diffshade / DEODR+scipy: {statistics.median(a[1]) / statistics.median(b[1]):.3f}")

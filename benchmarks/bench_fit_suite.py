@@ -47,9 +47,12 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 import diffshade as ds  # noqa: E402
-from fitting import Observations, VarPro, fit  # noqa: E402
-from fitting import ParamSet  # noqa: E402
-
+from fitting import (  # noqa: E402
+    Observations,
+    ParamSet,  # noqa: E402
+    VarPro,
+    fit,
+)
 
 BUNNY = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests", "data", "meshes", "bunny.ply")
 
@@ -72,7 +75,9 @@ def make_case(seed: int, size: int, bunny: str | None):
         v = np.asarray(m.vertices)
         v = (v - v.mean(0)) / np.abs(v - v.mean(0)).max() * 1.1
         mesh = ds.mesh_from_arrays(v, np.asarray(m.faces))
-    shading, specular = [("flat", "phong"), ("gouraud", "phong"), ("phong", "phong"), ("phong", "blinn")][rng.integers(4)]
+    shading, specular = [("flat", "phong"), ("gouraud", "phong"), ("phong", "phong"), ("phong", "blinn")][
+        rng.integers(4)
+    ]
     fog = ["none", "linear", "exp", "exp2"][rng.integers(4)]
     n_lights = int(rng.integers(1, 4))
     lk = ["point"] + [str(rng.choice(["point", "directional", "spot"])) for _ in range(n_lights - 1)]
@@ -88,29 +93,63 @@ def make_case(seed: int, size: int, bunny: str | None):
     def att():
         return [1.0, float(rng.uniform(0.02, 0.3)), float(rng.uniform(0.01, 0.2))]
 
-    point = ds.PointLights(color=[[float(c) for c in rng.uniform(0.6, 1.4, 3)] for _ in pts],
-                           position=[pos() for _ in pts], attenuation=[att() for _ in pts],
-                           ambient=[[0, 0, 0] for _ in pts])
-    directional = (ds.DirectionalLights(color=[rng.uniform(0.2, 0.5, 3) for _ in dirs],
-                                        direction=[-pos() for _ in dirs], ambient=[[0, 0, 0] for _ in dirs])
-                   if dirs else ds.no_directional())
+    point = ds.PointLights(
+        color=[[float(c) for c in rng.uniform(0.6, 1.4, 3)] for _ in pts],
+        position=[pos() for _ in pts],
+        attenuation=[att() for _ in pts],
+        ambient=[[0, 0, 0] for _ in pts],
+    )
+    directional = (
+        ds.DirectionalLights(
+            color=[rng.uniform(0.2, 0.5, 3) for _ in dirs],
+            direction=[-pos() for _ in dirs],
+            ambient=[[0, 0, 0] for _ in dirs],
+        )
+        if dirs
+        else ds.no_directional()
+    )
     spot = ds.no_spot()
     if spots:
         ps = [pos() for _ in spots]
-        spot = ds.SpotLights(color=[[1.0, 1.0, 1.0] for _ in spots], position=ps, attenuation=[att() for _ in spots],
-                             ambient=[[0, 0, 0] for _ in spots], axis=[-p for p in ps], cutoff=[40.0] * len(spots),
-                             exponent=[4.0] * len(spots), edge=[0.0] * len(spots))
+        spot = ds.SpotLights(
+            color=[[1.0, 1.0, 1.0] for _ in spots],
+            position=ps,
+            attenuation=[att() for _ in spots],
+            ambient=[[0, 0, 0] for _ in spots],
+            axis=[-p for p in ps],
+            cutoff=[40.0] * len(spots),
+            exponent=[4.0] * len(spots),
+            edge=[0.0] * len(spots),
+        )
     m = float(np.exp(rng.uniform(np.log(5), np.log(200))))
     if specular == "blinn":
         m = ds.phong_to_blinn(m)
-    mat = ds.Material(ambient=rng.uniform(0.05, 0.5, 3), diffuse=rng.uniform(0.1, 0.9, 3),
-                      specular=float(rng.uniform(0.1, 0.8)), shininess=m)
-    cam = ds.Camera(eye=[0.0, 0.0, 3.5], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.5, far=10.0,
-                    width=size, height=size)
-    fogp = ds.Fog(color=rng.uniform(0.3, 0.8, 3), start=0.0, end=float(rng.uniform(5.0, 8.0)),
-                  density=float(rng.uniform(0.05, 0.3)))
-    scene = ds.Scene(mesh=mesh, camera=cam, material=mat, point=point, directional=directional, spot=spot,
-                     ambient_light=0.3, fog=fogp, background=(0.0, 0.0, 0.0))
+    mat = ds.Material(
+        ambient=rng.uniform(0.05, 0.5, 3),
+        diffuse=rng.uniform(0.1, 0.9, 3),
+        specular=float(rng.uniform(0.1, 0.8)),
+        shininess=m,
+    )
+    cam = ds.Camera(
+        eye=[0.0, 0.0, 3.5], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.5, far=10.0, width=size, height=size
+    )
+    fogp = ds.Fog(
+        color=rng.uniform(0.3, 0.8, 3),
+        start=0.0,
+        end=float(rng.uniform(5.0, 8.0)),
+        density=float(rng.uniform(0.05, 0.3)),
+    )
+    scene = ds.Scene(
+        mesh=mesh,
+        camera=cam,
+        material=mat,
+        point=point,
+        directional=directional,
+        spot=spot,
+        ambient_light=0.3,
+        fog=fogp,
+        background=(0.0, 0.0, 0.0),
+    )
     opts = ds.RenderOptions.from_keys(shading=shading, specular=specular, fog=fog)
     free = ["material.ambient", "material.diffuse", "material.specular", "material.shininess"]
     free += [f"point[{i}].{a}" for i in range(len(pts)) for a in ("a1", "a2")]
@@ -145,8 +184,12 @@ def main():
     ap.add_argument("--cases", type=int, default=20)
     ap.add_argument("--size", type=int, default=64)
     ap.add_argument("--seed0", type=int, default=0)
-    ap.add_argument("--bunny", default=BUNNY, help="path of the scanned mesh (default: the Stanford bunny in tests/data)")
-    ap.add_argument("--no-bunny", action="store_true", help="icosphere and torus only (the suite before the bunny joined)")
+    ap.add_argument(
+        "--bunny", default=BUNNY, help="path of the scanned mesh (default: the Stanford bunny in tests/data)"
+    )
+    ap.add_argument(
+        "--no-bunny", action="store_true", help="icosphere and torus only (the suite before the bunny joined)"
+    )
     ap.add_argument("--noisy-only", action="store_true")
     ap.add_argument("--clean-only", action="store_true")
     ap.add_argument("--starts", type=int, default=None, help="fit(starts=...): the global search's start count")
@@ -183,8 +226,11 @@ def main():
                 right = bool(np.all(inside))
                 outside = int(np.sum(~inside))
                 within1 = int(np.sum(z[det] <= 1))
-                err_s = f"max |z| {np.max(z[det]):6.2f}" + ("" if right == bool(np.all(z[det] <= 3)) else
-                                                            f" ({'in' if right else 'OUT of'} its profile interval)")
+                err_s = f"max |z| {np.max(z[det]):6.2f}" + (
+                    ""
+                    if right == bool(np.all(z[det] <= 3))
+                    else f" ({'in' if right else 'OUT of'} its profile interval)"
+                )
             else:
                 err = np.abs(r.values - true) / np.maximum(np.abs(true), 1e-12)
                 z = np.abs(r.values - true) / np.where(r.stderr > 0, r.stderr, np.inf)
@@ -194,16 +240,36 @@ def main():
                 right = bool(np.all(np.where(lim, z <= 3, err <= 1e-4)[det]))
                 within1 = 0
                 err_s = f"max err {np.max(err[det]):.1e} |z| {np.max(z[det]):5.2f}"
-            verdict = "ok" if (r.successful and right) else ("FALSE SUCCESS" if r.successful else
-                                                             ("honest fail" if not right else "fail (right)"))
+            verdict = (
+                "ok"
+                if (r.successful and right)
+                else ("FALSE SUCCESS" if r.successful else ("honest fail" if not right else "fail (right)"))
+            )
             honest = bool(np.all(z[det] <= 3))  # within ±3 Gauss–Newton s.e.
-            rows.append(dict(case=case, noisy=noisy, ok=r.successful and right, false=r.successful and not right,
-                             false_wald=r.successful and not honest, interval_s=r.intervals.seconds, outside=outside,
-                             solve=r.solve_s, compile=r.compile_s, steps=r.steps, within1=within1,
-                             ndet=int(det.sum()), wall=wall, honest=honest))
-            print(f"{case:3d} {'8-bit' if noisy else ('f64' if args.x64 else 'f32')} {name:48s} {verdict:13s} {err_s} ratio {r.residual.noise_ratio:7.3g} "
-                  f"steps {r.steps:3d} solve {r.solve_s:6.3f} s compile {r.compile_s:5.1f} s"
-                  + ("" if r.successful else f"  [{r.result[:70]}]"), flush=True)
+            rows.append(
+                dict(
+                    case=case,
+                    noisy=noisy,
+                    ok=r.successful and right,
+                    false=r.successful and not right,
+                    false_wald=r.successful and not honest,
+                    interval_s=r.intervals.seconds,
+                    outside=outside,
+                    solve=r.solve_s,
+                    compile=r.compile_s,
+                    steps=r.steps,
+                    within1=within1,
+                    ndet=int(det.sum()),
+                    wall=wall,
+                    honest=honest,
+                )
+            )
+            print(
+                f"{case:3d} {'8-bit' if noisy else ('f64' if args.x64 else 'f32')} {name:48s} {verdict:13s} {err_s} ratio {r.residual.noise_ratio:7.3g} "
+                f"steps {r.steps:3d} solve {r.solve_s:6.3f} s compile {r.compile_s:5.1f} s"
+                + ("" if r.successful else f"  [{r.result[:70]}]"),
+                flush=True,
+            )
     for noisy in (False, True):
         sel = [r for r in rows if r["noisy"] == noisy]
         if not sel:
@@ -212,9 +278,11 @@ def main():
         false = sum(r["false"] for r in sel)
         times = [r["solve"] for r in sel]
         steps = [r["steps"] for r in sel]
-        line = (f"{'8-bit + noise' if noisy else 'float, noise-free'}: success {ok}/{len(sel)}, false successes {false}, "
-                f"solve median {statistics.median(times):.3f} s (worst {max(times):.3f}), steps median "
-                f"{statistics.median(steps)} (worst {max(steps)})")
+        line = (
+            f"{'8-bit + noise' if noisy else 'float, noise-free'}: success {ok}/{len(sel)}, false successes {false}, "
+            f"solve median {statistics.median(times):.3f} s (worst {max(times):.3f}), steps median "
+            f"{statistics.median(steps)} (worst {max(steps)})"
+        )
         if not noisy:
             hon = sum(r["honest"] for r in sel if r["false"])
             line += f"; of the false successes, {hon} within 3 reported s.e."
@@ -226,10 +294,14 @@ def main():
             chance = sum(1.0 - math.erf(3 / math.sqrt(2)) ** r["ndet"] for r in sel)
             fw = sum(r["false_wald"] for r in sel)
             nd = sum(r["ndet"] for r in sel)
-            line += (f", determined parameters outside their 3σ interval {sum(r['outside'] for r in sel)} of {nd} "
-                     f"(expected {nd * (1 - math.erf(3 / math.sqrt(2))):.1f})")
-            line += (f", 1-σ coverage {100 * w1:.1f} %; said successful with a parameter beyond ±3 s.e.: {fw} "
-                     f"(expected by chance alone with calibrated standard errors: {chance:.2f})")
+            line += (
+                f", determined parameters outside their 3σ interval {sum(r['outside'] for r in sel)} of {nd} "
+                f"(expected {nd * (1 - math.erf(3 / math.sqrt(2))):.1f})"
+            )
+            line += (
+                f", 1-σ coverage {100 * w1:.1f} %; said successful with a parameter beyond ±3 s.e.: {fw} "
+                f"(expected by chance alone with calibrated standard errors: {chance:.2f})"
+            )
         ivs = [r["interval_s"] for r in sel if r["interval_s"] > 0]
         if ivs:
             line += f"; profile intervals median {statistics.median(ivs):.3f} s (worst {max(ivs):.3f})"

@@ -41,25 +41,50 @@ def scene_with(n, size, shadows=0):
     d.pop("fog", None)
     if isinstance(n, tuple):  # ("lobes", L) / ("spots", L): one multi-lobe light or its L spots
         kind, L = n
-        lobes = [{"axis": list(-np.abs(rng.normal(size=3)) * [1, 1, 3] + [0.5, 0.5, 0]), "cutoff": float(rng.uniform(20, 50)),
-                  "exponent": float(rng.uniform(0, 8)), "color": list(rng.uniform(0.2, 1.0, 3))} for _ in range(L)]
+        lobes = [
+            {
+                "axis": list(-np.abs(rng.normal(size=3)) * [1, 1, 3] + [0.5, 0.5, 0]),
+                "cutoff": float(rng.uniform(20, 50)),
+                "exponent": float(rng.uniform(0, 8)),
+                "color": list(rng.uniform(0.2, 1.0, 3)),
+            }
+            for _ in range(L)
+        ]
         base = {"position": [0.5, 1.0, 3.0], "attenuation": [1.0, 0.05, 0.02]}
-        d["light"] = [{"type": "point", "color": [0.3, 0.3, 0.3], "position": [2.0, 2.0, 3.0], "attenuation": [1.0, 0.05, 0.02]}]
-        d["light"] += ([{"type": "multi_lobe", **base, "lobes": lobes}] if kind == "lobes"
-                       else [{"type": "spot", **base, **b} for b in lobes])
+        d["light"] = [
+            {"type": "point", "color": [0.3, 0.3, 0.3], "position": [2.0, 2.0, 3.0], "attenuation": [1.0, 0.05, 0.02]}
+        ]
+        d["light"] += (
+            [{"type": "multi_lobe", **base, "lobes": lobes}]
+            if kind == "lobes"
+            else [{"type": "spot", **base, **b} for b in lobes]
+        )
         return ds.scene_from_dict(d)
     if n == "area":  # one 8 x 8 area light, and the point light whose attenuation the Jacobian moves
         d["render"]["area_grid"] = [8, 8]
-        d["light"] = [{"type": "point", "color": [0.3, 0.3, 0.3], "position": [2.0, 2.0, 3.0], "attenuation": [1.0, 0.05, 0.02]},
-                      {"type": "area", "color": [6.0, 6.0, 6.0], "position": [0.0, 1.5, 2.0], "normal": [0.0, -1.0, -1.0],
-                       "size": [1.5, 1.0]}]
+        d["light"] = [
+            {"type": "point", "color": [0.3, 0.3, 0.3], "position": [2.0, 2.0, 3.0], "attenuation": [1.0, 0.05, 0.02]},
+            {
+                "type": "area",
+                "color": [6.0, 6.0, 6.0],
+                "position": [0.0, 1.5, 2.0],
+                "normal": [0.0, -1.0, -1.0],
+                "size": [1.5, 1.0],
+            },
+        ]
         return ds.scene_from_dict(d)
     lights = []
     for _ in range(n):
         p = rng.normal(size=3)
         p[2] = abs(p[2]) + 0.5
-        lights.append({"type": "point", "color": list(rng.uniform(0.5, 1.0, 3) * 2 / n), "position": list(3 * p / np.linalg.norm(p)),
-                       "attenuation": [1.0, 0.05, 0.02]})
+        lights.append(
+            {
+                "type": "point",
+                "color": list(rng.uniform(0.5, 1.0, 3) * 2 / n),
+                "position": list(3 * p / np.linalg.norm(p)),
+                "attenuation": [1.0, 0.05, 0.02],
+            }
+        )
     d["light"] = lights
     return ds.scene_from_dict(d)
 
@@ -83,8 +108,10 @@ def measure(n, size, shadows=0):
     def img(x):
         m = mat.__class__(ambient=x[0:3], diffuse=x[3:6], specular=x[6:9], shininess=x[11])
         import equinox as eqx
-        sc = eqx.tree_at(lambda s: (s.material, s.point.attenuation), scene,
-                         (m, scene.point.attenuation.at[0, 1:].set(x[9:11])))
+
+        sc = eqx.tree_at(
+            lambda s: (s.material, s.point.attenuation), scene, (m, scene.point.attenuation.at[0, 1:].set(x[9:11]))
+        )
         return ds.render(sc, opts, ids)
 
     E = jnp.eye(12, dtype=x0.dtype)
@@ -105,9 +132,13 @@ def main():
     ap.add_argument("--mode", choices=["scan", "unrolled", "both"], default="both")
     ap.add_argument("--max-unrolled", type=int, default=16)
     ap.add_argument("--no-area", action="store_true")
-    ap.add_argument("--unroll", type=int, default=None, help="LIGHTS_UNROLLED for the scan mode (default: the library's)")
+    ap.add_argument(
+        "--unroll", type=int, default=None, help="LIGHTS_UNROLLED for the scan mode (default: the library's)"
+    )
     ap.add_argument("--shadows", type=int, default=0, help="shadow-map resolution (0: no shadows)")
-    ap.add_argument("--lobes", type=int, default=0, help="also time one multi-lobe light of this many lobes against as many spots")
+    ap.add_argument(
+        "--lobes", type=int, default=0, help="also time one multi-lobe light of this many lobes against as many spots"
+    )
     args = ap.parse_args()
     if args.unroll is not None:
         R.LIGHTS_UNROLLED = args.unroll
@@ -116,35 +147,50 @@ def main():
     rows = []
     for size in args.sizes:
         for mode in modes:
-            R.LIGHTS_UNROLLED = 10 ** 9 if mode == "unrolled" else default
+            R.LIGHTS_UNROLLED = 10**9 if mode == "unrolled" else default
             for n in args.counts:
                 if mode == "unrolled" and n > args.max_unrolled:
                     continue  # the unrolled 64-light Jacobian compiles for minutes
                 m = measure(n, size, args.shadows)
                 rows.append((size, mode, n, m))
-                print(f"{size}² {mode:8s} {n:4d} lights: render {m['render']:8.2f} ms (compile {m['render_compile']:5.2f} s), "
-                      f"12-tangent jvp {m['jvp12']:8.2f} ms (compile {m['jvp12_compile']:5.2f} s)", flush=True)
+                print(
+                    f"{size}² {mode:8s} {n:4d} lights: render {m['render']:8.2f} ms (compile {m['render_compile']:5.2f} s), "
+                    f"12-tangent jvp {m['jvp12']:8.2f} ms (compile {m['jvp12_compile']:5.2f} s)",
+                    flush=True,
+                )
         R.LIGHTS_UNROLLED = default
         if args.lobes:
             for kind in ("lobes", "spots"):
                 m = measure((kind, args.lobes), size, args.shadows)
                 label = f"1 multi-lobe light of {args.lobes} lobes" if kind == "lobes" else f"{args.lobes} spot lights"
                 rows.append((size, label, 1 + args.lobes, m))
-                print(f"{size}² {label} (+1 point): render {m['render']:8.2f} ms (compile {m['render_compile']:5.2f} s), "
-                      f"12-tangent jvp {m['jvp12']:8.2f} ms (compile {m['jvp12_compile']:5.2f} s)", flush=True)
+                print(
+                    f"{size}² {label} (+1 point): render {m['render']:8.2f} ms (compile {m['render_compile']:5.2f} s), "
+                    f"12-tangent jvp {m['jvp12']:8.2f} ms (compile {m['jvp12_compile']:5.2f} s)",
+                    flush=True,
+                )
         if not args.no_area and not args.shadows:
             m = measure("area", size)
             rows.append((size, "area 8x8", 64, m))
-            print(f"{size}² one 8 x 8 area light (+1 point): render {m['render']:8.2f} ms (compile {m['render_compile']:5.2f} s), "
-                  f"12-tangent jvp {m['jvp12']:8.2f} ms (compile {m['jvp12_compile']:5.2f} s)", flush=True)
+            print(
+                f"{size}² one 8 x 8 area light (+1 point): render {m['render']:8.2f} ms (compile {m['render_compile']:5.2f} s), "
+                f"12-tangent jvp {m['jvp12']:8.2f} ms (compile {m['jvp12_compile']:5.2f} s)",
+                flush=True,
+            )
     R.LIGHTS_UNROLLED = default
     print("\n| size | mode | lights | render ms | per light ms | render compile s | jvp12 ms | jvp12 compile s |")
     print("|---|---|---|---|---|---|---|---|")
     for size, mode, n, m in rows:
         base = next((mm for s, md, k, mm in rows if s == size and md in (mode, "scan") and k == 1), None)
-        per = (m["render"] - base["render"]) / (n - 1) if base and n > 1 and mode in ("scan", "unrolled") else float("nan")
-        print(f"| {size}² | {mode} | {n} | {m['render']:.2f} | {per:.3f} | {m['render_compile']:.2f} | {m['jvp12']:.2f} | "
-              f"{m['jvp12_compile']:.2f} |")
+        per = (
+            (m["render"] - base["render"]) / (n - 1)
+            if base and n > 1 and mode in ("scan", "unrolled")
+            else float("nan")
+        )
+        print(
+            f"| {size}² | {mode} | {n} | {m['render']:.2f} | {per:.3f} | {m['render_compile']:.2f} | {m['jvp12']:.2f} | "
+            f"{m['jvp12_compile']:.2f} |"
+        )
 
 
 if __name__ == "__main__":

@@ -94,7 +94,9 @@ def main():
     rows = []
     for name, v, f in scenes(args.quick):
         for res in (256,) if args.quick else (256, 512):
-            cam = ds.Camera(eye=[0, 0, 3.0], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.1, far=10.0, width=res, height=res)
+            cam = ds.Camera(
+                eye=[0, 0, 3.0], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.1, far=10.0, width=res, height=res
+            )
             V, F = jnp.asarray(v, jnp.float32), jnp.asarray(f, jnp.int32)
             ref = deodr_time(v, f, res, args.repeats)
             for be in backends:
@@ -110,15 +112,23 @@ def main():
                 )
             # Full render of the default material with Phong shading (issue 3 extends this table).
             scene, opts = ds.default_scene()
-            scene = ds.Scene(mesh=ds.Mesh(vertices=v, faces=f), camera=cam, material=scene.material,
-                             point=scene.point, directional=scene.directional, ambient_light=scene.ambient_light)
+            scene = ds.Scene(
+                mesh=ds.Mesh(vertices=v, faces=f),
+                camera=cam,
+                material=scene.material,
+                point=scene.point,
+                directional=scene.directional,
+                ambient_light=scene.ambient_light,
+            )
             opts = opts.with_keys(fog="none", shading="phong")
             c, t = timed(jax.jit(lambda s: ds.render(s, opts)), scene, repeats=args.repeats)
             print(f"{name:18s} {res:4d}² full Phong render (auto backend): compile {c:6.2f} s  {t:8.2f} ms", flush=True)
     print("\n| scene | size | backend | compile s | visibility ms | + fragments ms | DEODR ms | ratio |")
     print("|---|---|---|---|---|---|---|---|")
     for name, res, be, c, t, tf, ref in rows:
-        print(f"| {name} | {res}² | {be} | {c:.2f} | {t:.2f} | {tf:.2f} | {'%.2f' % ref if ref else '-'} | {'%.2f' % (t / ref) if ref else '-'} |")
+        print(
+            f"| {name} | {res}² | {be} | {c:.2f} | {t:.2f} | {tf:.2f} | {f'{ref:.2f}' if ref else '-'} | {f'{t / ref:.2f}' if ref else '-'} |"
+        )
 
 
 if __name__ == "__main__":

@@ -36,14 +36,34 @@ from bench_raster import deodr_time, timed  # noqa: E402
 
 
 def make_scene(v, f, res, terms):
-    cam = ds.Camera(eye=[0, 0, 3.0], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.1, far=10.0, width=res, height=res)
-    mat = ds.Material(emission=[0.02, 0.01, 0.0], ambient=[0.15, 0.12, 0.1], diffuse=[0.75, 0.35, 0.25],
-                      specular=[0.5, 0.5, 0.5], shininess=30.0, ior=1.5)
-    point = ds.PointLights(color=[[1.0, 1.0, 1.0]], position=[[2.0, 2.0, 3.0]], attenuation=[[1.0, 0.05, 0.02]],
-                           ambient=[[0.05, 0.05, 0.05]])
+    cam = ds.Camera(
+        eye=[0, 0, 3.0], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.1, far=10.0, width=res, height=res
+    )
+    mat = ds.Material(
+        emission=[0.02, 0.01, 0.0],
+        ambient=[0.15, 0.12, 0.1],
+        diffuse=[0.75, 0.35, 0.25],
+        specular=[0.5, 0.5, 0.5],
+        shininess=30.0,
+        ior=1.5,
+    )
+    point = ds.PointLights(
+        color=[[1.0, 1.0, 1.0]],
+        position=[[2.0, 2.0, 3.0]],
+        attenuation=[[1.0, 0.05, 0.02]],
+        ambient=[[0.05, 0.05, 0.05]],
+    )
     dirl = ds.DirectionalLights(color=[[0.3, 0.3, 0.35]], direction=[[1.0, -0.5, -1.0]], ambient=[[0.0, 0.0, 0.0]])
-    spot = ds.SpotLights(color=[[0.8, 0.8, 0.6]], position=[[-2.0, 1.0, 3.0]], attenuation=[[1.0, 0.0, 0.01]],
-                         ambient=[[0.0, 0.0, 0.0]], axis=[[0.6, -0.3, -1.0]], cutoff=[30.0], exponent=[4.0], edge=[5.0])
+    spot = ds.SpotLights(
+        color=[[0.8, 0.8, 0.6]],
+        position=[[-2.0, 1.0, 3.0]],
+        attenuation=[[1.0, 0.0, 0.01]],
+        ambient=[[0.0, 0.0, 0.0]],
+        axis=[[0.6, -0.3, -1.0]],
+        cutoff=[30.0],
+        exponent=[4.0],
+        edge=[5.0],
+    )
     base = dict(mesh=ds.Mesh(vertices=v, faces=f), camera=cam, material=mat, ambient_light=[0.3, 0.3, 0.3])
     if terms == "diffuse":
         scene = ds.Scene(**base, directional=dirl)
@@ -52,11 +72,21 @@ def make_scene(v, f, res, terms):
         scene = ds.Scene(**base, directional=dirl, point=point)
         opts = ds.RenderOptions(lighting=ds.Lighting(specular="phong"))
     else:
-        scene = ds.Scene(**base, directional=dirl, point=point, spot=spot, back_material=mat,
-                         fog=ds.Fog(color=[0.55, 0.6, 0.7], density=0.12), background=[0.55, 0.6, 0.7])
-        opts = ds.RenderOptions(lighting=ds.Lighting(specular="blinn", fresnel="dielectric", emission=True,
-                                                     per_light_ambient=True, spot_edge="smooth"),
-                                fog=ds.FogModel("exp2"))
+        scene = ds.Scene(
+            **base,
+            directional=dirl,
+            point=point,
+            spot=spot,
+            back_material=mat,
+            fog=ds.Fog(color=[0.55, 0.6, 0.7], density=0.12),
+            background=[0.55, 0.6, 0.7],
+        )
+        opts = ds.RenderOptions(
+            lighting=ds.Lighting(
+                specular="blinn", fresnel="dielectric", emission=True, per_light_ambient=True, spot_edge="smooth"
+            ),
+            fog=ds.FogModel("exp2"),
+        )
     return scene, opts
 
 
@@ -116,14 +146,17 @@ def main():
                     f"program {r['hlo_lines']} HLO lines" + (f"  DEODR {ref:.2f} ms" if ref else ""),
                     flush=True,
                 )
-    print("\n| faces | size | terms | full ms | compile s | shade-only ms | jvp×12 ms | vjp ms | HLO lines | DEODR ms | full/DEODR |")
+    print(
+        "\n| faces | size | terms | full ms | compile s | shade-only ms | jvp×12 ms | vjp ms | HLO lines | DEODR ms | full/DEODR |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         d = r["deodr"]
+        ratio = f"{r['full'] / d:.2f}" if d else "-"
         print(
             f"| {r['faces']} | {r['res']}² | {r['terms']} | {r['full']:.2f} | {r['full_c']:.2f} | {r['shade']:.2f} | "
-            f"{r['jvp']:.2f} | {r['vjp']:.2f} | {r['hlo_lines']} | {'%.2f' % d if d else '-'} | "
-            f"{'%.2f' % (r['full'] / d) if d else '-'} |"
+            f"{r['jvp']:.2f} | {r['vjp']:.2f} | {r['hlo_lines']} | {f'{d:.2f}' if d else '-'} | "
+            f"{ratio} |"
         )
 
 

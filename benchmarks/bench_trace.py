@@ -41,18 +41,58 @@ from diffshade import _rays  # noqa: E402
 
 
 def scene_with(size, subdiv, depth, engine, shadow_rays, capacity=0):
-    d = {"camera": {"eye": [0, 0.8, 3.5], "target": [0, 0, 0], "up": [0, 1, 0], "fov_y": 45, "near": 0.1, "far": 50,
-                    "width": size, "height": size},
-         "render": {"shading": "phong", "specular": "blinn", "fog": "none", "ray_depth": depth, "ray_backend": engine,
-                    "fresnel": "schlick" if depth else "none", "shadow_rays": shadow_rays, "ray_capacity": capacity},
-         "object": [{"icosphere": subdiv, "scale": 0.8,
-                     "material": {"diffuse": 0.05, "specular": 0.5, "shininess": 80, "refraction": 0.9, "mirror": 0.1,
-                                  "ior": 1.5, "absorption": [0.1, 0.2, 0.4]}},
-                    {"quad": [8, 8], "normal": [0, 1, 0], "translate": [0, -0.8, 0], "divisions": 4,
-                     "material": {"diffuse": [0.8, 0.7, 0.5], "specular": 0.0}},
-                    {"quad": [8, 4], "normal": [0, 0, 1], "translate": [0, 1.2, -2.0], "divisions": 4,
-                     "material": {"diffuse": [0.3, 0.5, 0.8], "specular": 0.0}}],
-         "light": [{"type": "point", "position": [2, 3, 3], "attenuation": [1, 0, 0.02]}]}
+    d = {
+        "camera": {
+            "eye": [0, 0.8, 3.5],
+            "target": [0, 0, 0],
+            "up": [0, 1, 0],
+            "fov_y": 45,
+            "near": 0.1,
+            "far": 50,
+            "width": size,
+            "height": size,
+        },
+        "render": {
+            "shading": "phong",
+            "specular": "blinn",
+            "fog": "none",
+            "ray_depth": depth,
+            "ray_backend": engine,
+            "fresnel": "schlick" if depth else "none",
+            "shadow_rays": shadow_rays,
+            "ray_capacity": capacity,
+        },
+        "object": [
+            {
+                "icosphere": subdiv,
+                "scale": 0.8,
+                "material": {
+                    "diffuse": 0.05,
+                    "specular": 0.5,
+                    "shininess": 80,
+                    "refraction": 0.9,
+                    "mirror": 0.1,
+                    "ior": 1.5,
+                    "absorption": [0.1, 0.2, 0.4],
+                },
+            },
+            {
+                "quad": [8, 8],
+                "normal": [0, 1, 0],
+                "translate": [0, -0.8, 0],
+                "divisions": 4,
+                "material": {"diffuse": [0.8, 0.7, 0.5], "specular": 0.0},
+            },
+            {
+                "quad": [8, 4],
+                "normal": [0, 0, 1],
+                "translate": [0, 1.2, -2.0],
+                "divisions": 4,
+                "material": {"diffuse": [0.3, 0.5, 0.8], "specular": 0.0},
+            },
+        ],
+        "light": [{"type": "point", "position": [2, 3, 3], "attenuation": [1, 0, 0.02]}],
+    }
     return ds.scene_from_dict(d)
 
 
@@ -76,9 +116,17 @@ def measure(size, subdiv, depth, engine, shadow_rays, compact=True):
     x0 = jnp.concatenate([mat.diffuse, mat.specular, mat.absorption, mat.refraction[:1], mat.mirror[:1], mat.ior[None]])
 
     def img(x):
-        m = ds.Material(**{**{k: getattr(mat, k) for k in mat.__dataclass_fields__}, "diffuse": x[0:3], "specular": x[3:6],
-                           "absorption": x[6:9], "refraction": jnp.broadcast_to(x[9], (3,)),
-                           "mirror": jnp.broadcast_to(x[10], (3,)), "ior": x[11]})
+        m = ds.Material(
+            **{
+                **{k: getattr(mat, k) for k in mat.__dataclass_fields__},
+                "diffuse": x[0:3],
+                "specular": x[3:6],
+                "absorption": x[6:9],
+                "refraction": jnp.broadcast_to(x[9], (3,)),
+                "mirror": jnp.broadcast_to(x[10], (3,)),
+                "ior": x[11],
+            }
+        )
         sc = ds.Scene(**{**{k: getattr(scene, k) for k in scene.__dataclass_fields__}, "material": m})
         return ds.render(sc, opts, ids)
 
@@ -110,9 +158,11 @@ def mitsuba_times(size, subdiv, depth):
     scene, _ = scene_with(size, subdiv, depth, "auto", False)
     V, F = np.asarray(scene.mesh.vertices, np.float64), np.asarray(scene.mesh.faces)
     mid = np.asarray(scene.mesh.material_ids)
-    bsdfs = [{"type": "dielectric", "int_ior": 1.5, "ext_ior": 1.0},
-             {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.8, 0.7, 0.5]}},
-             {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.3, 0.5, 0.8]}}]
+    bsdfs = [
+        {"type": "dielectric", "int_ior": 1.5, "ext_ior": 1.0},
+        {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.8, 0.7, 0.5]}},
+        {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.3, 0.5, 0.8]}},
+    ]
     tmp = tempfile.mkdtemp()
     shapes = {}
     for m, bsdf in enumerate(bsdfs):
@@ -124,15 +174,28 @@ def mitsuba_times(size, subdiv, depth):
         trimesh.Trimesh(V[used], remap[sel], process=False).export(path)
         shapes[f"s{m}"] = {"type": "ply", "filename": path, "bsdf": bsdf, "face_normals": m != 0}
     cam = scene.camera
-    d = {"type": "scene", "integrator": {"type": "path", "max_depth": depth + 2},
-         "sensor": {"type": "perspective", "fov": float(cam.fov_y), "fov_axis": "y",
-                    "to_world": mi.ScalarTransform4f().look_at(origin=np.asarray(cam.eye).tolist(),
-                                                               target=np.asarray(cam.target).tolist(),
-                                                               up=np.asarray(cam.up).tolist()),
-                    "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"}},
-                    "sampler": {"type": "independent", "sample_count": 1}},
-         "light": {"type": "point", "position": np.asarray(scene.point.position[0]).tolist(),
-                   "intensity": {"type": "rgb", "value": [1.0, 1.0, 1.0]}}, **shapes}
+    d = {
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": depth + 2},
+        "sensor": {
+            "type": "perspective",
+            "fov": float(cam.fov_y),
+            "fov_axis": "y",
+            "to_world": mi.ScalarTransform4f().look_at(
+                origin=np.asarray(cam.eye).tolist(),
+                target=np.asarray(cam.target).tolist(),
+                up=np.asarray(cam.up).tolist(),
+            ),
+            "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"}},
+            "sampler": {"type": "independent", "sample_count": 1},
+        },
+        "light": {
+            "type": "point",
+            "position": np.asarray(scene.point.position[0]).tolist(),
+            "intensity": {"type": "rgb", "value": [1.0, 1.0, 1.0]},
+        },
+        **shapes,
+    }
     s = mi.load_dict(d)
     params = mi.traverse(s)
     key = "s1.bsdf.reflectance.value"
@@ -186,8 +249,12 @@ def engine_times(size, subdiv, repeats=5):
     a = mesh.ray.intersects_first(o, d)
     b = _rays._embree_hits(o, d, 0.0, act, tris)
     agree = float(np.mean(a == b))
-    return med(lambda: mesh.ray.intersects_first(o, d)), med(lambda: _rays._embree_hits(o, d, 0.0, act, tris)), agree, \
-        type(mesh.ray).__module__
+    return (
+        med(lambda: mesh.ray.intersects_first(o, d)),
+        med(lambda: _rays._embree_hits(o, d, 0.0, act, tris)),
+        agree,
+        type(mesh.ray).__module__,
+    )
 
 
 def main():
@@ -199,24 +266,34 @@ def main():
     ap.add_argument("--shadow-rays", action="store_true")
     ap.add_argument("--no-compact", action="store_true", help="trace every pixel's full ray tree (ray_capacity 0)")
     ap.add_argument("--no-mitsuba", action="store_true")
-    ap.add_argument("--engine-only", action="store_true", help="only the ray engine: trimesh's wrapper against the batched query")
+    ap.add_argument(
+        "--engine-only", action="store_true", help="only the ray engine: trimesh's wrapper against the batched query"
+    )
     args = ap.parse_args()
     if _rays.embree_available():
-        print("| faces | rays | trimesh intersects_first ms | batched EmbreeScene.run ms | Mrays/s batched | same ids |")
+        print(
+            "| faces | rays | trimesh intersects_first ms | batched EmbreeScene.run ms | Mrays/s batched | same ids |"
+        )
         print("|---|---|---|---|---|---|")
         for subdiv in args.subdiv:
             for size in args.sizes:
                 tw, tb, agree, mod = engine_times(size, subdiv)
-                print(f"| {20 * 4 ** subdiv} | {size}² | {tw:.1f} | {tb:.1f} | {size * size / tb / 1e3:.2f} | {agree:.4%} |",
-                      flush=True)
+                print(
+                    f"| {20 * 4**subdiv} | {size}² | {tw:.1f} | {tb:.1f} | {size * size / tb / 1e3:.2f} | {agree:.4%} |",
+                    flush=True,
+                )
         print(f"(trimesh's ray backend: {mod})\n")
     if args.engine_only:
         return
     engines = [e for e in args.engines if e != "embree" or _rays.embree_available()]
-    print(f"JAX {jax.__version__} on {jax.devices()[0].device_kind}; shadow rays {'on' if args.shadow_rays else 'off'}; "
-          f"{'full trees' if args.no_compact else 'compacted generations'}\n")
-    print("| faces | size | engine | depth | render ms | Mrays/s | compile s | jvp12 ms | jvp12 compile s "
-          "| Mitsuba ms | Mitsuba fwd+grad ms | render / Mitsuba |")
+    print(
+        f"JAX {jax.__version__} on {jax.devices()[0].device_kind}; shadow rays {'on' if args.shadow_rays else 'off'}; "
+        f"{'full trees' if args.no_compact else 'compacted generations'}\n"
+    )
+    print(
+        "| faces | size | engine | depth | render ms | Mrays/s | compile s | jvp12 ms | jvp12 compile s "
+        "| Mitsuba ms | Mitsuba fwd+grad ms | render / Mitsuba |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for subdiv in args.subdiv:
         for size in args.sizes:
@@ -225,11 +302,16 @@ def main():
                 for engine in engines:
                     m = measure(size, subdiv, depth, engine, args.shadow_rays, compact=not args.no_compact)
                     mrays = m["rays"] / (m["render"] * 1e-3) / 1e6 if depth else float("nan")
-                    mt = (f"{mts['fwd']:.1f} | {mts['fwd_grad']:.1f} | {m['render'] / mts['fwd']:.2f}×" if mts
-                          else "– | – | –")
-                    print(f"| {20 * 4 ** subdiv} | {size}² | {engine if depth else 'raster'} | {depth} | {m['render']:.1f} | "
-                          f"{mrays:.2f} | {m['render_compile']:.2f} | {m['jvp12']:.1f} | {m['jvp12_compile']:.2f} | {mt} |",
-                          flush=True)
+                    mt = (
+                        f"{mts['fwd']:.1f} | {mts['fwd_grad']:.1f} | {m['render'] / mts['fwd']:.2f}×"
+                        if mts
+                        else "– | – | –"
+                    )
+                    print(
+                        f"| {20 * 4**subdiv} | {size}² | {engine if depth else 'raster'} | {depth} | {m['render']:.1f} | "
+                        f"{mrays:.2f} | {m['render_compile']:.2f} | {m['jvp12']:.1f} | {m['jvp12_compile']:.2f} | {mt} |",
+                        flush=True,
+                    )
                     if not depth:
                         break  # the rasterizer alone does not depend on the ray engine
 

@@ -47,11 +47,11 @@ def child(size: int, n: int, devices: int, repeats: int) -> dict:
     sys.path.insert(0, os.path.join(HERE, ".."))
     import diffshade as ds
     from fitting import Observations
-    from fitting.cli import DEMO_FREE
-    from fitting._varpro import compiled_program, limits
-    from fitting._problem import Problem
     from fitting._linear import Reduced
+    from fitting._problem import Problem
     from fitting._starts import candidates
+    from fitting._varpro import compiled_program, limits
+    from fitting.cli import DEMO_FREE
 
     d = dict(ds.DEFAULT_SCENE)
     d["camera"] = dict(d["camera"], width=size, height=size)
@@ -60,8 +60,17 @@ def child(size: int, n: int, devices: int, repeats: int) -> dict:
     for k in range(n):
         a = 2 * np.pi * k / max(n, 1)
         c = scene.camera
-        cam = ds.Camera(eye=[3 * np.sin(a), 0.5 + 0.3 * np.cos(3 * a), 3 * np.cos(a)], target=c.target, up=c.up,
-                        fov_y=c.fov_y, near=c.near, far=c.far, width=size, height=size, exposure=1.0 + 0.01 * k)
+        cam = ds.Camera(
+            eye=[3 * np.sin(a), 0.5 + 0.3 * np.cos(3 * a), 3 * np.cos(a)],
+            target=c.target,
+            up=c.up,
+            fov_y=c.fov_y,
+            near=c.near,
+            far=c.far,
+            width=size,
+            height=size,
+            exposure=1.0 + 0.01 * k,
+        )
         views.append(eqx.tree_at(lambda s: s.camera, scene, cam))
     targets = [np.asarray(ds.render(v, opts)) for v in views]
     base_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -91,17 +100,30 @@ def child(size: int, n: int, devices: int, repeats: int) -> dict:
         (t1, k1), (t6, k6) = run(1), run(6)
         per.append((t6 - t1) / max(k6 - k1, 1))
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
-    return dict(n=n, size=size, devices=len(prob.devices), ms=1e3 * statistics.median(per), compile_s=compile_s,
-                peak_mib=peak / 1024, before_mib=base_rss / 1024, stacked=prob.stacked,
-                pixels=int(sum(len(b.rows) for b in prob.views)), platform=devs[0].platform)
+    return dict(
+        n=n,
+        size=size,
+        devices=len(prob.devices),
+        ms=1e3 * statistics.median(per),
+        compile_s=compile_s,
+        peak_mib=peak / 1024,
+        before_mib=base_rss / 1024,
+        stacked=prob.stacked,
+        pixels=int(sum(len(b.rows) for b in prob.views)),
+        platform=devs[0].platform,
+    )
 
 
 def run_child(size, n, devices, repeats):
     env = dict(os.environ)
     if devices > 1:
         env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={devices}").strip()
-    out = subprocess.run([sys.executable, __file__, "--child", f"{size},{n},{devices},{repeats}"],
-                         capture_output=True, text=True, env=env)
+    out = subprocess.run(
+        [sys.executable, __file__, "--child", f"{size},{n},{devices},{repeats}"],
+        capture_output=True,
+        text=True,
+        env=env,
+    )
     if out.returncode:
         raise SystemExit(out.stderr[-3000:])
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -129,20 +151,29 @@ def main():
     if args.scaling:
         size = args.size or 256
         head = f"{'views':>5s} {'devices':>7s} {'covered px':>10s} {'ms/step':>8s} {'speed-up':>8s} {'compile s':>9s}"
-        for kind, counts in (("strong", [(args.views, d) for d in args.devices]),
-                             ("weak", [(args.per_device * d, d) for d in args.devices])):
-            print(f"\n{kind} scaling: {size}² views, the demo's 13 parameters; ms per "
-                  "variable-projection LM step (median of the differences of 6- and 1-step runs)")
+        for kind, counts in (
+            ("strong", [(args.views, d) for d in args.devices]),
+            ("weak", [(args.per_device * d, d) for d in args.devices]),
+        ):
+            print(
+                f"\n{kind} scaling: {size}² views, the demo's 13 parameters; ms per "
+                "variable-projection LM step (median of the differences of 6- and 1-step runs)"
+            )
             print(head)
             base = None
             for n, dv in counts:
                 r = run_child(size, n, dv, args.repeats)
                 base = base or r["ms"]
                 gain = base / r["ms"] if kind == "strong" else base / r["ms"] * 1.0
-                print(f"{n:5d} {r['devices']:7d} {r['pixels']:10d} {r['ms']:8.1f} {gain:8.2f} {r['compile_s']:9.1f}"
-                      f"   ({r['platform']})")
-            print("(speed-up: the one-device time over this one; weak scaling is ideal at 1.00)" if kind == "weak"
-                  else "(speed-up: the one-device time over this one; ideal: the device count)")
+                print(
+                    f"{n:5d} {r['devices']:7d} {r['pixels']:10d} {r['ms']:8.1f} {gain:8.2f} {r['compile_s']:9.1f}"
+                    f"   ({r['platform']})"
+                )
+            print(
+                "(speed-up: the one-device time over this one; weak scaling is ideal at 1.00)"
+                if kind == "weak"
+                else "(speed-up: the one-device time over this one; ideal: the device count)"
+            )
     if args.memory:
         import numpy as np
 
@@ -156,8 +187,10 @@ def main():
         m = np.array([r["peak_mib"] for r in rows])
         slope, icpt = np.polyfit(n, m, 1)
         fit_n = int((args.budget_gib * 1024 - icpt) // max(slope, 1e-9))
-        print(f"{slope:.1f} MiB per {size}² view (+ {icpt:.0f} MiB); {args.budget_gib:g} GiB hold about {fit_n} such "
-              "views in one process")
+        print(
+            f"{slope:.1f} MiB per {size}² view (+ {icpt:.0f} MiB); {args.budget_gib:g} GiB hold about {fit_n} such "
+            "views in one process"
+        )
 
 
 if __name__ == "__main__":

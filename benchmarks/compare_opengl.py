@@ -51,8 +51,11 @@ def main():
             scene, opts = change(scene, opts)
             m = GL.compare(*T._diffshade(scene, opts), ref, ref_cov)
             c = scene.camera
-            print(f"| {name}{suffix} | {c.width}×{c.height} | {m['median']:.1e} | {m['p99']:.1e} | {m['max']:.1e} | "
-                  f"{100 * m['coverage']:.2f} % |", flush=True)
+            print(
+                f"| {name}{suffix} | {c.width}×{c.height} | {m['median']:.1e} | {m['p99']:.1e} | {m['max']:.1e} | "
+                f"{100 * m['coverage']:.2f} % |",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

@@ -91,7 +91,9 @@ def _edge_table(clip, faces, adjacency, h, w):
     ny = [Y[k] / jnp.where(ok_w[k], W[k], 1.0) * (h / 2) for k in range(3)]
     for i in range(3):
         a, b = (i + 1) % 3, (i + 2) % 3
-        coef.append((sgn * (X[a] * Y[b] - X[b] * Y[a]), sgn * (W[b] * Y[a] - W[a] * Y[b]), sgn * (X[b] * W[a] - X[a] * W[b])))
+        coef.append(
+            (sgn * (X[a] * Y[b] - X[b] * Y[a]), sgn * (W[b] * Y[a] - W[a] * Y[b]), sgn * (X[b] * W[a] - X[a] * W[b]))
+        )
         ok = ok_w[a] & ok_w[b]
         dx, dy = jnp.abs(nx[b] - nx[a]), jnp.abs(ny[b] - ny[a])
         across[0].append(ok & (dy >= dx))
@@ -108,10 +110,18 @@ def _edge_table(clip, faces, adjacency, h, w):
 HOPS = 4  # triangles a pixel pair's segment is followed through before its silhouette
 
 
-def silhouette_edges(tri: Int[Array, " N"], depth: Float[Array, " N"], clip: Float[Array, "V 4"],
-                     faces: Int[Array, "F 3"], adjacency: Int[Array, "F 3"], x: Float[Array, " N"],
-                     y: Float[Array, " N"], right: Int[Array, " N"], down: Int[Array, " N"],
-                     resolution: tuple[int, int]) -> Int[Array, "2 2 N"]:
+def silhouette_edges(
+    tri: Int[Array, " N"],
+    depth: Float[Array, " N"],
+    clip: Float[Array, "V 4"],
+    faces: Int[Array, "F 3"],
+    adjacency: Int[Array, "F 3"],
+    x: Float[Array, " N"],
+    y: Float[Array, " N"],
+    right: Int[Array, " N"],
+    down: Int[Array, " N"],
+    resolution: tuple[int, int],
+) -> Int[Array, "2 2 N"]:
     """The discrete half of :func:`antialias`: for each pixel's pair with its right and its lower
     neighbour, the silhouette edge the walk ends at, as ``[2, 2, N]`` int32: ``[axis, 0]`` the
     edge's row (``face * 3 + edge``, -1: no blend) and ``[axis, 1]`` 1 where this pixel is the
@@ -209,10 +219,20 @@ def blend(img, clip, faces, adjacency, x, y, right, down, edges, resolution):
     return img + jnp.stack(delta, axis=-1)
 
 
-def antialias(img: Float[Array, "N 3"], tri: Int[Array, " N"], depth: Float[Array, " N"], clip: Float[Array, "V 4"],
-              faces: Int[Array, "F 3"], adjacency: Int[Array, "F 3"], x: Float[Array, " N"], y: Float[Array, " N"],
-              right: Int[Array, " N"], down: Int[Array, " N"], resolution: tuple[int, int],
-              edges: Int[Array, "2 2 N"] | None = None) -> Float[Array, "N 3"]:
+def antialias(
+    img: Float[Array, "N 3"],
+    tri: Int[Array, " N"],
+    depth: Float[Array, " N"],
+    clip: Float[Array, "V 4"],
+    faces: Int[Array, "F 3"],
+    adjacency: Int[Array, "F 3"],
+    x: Float[Array, " N"],
+    y: Float[Array, " N"],
+    right: Int[Array, " N"],
+    down: Int[Array, " N"],
+    resolution: tuple[int, int],
+    edges: Int[Array, "2 2 N"] | None = None,
+) -> Float[Array, "N 3"]:
     """The antialiased image (see the module docstring); every argument flat over the pixels.
 
     ``img`` ``[N, 3]`` the shaded image; ``tri`` ``[N]`` the nearest layer's triangle ids (-1:

@@ -194,9 +194,21 @@ class OpenCVCamera(_Pinhole):
             raise ValueError(f"OpenCVCamera image size must be positive integers, got {self.width}x{self.height}")
 
     @classmethod
-    def from_opencv(cls, K, R=None, t=None, *, rvec=None, tvec=None, width: int, height: int,
-                    near: float = 0.1, far: float = 100.0, distortion=(0.0, 0.0, 0.0, 0.0, 0.0),
-                    **gain) -> "OpenCVCamera":
+    def from_opencv(
+        cls,
+        K,
+        R=None,
+        t=None,
+        *,
+        rvec=None,
+        tvec=None,
+        width: int,
+        height: int,
+        near: float = 0.1,
+        far: float = 100.0,
+        distortion=(0.0, 0.0, 0.0, 0.0, 0.0),
+        **gain,
+    ) -> "OpenCVCamera":
         """From OpenCV's calibration: ``K`` (3×3, no skew), the pose as ``R`` (3×3) and ``t`` or as
         ``rvec`` and ``tvec``, and the distortion coefficients. Host-side checks name what is
         wrong; ``gain``: ``exposure``, ``white_balance``."""
@@ -227,10 +239,24 @@ class OpenCVCamera(_Pinhole):
             raise ValueError(f"need 0 < near < far, got near {near}, far {far}")
         dist = np.asarray(distortion, np.float64).reshape(-1)
         if dist.size not in (4, 5, 8) or not np.isfinite(dist).all():
-            raise ValueError(f"distortion: OpenCV's 4, 5 or 8 finite coefficients (k1, k2, p1, p2[, k3[, k4, k5, "
-                             f"k6]]), got {dist.tolist()}")
-        return cls(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], rvec=rvec, tvec=t, width=int(width),
-                   height=int(height), near=near, far=far, distortion=dist, **gain)
+            raise ValueError(
+                f"distortion: OpenCV's 4, 5 or 8 finite coefficients (k1, k2, p1, p2[, k3[, k4, k5, "
+                f"k6]]), got {dist.tolist()}"
+            )
+        return cls(
+            fx=K[0, 0],
+            fy=K[1, 1],
+            cx=K[0, 2],
+            cy=K[1, 2],
+            rvec=rvec,
+            tvec=t,
+            width=int(width),
+            height=int(height),
+            near=near,
+            far=far,
+            distortion=dist,
+            **gain,
+        )
 
     def rotation(self) -> Float[Array, "3 3"]:
         """OpenCV's ``R`` (world → camera frame)."""
@@ -278,12 +304,12 @@ def distort_points(x, y, dist):
     k1, k2, p1, p2, k3, k4, k5, k6 = np.r_[np.asarray(dist, np.float64), np.zeros(8 - len(dist))]
     r2 = x * x + y * y
     rho = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
-    return (x * rho + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
-            y * rho + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)
+    return (x * rho + 2 * p1 * x * y + p2 * (r2 + 2 * x * x), y * rho + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)
 
 
-def undistort(image: ArrayLike, K: ArrayLike, dist: ArrayLike, *, order: int = 1,
-              saturation: float | None = None) -> np.ndarray:
+def undistort(
+    image: ArrayLike, K: ArrayLike, dist: ArrayLike, *, order: int = 1, saturation: float | None = None
+) -> np.ndarray:
     """A photograph as the ideal pinhole camera ``K`` would have taken it (OpenCV's ``undistort``
     with the same ``K``): each output pixel's centre is carried through the lens model
     (:func:`distort_points`) to where the lens put it, and the photograph is sampled there
@@ -299,8 +325,10 @@ def undistort(image: ArrayLike, K: ArrayLike, dist: ArrayLike, *, order: int = 1
     img = np.asarray(image, np.float64)
     dist = np.asarray(dist, np.float64).reshape(-1)
     if dist.size not in (4, 5, 8) or not np.isfinite(dist).all():
-        raise ValueError(f"distortion: OpenCV's 4, 5 or 8 finite coefficients (k1, k2, p1, p2[, k3[, k4, k5, k6]]), "
-                         f"got {dist.tolist()}")
+        raise ValueError(
+            f"distortion: OpenCV's 4, 5 or 8 finite coefficients (k1, k2, p1, p2[, k3[, k4, k5, k6]]), "
+            f"got {dist.tolist()}"
+        )
     K = np.asarray(K, np.float64)
     h, w = img.shape[:2]
     v, u = np.mgrid[0:h, 0:w].astype(np.float64)
@@ -312,8 +340,13 @@ def undistort(image: ArrayLike, K: ArrayLike, dist: ArrayLike, *, order: int = 1
     out = np.stack([warp(chans[..., c], coords, order=order, mode="edge") for c in range(chans.shape[-1])], -1)
     if saturation is not None:
         for code in (saturation, 0.0):
-            hit = np.stack([warp((chans[..., c] == code).astype(np.float64), coords, order=order, mode="edge") > 0
-                            for c in range(chans.shape[-1])], -1)
+            hit = np.stack(
+                [
+                    warp((chans[..., c] == code).astype(np.float64), coords, order=order, mode="edge") > 0
+                    for c in range(chans.shape[-1])
+                ],
+                -1,
+            )
             out = np.where(hit, code, out)
     out = np.where(valid[..., None], out, 0.0)
     return (out[..., 0] if img.ndim == 2 else out), valid

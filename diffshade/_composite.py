@@ -17,9 +17,15 @@ from ._scene import Scene
 from ._surface import Components, Surface
 
 
-def composite(scene: Scene, surface: Surface, color: Components, fog: FogModel | None = None,
-              transparency: Transparency | None = None, output: Output = Output(),
-              pixels: tuple | None = None) -> Float[Array, "H W 3"]:
+def composite(
+    scene: Scene,
+    surface: Surface,
+    color: Components,
+    fog: FogModel | None = None,
+    transparency: Transparency | None = None,
+    output: Output = Output(),
+    pixels: tuple | None = None,
+) -> Float[Array, "H W 3"]:
     """The image from the lit colour at the pixels (``[K, H, W]`` component tuple): clamped and
     fogged (:func:`fog_and_clamp`), the layers composited front to back over the background
     (with ``transparency``; else the nearest layer over it), times the camera's gain (exposure
@@ -96,9 +102,11 @@ def _antialiased(img, mesh, clip, frags, pixels, resolution):
         try:
             faces = np.asarray(mesh.faces)
         except jax.errors.TracerArrayConversionError:
-            raise ValueError("Output.antialias needs the mesh's face adjacency, and the faces are traced here "
-                             "(inside jax.jit): give the scene a mesh with it, scene.mesh.with_adjacency(), "
-                             "before jit") from None
+            raise ValueError(
+                "Output.antialias needs the mesh's face adjacency, and the faces are traced here "
+                "(inside jax.jit): give the scene a mesh with it, scene.mesh.with_adjacency(), "
+                "before jit"
+            ) from None
         adj = jnp.asarray(face_adjacency(faces))
     edges = None
     if pixels is None:
@@ -109,12 +117,26 @@ def _antialiased(img, mesh, clip, frags, pixels, resolution):
         right, down = (jnp.asarray(a) for a in pixel_neighbours(np.arange(h * w), h, w))
     else:
         if len(pixels) not in (4, 5):
-            raise ValueError("Output.antialias on a pixel subset needs each pixel's right and lower "
-                             "neighbour: pixels=(x, y, right, down) (and optionally the silhouette edges held fixed)")
+            raise ValueError(
+                "Output.antialias on a pixel subset needs each pixel's right and lower "
+                "neighbour: pixels=(x, y, right, down) (and optionally the silhouette edges held fixed)"
+            )
         x, y, right, down = (jnp.asarray(a).reshape(-1) for a in pixels[:4])
         x, y = x.astype(img.dtype), y.astype(img.dtype)
         if len(pixels) == 5:
             edges = jnp.asarray(pixels[4]).reshape(2, 2, -1)
-    out = antialias(img.reshape(-1, 3), frags.tri_id[0].reshape(-1), frags.w[0].reshape(-1), clip, mesh.faces, adj,
-                    x, y, right, down, resolution, edges)
+    out = antialias(
+        img.reshape(-1, 3),
+        frags.tri_id[0].reshape(-1),
+        frags.w[0].reshape(-1),
+        clip,
+        mesh.faces,
+        adj,
+        x,
+        y,
+        right,
+        down,
+        resolution,
+        edges,
+    )
     return out.reshape(img.shape)

@@ -127,8 +127,14 @@ class _V:
         x = d[key]
         if scalar_ok and isinstance(x, (int, float)) and not isinstance(x, bool):
             x = [x] * n
-        if not isinstance(x, list) or len(x) != n or any(isinstance(e, bool) or not isinstance(e, (int, float)) for e in x):
-            self.fail(f"{where}.{key}", f"must be a list of {n} numbers{' (or one number)' if scalar_ok else ''}, got {x!r}")
+        if (
+            not isinstance(x, list)
+            or len(x) != n
+            or any(isinstance(e, bool) or not isinstance(e, (int, float)) for e in x)
+        ):
+            self.fail(
+                f"{where}.{key}", f"must be a list of {n} numbers{' (or one number)' if scalar_ok else ''}, got {x!r}"
+            )
         a = np.asarray(x, dtype=np.float64)
         if not np.isfinite(a).all():
             self.fail(f"{where}.{key}", f"must be finite, got {x!r}")
@@ -168,7 +174,10 @@ def _options(v: _V, r: dict) -> RenderOptions:
     v.unknown(r, (*defaults, "compat", "back_material"), "render")
     compat = r.get("compat", "diffshade")
     if compat not in ("diffshade", "opengl"):
-        v.fail("render.compat", f"must be 'diffshade' (the defaults) or 'opengl' (OpenGL's fixed-function choices), got {compat!r}")
+        v.fail(
+            "render.compat",
+            f"must be 'diffshade' (the defaults) or 'opengl' (OpenGL's fixed-function choices), got {compat!r}",
+        )
     kw = {}
     for k, x in r.items():
         if k == "compat":
@@ -196,8 +205,24 @@ def _options(v: _V, r: dict) -> RenderOptions:
 def _material(v: _V, m: dict, where: str, gl: bool = False) -> Material:
     """A material table; with ``gl`` (``render.compat = "opengl"``) the values left out are
     OpenGL's defaults, and shininess 0 is allowed (as in ``glMaterial``)."""
-    keys = ("emission", "ambient", "diffuse", "specular", "shininess", "ior", "opacity", "kay", "kay_min", "kay_max",
-            "kay_power", "transmission", "absorption", "mirror", "refraction", "casts_shadow")
+    keys = (
+        "emission",
+        "ambient",
+        "diffuse",
+        "specular",
+        "shininess",
+        "ior",
+        "opacity",
+        "kay",
+        "kay_min",
+        "kay_max",
+        "kay_power",
+        "transmission",
+        "absorption",
+        "mirror",
+        "refraction",
+        "casts_shadow",
+    )
     v.unknown(m, keys, where)
     d = Material.opengl() if gl else Material()
     flags = {}
@@ -213,7 +238,9 @@ def _material(v: _V, m: dict, where: str, gl: bool = False) -> Material:
         kay_min=v.num(m, "kay_min", where, default=float(d.kay_min), lo=0.0, hi=1.0),
         kay_max=v.num(m, "kay_max", where, default=float(d.kay_max), lo=0.0, hi=1.0),
         kay_power=v.num(m, "kay_power", where, default=float(d.kay_power), lo=0.0, lo_open=True),
-        transmission=v.vec(m, "transmission", where, default=np.asarray(d.transmission), lo=0.0, hi=1.0, scalar_ok=True),
+        transmission=v.vec(
+            m, "transmission", where, default=np.asarray(d.transmission), lo=0.0, hi=1.0, scalar_ok=True
+        ),
         absorption=v.vec(m, "absorption", where, default=np.asarray(d.absorption), lo=0.0, scalar_ok=True),
         mirror=v.vec(m, "mirror", where, default=np.asarray(d.mirror), lo=0.0, hi=1.0, scalar_ok=True),
         refraction=v.vec(m, "refraction", where, default=np.asarray(d.refraction), lo=0.0, hi=1.0, scalar_ok=True),
@@ -307,18 +334,53 @@ def _stack_lights(groups: dict, specular: dict):
         return np.stack([given.get(i, r[0]) for i, r in enumerate(groups[kind])]) if given else None
 
     g = groups["directional"]
-    directional = (DirectionalLights(color=stack(g, 0), direction=stack(g, 1), ambient=stack(g, 2),
-                                     specular=spec("directional")) if g else no_directional())
+    directional = (
+        DirectionalLights(color=stack(g, 0), direction=stack(g, 1), ambient=stack(g, 2), specular=spec("directional"))
+        if g
+        else no_directional()
+    )
     g = groups["point"]
-    point = (PointLights(color=stack(g, 0), position=stack(g, 1), attenuation=stack(g, 2), ambient=stack(g, 3),
-                         specular=spec("point")) if g else no_point())
+    point = (
+        PointLights(
+            color=stack(g, 0),
+            position=stack(g, 1),
+            attenuation=stack(g, 2),
+            ambient=stack(g, 3),
+            specular=spec("point"),
+        )
+        if g
+        else no_point()
+    )
     g = groups["spot"]
-    spot = (SpotLights(color=stack(g, 0), position=stack(g, 1), attenuation=stack(g, 2), ambient=stack(g, 3),
-                       axis=stack(g, 4), cutoff=np.array([r[5] for r in g]), exponent=np.array([r[6] for r in g]),
-                       edge=np.array([r[7] for r in g]), specular=spec("spot")) if g else no_spot())
+    spot = (
+        SpotLights(
+            color=stack(g, 0),
+            position=stack(g, 1),
+            attenuation=stack(g, 2),
+            ambient=stack(g, 3),
+            axis=stack(g, 4),
+            cutoff=np.array([r[5] for r in g]),
+            exponent=np.array([r[6] for r in g]),
+            edge=np.array([r[7] for r in g]),
+            specular=spec("spot"),
+        )
+        if g
+        else no_spot()
+    )
     g = groups["area"]
-    area = (AreaLights(color=stack(g, 0), position=stack(g, 1), attenuation=stack(g, 2), ambient=stack(g, 3),
-                       normal=stack(g, 4), up=stack(g, 5), size=np.stack([r[6] for r in g])) if g else no_area())
+    area = (
+        AreaLights(
+            color=stack(g, 0),
+            position=stack(g, 1),
+            attenuation=stack(g, 2),
+            ambient=stack(g, 3),
+            normal=stack(g, 4),
+            up=stack(g, 5),
+            size=np.stack([r[6] for r in g]),
+        )
+        if g
+        else no_area()
+    )
     g = groups["multi_lobe"]
     if not g:
         return directional, point, spot, area, no_multi_lobe()
@@ -326,8 +388,16 @@ def _stack_lights(groups: dict, specular: dict):
     dark = (np.zeros(3), np.zeros(3), np.array([0.0, 0.0, -1.0]), 90.0, 0.0, 0.0)  # padding: emits nothing
     lob = [r[2] + [dark] * (L - len(r[2])) for r in g]
     field = lambda k: np.array([[b[k] for b in row] for row in lob])  # noqa: E731
-    multi = MultiLobeLights(position=stack(g, 0), attenuation=stack(g, 1), color=field(0), ambient=field(1),
-                            axis=field(2), cutoff=field(3), exponent=field(4), edge=field(5))
+    multi = MultiLobeLights(
+        position=stack(g, 0),
+        attenuation=stack(g, 1),
+        color=field(0),
+        ambient=field(1),
+        axis=field(2),
+        cutoff=field(3),
+        exponent=field(4),
+        edge=field(5),
+    )
     return directional, point, spot, area, multi
 
 
@@ -353,11 +423,18 @@ def _mesh(v: _V, m: dict, where: str, base: Path | None) -> Mesh:
     v.unknown(m, _MESH_KEYS, where)
     kinds = [k for k in ("path", "icosphere", "box", "quad") if k in m]
     if len(kinds) != 1:
-        v.fail(where, "give exactly one of 'path' (a mesh file), 'icosphere' (subdivisions), 'box' (extents) or "
-                      "'quad' (size)")
+        v.fail(
+            where,
+            "give exactly one of 'path' (a mesh file), 'icosphere' (subdivisions), 'box' (extents) or 'quad' (size)",
+        )
     kind = kinds[0]
-    for k, owner in (("radius", "icosphere"), ("normal", "quad"), ("divisions", "quad"), ("vertices", "path"),
-                     ("colors", "path")):
+    for k, owner in (
+        ("radius", "icosphere"),
+        ("normal", "quad"),
+        ("divisions", "quad"),
+        ("vertices", "path"),
+        ("colors", "path"),
+    ):
         if k in m and kind != owner:
             v.fail(f"{where}.{k}", f"only applies to '{owner}'")
     if kind == "path":
@@ -368,8 +445,11 @@ def _mesh(v: _V, m: dict, where: str, base: Path | None) -> Mesh:
             p = base / p
         mode = m.get("vertices", "authored")
         if mode not in VERTEX_MODES:
-            v.fail(f"{where}.vertices", f"must be 'authored' (the file's vertices and normals, the default) or 'merged' "
-                                        f"(vertices merged by position, smooth normals computed), got {mode!r}")
+            v.fail(
+                f"{where}.vertices",
+                f"must be 'authored' (the file's vertices and normals, the default) or 'merged' "
+                f"(vertices merged by position, smooth normals computed), got {mode!r}",
+            )
         cmode = m.get("colors", "srgb")
         if cmode not in COLOR_MODES:
             v.fail(f"{where}.colors", f"how the file's vertex colours are encoded: one of {COLOR_MODES}, got {cmode!r}")
@@ -399,14 +479,32 @@ def _mesh(v: _V, m: dict, where: str, base: Path | None) -> Mesh:
 def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None = None) -> tuple[Scene, RenderOptions]:
     """Build and validate a scene from a dictionary (the parsed TOML)."""
     v = _V(source)
-    v.unknown(d, ("mesh", "camera", "render", "material", "back_material", "light", "fog", "ambient_light", "background",
-                  "object", "shadow"), "scene")
+    v.unknown(
+        d,
+        (
+            "mesh",
+            "camera",
+            "render",
+            "material",
+            "back_material",
+            "light",
+            "fog",
+            "ambient_light",
+            "background",
+            "object",
+            "shadow",
+        ),
+        "scene",
+    )
     opts = _options(v, v.table(d, "render"))
     gl = v.table(d, "render").get("compat") == "opengl"
     mesh, materials = _objects(v, d, base, gl)
     if opts.raster.vertex_color != "none" and mesh.colors is None:
-        v.fail("render.vertex_color", f"is {opts.raster.vertex_color!r} but the mesh has no vertex colours (a PLY "
-                                      "with red green blue, an OBJ with v x y z r g b)")
+        v.fail(
+            "render.vertex_color",
+            f"is {opts.raster.vertex_color!r} but the mesh has no vertex colours (a PLY "
+            "with red green blue, an OBJ with v x y z r g b)",
+        )
     camera = _camera(v, v.table(d, "camera", required=True), "camera")
     back = _material(v, d["back_material"], "back_material", gl) if "back_material" in d else None
     if back is not None and len(materials) > 1:
@@ -424,9 +522,20 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
     if opts.output.antialias:
         mesh = mesh.with_adjacency()  # the silhouette edges' topology, while the faces are concrete
     scene = Scene(
-        mesh=mesh, camera=camera, material=materials[0], back_material=back, directional=directional, point=point,
-        spot=spot, area=area, multi_lobe=multi, ambient_light=ambient, background=background, fog=fog,
-        materials=materials[1:], **{f"shadow_{k}": v.num(sh, k, "shadow", lo=0.0) for k in sh},  # absent: defaults
+        mesh=mesh,
+        camera=camera,
+        material=materials[0],
+        back_material=back,
+        directional=directional,
+        point=point,
+        spot=spot,
+        area=area,
+        multi_lobe=multi,
+        ambient_light=ambient,
+        background=background,
+        fog=fog,
+        materials=materials[1:],
+        **{f"shadow_{k}": v.num(sh, k, "shadow", lo=0.0) for k in sh},  # absent: defaults
     )
     return scene, opts
 
@@ -439,8 +548,12 @@ def _objects(v: _V, d: dict, base: Path | None, gl: bool) -> tuple[Mesh, tuple[M
         v.fail("object", "must be an array of tables ([[object]])")
     parts = []
     if "mesh" in d or not objects:
-        parts.append((_mesh(v, v.table(d, "mesh", required=True), "mesh", base),
-                      _material(v, v.table(d, "material"), "material", gl)))
+        parts.append(
+            (
+                _mesh(v, v.table(d, "mesh", required=True), "mesh", base),
+                _material(v, v.table(d, "material"), "material", gl),
+            )
+        )
     elif "material" in d:
         v.fail("material", "with [[object]] and no [mesh], give each object its own [object.material]")
     for i, o in enumerate(objects):
@@ -455,8 +568,12 @@ def _objects(v: _V, d: dict, base: Path | None, gl: bool) -> tuple[Mesh, tuple[M
         if not isinstance(mo, dict):
             v.fail(f"{w}.material", "must be a table")
         nrm = None if m.normals is None else np.asarray(m.normals) / scale  # normals transform by the inverse
-        parts.append((Mesh(vertices=np.asarray(m.vertices) * scale + shift, faces=m.faces, normals=nrm, colors=m.colors),
-                      _material(v, mo, f"{w}.material", gl)))
+        parts.append(
+            (
+                Mesh(vertices=np.asarray(m.vertices) * scale + shift, faces=m.faces, normals=nrm, colors=m.colors),
+                _material(v, mo, f"{w}.material", gl),
+            )
+        )
     try:
         mesh = parts[0][0] if len(parts) == 1 else combine(*(p[0] for p in parts))
     except ValueError as exc:
@@ -513,8 +630,10 @@ def _camera(v: _V, c: dict, w: str):
         if isinstance(x, bool) or not isinstance(x, int) or not 1 <= x <= 8192:
             v.fail(f"{w}.{k}", f"must be an integer in [1, 8192], got {x!r}")
         size[k] = x
-    gain = dict(exposure=v.num(c, "exposure", w, default=1.0, lo=0.0, lo_open=True),
-                white_balance=v.vec(c, "white_balance", w, default=[1.0, 1.0, 1.0], scalar_ok=True))
+    gain = dict(
+        exposure=v.num(c, "exposure", w, default=1.0, lo=0.0, lo_open=True),
+        white_balance=v.vec(c, "white_balance", w, default=[1.0, 1.0, 1.0], scalar_ok=True),
+    )
     if (gain["white_balance"] <= 0).any():
         v.fail(f"{w}.white_balance", f"gains must be > 0, got {gain['white_balance'].tolist()}")
     if model == "opencv":
@@ -537,8 +656,10 @@ def _camera(v: _V, c: dict, w: str):
         if "distortion" in c:
             x = c["distortion"]
             if not isinstance(x, list) or len(x) not in (4, 5, 8):
-                v.fail(f"{w}.distortion", f"must be OpenCV's 4, 5 or 8 coefficients (k1, k2, p1, p2[, k3[, k4, k5, "
-                       f"k6]]), got {x!r}")
+                v.fail(
+                    f"{w}.distortion",
+                    f"must be OpenCV's 4, 5 or 8 coefficients (k1, k2, p1, p2[, k3[, k4, k5, k6]]), got {x!r}",
+                )
             dist = v.vec(c, "distortion", w, n=len(x))
         try:
             return OpenCVCamera.from_opencv(K, t=t, near=near, far=far, distortion=dist, **rot, **size, **gain)
@@ -582,7 +703,6 @@ def load_camera(path: str | Path) -> Camera | OpenCVCamera:
     return _camera(v, d.get("camera", d) if isinstance(d.get("camera"), dict) else d, "camera")
 
 
-
 def load_scene(path: str | Path) -> tuple[Scene, RenderOptions]:
     """Load and validate a TOML scene file; returns ``(scene, options)``."""
     path = Path(path)
@@ -600,11 +720,23 @@ def load_scene(path: str | Path) -> tuple[Scene, RenderOptions]:
 
 DEFAULT_SCENE: dict[str, Any] = {
     "mesh": {"icosphere": 4},
-    "camera": {"eye": [0.0, 0.0, 3.0], "target": [0.0, 0.0, 0.0], "up": [0.0, 1.0, 0.0], "fov_y": 45.0,
-               "near": 0.5, "far": 10.0, "width": 256, "height": 256},
+    "camera": {
+        "eye": [0.0, 0.0, 3.0],
+        "target": [0.0, 0.0, 0.0],
+        "up": [0.0, 1.0, 0.0],
+        "fov_y": 45.0,
+        "near": 0.5,
+        "far": 10.0,
+        "width": 256,
+        "height": 256,
+    },
     "render": {"shading": "phong", "specular": "phong", "fog": "exp"},
-    "material": {"ambient": [0.15, 0.12, 0.1], "diffuse": [0.75, 0.35, 0.25], "specular": [0.5, 0.5, 0.5],
-                 "shininess": 30.0},
+    "material": {
+        "ambient": [0.15, 0.12, 0.1],
+        "diffuse": [0.75, 0.35, 0.25],
+        "specular": [0.5, 0.5, 0.5],
+        "shininess": 30.0,
+    },
     "light": [
         {"type": "point", "color": [1.0, 1.0, 1.0], "position": [2.0, 2.0, 3.0], "attenuation": [1.0, 0.05, 0.02]},
         {"type": "directional", "color": [0.3, 0.3, 0.35], "direction": [1.0, -0.5, -1.0]},

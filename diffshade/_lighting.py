@@ -62,8 +62,9 @@ def _terms(n, v, l, att, color, amb, spec_color, mat: Material, lt: Lighting, ba
     # the shared scalar factors materialised once per point, not per channel
     factors = [x for x in (att, dif, spec, trans) if x is not None and not isinstance(x, float)]
     kept = iter(_keep(*factors)) if factors else iter(())
-    att, dif, spec, trans = (next(kept) if x is not None and not isinstance(x, float) else x
-                             for x in (att, dif, spec, trans))
+    att, dif, spec, trans = (
+        next(kept) if x is not None and not isinstance(x, float) else x for x in (att, dif, spec, trans)
+    )
     acc = [0.0, 0.0, 0.0]  # terms lit by the diffuse colour
     if dif is not None:
         acc = [acc[c] + kd[c] * dif for c in range(3)]
@@ -121,8 +122,18 @@ def light_kinds(scene: Scene, lt: Lighting):
     return [(k, lights) for k, lights in kinds if lights.count]
 
 
-def _light_sum(P, n, v, mat: Material, scene: Scene, lt: Lighting, back: bool = False,
-               shadow: LightVisibility | None = None, post=None, separate: bool = False):
+def _light_sum(
+    P,
+    n,
+    v,
+    mat: Material,
+    scene: Scene,
+    lt: Lighting,
+    back: bool = False,
+    shadow: LightVisibility | None = None,
+    post=None,
+    separate: bool = False,
+):
     """Over every light (directional, point, spot, multi-lobe, area emitters), the sum of the
     attenuated direct terms (diffuse, specular, transmission) and the sum of the per-light ambient
     terms at points ``P`` with unit normals ``n`` (component tuples), as two colour tuples (the
@@ -183,8 +194,13 @@ def area_emitters(area, grid) -> _Emitters:
     off_v = sv[None, None, :, None] * (area.size[:, 1, None] * v_ax)[:, None, None, :]
     pos = (area.position[:, None, None, :] + off_u + off_v).reshape(-1, 3)
     rep = lambda a: jnp.repeat(a, n * m, axis=0)  # noqa: E731
-    return _Emitters(color=rep(area.color) / (n * m), position=pos, normal=rep(nrm),
-                     attenuation=rep(area.attenuation), ambient=rep(area.ambient) / (n * m))
+    return _Emitters(
+        color=rep(area.color) / (n * m),
+        position=pos,
+        normal=rep(nrm),
+        attenuation=rep(area.attenuation),
+        ambient=rep(area.ambient) / (n * m),
+    )
 
 
 # Up to this many lights of a kind are unrolled into the program; more are evaluated by a scan over
@@ -218,8 +234,19 @@ def _sum(cols, width: int = 3):
     return acc if acc is not None else [0.0] * width
 
 
-def shade_points(P, n, eye, mat: Material, scene: Scene, lighting: Lighting, back: bool = False,
-                 shadow: LightVisibility | None = None, post=None, view=None, separate: bool = False):
+def shade_points(
+    P,
+    n,
+    eye,
+    mat: Material,
+    scene: Scene,
+    lighting: Lighting,
+    back: bool = False,
+    shadow: LightVisibility | None = None,
+    post=None,
+    view=None,
+    separate: bool = False,
+):
     """Unfogged colour (tuple of 3 arrays) of surface points ``P`` with unit normals ``n``
     (component tuples) seen from ``eye``. ``shadow`` (:math:`S_i` per light) multiplies each
     light's direct terms. With ``post`` (a map of one light's direct terms to other points,
@@ -251,8 +278,13 @@ def shade_points(P, n, eye, mat: Material, scene: Scene, lighting: Lighting, bac
     return full([base[k] + direct[k] for k in range(3)] + list(direct[3:]))
 
 
-def illuminate(scene: Scene, surface: Surface, lighting: Lighting = Lighting(),
-               visibility: LightVisibility | None = None, output: Output = Output()) -> Components:
+def illuminate(
+    scene: Scene,
+    surface: Surface,
+    lighting: Lighting = Lighting(),
+    visibility: LightVisibility | None = None,
+    output: Output = Output(),
+) -> Components:
     r"""The lit, unfogged colour at the pixels (``[K, H, W]`` component tuple) of a
     :class:`diffshade.Surface`: every term of ``lighting`` at its sites, both sides where
     ``lighting.two_sided`` (the back lit with the reversed normal and the back material).
@@ -271,11 +303,13 @@ def illuminate(scene: Scene, surface: Surface, lighting: Lighting = Lighting(),
         if to_px is None:  # the sites are the pixels
             return shade_points(sites.points, normal, eye, mat, scene, lighting, back, visibility, separate=separate)
         if visibility is None:
-            lit = _vertex_clamp(shade_points(sites.points, normal, eye, mat, scene, lighting, back,
-                                             separate=separate), output)
+            lit = _vertex_clamp(
+                shade_points(sites.points, normal, eye, mat, scene, lighting, back, separate=separate), output
+            )
             return _color_sum(to_px(lit))
-        base, direct = shade_points(sites.points, normal, eye, mat, scene, lighting, back, visibility, to_px,
-                                    separate=separate)
+        base, direct = shade_points(
+            sites.points, normal, eye, mat, scene, lighting, back, visibility, to_px, separate=separate
+        )
         return tuple(b + d for b, d in zip(to_px(base), direct))
 
     color = side(sites.normal, sites.material, False)

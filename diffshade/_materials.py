@@ -11,8 +11,22 @@ def _select(front, a, b):
     return tuple(jnp.where(front, x, y) for x, y in zip(a, b))
 
 
-_MATERIAL_FIELDS = ("emission", "ambient", "diffuse", "specular", "shininess", "ior", "opacity", "kay_min",
-                    "kay_max", "kay_power", "transmission", "absorption", "mirror", "refraction")
+_MATERIAL_FIELDS = (
+    "emission",
+    "ambient",
+    "diffuse",
+    "specular",
+    "shininess",
+    "ior",
+    "opacity",
+    "kay_min",
+    "kay_max",
+    "kay_power",
+    "transmission",
+    "absorption",
+    "mirror",
+    "refraction",
+)
 
 
 _COMPOSITING_FIELDS = {"opacity", "kay_min", "kay_max", "kay_power", "absorption"}

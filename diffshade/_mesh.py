@@ -41,14 +41,20 @@ class Mesh(eqx.Module):
     vertices: Float[Array, "V 3"] = eqx.field(converter=as_float_array)
     faces: Int[Array, "F 3"] = eqx.field(converter=lambda f: jnp.asarray(f, dtype=jnp.int32))
     material_ids: Int[Array, " F"] | None = eqx.field(converter=_ids, default=None)
-    normals: Float[Array, "V 3"] | None = eqx.field(converter=lambda x: None if x is None else as_float_array(x), default=None)
-    colors: Float[Array, "V 3"] | None = eqx.field(converter=lambda x: None if x is None else as_float_array(x), default=None)
+    normals: Float[Array, "V 3"] | None = eqx.field(
+        converter=lambda x: None if x is None else as_float_array(x), default=None
+    )
+    colors: Float[Array, "V 3"] | None = eqx.field(
+        converter=lambda x: None if x is None else as_float_array(x), default=None
+    )
     adjacency: Int[Array, "F 3"] | None = eqx.field(converter=_ids, default=None)
 
     def __check_init__(self):
         nv = self.vertices.shape[0]
         if self.adjacency is not None and self.adjacency.shape != self.faces.shape:
-            raise ValueError(f"Mesh.adjacency must be shaped {self.faces.shape}, one face per edge, got {self.adjacency.shape}")
+            raise ValueError(
+                f"Mesh.adjacency must be shaped {self.faces.shape}, one face per edge, got {self.adjacency.shape}"
+            )
         for name in ("normals", "colors"):
             x = getattr(self, name)
             if x is not None and x.shape != (nv, 3):
@@ -58,8 +64,12 @@ class Mesh(eqx.Module):
         """This mesh with its :attr:`adjacency` computed (on the host, from the faces)."""
         from ._antialias import face_adjacency
 
-        return eqx.tree_at(lambda m: m.adjacency, self, jnp.asarray(face_adjacency(np.asarray(self.faces))),
-                           is_leaf=lambda x: x is None)
+        return eqx.tree_at(
+            lambda m: m.adjacency,
+            self,
+            jnp.asarray(face_adjacency(np.asarray(self.faces))),
+            is_leaf=lambda x: x is None,
+        )
 
     def face_normals(self, normalize: bool = True) -> Float[Array, "F 3"]:
         r"""Per-face normal :math:`(v_1 - v_0) \times (v_2 - v_0)` (unit length if ``normalize``).
@@ -185,8 +195,15 @@ def load_mesh(path: str | Path, vertices: str = "authored", colors: str = "srgb"
             warnings.simplefilter("ignore")
             loaded = trimesh.load(str(path), process=False)
             # a scene's geometries, placed by its graph (a single mesh is its own part)
-            parts = [loaded] if isinstance(loaded, trimesh.Trimesh) else (
-                [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)] if isinstance(loaded, trimesh.Scene) else [])
+            parts = (
+                [loaded]
+                if isinstance(loaded, trimesh.Trimesh)
+                else (
+                    [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)]
+                    if isinstance(loaded, trimesh.Scene)
+                    else []
+                )
+            )
     except Exception as exc:  # trimesh raises many types for unreadable files
         raise MeshError(f"{path}: could not read the mesh ({type(exc).__name__}: {exc})") from exc
     parts = [g for g in parts if len(getattr(g, "faces", [])) > 0]
@@ -224,7 +241,9 @@ def load_mesh(path: str | Path, vertices: str = "authored", colors: str = "srgb"
         normals = np.concatenate([np.asarray(n, np.float64) for n in file_normals])
         bad = ~np.isfinite(normals).all(axis=1)
         if bad.any():
-            raise MeshError(f"{path}: {int(bad.sum())} vertex normal(s) are NaN or infinite (first: vertex {int(np.argmax(bad))})")
+            raise MeshError(
+                f"{path}: {int(bad.sum())} vertex normal(s) are NaN or infinite (first: vertex {int(np.argmax(bad))})"
+            )
         zero = np.linalg.norm(normals, axis=1) == 0
         if zero.any():  # a zero normal shades nothing: computed ones stand in for those
             normals[zero] = np.asarray(Mesh(vertices=v, faces=f).vertex_normals())[zero]
@@ -265,12 +284,18 @@ def combine(*meshes: Mesh) -> Mesh:
     if any(m.colors is not None for m in meshes) and not all(m.colors is not None for m in meshes):
         raise ValueError("combine: some meshes have vertex colours and some do not; give every mesh colours or none")
     colors = None if meshes[0].colors is None else jnp.concatenate([m.colors for m in meshes])
-    return Mesh(vertices=jnp.concatenate(verts), faces=jnp.concatenate(faces), material_ids=jnp.concatenate(ids),
-                normals=normals, colors=colors)
+    return Mesh(
+        vertices=jnp.concatenate(verts),
+        faces=jnp.concatenate(faces),
+        material_ids=jnp.concatenate(ids),
+        normals=normals,
+        colors=colors,
+    )
 
 
-def box(extents: tuple[float, float, float] = (1.0, 1.0, 1.0),
-        center: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Mesh:
+def box(
+    extents: tuple[float, float, float] = (1.0, 1.0, 1.0), center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+) -> Mesh:
     """A closed axis-aligned box (12 outward-facing triangles), ``trimesh.creation.box``."""
     import trimesh
 
@@ -278,8 +303,12 @@ def box(extents: tuple[float, float, float] = (1.0, 1.0, 1.0),
     return Mesh(vertices=np.asarray(tm.vertices) + np.asarray(center, float), faces=np.asarray(tm.faces))
 
 
-def quad(size: tuple[float, float] = (1.0, 1.0), center: tuple[float, float, float] = (0.0, 0.0, 0.0),
-         normal: tuple[float, float, float] = (0.0, 0.0, 1.0), divisions: int = 1) -> Mesh:
+def quad(
+    size: tuple[float, float] = (1.0, 1.0),
+    center: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    normal: tuple[float, float, float] = (0.0, 0.0, 1.0),
+    divisions: int = 1,
+) -> Mesh:
     """A flat rectangle of ``size`` centred at ``center``, facing ``normal`` (its front side),
     split into ``divisions``² squares of two triangles each."""
     n = np.asarray(normal, float)

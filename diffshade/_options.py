@@ -131,8 +131,11 @@ class Lighting:
         for name in ("emission", "ambient", "diffuse", "transmission", "per_light_ambient", "two_sided"):
             _flag(self, name)
         g = self.area_grid
-        if not (isinstance(g, tuple) and len(g) == 2
-                and all(isinstance(x, int) and not isinstance(x, bool) and x >= 1 for x in g)):
+        if not (
+            isinstance(g, tuple)
+            and len(g) == 2
+            and all(isinstance(x, int) and not isinstance(x, bool) and x >= 1 for x in g)
+        ):
             raise ValueError(f"Lighting.area_grid must be two positive integers (n, m), got {g!r}")
 
 
@@ -245,20 +248,48 @@ class Output:
 # `shadows` or `fog`, decides whether the group exists at all).
 _KEYS: dict[str, tuple[str, str]] = {
     **{k: ("raster", k) for k in ("shading", "interpolation", "flat_source", "vertex_color", "backend")},
-    **{k: ("lighting", k) for k in ("specular", "fresnel", "emission", "ambient", "diffuse", "transmission",
-                                    "per_light_ambient", "two_sided", "spot_edge", "viewer", "area_grid")},
-    "shadow_resolution": ("shadows", "resolution"), "shadow_pcf": ("shadows", "pcf"),
+    **{
+        k: ("lighting", k)
+        for k in (
+            "specular",
+            "fresnel",
+            "emission",
+            "ambient",
+            "diffuse",
+            "transmission",
+            "per_light_ambient",
+            "two_sided",
+            "spot_edge",
+            "viewer",
+            "area_grid",
+        )
+    },
+    "shadow_resolution": ("shadows", "resolution"),
+    "shadow_pcf": ("shadows", "pcf"),
     "shadow_ray_crossings": ("shadows", "crossings"),
-    "ray_depth": ("rays", "depth"), "ray_capacity": ("rays", "capacity"), "ray_backend": ("rays", "backend"),
-    "fog_distance": ("fog", "distance"), "layers": ("transparency", "layers"),
-    "absorption": ("transparency", "absorption"), "clamp_at": ("output", "clamp"),
-    "color_sum": ("output", "color_sum"), "antialias": ("output", "antialias"),
+    "ray_depth": ("rays", "depth"),
+    "ray_capacity": ("rays", "capacity"),
+    "ray_backend": ("rays", "backend"),
+    "fog_distance": ("fog", "distance"),
+    "layers": ("transparency", "layers"),
+    "absorption": ("transparency", "absorption"),
+    "clamp_at": ("output", "clamp"),
+    "color_sum": ("output", "color_sum"),
+    "antialias": ("output", "antialias"),
 }
 # the switches: shadows, shadow_rays, fog, transparency, clamp
 KEYS = (*_KEYS, "shadows", "shadow_rays", "fog", "transparency", "clamp")
 _KEY_OF = {(g, f): key for key, (g, f) in _KEYS.items()}
-_GROUP_OF = {"Raster": "raster", "Lighting": "lighting", "ShadowMaps": "shadows", "ShadowRays": "shadows",
-             "Rays": "rays", "FogModel": "fog", "Transparency": "transparency", "Output": "output"}
+_GROUP_OF = {
+    "Raster": "raster",
+    "Lighting": "lighting",
+    "ShadowMaps": "shadows",
+    "ShadowRays": "shadows",
+    "Rays": "rays",
+    "FogModel": "fog",
+    "Transparency": "transparency",
+    "Output": "output",
+}
 
 
 def _group(cls, fields: dict):
@@ -273,10 +304,21 @@ def _group(cls, fields: dict):
                 raise ValueError(f"{key} ({msg})") from None
         raise
 
+
 # OpenGL's fixed-function pipeline, as flat keys (RenderOptions.opengl)
-_OPENGL = dict(shading="gouraud", specular="blinn", per_light_ambient=True, emission=True, clamp=True,
-               clamp_at="vertex", flat_source="provoking", viewer="infinite", color_sum="single", two_sided=False,
-               fog_distance="depth")
+_OPENGL = dict(
+    shading="gouraud",
+    specular="blinn",
+    per_light_ambient=True,
+    emission=True,
+    clamp=True,
+    clamp_at="vertex",
+    flat_source="provoking",
+    viewer="infinite",
+    color_sum="single",
+    two_sided=False,
+    fog_distance="depth",
+)
 
 
 @dataclass(frozen=True)
@@ -302,26 +344,39 @@ class RenderOptions:
         for name, kind in (("raster", Raster), ("lighting", Lighting), ("rays", Rays), ("output", Output)):
             if not isinstance(getattr(self, name), kind):
                 raise ValueError(f"RenderOptions.{name} must be a {kind.__name__}, got {getattr(self, name)!r}")
-        for name, kinds in (("shadows", (ShadowMaps, ShadowRays)), ("fog", (FogModel,)),
-                            ("transparency", (Transparency,))):
+        for name, kinds in (
+            ("shadows", (ShadowMaps, ShadowRays)),
+            ("fog", (FogModel,)),
+            ("transparency", (Transparency,)),
+        ):
             x = getattr(self, name)
             if x is not None and not isinstance(x, kinds):
                 names = " or ".join(k.__name__ for k in kinds)
                 raise ValueError(f"RenderOptions.{name} must be None or a {names}, got {x!r}")
         if self.ray_traced and (self.raster.shading != "phong" or self.layered):
-            raise ValueError("the ray-traced mode (rays.depth > 0 or ShadowRays) shades per pixel: it needs "
-                             "shading='phong' and no depth layers (transparency)")
+            raise ValueError(
+                "the ray-traced mode (rays.depth > 0 or ShadowRays) shades per pixel: it needs "
+                "shading='phong' and no depth layers (transparency)"
+            )
         if self.ray_traced and self.output.clamp == "vertex":
-            raise ValueError("the ray-traced mode clamps per pixel (clamp='pixel'): OpenGL's per-vertex clamp has no rays")
+            raise ValueError(
+                "the ray-traced mode clamps per pixel (clamp='pixel'): OpenGL's per-vertex clamp has no rays"
+            )
         if self.raster.vertex_color != "none" and (self.ray_traced or self.layered):
-            raise ValueError("vertex_color is supported by the rasterized, one-layer render (no ray tracing or "
-                             "transparency yet): a surface point's colour off the first layer is not interpolated there")
+            raise ValueError(
+                "vertex_color is supported by the rasterized, one-layer render (no ray tracing or "
+                "transparency yet): a surface point's colour off the first layer is not interpolated there"
+            )
         if self.output.antialias and self.layered:
-            raise ValueError("Output.antialias smooths the nearest layer's silhouettes: it does not combine with "
-                             "transparency (depth layers)")
+            raise ValueError(
+                "Output.antialias smooths the nearest layer's silhouettes: it does not combine with "
+                "transparency (depth layers)"
+            )
         if isinstance(self.shadows, ShadowMaps) and self.output.clamp == "vertex" and self.raster.shading != "phong":
-            raise ValueError("clamp='vertex' clamps unshadowed vertex colours: with shadows, clamp per pixel "
-                             "(clamp='pixel'; OpenGL's fixed function has no shadows to follow)")
+            raise ValueError(
+                "clamp='vertex' clamps unshadowed vertex colours: with shadows, clamp per pixel "
+                "(clamp='pixel'; OpenGL's fixed function has no shadows to follow)"
+            )
 
     @property
     def layered(self) -> bool:
@@ -376,8 +431,9 @@ class RenderOptions:
         fog_mode = k.get("fog", "none")
         if fog_mode not in ("none", "linear", "exp", "exp2"):
             raise ValueError(f"fog must be one of ('none', 'linear', 'exp', 'exp2'), got {fog_mode!r}")
-        g: dict[str, dict] = {name: {} for name in ("raster", "lighting", "shadows", "rays", "fog", "transparency",
-                                                    "output")}
+        g: dict[str, dict] = {
+            name: {} for name in ("raster", "lighting", "shadows", "rays", "fog", "transparency", "output")
+        }
         for key, x in k.items():
             if key in _KEYS:
                 group, f = _KEYS[key]
@@ -391,10 +447,15 @@ class RenderOptions:
         output = _group(Output, {**g["output"], "clamp": g["output"].get("clamp", "pixel")})
         if not k.get("clamp"):
             output = replace(output, clamp=None)
-        return cls(raster=_group(Raster, g["raster"]), lighting=_group(Lighting, g["lighting"]),
-                   shadows=maps if k.get("shadows") else rays if k.get("shadow_rays") else None,
-                   rays=_group(Rays, g["rays"]), fog=None if fog_mode == "none" else fog,
-                   transparency=transparency if k.get("transparency") else None, output=output)
+        return cls(
+            raster=_group(Raster, g["raster"]),
+            lighting=_group(Lighting, g["lighting"]),
+            shadows=maps if k.get("shadows") else rays if k.get("shadow_rays") else None,
+            rays=_group(Rays, g["rays"]),
+            fog=None if fog_mode == "none" else fog,
+            transparency=transparency if k.get("transparency") else None,
+            output=output,
+        )
 
     def keys(self) -> dict[str, Any]:
         """The flat scene-file keys of these options (:meth:`from_keys` of them gives them back)."""

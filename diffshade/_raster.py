@@ -93,7 +93,9 @@ class Fragments(eqx.Module):
 def _centres_np(n: int, size: int, dtype) -> np.ndarray:
     # Host constants (IEEE arithmetic in numpy) for the differentiable fragments.
     dtype = np.dtype(dtype)
-    return ((dtype.type(2.0) * (np.arange(n, dtype=dtype) + dtype.type(0.5))) / dtype.type(size) - dtype.type(1.0)).astype(dtype)
+    return (
+        (dtype.type(2.0) * (np.arange(n, dtype=dtype) + dtype.type(0.5))) / dtype.type(size) - dtype.type(1.0)
+    ).astype(dtype)
 
 
 def pixel_centres(height: int, width: int, dtype: jnp.dtype = jnp.float32) -> tuple[Array, Array]:
@@ -254,9 +256,7 @@ def _setup(clip: Float[Array, "V 4"], faces: Int[Array, "F 3"], height: int, wid
     x0 = jnp.where(valid, x0, 1)
     x1 = jnp.where(valid, x1, 0)
     own = owns[0].astype(jnp.int32) | (owns[1].astype(jnp.int32) << 1) | (owns[2].astype(jnp.int32) << 2)
-    return _Setup(
-        coef=jnp.stack(coef), zw=jnp.stack(zw), meta=jnp.stack([x0, x1, y0, y1, own])
-    )
+    return _Setup(coef=jnp.stack(coef), zw=jnp.stack(zw), meta=jnp.stack([x0, x1, y0, y1, own]))
 
 
 # --------------------------------------------------------------------------------------------
@@ -306,7 +306,13 @@ def _visibility_jax(setup: _Setup, height: int, width: int, layers: int, tile_ca
         cf = coef.T[c][:, None, :, :]  # T 1 C 9
         zf = zw.T[c][:, None, :, :]
         mf = meta.T[c][:, None, :, :]
-        inside = valid[:, None, :] & (cole >= mf[..., 0]) & (cole <= mf[..., 1]) & (rowe >= mf[..., 2]) & (rowe <= mf[..., 3])
+        inside = (
+            valid[:, None, :]
+            & (cole >= mf[..., 0])
+            & (cole <= mf[..., 1])
+            & (rowe >= mf[..., 2])
+            & (rowe <= mf[..., 3])
+        )
         for i in range(3):
             e = _plane_eval(cf[..., 3 * i], cf[..., 3 * i + 1], cf[..., 3 * i + 2], pxe, pye, keep, count)
             own = ((mf[..., 4] >> i) & 1) == 1
@@ -344,10 +350,7 @@ def _visibility_jax(setup: _Setup, height: int, width: int, layers: int, tile_ca
         )
         return s0 + pair_capacity, state, passes
 
-    init = (
-        jnp.full((ntiles, npx, layers), jnp.inf, jnp.float32),
-        jnp.full((ntiles, npx, layers), -1, jnp.int32),
-    )
+    init = (jnp.full((ntiles, npx, layers), jnp.inf, jnp.float32), jnp.full((ntiles, npx, layers), -1, jnp.int32))
     _, (best_d, best_i), passes = jax.lax.while_loop(lambda c: c[0] < total, window, (jnp.int32(0), init, jnp.int32(0)))
     ids = best_i.reshape(nty, ntx, TILE, TILE, layers).transpose(4, 0, 2, 1, 3).reshape(layers, nty * TILE, ntx * TILE)
     return ids[:, :height, :width], passes
@@ -383,8 +386,10 @@ def resolve_backend(backend: Backend) -> str:
     if backend not in ("native", "jax"):
         raise ValueError(f"backend must be 'auto', 'native' or 'jax', got {backend!r}")
     if backend == "native" and jax.default_backend() != "cpu":
-        raise ValueError(f"backend='native' is a CPU kernel and JAX's default device is {jax.default_backend()!r}: "
-                         "use backend='auto' or 'jax' (the same visibility), or run JAX on the CPU (JAX_PLATFORMS=cpu)")
+        raise ValueError(
+            f"backend='native' is a CPU kernel and JAX's default device is {jax.default_backend()!r}: "
+            "use backend='auto' or 'jax' (the same visibility), or run JAX on the CPU (JAX_PLATFORMS=cpu)"
+        )
     return backend
 
 
@@ -396,7 +401,12 @@ def _check(clip, faces, resolution, layers):
     if not jnp.issubdtype(faces.dtype, jnp.integer):
         raise ValueError(f"faces must be an integer array, got {faces.dtype}")
     h, w = resolution
-    if not (isinstance(h, (int, np.integer)) and isinstance(w, (int, np.integer)) and 0 < h <= MAX_SIDE and 0 < w <= MAX_SIDE):
+    if not (
+        isinstance(h, (int, np.integer))
+        and isinstance(w, (int, np.integer))
+        and 0 < h <= MAX_SIDE
+        and 0 < w <= MAX_SIDE
+    ):
         raise ValueError(f"resolution must be two integers (height, width) in [1, {MAX_SIDE}], got {resolution}")
     if not (isinstance(layers, (int, np.integer)) and layers >= 1):
         raise ValueError(f"layers must be a positive integer, got {layers}")
@@ -433,8 +443,14 @@ def visibility(
     return ids
 
 
-def visibility_passes(clip: Float[Array, "V 4"], faces: Int[Array, "F 3"], resolution: tuple[int, int], layers: int = 1,
-                      tile_capacity: int | None = None, pair_capacity: int | None = None) -> int:
+def visibility_passes(
+    clip: Float[Array, "V 4"],
+    faces: Int[Array, "F 3"],
+    resolution: tuple[int, int],
+    layers: int = 1,
+    tile_capacity: int | None = None,
+    pair_capacity: int | None = None,
+) -> int:
     """JAX backend only: ``(ids, passes)``, where ``passes`` counts the tile chunks processed.
 
     ``passes == 1`` means every tile fitted its capacity in one pair window; more means the
@@ -501,7 +517,11 @@ def fragments(
     zv = bary[0] * Z[0] + bary[1] * Z[1] + bary[2] * Z[2]
     okw = ok & (wv != 0)
     depth = jnp.where(okw, zv / jnp.where(okw, wv, 1.0), 1.0)
-    det = X[0] * (Y[1] * Wc[2] - Y[2] * Wc[1]) - Y[0] * (X[1] * Wc[2] - X[2] * Wc[1]) + Wc[0] * (X[1] * Y[2] - X[2] * Y[1])
+    det = (
+        X[0] * (Y[1] * Wc[2] - Y[2] * Wc[1])
+        - Y[0] * (X[1] * Wc[2] - X[2] * Wc[1])
+        + Wc[0] * (X[1] * Y[2] - X[2] * Y[1])
+    )
     return Fragments(
         tri_id=tri_id, bary=jnp.stack(bary, axis=-1), depth=depth, w=jnp.where(ok, wv, 0.0), front=valid & (det > 0)
     )
@@ -519,7 +539,9 @@ def rasterize(
     return fragments(clip, faces, ids)
 
 
-def interpolate(attr: Float[Array, "V C"] | tuple, faces: Int[Array, "F 3"], frags: Fragments) -> Float[Array, "K H W C"] | tuple:
+def interpolate(
+    attr: Float[Array, "V C"] | tuple, faces: Int[Array, "F 3"], frags: Fragments
+) -> Float[Array, "K H W C"] | tuple:
     r"""Perspective-correct interpolation of per-vertex attributes, :math:`\sum_j b_j a_{v_j}`;
     zeros on empty pixels.
 

@@ -51,8 +51,10 @@ def resolve_ray_backend(backend: str) -> str:
     if backend == "auto":
         return "embree" if (jax.default_backend() == "cpu" and embree_available()) else "jax"
     if backend == "embree" and not embree_available():
-        raise ValueError("ray backend 'embree' needs the embreex package (pip install embreex); "
-                         "backend 'jax' computes the same hits without it")
+        raise ValueError(
+            "ray backend 'embree' needs the embreex package (pip install embreex); "
+            "backend 'jax' computes the same hits without it"
+        )
     return backend
 
 

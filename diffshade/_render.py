@@ -43,16 +43,22 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=No
     ids = ids if opts.layered else ids[:1]
     frags = fragments(clip, scene.mesh.faces, ids, None if pixels is None else pixels[:2])
     surface = surface_points(scene, frags, opts.raster, needs(opts), clip)
-    vis = light_visibility(scene, surface, opts.shadows, opts.lighting.area_grid, opts.raster.backend,
-                           opts.rays.backend)
+    vis = light_visibility(
+        scene, surface, opts.shadows, opts.lighting.area_grid, opts.raster.backend, opts.rays.backend
+    )
     color = illuminate(scene, surface, opts.lighting, vis, opts.output)
     color = secondary_rays(scene, surface, color, opts)
     return composite(scene, surface, color, opts.fog, opts.transparency, opts.output, pixels)
 
 
-def light_visibility(scene: Scene, surface: Surface, shadows: ShadowMaps | ShadowRays | None,
-                     area_grid: tuple[int, int] = (4, 4), raster_backend: str = "auto",
-                     ray_backend: str = "auto") -> LightVisibility | None:
+def light_visibility(
+    scene: Scene,
+    surface: Surface,
+    shadows: ShadowMaps | ShadowRays | None,
+    area_grid: tuple[int, int] = (4, 4),
+    raster_backend: str = "auto",
+    ray_backend: str = "auto",
+) -> LightVisibility | None:
     """What each light sees of the surface's pixels (:math:`S_i`, docs/model.md §2): ``None``
     without shadows, by shadow maps (no gradient; rasterized with ``raster_backend``) or by
     shadow rays (coloured through glass; traced with ``ray_backend``). ``area_grid``: the area
@@ -60,18 +66,22 @@ def light_visibility(scene: Scene, surface: Surface, shadows: ShadowMaps | Shado
     if shadows is None:
         return None
     if scene.area.count and isinstance(shadows, ShadowMaps):
-        raise ValueError("shadow maps do not cover area lights: use ShadowRays (soft shadows, a ray to every "
-                         "emitter) or render the scene without shadows")
+        raise ValueError(
+            "shadow maps do not cover area lights: use ShadowRays (soft shadows, a ray to every "
+            "emitter) or render the scene without shadows"
+        )
     if isinstance(shadows, ShadowRays):
         return shadow_ray_visibility(scene, shadows, surface.position, surface.frags.tri_id, area_grid, ray_backend)
     safe_tid = jnp.where(surface.valid, surface.frags.tri_id, 0)
     ng = tuple(c[safe_tid] for c in S.vec(scene.mesh.face_normals()))
-    return LightVisibility(shadow_map_visibility(scene, shadows, surface.position, ng, Lg.LIGHTS_UNROLLED,
-                                                 raster_backend))
+    return LightVisibility(
+        shadow_map_visibility(scene, shadows, surface.position, ng, Lg.LIGHTS_UNROLLED, raster_backend)
+    )
 
 
-def render(scene: Scene, opts: RenderOptions = RenderOptions(), ids: Int[Array, "K H W"] | None = None,
-           pixels=None) -> Float[Array, "H W 3"]:
+def render(
+    scene: Scene, opts: RenderOptions = RenderOptions(), ids: Int[Array, "K H W"] | None = None, pixels=None
+) -> Float[Array, "H W 3"]:
     """Render ``scene`` to a linear, unclamped (unless ``opts.output.clamp``) ``[H, W, 3]`` image.
 
     ``ids`` may be a precomputed :func:`diffshade.visibility` result for fixed geometry and camera

@@ -183,10 +183,19 @@ class MultiLobeLights(Lights):
     def __check_init__(self):
         n = self.position.shape[0]
         lobes = self.color.shape[1] if self.color.ndim == 3 else -1
-        for f, tail in (("color", (3,)), ("ambient", (3,)), ("axis", (3,)), ("cutoff", ()), ("exponent", ()), ("edge", ())):
+        for f, tail in (
+            ("color", (3,)),
+            ("ambient", (3,)),
+            ("axis", (3,)),
+            ("cutoff", ()),
+            ("exponent", ()),
+            ("edge", ()),
+        ):
             if getattr(self, f).shape != (n, lobes) + tail:
-                raise ValueError(f"MultiLobeLights.{f} must be shaped {(n, 'L') + tail} (N lights, L lobes each), "
-                                 f"got {getattr(self, f).shape}")
+                raise ValueError(
+                    f"MultiLobeLights.{f} must be shaped {(n, 'L') + tail} (N lights, L lobes each), "
+                    f"got {getattr(self, f).shape}"
+                )
 
     @property
     def lobes(self) -> int:
@@ -196,8 +205,16 @@ class MultiLobeLights(Lights):
 
 def no_multi_lobe() -> MultiLobeLights:
     z, e = np.zeros((0, 1, 3)), np.zeros((0, 1))
-    return MultiLobeLights(color=z, position=np.zeros((0, 3)), attenuation=np.zeros((0, 3)), ambient=z, axis=z,
-                           cutoff=e, exponent=e, edge=e)
+    return MultiLobeLights(
+        color=z,
+        position=np.zeros((0, 3)),
+        attenuation=np.zeros((0, 3)),
+        ambient=z,
+        axis=z,
+        cutoff=e,
+        exponent=e,
+        edge=e,
+    )
 
 
 def no_area() -> AreaLights:

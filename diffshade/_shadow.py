@@ -223,9 +223,15 @@ def _occluder_tables(vw: _Views, planes, o, a, u, v, face):
     po = pd - S.dot(pn, o)
     if face is None:
         return po, S.dot(pn, a), S.dot(pn, u), S.dot(pn, v)
-    return tuple(jnp.concatenate(t) for t in zip(*(
-        (po, S.dot(pn, S.vec(vw.a[f])), S.dot(pn, S.vec(vw.u[f])), S.dot(pn, S.vec(vw.v[f])))
-        for f in range(vw.count))))
+    return tuple(
+        jnp.concatenate(t)
+        for t in zip(
+            *(
+                (po, S.dot(pn, S.vec(vw.a[f])), S.dot(pn, S.vec(vw.u[f])), S.dot(pn, S.vec(vw.v[f])))
+                for f in range(vw.count)
+            )
+        )
+    )
 
 
 def _lookup(vw: _Views, ids, planes, P, ng, bias, slope_bias, R: int, pcf: int, eager: bool):

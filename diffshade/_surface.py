@@ -62,8 +62,12 @@ def needs(opts: RenderOptions) -> Needs:
     if opts.rays.depth:
         used |= {"mirror", "refraction", "ior", "absorption"}
     euclidean_fog = opts.fog is not None and opts.fog.distance == "euclidean"
-    positions = (opts.raster.shading == "phong" or opts.shadows is not None
-                 or (tr is not None and tr.absorption) or euclidean_fog)
+    positions = (
+        opts.raster.shading == "phong"
+        or opts.shadows is not None
+        or (tr is not None and tr.absorption)
+        or euclidean_fog
+    )
     return Needs(frozenset(used), positions, tr is not None)
 
 
@@ -126,8 +130,13 @@ def _vertex_colored(mat: Material, col, mode: str) -> Material:
     return eqx.tree_at(lambda m: tuple(getattr(m, f) for f in fields), mat, (col,) * len(fields))
 
 
-def surface_points(scene: Scene, frags: Fragments, raster: Raster = Raster(), need: Needs = Needs(),
-                   clip: Float[Array, "V 4"] | None = None) -> Surface:
+def surface_points(
+    scene: Scene,
+    frags: Fragments,
+    raster: Raster = Raster(),
+    need: Needs = Needs(),
+    clip: Float[Array, "V 4"] | None = None,
+) -> Surface:
     """The surface the fragments ``frags`` see, and where ``raster.shading`` lights it.
 
     ``need`` (default: everything) says what later stages read (:func:`needs` of the options);
@@ -157,8 +166,18 @@ def surface_points(scene: Scene, frags: Fragments, raster: Raster = Raster(), ne
     need = Needs(need.fields, need.positions, need.kay and any(kay))
     build = {"phong": _phong_sites, "gouraud": _gouraud_sites, "flat": _flat_sites}[raster.shading]
     sites, normal, pmat = build(scene, raster, need, frags, multi, pmat, back, position)
-    return Surface(frags=frags, valid=valid, front=frags.front, position=position, normal=normal, material=pmat,
-                   material_ids=pix_mid, kay=kay, clip=clip, sites=sites)
+    return Surface(
+        frags=frags,
+        valid=valid,
+        front=frags.front,
+        position=position,
+        normal=normal,
+        material=pmat,
+        material_ids=pix_mid,
+        kay=kay,
+        clip=clip,
+        sites=sites,
+    )
 
 
 def _phong_sites(scene, raster, need, frags, multi, pmat, back, position):
@@ -194,6 +213,7 @@ def _gouraud_sites(scene, raster, need, frags, multi, pmat, back, position):
         vmat, vback = scene.material, back
         if mode != "none":
             vmat, vback = _vertex_colored(vmat, mesh.colors, mode), _vertex_colored(vback, mesh.colors, mode)
+
     def to_pixels(col: Components) -> Components:
         return keep(*interpolate(tuple(keep(*col)), frags_faces, frags))
 
@@ -214,8 +234,11 @@ def _flat_sites(scene, raster, need, frags, multi, pmat, back, position):
     fmat = _material_at(scene.all_materials(), mesh.material_ids, need.fields) if multi else scene.material
     fback = fmat if multi else back
     if raster.vertex_color != "none":  # the face's colour: its provoking vertex's, or the mean of its three
-        fcol = (mesh.colors[mesh.faces[:, 2]] if raster.flat_source == "provoking"
-                else jnp.mean(mesh.colors[mesh.faces], axis=1))
+        fcol = (
+            mesh.colors[mesh.faces[:, 2]]
+            if raster.flat_source == "provoking"
+            else jnp.mean(mesh.colors[mesh.faces], axis=1)
+        )
         fmat, fback = (_vertex_colored(m, fcol, raster.vertex_color) for m in (fmat, fback))
 
     def to_pixels(col: Components) -> Components:

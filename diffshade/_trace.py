@@ -103,8 +103,9 @@ def shadow_ray_visibility(scene: Scene, rays: ShadowRays, P, tri, area_grid=(4, 
         o, skip, left = Pa, tri, far
         active = jnp.ones(Pa.shape[:-1], bool)
         for k in range(K + 1):
-            hit = first_hits(jax.lax.stop_gradient(o), dn, X, faces, tmin=eps, skip=skip, active=active,
-                             backend=backend)
+            hit = first_hits(
+                jax.lax.stop_gradient(o), dn, X, faces, tmin=eps, skip=skip, active=active, backend=backend
+            )
             t, _, _, ok = intersect(o, d, mesh.vertices, faces, hit)
             block = active & ok & (t < left - eps)
             seg = jnp.where(block, t, jnp.where(active & jnp.isfinite(left), left, 0.0))
@@ -200,8 +201,11 @@ def _local(scene, opts: RenderOptions, P, n, front, mat, back_mat, tri, view):
     shading has them, two-sided or not, with shadow rays when on), and the normals facing the
     viewer."""
     lt, sr = opts.lighting, opts.shadows
-    shadow = (shadow_ray_visibility(scene, sr, P, tri, lt.area_grid, opts.rays.backend)
-              if isinstance(sr, ShadowRays) else None)
+    shadow = (
+        shadow_ray_visibility(scene, sr, P, tri, lt.area_grid, opts.rays.backend)
+        if isinstance(sr, ShadowRays)
+        else None
+    )
     n_face = tuple(jnp.where(front, c, -c) for c in n)
     if lt.two_sided:
         fr = shade_points(P, n_face, None, mat, scene, lt, shadow=shadow, view=view)
@@ -219,8 +223,9 @@ def _children(fresnel: str, mat, n_face, v, front):
     ior = jnp.broadcast_to(mat.ior, shape)
     R = mirror_direction(n_face, v)
     T, tir = refracted_direction(n_face, v, jnp.where(front, 1.0 / ior, ior))
-    w_r, w_t = ray_weights(fresnel, rgb(mat.mirror), rgb(mat.refraction), S.dot(n_face, v), jnp.where(front, ior, 1.0 / ior),
-                           ior, tir)
+    w_r, w_t = ray_weights(
+        fresnel, rgb(mat.mirror), rgb(mat.refraction), S.dot(n_face, v), jnp.where(front, ior, 1.0 / ior), ior, tir
+    )
     mu_t = jnp.where(front[..., None], jnp.broadcast_to(mat.absorption, shape + (3,)), 0.0)
     return jnp.stack(R, -1), jnp.stack(T, -1), jnp.stack(w_r, -1), jnp.stack(w_t, -1), mu_t
 
@@ -251,8 +256,16 @@ def _shoot(scene, opts: RenderOptions, mats, used, rays, spawn: bool):
     o, d = rays["o"], _unit(rays["d"])
     live = jnp.any(rays["w"] != 0, -1)
     mesh = scene.mesh
-    ids = first_hits(o, d, mesh.vertices, mesh.faces, tmin=_T_MIN * _scale(scene), skip=rays["skip"], active=live,
-                     backend=opts.rays.backend)
+    ids = first_hits(
+        o,
+        d,
+        mesh.vertices,
+        mesh.faces,
+        tmin=_T_MIN * _scale(scene),
+        skip=rays["skip"],
+        active=live,
+        backend=opts.rays.backend,
+    )
     P, n, front, mat, t, valid = _surface(scene, mats, used, o, d, ids)
     multi = len(mats) > 1 and mesh.material_ids is not None
     back_mat = scene.back_material if (scene.back_material is not None and not multi) else mat
@@ -270,9 +283,14 @@ def _shoot(scene, opts: RenderOptions, mats, used, rays, spawn: bool):
     R, T, w_r, w_t, mu_t = _children(opts.lighting.fresnel, mat, n_face, v, front)
     wf = jnp.where(valid[..., None], w if f is None else w * f, 0.0)
     Pa = jnp.stack(P, -1)
-    kids = dict(o=jnp.concatenate([Pa, Pa]), d=jnp.concatenate([R, T]), w=jnp.concatenate([wf * w_r, wf * w_t]),
-                mu=jnp.concatenate([rays["mu"], mu_t]), pix=jnp.concatenate([rays["pix"]] * 2),
-                skip=jnp.concatenate([ids, ids]))
+    kids = dict(
+        o=jnp.concatenate([Pa, Pa]),
+        d=jnp.concatenate([R, T]),
+        w=jnp.concatenate([wf * w_r, wf * w_t]),
+        mu=jnp.concatenate([rays["mu"], mu_t]),
+        pix=jnp.concatenate([rays["pix"]] * 2),
+        skip=jnp.concatenate([ids, ids]),
+    )
     return c, kids
 
 
@@ -284,14 +302,18 @@ def _primary_rays(scene: Scene, surface: Surface, fresnel: str):
     v = S.normalize(S.sub(_rgb(scene.camera.eye), P))
     R, T, w_r, w_t, mu_t = _children(fresnel, surface.material, n_face, v, front)
     N = front.size
-    flat = lambda a: a.reshape((N,) + a.shape[front.ndim:])  # noqa: E731
+    flat = lambda a: a.reshape((N,) + a.shape[front.ndim :])  # noqa: E731
     seen = flat(tri >= 0)[:, None]
     Pa = flat(jnp.stack(P, -1))
     pix = jnp.arange(N)
-    return dict(o=jnp.concatenate([Pa, Pa]), d=jnp.concatenate([flat(R), flat(T)]),
-                w=jnp.concatenate([jnp.where(seen, flat(w_r), 0.0), jnp.where(seen, flat(w_t), 0.0)]),
-                mu=jnp.concatenate([jnp.zeros_like(Pa), flat(mu_t)]), pix=jnp.concatenate([pix, pix]),
-                skip=jnp.concatenate([flat(tri), flat(tri)]))
+    return dict(
+        o=jnp.concatenate([Pa, Pa]),
+        d=jnp.concatenate([flat(R), flat(T)]),
+        w=jnp.concatenate([jnp.where(seen, flat(w_r), 0.0), jnp.where(seen, flat(w_t), 0.0)]),
+        mu=jnp.concatenate([jnp.zeros_like(Pa), flat(mu_t)]),
+        pix=jnp.concatenate([pix, pix]),
+        skip=jnp.concatenate([flat(tri), flat(tri)]),
+    )
 
 
 def generations(scene: Scene, surface: Surface, opts: RenderOptions):

@@ -66,7 +66,7 @@ def decode(v, encoding: str = "srgb"):
         return v
     if kind == "srgb":
         return _above(v, _K_DEC, lambda x: ((x + _A) / (1 + _A)) ** _P, lambda x: x / _S)
-    return _above(v, 0.0, lambda x: x ** g, lambda x: 0.0 * x)
+    return _above(v, 0.0, lambda x: x**g, lambda x: 0.0 * x)
 
 
 def encode(L, encoding: str = "srgb"):
@@ -88,13 +88,15 @@ def decode_slope(v, encoding: str = "srgb", floor: float = 0.5 / 255):
     if kind == "linear":
         return xp.ones_like(v)
     if kind == "srgb":
-        return _above(v, _K_DEC, lambda x: _P / (1 + _A) * ((x + _A) / (1 + _A)) ** (_P - 1),
-                      lambda x: 0.0 * x + 1.0 / _S)
+        return _above(
+            v, _K_DEC, lambda x: _P / (1 + _A) * ((x + _A) / (1 + _A)) ** (_P - 1), lambda x: 0.0 * x + 1.0 / _S
+        )
     vv = xp.maximum(v, floor)
     return g * vv ** (g - 1)
 
 
 # -- PNG chunks -------------------------------------------------------------------------------------
+
 
 def png_encoding(path) -> tuple[str | None, str]:
     """``(encoding, why)`` from a PNG's chunks: ``sRGB`` → ``"srgb"``; an ``iCCP`` profile whose
@@ -116,8 +118,10 @@ def png_encoding(path) -> tuple[str | None, str]:
         desc = _icc_description(info["icc_profile"])
         if "srgb" in desc.lower().replace(" ", ""):
             return "srgb", f"its ICC profile ({desc})"
-        raise EncodingError(f"{path}: its ICC profile is {desc!r}, not sRGB; convert the image to sRGB or "
-                            "declare the encoding (--encoding srgb | linear | gamma:G) to read it as that")
+        raise EncodingError(
+            f"{path}: its ICC profile is {desc!r}, not sRGB; convert the image to sRGB or "
+            "declare the encoding (--encoding srgb | linear | gamma:G) to read it as that"
+        )
     if "gamma" in info:
         fg = float(info["gamma"])
         if not fg > 0:
@@ -209,12 +213,17 @@ def read_png16(path) -> np.ndarray | None:
         return None
     pos, idat, hdr = 8, [], None
     while pos + 8 <= len(data):
-        n = int.from_bytes(data[pos:pos + 4], "big")
-        cid, payload = data[pos + 4:pos + 8], data[pos + 8:pos + 8 + n]
+        n = int.from_bytes(data[pos : pos + 4], "big")
+        cid, payload = data[pos + 4 : pos + 8], data[pos + 8 : pos + 8 + n]
         pos += 12 + n
         if cid == b"IHDR":
-            hdr = (int.from_bytes(payload[0:4], "big"), int.from_bytes(payload[4:8], "big"), payload[8], payload[9],
-                   payload[12])
+            hdr = (
+                int.from_bytes(payload[0:4], "big"),
+                int.from_bytes(payload[4:8], "big"),
+                payload[8],
+                payload[9],
+                payload[12],
+            )
         elif cid == b"IDAT":
             idat.append(payload)
         elif cid == b"IEND":
@@ -228,7 +237,7 @@ def read_png16(path) -> np.ndarray | None:
     bpp = 2 * channels
     try:
         raw = np.frombuffer(zlib.decompress(b"".join(idat)), np.uint8)
-        raw = raw[:h * (1 + w * bpp)].reshape(h, 1 + w * bpp)
+        raw = raw[: h * (1 + w * bpp)].reshape(h, 1 + w * bpp)
     except (zlib.error, ValueError) as exc:
         raise EncodingError(f"{path}: corrupt or truncated PNG image data ({exc})") from exc
     out = np.zeros((h, w * bpp), np.int64)

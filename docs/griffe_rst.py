@@ -28,8 +28,7 @@ def _ref(match: re.Match) -> str:
     else:
         text = target
     ident = target.rstrip("()")
-    return (f'<autoref identifier="{html.escape(ident)}" optional>'
-            f"<code>{html.escape(text)}</code></autoref>")
+    return f'<autoref identifier="{html.escape(ident)}" optional><code>{html.escape(text)}</code></autoref>'
 
 
 def _display_math(text: str) -> str:

@@ -9,11 +9,30 @@ lives in private modules named by what they compute (``_params``, ``_problem``, 
 from ._cache import cache_info, enable_compilation_cache
 from ._fit import fit
 from ._models import ModelScore, compare_models, model_variants
-from ._params import Param, ParamError, ParamSet, direction_frame, direction_of, tilt_of
 from ._observations import FitError, Observations, Optimistix, Strategy, VarPro
+from ._params import Param, ParamError, ParamSet, direction_frame, direction_of, tilt_of
 from ._report import Diagnostics, FitResult, Intervals, ResidualStats
 
-__all__ = ["Diagnostics", "FitError", "FitResult", "Intervals", "ModelScore", "Observations", "Optimistix",
-           "ResidualStats", "Strategy", "VarPro", "Param", "ParamError", "ParamSet", "cache_info",
-           "compare_models", "direction_frame", "direction_of", "enable_compilation_cache", "fit", "model_variants",
-           "tilt_of"]
+__all__ = [
+    "Diagnostics",
+    "FitError",
+    "FitResult",
+    "Intervals",
+    "ModelScore",
+    "Observations",
+    "Optimistix",
+    "ResidualStats",
+    "Strategy",
+    "VarPro",
+    "Param",
+    "ParamError",
+    "ParamSet",
+    "cache_info",
+    "compare_models",
+    "direction_frame",
+    "direction_of",
+    "enable_compilation_cache",
+    "fit",
+    "model_variants",
+    "tilt_of",
+]

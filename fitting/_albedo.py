@@ -39,10 +39,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _options
-from ._problem import FitError, Problem
 from ._polish import RELINEARISE_PASSES
-from ._report import (Diagnostics, FitResult, ResidualStats, Run, image_quality, noise_level, uncertainty,
-                      verdict)
+from ._problem import FitError, Problem
+from ._report import Diagnostics, FitResult, ResidualStats, Run, image_quality, noise_level, uncertainty, verdict
 
 
 def vertex_colouring(faces: np.ndarray, n_vertices: int) -> np.ndarray:
@@ -84,7 +83,9 @@ class AlbedoProblem:
         if _options.vertex_color(opts) == "none":
             raise FitError("mesh.colors is free but render.vertex_color is 'none': the colours are not in the image")
         if _options.clamp(opts):
-            raise FitError("mesh.colors with clamp = true: the image is not linear in the colours; fit without clamping")
+            raise FitError(
+                "mesh.colors with clamp = true: the image is not linear in the colours; fit without clamping"
+            )
         if _options.layered(opts):
             raise FitError("mesh.colors with transparency layers is not supported")
         k = [i for i, p in enumerate(pset.params) if p.path == ("mesh", "colors")]
@@ -151,18 +152,28 @@ class AlbedoProblem:
                     rows.append(off + np.flatnonzero(keep) * 3 + c)
                     cols.append(v[keep] * 3 + c)
                     vals.append(d[keep, c])
-            Jo.append((T[self.n_col:] * w).reshape(len(self.other), 3 * n).T)
+            Jo.append((T[self.n_col :] * w).reshape(len(self.other), 3 * n).T)
             imgs.append(img.reshape(-1))
             ws.append(w.reshape(-1))
             off += 3 * n
-        A = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                          shape=(off, self.n_alb))
+        A = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(off, self.n_alb))
         A.sum_duplicates()
-        return np.concatenate(imgs), A, np.concatenate(Jo) if len(self.other) else np.zeros((off, 0)), np.concatenate(ws)
+        return (
+            np.concatenate(imgs),
+            A,
+            np.concatenate(Jo) if len(self.other) else np.zeros((off, 0)),
+            np.concatenate(ws),
+        )
 
     def target(self):
-        return np.concatenate([(np.asarray(vd.target, np.float64) * np.asarray(vd.weight, np.float64)
-                                * ~np.asarray(vd.hi | vd.lo)).reshape(-1) for vd in self.prob.data])
+        return np.concatenate(
+            [
+                (
+                    np.asarray(vd.target, np.float64) * np.asarray(vd.weight, np.float64) * ~np.asarray(vd.hi | vd.lo)
+                ).reshape(-1)
+                for vd in self.prob.data
+            ]
+        )
 
     def prior(self):
         """``√λ`` times the edge differences of the albedo, per channel (sparse, n_edges·3 × n_alb)."""
@@ -311,8 +322,9 @@ class _AlbedoSolver:
             act = ~(((x_o <= low * (1 + 1e-9) + 1e-15) & (g > 0)) | ((x_o >= self.hi) & (g < 0)))
             d = np.sqrt(np.maximum(np.diag(H), 1e-300))
             gn = np.zeros_like(g)
-            gn[act] = -np.linalg.lstsq((H / d[:, None] / d[None, :])[np.ix_(act, act)], (g / d)[act],
-                                       rcond=1e-12)[0] / d[act]
+            gn[act] = (
+                -np.linalg.lstsq((H / d[:, None] / d[None, :])[np.ix_(act, act)], (g / d)[act], rcond=1e-12)[0] / d[act]
+            )
             # Gauss–Newton's predicted gain below a hundredth of the residual variance: converged
             if -(g @ gn) < max(1e-2 * red.cost / n_res, self.rtol * red.cost):
                 converged = True
@@ -339,7 +351,7 @@ def _albedo_stderr(ap: AlbedoProblem, solver: _AlbedoSolver, red: _Reduced, s2_e
     A, Lp = red.A, solver.Lp
     Jo_fin = ap.evaluate(red.th)[2]  # at the final albedo (reduced() took the columns at the incoming one)
     idx_det = np.flatnonzero(red.seen | (Lp is not None))
-    G = (A.T @ A)
+    G = A.T @ A
     if Lp is not None:
         G = G + Lp.T @ Lp
     G = G.tocsc()[idx_det][:, idx_det]
@@ -369,16 +381,20 @@ def _unseen_notes(ap, red: _Reduced, prior: bool, steps) -> tuple[list[str], lis
     notes, undetermined = [], []
     unseen = np.flatnonzero(~red.seen.reshape(-1, 3).any(axis=1))
     if len(unseen):
-        what = (f"albedo: the images do not depend on {len(unseen)} of {ap.nv} vertices (seen by no view, "
-                "or unlit where seen): ")
+        what = (
+            f"albedo: the images do not depend on {len(unseen)} of {ap.nv} vertices (seen by no view, "
+            "or unlit where seen): "
+        )
         if not prior:
             undetermined = [f"mesh.colors[{v}]" for v in unseen]
             notes.append(what + "kept at their start, undetermined")
         else:
             notes.append(what + "their values come from the smoothness prior alone")
     on_bound = int((~red.free & red.seen.reshape(-1)).sum()) if ap.n_alb else 0
-    notes.append(f"albedo: {int(red.seen.sum()) // 3} vertices seen; {on_bound} albedo scalars on a bound (0 or 1); "
-                 f"{steps} LM steps on the {len(ap.other)} other scalar(s)")
+    notes.append(
+        f"albedo: {int(red.seen.sum()) // 3} vertices seen; {on_bound} albedo scalars on a bound (0 or 1); "
+        f"{steps} LM steps on the {len(ap.other)} other scalar(s)"
+    )
     return undetermined, notes
 
 
@@ -391,30 +407,61 @@ def _albedo_result(ap, solver, red: _Reduced, theta0, converged, max_steps, nois
     sigma, source = noise_level(prob, prob.residual_images(r), noise)
     s2 = float(r @ r) / max(n2 - (int(red.free.sum()) + len(ap.other)), 1)
     ratio = float(np.sqrt(s2) / max(sigma, 1e-300))
-    successful, msg = verdict(converged, "" if converged else f"no convergence in {max_steps} steps", ratio, sigma,
-                              source, n2)
+    successful, msg = verdict(
+        converged, "" if converged else f"no convergence in {max_steps} steps", ratio, sigma, source, n2
+    )
     stderr = np.full(len(red.th), np.inf)
     gauges, undetermined = [], []
     if len(ap.other):
         se_o, undetermined, gauges, _ = uncertainty(red.Jr, r, n2, [labels[i] for i in ap.other], sigma)
         stderr[ap.other] = se_o
-    stderr[ap.sl] = _albedo_stderr(ap, solver, red, max(s2, sigma ** 2))
+    stderr[ap.sl] = _albedo_stderr(ap, solver, red, max(s2, sigma**2))
     unseen, notes = _unseen_notes(ap, red, solver.Lp is not None, run.steps)
     psnr, ssim = image_quality(prob.full_images(red.img)[0], prob.targets[0])
-    method = (f"variable projection with a sparse linear block: {ap.n_alb} per-vertex albedo scalars "
-              f"(bounded sparse least squares{', smoothness prior' if solver.Lp is not None else ''}), "
-              f"Levenberg–Marquardt on {len(ap.other)} other scalar(s)")
-    residual = ResidualStats(rss=float(r @ r), rms=float(np.sqrt(float(r @ r) / max(n2, 1))), n=n2,
-                             censored=run.censored, noise=sigma, noise_source=source, noise_ratio=ratio, psnr=psnr,
-                             ssim=ssim)
-    return FitResult(names=labels, values=red.th, start=np.asarray(theta0, np.float64), stderr=stderr, result=msg,
-                     successful=successful, converged=converged, method=method, steps=run.steps,
-                     compile_s=run.compile_s, solve_s=run.solve_s, residual=residual,
-                     diagnostics=Diagnostics(undetermined + unseen, gauges), notes=list(run.notes) + notes)
+    method = (
+        f"variable projection with a sparse linear block: {ap.n_alb} per-vertex albedo scalars "
+        f"(bounded sparse least squares{', smoothness prior' if solver.Lp is not None else ''}), "
+        f"Levenberg–Marquardt on {len(ap.other)} other scalar(s)"
+    )
+    residual = ResidualStats(
+        rss=float(r @ r),
+        rms=float(np.sqrt(float(r @ r) / max(n2, 1))),
+        n=n2,
+        censored=run.censored,
+        noise=sigma,
+        noise_source=source,
+        noise_ratio=ratio,
+        psnr=psnr,
+        ssim=ssim,
+    )
+    return FitResult(
+        names=labels,
+        values=red.th,
+        start=np.asarray(theta0, np.float64),
+        stderr=stderr,
+        result=msg,
+        successful=successful,
+        converged=converged,
+        method=method,
+        steps=run.steps,
+        compile_s=run.compile_s,
+        solve_s=run.solve_s,
+        residual=residual,
+        diagnostics=Diagnostics(undetermined + unseen, gauges),
+        notes=list(run.notes) + notes,
+    )
 
 
-def fit_albedo(prob: Problem, theta0, *, smoothness: float = 0.0, max_steps: int = 50, rtol: float = 1e-10,
-               noise=None, verbose: bool = False) -> FitResult:
+def fit_albedo(
+    prob: Problem,
+    theta0,
+    *,
+    smoothness: float = 0.0,
+    max_steps: int = 50,
+    rtol: float = 1e-10,
+    noise=None,
+    verbose: bool = False,
+) -> FitResult:
     """Fit the per-vertex albedo and the other free parameters of ``prob`` (see the module)."""
     ap = AlbedoProblem(prob, smoothness)
     pset = prob.pset
@@ -423,8 +470,10 @@ def fit_albedo(prob: Problem, theta0, *, smoothness: float = 0.0, max_steps: int
     compile_s = ap._compile(theta)
     t0 = time.perf_counter()
     solver = _AlbedoSolver(ap, smoothness, rtol, verbose)
-    notes = [f"albedo: {ap.nv} vertices in {ap.n_col} colour classes ({ap.n_col + len(ap.other)} tangents per "
-             f"evaluation), smoothness λ = {smoothness:g}"]
+    notes = [
+        f"albedo: {ap.nv} vertices in {ap.n_col} colour classes ({ap.n_col + len(ap.other)} tangents per "
+        f"evaluation), smoothness λ = {smoothness:g}"
+    ]
     red, steps, converged = solver.lm(theta, max_steps)
     if prob.encoded:  # residuals in code values, exactly at the model (see Problem.relinearise)
         for _ in range(RELINEARISE_PASSES):
@@ -432,8 +481,10 @@ def fit_albedo(prob: Problem, theta0, *, smoothness: float = 0.0, max_steps: int
             solver.y = ap.target()
             red, k, converged = solver.lm(red.th, max_steps)
             steps += k
-        notes.append(f"code values: weights and targets re-taken at the model {RELINEARISE_PASSES}× (Gauss–Newton "
-                     "on the code-value residual)")
+        notes.append(
+            f"code values: weights and targets re-taken at the model {RELINEARISE_PASSES}× (Gauss–Newton "
+            "on the code-value residual)"
+        )
     solve_s = time.perf_counter() - t0
     n2, n_cens = prob.counts()
     run = Run(notes, [], steps, compile_s, solve_s, "", n2, n_cens)

@@ -40,7 +40,54 @@ def other_basins(program, ev, prob, red, best: Candidate, theta0, n2, noise, pol
     pset = prob.pset
     theta = best.theta
     u_sol = pset.u_from_theta_np(inside(pset, theta))[red.idx_n]
-    G = min((C - 1) // n_n, SCAN_POINTS)
+    rows, axis = _scan_rows(pset, red, theta, theta0, u_sol, min((C - 1) // n_n, SCAN_POINTS))
+    if len(rows) == 1:
+        return best, None, [], 0, []
+    costs = program.rank(theta[red.idx_l], np.asarray(rows))
+    s2 = best.sigma**2
+    dchi2 = (costs[1:] - costs[0]) / s2
+    i = int(np.argmin(dchi2))
+    label = pset.labels[red.idx_n[axis[i]]]
+    if not dchi2[i] < INTERVAL_LEVEL**2:
+        note = (
+            f"other basins: none within Δχ² = {INTERVAL_LEVEL**2:g} along any nonlinear parameter "
+            f"({len(rows) - 1} points, the others at the solution; least Δχ² {dchi2[i]:.3g}, {label})"
+        )
+        return best, None, [], 1, [note]
+    points = _level_ends(program, theta[red.idx_l], rows, axis, dchi2, rtol)
+    out = program.solve(np.concatenate([theta[red.idx_l], rows[1 + i]]), max_steps, rtol)
+    p = polish(ev, prob, red, np.asarray(out.theta, np.float64), polish_steps, rtol)
+    cand = candidate(prob, p, "" if p.converged else f"the polish did not converge in {polish_steps} steps", n2, noise)
+    d = (cand.rss - best.rss) / s2
+    u2 = pset.u_from_theta_np(inside(pset, p.theta))[red.idx_n]
+    start = f"from the grid point on {label} with Δχ² {dchi2[i]:.3g}"
+    evals = 1 + int(out.k) + p.evaluations + len(points)  # the ranking, the solve and polish, the points' solves
+    if np.max(np.abs(u2 - u_sol)) < 0.25 and d > -1.0:
+        return (
+            best,
+            None,
+            points,
+            evals,
+            [f"other basins: {start}, variable projection and the polish came back to this solution"],
+        )
+    if d < -1.0 and cand.converged:
+        return (
+            cand,
+            None,
+            [],
+            evals,
+            [f"other basins: {start}, a solution with Δχ² {d:.3g} (lower) replaced the one found first"],
+        )
+    if d <= INTERVAL_LEVEL**2 and cand.converged:
+        return best, Alternative(cand, d, start), points, evals, []
+    reached = f"other basins: {start}, variable projection and the polish reached Δχ² {d:.3g}"
+    return best, None, points, evals, [reached + ("" if cand.converged else " (not converged)")]
+
+
+def _scan_rows(pset, red, theta, theta0, u_sol, G: int):
+    """The scan's points in the nonlinear scalars' internal units: the solution, then ``G`` grid
+    values along each scalar's search range (a decade wider each way for a log scale), the others
+    at the solution, those within the fit's basin left out; and the scalar each point moves."""
     rows, axis = [u_sol], []
     for k, (scale, lo, hi) in enumerate(search_ranges(red, theta0)):
         if scale == "log":  # a decade wider each way than the global start's plausible range
@@ -53,41 +100,19 @@ def other_basins(program, ev, prob, red, best: Candidate, theta0, n2, noise, pol
         far = np.abs(u[:, k] - u_sol[k]) >= 0.25  # outside the basin the fit is in (the restarts' rule)
         rows.extend(u[far])
         axis.extend([k] * int(far.sum()))
-    if len(rows) == 1:
-        return best, None, [], 0, []
-    costs = program.rank(theta[red.idx_l], np.asarray(rows))
-    s2 = best.sigma ** 2
-    dchi2 = (costs[1:] - costs[0]) / s2
-    i = int(np.argmin(dchi2))
-    label = pset.labels[red.idx_n[axis[i]]]
-    if not dchi2[i] < INTERVAL_LEVEL ** 2:
-        return best, None, [], 1, [f"other basins: none within Δχ² = {INTERVAL_LEVEL ** 2:g} along any nonlinear parameter "
-                     f"({len(rows) - 1} points, the others at the solution; least Δχ² {dchi2[i]:.3g}, {label})"]
-    # the extreme grid points inside the Δχ² level along each scalar, the linear block solved there
-    near = np.flatnonzero(dchi2 < INTERVAL_LEVEL ** 2)
+    return rows, axis
+
+
+def _level_ends(program, theta_l, rows, axis, dchi2, rtol):
+    """``[(Δχ², θ)]`` of the extreme grid points inside the Δχ² level along each scalar, the
+    linear block solved there."""
+    near = np.flatnonzero(dchi2 < INTERVAL_LEVEL**2)
     ends = set()
     for k in set(axis):
         on_k = [j for j in near if axis[j] == k]
         if on_k:
             ends |= {min(on_k, key=lambda j: rows[1 + j][k]), max(on_k, key=lambda j: rows[1 + j][k])}
-    points = [(float(dchi2[j]), np.asarray(program.solve(np.concatenate([theta[red.idx_l], rows[1 + j]]), 1, rtol).theta,
-                                          np.float64)) for j in sorted(ends)]
-    out = program.solve(np.concatenate([theta[red.idx_l], rows[1 + i]]), max_steps, rtol)
-    k0 = int(out.k)
-    p = polish(ev, prob, red, np.asarray(out.theta, np.float64), polish_steps, rtol)
-    th2, k1 = p.theta, p.evaluations
-    cand = candidate(prob, p, "" if p.converged else f"the polish did not converge in {polish_steps} steps", n2, noise)
-    d = (cand.rss - best.rss) / s2
-    u2 = pset.u_from_theta_np(inside(pset, th2))[red.idx_n]
-    start = f"from the grid point on {label} with Δχ² {dchi2[i]:.3g}"
-    evals = 1 + k0 + k1 + len(points)  # the ranking, the solve and polish, and the grid points' solves
-    if np.max(np.abs(u2 - u_sol)) < 0.25 and d > -1.0:
-        return best, None, points, evals, [f"other basins: {start}, variable projection and the polish came back to "
-                                           "this solution"]
-    if d < -1.0 and cand.converged:
-        return cand, None, [], evals, [f"other basins: {start}, a solution with Δχ² {d:.3g} (lower) replaced the one "
-                                       "found first"]
-    if d <= INTERVAL_LEVEL ** 2 and cand.converged:
-        return best, Alternative(cand, d, start), points, evals, []
-    return best, None, points, evals, [f"other basins: {start}, variable projection and the polish reached Δχ² {d:.3g}"
-                                       + ("" if cand.converged else " (not converged)")]
+    return [
+        (float(dchi2[j]), np.asarray(program.solve(np.concatenate([theta_l, rows[1 + j]]), 1, rtol).theta, np.float64))
+        for j in sorted(ends)
+    ]

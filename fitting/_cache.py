@@ -30,8 +30,16 @@ def cache_info() -> dict:
 def _key(prob: Problem, what, *extra, args=()):
     leaves, treedef = jax.tree.flatten(args)
     pset = prob.pset
-    return (what, tuple(pset.labels), tuple(p.path for p in pset.params), tuple(pset.sizes), prob.opts, treedef,
-            tuple((x.shape, x.dtype, getattr(x, "sharding", None)) for x in leaves), *extra)
+    return (
+        what,
+        tuple(pset.labels),
+        tuple(p.path for p in pset.params),
+        tuple(pset.sizes),
+        prob.opts,
+        treedef,
+        tuple((x.shape, x.dtype, getattr(x, "sharding", None)) for x in leaves),
+        *extra,
+    )
 
 
 def compiled(prob: Problem, what: str, fn, *args, extra=()):
@@ -62,7 +70,9 @@ def enable_compilation_cache(path: str | None = None) -> str:
     """Turn on JAX's persistent compilation cache (default ``~/.cache/diffshade/xla``, or
     ``$DIFFSHADE_CACHE``): a second run of a fit of the same structure loads its programs
     instead of compiling them."""
-    path = path or os.environ.get("DIFFSHADE_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "diffshade", "xla")
+    path = (
+        path or os.environ.get("DIFFSHADE_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "diffshade", "xla")
+    )
     os.makedirs(path, exist_ok=True)
     jax.config.update("jax_compilation_cache_dir", path)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)

@@ -82,8 +82,14 @@ def fit(
         raise TypeError(f"observations: expected fitting.Observations, got {type(observations).__name__}")
     if not isinstance(strategy, Strategy):
         raise TypeError(f"strategy: expected fitting.VarPro or fitting.Optimistix, got {type(strategy).__name__}")
-    kw = dict(shared=shared, strategy=strategy, albedo_smoothness=albedo_smoothness, intervals=intervals,
-              history=history, devices=devices)
+    kw = dict(
+        shared=shared,
+        strategy=strategy,
+        albedo_smoothness=albedo_smoothness,
+        intervals=intervals,
+        history=history,
+        devices=devices,
+    )
     if strategy.visibility_passes > 1 and _pose_mask(scene, observations, free, shared).any():
         return _fit_pose(scene, opts, observations, free, **kw)
     return _fit_once(scene, opts, observations, free, **kw)
@@ -92,12 +98,14 @@ def fit(
 def _pose_mask(scene, observations, free, shared) -> np.ndarray:
     """Which scalars of the free parameters are a camera pose's."""
     pset = ParamSet(list(free), scene, shared, n_views=len(observations.targets))
-    return np.concatenate([np.full(p.size, p.path[0] == "camera" and p.path[-1] in ("rvec", "tvec"))
-                           for p in pset.params])
+    return np.concatenate(
+        [np.full(p.size, p.path[0] == "camera" and p.path[-1] in ("rvec", "tvec")) for p in pset.params]
+    )
 
 
-def _fit_once(scene, opts, observations, free, *, shared, strategy, albedo_smoothness, intervals, history,
-              devices) -> FitResult:
+def _fit_once(
+    scene, opts, observations, free, *, shared, strategy, albedo_smoothness, intervals, history, devices
+) -> FitResult:
     """One fit at the visibility of the scene's values."""
     prob = Problem.build(scene, opts, observations, list(free), shared=shared, devices=devices)
     pset, dtype = prob.pset, prob.dtype
@@ -106,9 +114,15 @@ def _fit_once(scene, opts, observations, free, *, shared, strategy, albedo_smoot
     if any(p.path == ("mesh", "colors") for p in pset.params):
         from ._albedo import fit_albedo
 
-        return fit_albedo(prob, np.asarray(theta0, np.float64), smoothness=albedo_smoothness,
-                          max_steps=max(strategy.max_steps, 20), noise=observations.noise, verbose=strategy.verbose,
-                          rtol=strategy.tolerance(dtype))
+        return fit_albedo(
+            prob,
+            np.asarray(theta0, np.float64),
+            smoothness=albedo_smoothness,
+            max_steps=max(strategy.max_steps, 20),
+            noise=observations.noise,
+            verbose=strategy.verbose,
+            rtol=strategy.tolerance(dtype),
+        )
     red = Reduced(prob, linear=strategy.method == "auto")
     return solve(prob, red, theta0, strategy, noise=observations.noise, history=history, intervals=intervals)
 
@@ -130,14 +144,20 @@ def _fit_pose(scene, opts, observations, free, *, strategy, **kw) -> FitResult:
         runs.append(r)
         moved = np.abs(r.values - (r.start if prev is None else prev))[pose]
         se = np.where(np.isfinite(r.stderr[pose]), r.stderr[pose], np.inf)
-        notes.append(f"visibility pass {k + 1}: {r.result or 'successful'}; the pose moved by up to "
-                     f"{np.max(moved / np.maximum(se, 1e-300)):.3g} s.e.")
+        notes.append(
+            f"visibility pass {k + 1}: {r.result or 'successful'}; the pose moved by up to "
+            f"{np.max(moved / np.maximum(se, 1e-300)):.3g} s.e."
+        )
         prev = r.values
         theta = jnp.asarray(r.values, scene.mesh.vertices.dtype)
         scene = pset.apply(scene, theta)
         views = [pset.apply(v, theta, i) for i, v in enumerate(views)]
         if r.successful and np.all(moved <= 0.1 * se):
             break
-    return r.replace(notes=notes + r.notes, start=first_start, compile_s=sum(x.compile_s for x in runs),
-                     solve_s=sum(x.solve_s for x in runs), steps=sum(x.steps for x in runs))
-
+    return r.replace(
+        notes=notes + r.notes,
+        start=first_start,
+        compile_s=sum(x.compile_s for x in runs),
+        solve_s=sum(x.solve_s for x in runs),
+        steps=sum(x.steps for x in runs),
+    )

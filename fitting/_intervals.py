@@ -161,7 +161,7 @@ def cover_points(interval, points):
     """The intervals widened to hold points ``(Δχ², θ)`` known to lie within their level, the
     scalars widened, and the θ of least Δχ² among the points that widened one (None if none)."""
     out, grown, best = interval.copy(), set(), None
-    for d, th in sorted(points, key=lambda p: p[0]):
+    for _, th in sorted(points, key=lambda p: p[0]):
         below, above = th < out[:, 0], th > out[:, 1]  # (NaN intervals compare False: left alone)
         if (below | above).any():
             best = th if best is None else best
@@ -179,7 +179,7 @@ def linear_reach(ev, red, points, interval, r_best, s2, lo, hi, halvings=3):
     each proposal is evaluated (one render) and kept only if its Δχ², computed exactly (censoring
     included), is within the level, else δ is halved. A scalar whose column vanishes there (a highlight no pixel
     sees at m = 10⁴) reaches across its box. Returns the kept ``(Δχ², θ)``."""
-    level, idx_l = INTERVAL_LEVEL ** 2, red.idx_l
+    level, idx_l = INTERVAL_LEVEL**2, red.idx_l
     base = float(r_best @ r_best)
     out = []
     for _, th in points:
@@ -233,8 +233,9 @@ def cover_alternative(interval, th2, se2, lo, hi):
     errors ``se2``, and the scalars whose alternative value lay outside them."""
     se2 = np.where(np.isfinite(se2), se2, 0.0)
     out = interval.copy()
-    ambiguous = [i for i in range(len(th2)) if np.isfinite(interval[i]).all()
-                 and not interval[i, 0] <= th2[i] <= interval[i, 1]]
+    ambiguous = [
+        i for i in range(len(th2)) if np.isfinite(interval[i]).all() and not interval[i, 0] <= th2[i] <= interval[i, 1]
+    ]
     for i in ambiguous:
         out[i, 0] = max(min(interval[i, 0], th2[i] - INTERVAL_LEVEL * se2[i]), lo[i])
         out[i, 1] = min(max(interval[i, 1], th2[i] + INTERVAL_LEVEL * se2[i]), hi[i])

@@ -19,8 +19,6 @@ With ``clamp`` on, nothing is linear: the same machinery runs with every paramet
 
 from __future__ import annotations
 
-
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -74,9 +72,19 @@ def split_linear(pset, opts, scene=None) -> tuple[list[int], dict[str, str]]:
         elif p.path in (("camera", "exposure"), ("camera", "white_balance")):
             # the gain multiplies the whole image: linear unless another linear candidate (a k,
             # a light colour, ...) or another gain of the same view is free
-            others = [q for j, q in enumerate(pset.params) if j != i and (_is_linear_candidate(q)
-                      or (q.path[0] == "camera" and q.path[1] in ("exposure", "white_balance")
-                          and (q.view is None or p.view is None or q.view == p.view)))]
+            others = [
+                q
+                for j, q in enumerate(pset.params)
+                if j != i
+                and (
+                    _is_linear_candidate(q)
+                    or (
+                        q.path[0] == "camera"
+                        and q.path[1] in ("exposure", "white_balance")
+                        and (q.view is None or p.view is None or q.view == p.view)
+                    )
+                )
+            ]
             ok = not others
             if not ok:
                 why[p.name] = f"multiplies the image, and {others[0].name} is free"
@@ -145,8 +153,9 @@ def bounded_lsq(A, r0, lo, hi, x0, iters: int | None = None):
         y, w_lo, w_hi = state
         free = det & ~w_lo & ~w_hi
         d = -_masked_solve(G, grad_fn(y), free, rcond)
-        room = jnp.where(d < 0, (ylo - y) / jnp.where(d < 0, d, -1.0),
-                         jnp.where(d > 0, (yhi - y) / jnp.where(d > 0, d, 1.0), big))
+        room = jnp.where(
+            d < 0, (ylo - y) / jnp.where(d < 0, d, -1.0), jnp.where(d > 0, (yhi - y) / jnp.where(d > 0, d, 1.0), big)
+        )
         room = jnp.where(free, jnp.maximum(room, 0.0), big)
         alpha = jnp.minimum(jnp.min(room), 1.0)
         blocked = alpha < 1.0
@@ -174,8 +183,9 @@ def bounded_lsq(A, r0, lo, hi, x0, iters: int | None = None):
     # from the start clipped into the box with an empty working set
     y = jnp.where(det, jnp.clip(y0, ylo, yhi), y0)
     none = jnp.zeros(n, bool)
-    _, state, _, _ = jax.lax.while_loop(lambda cr: cr[3] < 2, body,
-                                        (jnp.asarray(0), (y, none, none), jnp.asarray(False), jnp.asarray(0)))
+    _, state, _, _ = jax.lax.while_loop(
+        lambda cr: cr[3] < 2, body, (jnp.asarray(0), (y, none, none), jnp.asarray(False), jnp.asarray(0))
+    )
     y = state[0]
     x = jnp.where(det, y * inv_s, x0)
     free = det & (x > lo) & (x < hi)
@@ -226,8 +236,10 @@ class Reduced:
             return f"Levenberg–Marquardt on all parameters ({reason})"
         if not len(self.idx_n):
             return "bounded linear least squares (every free parameter enters the image linearly)"
-        return (f"variable projection: {len(self.idx_l)} linear scalars solved exactly under their bounds, "
-                f"Levenberg–Marquardt on {len(self.idx_n)} nonlinear")
+        return (
+            f"variable projection: {len(self.idx_l)} linear scalars solved exactly under their bounds, "
+            f"Levenberg–Marquardt on {len(self.idx_n)} nonlinear"
+        )
 
     # -- pieces -------------------------------------------------------------------------------
     def theta(self, u_n, x, theta_ref):
@@ -273,13 +285,21 @@ class Reduced:
         data, theta_ref = args
         theta = self.theta(u_n, theta_ref[self.idx_l], theta_ref)
         if not len(self.idx_l):
-            r = jnp.concatenate([((self.prob.image(vd, theta) - vd.target) * vd.weight
-                                  * ~(vd.hi | vd.lo)).reshape(-1) for vd in view_list(data)])
+            r = jnp.concatenate(
+                [
+                    ((self.prob.image(vd, theta) - vd.target) * vd.weight * ~(vd.hi | vd.lo)).reshape(-1)
+                    for vd in view_list(data)
+                ]
+            )
             return r.astype(u_n.dtype), jnp.zeros((0,), theta.dtype)
         x, free, A, _ = self.solve_linear(theta, data)
         theta = theta.at[self.idx_l].set(x)
-        r = jnp.concatenate([((self.prob.image(vd, theta) - vd.target) * vd.weight
-                              * ~(vd.hi | vd.lo)).reshape(-1) for vd in view_list(data)])
+        r = jnp.concatenate(
+            [
+                ((self.prob.image(vd, theta) - vd.target) * vd.weight * ~(vd.hi | vd.lo)).reshape(-1)
+                for vd in view_list(data)
+            ]
+        )
         # Kaufman: the tangent is projected off the span of the free linear columns
         Af = A * free.astype(A.dtype)
         G = Af.T @ Af
@@ -295,4 +315,3 @@ class Reduced:
             return jnp.sum(self.residual(u_n, args)[0] ** 2)
         x, _, A, r0 = self.solve_linear(theta, data)
         return jnp.sum((A @ x + r0) ** 2)
-

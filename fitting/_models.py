@@ -16,9 +16,14 @@ from ._fit import fit
 from ._observations import Observations
 from ._report import FitResult
 
-
-_SPECULAR_PARAMS = ("material.specular", "material.shininess", "material.ior",
-                    "back_material.specular", "back_material.shininess", "back_material.ior")
+_SPECULAR_PARAMS = (
+    "material.specular",
+    "material.shininess",
+    "material.ior",
+    "back_material.specular",
+    "back_material.shininess",
+    "back_material.ior",
+)
 
 
 @dataclass(frozen=True)
@@ -44,8 +49,7 @@ def model_variants(scene: ds.Scene, opts: ds.RenderOptions, free):
     out = [("as given", opts, list(free), scene)]
     if _options.specular(opts) != "none":
         drop = [n for n in free if n in _SPECULAR_PARAMS]
-        out.append(("no specular", _options.without_specular(opts),
-                    [n for n in free if n not in drop], scene))
+        out.append(("no specular", _options.without_specular(opts), [n for n in free if n not in drop], scene))
         other = "blinn" if _options.specular(opts) == "phong" else "phong"
         conv = ds.phong_to_blinn if other == "blinn" else ds.blinn_to_phong
         s2 = eqx.tree_at(lambda s: s.material.shininess, scene, conv(scene.material.shininess))
@@ -55,8 +59,16 @@ def model_variants(scene: ds.Scene, opts: ds.RenderOptions, free):
     return out
 
 
-def compare_models(scene: ds.Scene, opts: ds.RenderOptions, observations: Observations, free, *, variants=None,
-                   given: FitResult | None = None, **fit_kw) -> list[ModelScore]:
+def compare_models(
+    scene: ds.Scene,
+    opts: ds.RenderOptions,
+    observations: Observations,
+    free,
+    *,
+    variants=None,
+    given: FitResult | None = None,
+    **fit_kw,
+) -> list[ModelScore]:
     r"""Fit every variant (default :func:`model_variants`) and score it by AIC and BIC,
 
     .. math:: \mathrm{AIC} = n \ln(\mathrm{RSS}/n) + 2k, \qquad \mathrm{BIC} = n \ln(\mathrm{RSS}/n) + k \ln n
@@ -78,7 +90,7 @@ def compare_models(scene: ds.Scene, opts: ds.RenderOptions, observations: Observ
         r = given if (given is not None and name == "as given") else fit(sc, o, observations, fr, **fit_kw)
         n = int(r.residual.n)
         k = len(r.names) - len(r.diagnostics.undetermined)
-        ms = max(r.residual.rss / n, (eps ** 2) * scale2)
+        ms = max(r.residual.rss / n, (eps**2) * scale2)
         aic = n * np.log(ms) + 2 * k
         bic = n * np.log(ms) + k * np.log(n)
         out.append(ModelScore(name, o, fr, r, n, k, r.residual.rss, float(aic), float(bic)))

@@ -126,8 +126,13 @@ class Strategy:
     def __post_init__(self):
         if self.method not in ("auto", "full"):
             raise FitError(f"unknown method {self.method!r}; 'auto' or 'full'")
-        for name, least in (("starts", 1), ("restarts", 0), ("max_steps", 0), ("polish_steps", 0),
-                            ("visibility_passes", 1)):
+        for name, least in (
+            ("starts", 1),
+            ("restarts", 0),
+            ("max_steps", 0),
+            ("polish_steps", 0),
+            ("visibility_passes", 1),
+        ):
             v = getattr(self, name)
             if int(v) != v or v < least:
                 raise FitError(f"{type(self).__name__}.{name} must be a whole number >= {least}, got {v!r}")

@@ -19,6 +19,7 @@ def lm_solve(fn, u0, args, *, rtol, atol, max_steps: int, history: bool, verbose
 
     Returns ``(u, aux, result code, steps, hist, loss)`` (code 0 = successful); ``hist`` is ``(loss [S], u [S, n], aux [S, m],
     count)`` with ``S = max_steps + 1``, or None."""
+
     def show(**kw):
         got = [kw[n] for n in ("num_steps", "loss_this_step", "step_size") if n in kw]
         jax.debug.print("  " + ", ".join(f"{label.lower()} {{}}" for label, _ in got), *[v for _, v in got])
@@ -35,7 +36,7 @@ def lm_solve(fn, u0, args, *, rtol, atol, max_steps: int, history: bool, verbose
     def record(h, k, y, st):
         if h is None:
             return None
-        loss = 0.5 * jnp.sum(st.f_info.residual ** 2)
+        loss = 0.5 * jnp.sum(st.f_info.residual**2)
         return (h[0].at[k].set(loss), h[1].at[k].set(y), h[2].at[k].set(st.aux), k + 1)
 
     def cond(c):
@@ -54,8 +55,12 @@ def lm_solve(fn, u0, args, *, rtol, atol, max_steps: int, history: bool, verbose
     term0, res0 = solver.terminate(fn, u0, args, {}, state, tags)
     h0 = None
     if history:
-        h0 = (jnp.full((S,), jnp.nan, u0.dtype), jnp.zeros((S, u0.shape[0]), u0.dtype),
-              jnp.zeros((S,) + aux_struct.shape, aux_struct.dtype), jnp.array(0))
+        h0 = (
+            jnp.full((S,), jnp.nan, u0.dtype),
+            jnp.zeros((S, u0.shape[0]), u0.dtype),
+            jnp.zeros((S,) + aux_struct.shape, aux_struct.dtype),
+            jnp.array(0),
+        )
     c = jax.lax.while_loop(cond, body, (u0, jnp.array(0), dyn0, aux0, term0, res0, h0))
     y, k, dyn, aux, term, res, h = c
     loss = 0.5 * jnp.sum(eqx.combine(static, dyn).f_info.residual ** 2)
@@ -66,4 +71,3 @@ def lm_solve(fn, u0, args, *, rtol, atol, max_steps: int, history: bool, verbose
 def result_message(code) -> str:
     """optimistix's message for a result code returned by :func:`lm_solve` ("" = successful)."""
     return optx.RESULTS._index_to_message[int(code)]
-

@@ -52,8 +52,12 @@ def without_fog(opts: ds.RenderOptions) -> ds.RenderOptions:
 
 def mtl_flags(opts: ds.RenderOptions) -> dict:
     """What a Wavefront MTL export needs to know: the specular model and which optional terms are on."""
-    return dict(specular=opts.lighting.specular, absorption=opts.layered and opts.transparency.absorption,
-                transparency=opts.layered, transmission=opts.lighting.transmission)
+    return dict(
+        specular=opts.lighting.specular,
+        absorption=opts.layered and opts.transparency.absorption,
+        transparency=opts.layered,
+        transmission=opts.lighting.transmission,
+    )
 
 
 def render_summary(opts: ds.RenderOptions) -> dict:

@@ -56,13 +56,35 @@ class ParamError(ValueError):
 
 _RGB = {"emission", "ambient", "diffuse", "specular", "color", "transmission", "absorption", "mirror", "refraction"}
 _MATERIAL = {
-    "emission": "positive", "ambient": "unit", "diffuse": "unit", "specular": "unit",
-    "shininess": "positive", "ior": (1.0, 4.0), "opacity": "unit", "kay_min": "unit", "kay_max": "unit",
-    "kay_power": "positive", "transmission": "unit", "absorption": "positive", "mirror": "unit", "refraction": "unit",
+    "emission": "positive",
+    "ambient": "unit",
+    "diffuse": "unit",
+    "specular": "unit",
+    "shininess": "positive",
+    "ior": (1.0, 4.0),
+    "opacity": "unit",
+    "kay_min": "unit",
+    "kay_max": "unit",
+    "kay_power": "positive",
+    "transmission": "unit",
+    "absorption": "positive",
+    "mirror": "unit",
+    "refraction": "unit",
 }
-_LIGHT = {"color": "positive", "ambient": "positive", "a0": "positive", "a1": "positive", "a2": "positive",
-          "cutoff": (0.0, 90.0), "exponent": "positive", "edge": (0.0, 90.0), "width": "positive", "height": "positive",
-          "position": "real", "specular": "positive"}
+_LIGHT = {
+    "color": "positive",
+    "ambient": "positive",
+    "a0": "positive",
+    "a1": "positive",
+    "a2": "positive",
+    "cutoff": (0.0, 90.0),
+    "exponent": "positive",
+    "edge": (0.0, 90.0),
+    "width": "positive",
+    "height": "positive",
+    "position": "real",
+    "specular": "positive",
+}
 _SIZE = {"width": 0, "height": 1}  # an area light's size[i, k]
 _KINDS = ("directional", "point", "spot", "area", "multi_lobe")
 _LOBE = {"color", "ambient", "cutoff", "exponent", "edge"}
@@ -161,7 +183,9 @@ class Param:
             kind, i, field = p
             if field in ("a0", "a1", "a2"):
                 att = getattr(scene, kind).attenuation
-                return (lambda s: getattr(s, kind).attenuation), att.at[i, int(field[1])].set(jnp.asarray(value, att.dtype))
+                return (lambda s: getattr(s, kind).attenuation), att.at[i, int(field[1])].set(
+                    jnp.asarray(value, att.dtype)
+                )
             if field in _SIZE:
                 size = getattr(scene, kind).size
                 return (lambda s: getattr(s, kind).size), size.at[i, _SIZE[field]].set(jnp.asarray(value, size.dtype))
@@ -216,9 +240,13 @@ class Param:
         elif self.domain == "positive":
             ok = ok and (v > 0).all()
         elif self.domain != "real":
-            ok = ok and (v >= self.domain[0]).all() and (v <= self.domain[1]).all()  # a start on a bound is moved inside
+            ok = (
+                ok and (v >= self.domain[0]).all() and (v <= self.domain[1]).all()
+            )  # a start on a bound is moved inside
         if not ok:
-            raise ParamError(f"{self.name}: {what} {np.round(v, 6).tolist()} is outside its domain {_domain_str(self.domain)}")
+            raise ParamError(
+                f"{self.name}: {what} {np.round(v, 6).tolist()} is outside its domain {_domain_str(self.domain)}"
+            )
 
     def labels(self) -> list[str]:
         if self.path == ("mesh", "colors"):
@@ -231,8 +259,10 @@ class Param:
 
 def _parse_mesh_colors(name, scene, shared):
     if scene.mesh.colors is None:
-        raise ParamError("mesh.colors: the mesh has no vertex colours to fit (load a mesh with colours, or give "
-                         "Mesh(colors=...) a start)")
+        raise ParamError(
+            "mesh.colors: the mesh has no vertex colours to fit (load a mesh with colours, or give "
+            "Mesh(colors=...) a start)"
+        )
     if shared:
         raise ParamError("mesh.colors has no shared form")
     return Param(name, ("mesh", "colors"), 3 * int(scene.mesh.colors.shape[0]), "unit")
@@ -243,7 +273,7 @@ def _parse_camera(name, scene, shared):
     if len(parts) != 2 or parts[1] not in _CAMERA:
         raise ParamError(f"unknown parameter {name!r}: a camera has {', '.join(_CAMERA)}")
     if parts[1] in ("rvec", "tvec") and not isinstance(scene.camera, ds.OpenCVCamera):
-        raise ParamError(f"{name}: only an OpenCV camera (model = \"opencv\") has a pose vector")
+        raise ParamError(f'{name}: only an OpenCV camera (model = "opencv") has a pose vector')
     rgb = parts[1] == "white_balance" and not shared
     if parts[1] in ("rvec", "tvec") and shared:
         raise ParamError(f"{name}: a pose vector has no shared form")
@@ -266,8 +296,10 @@ def _parse_lobe(name, scene, shared, m):
 def _parse_multi(name, scene, shared, m):
     i, field = int(m.group(1)), m.group(2)
     if field not in ("a0", "a1", "a2", "position"):
-        raise ParamError(f"unknown parameter {name!r}: a multi-lobe light has position, a0, a1, a2; its lobes have "
-                         f"multi_lobe[{i}].lobe[j].<{'|'.join(sorted(_LOBE))}>")
+        raise ParamError(
+            f"unknown parameter {name!r}: a multi-lobe light has position, a0, a1, a2; its lobes have "
+            f"multi_lobe[{i}].lobe[j].<{'|'.join(sorted(_LOBE))}>"
+        )
     if i >= scene.multi_lobe.count:
         raise ParamError(f"unknown parameter {name!r}: the scene has {scene.multi_lobe.count} multi-lobe light(s)")
     return Param(name, ("multi_lobe", i, field), 3 if field == "position" else 1, _LIGHT[field])
@@ -277,16 +309,20 @@ def _parse_light(name, scene, shared, m):
     kind, i, field = m.group(1), int(m.group(2)), m.group(3)
     count = getattr(scene, kind).count
     direction = (kind, field) in (("directional", "direction"), ("spot", "axis"))
-    if not direction and (field not in _LIGHT or (kind != "spot" and field in ("cutoff", "exponent", "edge"))
-                          or (kind == "directional" and (field[0] == "a" and field != "ambient"
-                                                         or field == "position"))
-                          or (kind != "area" and field in _SIZE)):
+    if not direction and (
+        field not in _LIGHT
+        or (kind != "spot" and field in ("cutoff", "exponent", "edge"))
+        or (kind == "directional" and (field[0] == "a" and field != "ambient" or field == "position"))
+        or (kind != "area" and field in _SIZE)
+    ):
         raise ParamError(f"unknown parameter {name!r}: a {kind} light has no field {field!r}")
     if i >= count:
         raise ParamError(f"unknown parameter {name!r}: the scene has {count} {kind} light(s)")
     if field == "specular" and getattr(getattr(scene, kind), "specular", None) is None:
-        raise ParamError(f"{name}: the scene's {kind} lights have no separate specular colour (their colour sets "
-                         "both); give one with `specular = [r, g, b]` in the scene file")
+        raise ParamError(
+            f"{name}: the scene's {kind} lights have no separate specular colour (their colour sets "
+            "both); give one with `specular = [r, g, b]` in the scene file"
+        )
     size = 3 if (field in _RGB and not shared) or field == "position" else 1
     if field in ("position", "direction", "axis") and shared:
         raise ParamError(f"{name}: a {field} has no shared form")
@@ -328,8 +364,12 @@ def _parse_other(name, scene, shared):
     )
 
 
-_PATTERNS = ((_LOBE_RE, _parse_lobe), (_MULTI_RE, _parse_multi), (_LIGHT_RE, _parse_light),
-             (_MATERIAL_RE, _parse_material_i))
+_PATTERNS = (
+    (_LOBE_RE, _parse_lobe),
+    (_MULTI_RE, _parse_multi),
+    (_LIGHT_RE, _parse_light),
+    (_MATERIAL_RE, _parse_material_i),
+)
 
 
 def parse(name: str, scene: ds.Scene, shared: bool = False, n_views: int | None = None) -> Param:

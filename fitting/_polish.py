@@ -28,7 +28,7 @@ def squared_scalars(prob) -> np.ndarray:
     if _options.fog(prob.opts) == "exp2":
         for p, off in zip(prob.pset.params, prob.pset.offsets[:-1]):
             if p.path == ("fog", "density"):
-                out[off:off + p.size] = True
+                out[off : off + p.size] = True
     return out
 
 
@@ -46,8 +46,11 @@ def bounded_step(H, g, free, v, lo, hi, lam):
         if not f.any():
             break
         rhs = -(g[f] + H[np.ix_(f, held)] @ s[held])
-        s[f] = (np.linalg.lstsq(H[np.ix_(f, f)], rhs, rcond=None)[0] if lam == 0 else
-                np.linalg.solve(H[np.ix_(f, f)] + lam * np.diag(d[f]), rhs))
+        s[f] = (
+            np.linalg.lstsq(H[np.ix_(f, f)], rhs, rcond=None)[0]
+            if lam == 0
+            else np.linalg.solve(H[np.ix_(f, f)] + lam * np.diag(d[f]), rhs)
+        )
         below, above = f & (v + s < lo), f & (v + s > hi)
         if not (below | above).any():
             break
@@ -81,7 +84,7 @@ def polish(ev, prob, red, theta, steps, rtol) -> Polished:
     lin[red.idx_l] = True
     sq = squared_scalars(prob)
     # the polish's variables v: θ, or θ² for the squared ones (θ ≥ floor > 0 there)
-    floor_v, hi_v = np.where(sq, floor ** 2, floor), np.where(sq, hi ** 2, hi)
+    floor_v, hi_v = np.where(sq, floor**2, floor), np.where(sq, hi**2, hi)
     to_v = lambda th: np.where(sq, th * th, th)  # noqa: E731
     from_v = lambda v: np.where(sq, np.sqrt(np.maximum(v, 0.0)), v)  # noqa: E731
     jac_v = lambda J, th: J * np.where(sq, 0.5 / np.where(sq, th, 1.0), 1.0)  # noqa: E731
@@ -166,5 +169,11 @@ def relinearise(prob, ev, red, best, polish_steps, rtol, n2, noise):
         p = polish(ev, prob, red, best.theta, polish_steps, rtol)
         steps += p.evaluations
         best = candidate(prob, p, best.res if not p.converged else "", n2, noise)
-    return best, steps, [f"code values: weights and targets re-taken at the model {RELINEARISE_PASSES}× (Gauss–Newton "
-                         f"on the code-value residual); residual {best.ratio:.3g}× the noise"]
+    return (
+        best,
+        steps,
+        [
+            f"code values: weights and targets re-taken at the model {RELINEARISE_PASSES}× (Gauss–Newton "
+            f"on the code-value residual); residual {best.ratio:.3g}× the noise"
+        ],
+    )

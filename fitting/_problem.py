@@ -22,11 +22,10 @@ import jax.numpy as jnp
 import numpy as np
 
 import diffshade as ds
-from diffshade import color
-from diffshade import pixel_neighbours
+from diffshade import color, pixel_neighbours
 
 from . import _options
-from ._observations import FitError, Observations, as_list
+from ._observations import FitError, Observations
 from ._params import ParamSet
 
 PAD = 1024  # covered-pixel counts are padded up to a multiple of this
@@ -103,7 +102,7 @@ def near_edges(depth: np.ndarray, margin: int, ratio: float = 4.0) -> np.ndarray
     Dp = np.pad(np.where(cov, D, np.nan), 2, constant_values=np.nan)
     edge = np.zeros((h, w), bool)
     for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
-        at = lambda k: Dp[2 + k * dy:2 + k * dy + h, 2 + k * dx:2 + k * dx + w]  # noqa: E731
+        at = lambda k: Dp[2 + k * dy : 2 + k * dy + h, 2 + k * dx : 2 + k * dx + w]  # noqa: E731
         p, q, before, after = at(0), at(1), at(-1), at(2)
         jump = np.abs(q - p)
         # both surfaces continue a pixel beyond the pair (at the silhouette one does not: that
@@ -113,8 +112,8 @@ def near_edges(depth: np.ndarray, margin: int, ratio: float = 4.0) -> np.ndarray
         edge |= cut
         # the other pixel of the pair
         sh = np.zeros((h + 4, w + 4), bool)
-        sh[2 + dy:2 + dy + h, 2 + dx:2 + dx + w] = cut
-        edge |= sh[2:2 + h, 2:2 + w]
+        sh[2 + dy : 2 + dy + h, 2 + dx : 2 + dx + w] = cut
+        edge |= sh[2 : 2 + h, 2 : 2 + w]
     if margin > 1:
         edge = dilation(edge, np.ones((2 * margin - 1, 2 * margin - 1), bool))
     return edge & cov
@@ -130,8 +129,18 @@ def _edges_at(scene, ids, px, py, right, down):
     clip = scene.camera.world_to_clip(scene.mesh.vertices)
     frags = ds.fragments(clip, scene.mesh.faces, ids[:1], (px, py))
     flat = lambda a: a.reshape(-1)  # noqa: E731
-    return silhouette_edges(flat(frags.tri_id[0]), flat(frags.w[0]), clip, scene.mesh.faces, scene.mesh.adjacency,
-                            flat(px), flat(py), flat(right), flat(down), scene.camera.resolution)
+    return silhouette_edges(
+        flat(frags.tri_id[0]),
+        flat(frags.w[0]),
+        clip,
+        scene.mesh.faces,
+        scene.mesh.adjacency,
+        flat(px),
+        flat(py),
+        flat(right),
+        flat(down),
+        scene.camera.resolution,
+    )
 
 
 def subset_view(vd: ViewData, count: int) -> ViewData:
@@ -141,10 +150,20 @@ def subset_view(vd: ViewData, count: int) -> ViewData:
     step = max(1, n // count)
     take = lambda a, ax: jax.lax.slice_in_dim(a, 0, n, step, axis=ax)  # noqa: E731
     keep_nb = lambda a: jnp.where((a >= 0) & (a % step == 0), a // step, -1).astype(a.dtype)  # noqa: E731
-    return ViewData(scene=vd.scene, ids=take(vd.ids, 2), px=take(vd.px, 1), py=take(vd.py, 1),
-                    target=take(vd.target, 0), weight=take(vd.weight, 0), hi=take(vd.hi, 0), lo=take(vd.lo, 0),
-                    right=keep_nb(take(vd.right, 1)), down=keep_nb(take(vd.down, 1)),
-                    edges=take(vd.edges, 2), index=vd.index)  # a pair whose neighbour is dropped is not blended
+    return ViewData(
+        scene=vd.scene,
+        ids=take(vd.ids, 2),
+        px=take(vd.px, 1),
+        py=take(vd.py, 1),
+        target=take(vd.target, 0),
+        weight=take(vd.weight, 0),
+        hi=take(vd.hi, 0),
+        lo=take(vd.lo, 0),
+        right=keep_nb(take(vd.right, 1)),
+        down=keep_nb(take(vd.down, 1)),
+        edges=take(vd.edges, 2),
+        index=vd.index,
+    )  # a pair whose neighbour is dropped is not blended
 
 
 def stack_views(data: list):
@@ -302,21 +321,38 @@ def _compact(k, c: _Cover, codes, n, dtype, opts):
     kids = np.concatenate([kids, np.full((ids.shape[0], pad), -1, kids.dtype)], axis=1)[:, None, :]
     px_c, py_c = jnp.asarray(padn(xs[c_idx], 0.0)[None], dtype), jnp.asarray(padn(ys[r_idx], 0.0)[None], dtype)
     right_c, down_c = padn(right, -1)[None], padn(down, -1)[None]
-    edges = (np.asarray(_edges_at(v, jnp.asarray(kids), px_c, py_c, jnp.asarray(right_c), jnp.asarray(down_c)))
-             if _options.antialias(opts) else np.full((2, 2, n), -1, np.int32))
-    vd = ViewData(scene=v, ids=jnp.asarray(kids), px=px_c, py=py_c,
-                  target=jnp.asarray(padn(flat(c.t), 0.0), dtype), weight=jnp.asarray(padn(flat(cw), 0.0), dtype),
-                  hi=jnp.asarray(padn(flat(c.hi), False)), lo=jnp.asarray(padn(flat(c.lo), False)),
-                  right=jnp.asarray(right_c), down=jnp.asarray(down_c), edges=jnp.asarray(edges),
-                  index=jnp.asarray(k, jnp.int32))
+    edges = (
+        np.asarray(_edges_at(v, jnp.asarray(kids), px_c, py_c, jnp.asarray(right_c), jnp.asarray(down_c)))
+        if _options.antialias(opts)
+        else np.full((2, 2, n), -1, np.int32)
+    )
+    vd = ViewData(
+        scene=v,
+        ids=jnp.asarray(kids),
+        px=px_c,
+        py=py_c,
+        target=jnp.asarray(padn(flat(c.t), 0.0), dtype),
+        weight=jnp.asarray(padn(flat(cw), 0.0), dtype),
+        hi=jnp.asarray(padn(flat(c.hi), False)),
+        lo=jnp.asarray(padn(flat(c.lo), False)),
+        right=jnp.asarray(right_c),
+        down=jnp.asarray(down_c),
+        edges=jnp.asarray(edges),
+        index=jnp.asarray(k, jnp.int32),
+    )
     # what the model shows where no surface is (the camera's gain at its start values)
     bg = np.broadcast_to(np.asarray(v.background, np.float64) * np.asarray(v.camera.gain(), np.float64), c.t.shape)
     d = censored_residual_np(bg - c.t, c.hi, c.lo) * cw_all
     const = np.where(~c.covered[..., None], d, 0.0)
     encoded = c.enc is not None and c.enc != "linear"
-    book = View(rows=rows, shape=(h, w), const=const, encoding=c.enc if encoded else None,
-                codes=padn(flat(np.asarray(codes, np.float64)), 0.0) if encoded else None,
-                sqrt_mask=padn(flat((c.wgt * c.used)[..., None]), 0.0) if encoded else None)
+    book = View(
+        rows=rows,
+        shape=(h, w),
+        const=const,
+        encoding=c.enc if encoded else None,
+        codes=padn(flat(np.asarray(codes, np.float64)), 0.0) if encoded else None,
+        sqrt_mask=padn(flat((c.wgt * c.used)[..., None]), 0.0) if encoded else None,
+    )
     return vd, book
 
 
@@ -341,26 +377,48 @@ class Problem:
     _placed: dict = field(default_factory=dict, repr=False)  # device copies of the data, by what
 
     @classmethod
-    def build(cls, scene: ds.Scene, opts: ds.RenderOptions, obs: Observations, free, *, shared=(),
-              devices=None, lower_censor: bool | None = None) -> Problem:
+    def build(
+        cls,
+        scene: ds.Scene,
+        opts: ds.RenderOptions,
+        obs: Observations,
+        free,
+        *,
+        shared=(),
+        devices=None,
+        lower_censor: bool | None = None,
+    ) -> Problem:
         """The problem of fitting ``free`` of ``scene`` to the observations ``obs``: every view
         compacted to its covered pixels (padded to a common count, so that the views stack)."""
         views = obs.views_of(scene)
         if _options.antialias(opts):  # the stage reads the mesh's edge topology; the programs get traced faces
-            views = [v if v.mesh.adjacency is not None else eqx.tree_at(lambda s: s.mesh, v, v.mesh.with_adjacency())
-                     for v in views]
+            views = [
+                v if v.mesh.adjacency is not None else eqx.tree_at(lambda s: s.mesh, v, v.mesh.with_adjacency())
+                for v in views
+            ]
         masks = list(obs.masks) if obs.masks is not None else [None] * len(obs.targets)
         dtype = scene.mesh.vertices.dtype
         pset = ParamSet(list(free), scene, shared, n_views=len(obs.targets))
         lower = (obs.saturation is not None) if lower_censor is None else lower_censor
         vis = jax.jit(ds.scene_visibility, static_argnums=1)
-        covers = [_cover(k, t, v, m, enc, obs, lower, opts, vis)
-                  for k, (t, v, m, enc) in enumerate(zip(obs.targets, views, masks, obs.encodings))]
+        covers = [
+            _cover(k, t, v, m, enc, obs, lower, opts, vis)
+            for k, (t, v, m, enc) in enumerate(zip(obs.targets, views, masks, obs.encodings))
+        ]
         # every view padded to the same count, so that the views stack into one batch
         n = max(PAD, max(-(-int(c.covered.sum()) // PAD) * PAD for c in covers))
         data, books = zip(*[_compact(k, c, obs.targets[k], n, dtype, opts) for k, c in enumerate(covers)])
-        return cls(pset, opts, list(data), list(books), dtype, obs.saturation, obs.quantum, [c.t for c in covers],
-                   devices=view_devices(devices, len(data)))
+        return cls(
+            pset,
+            opts,
+            list(data),
+            list(books),
+            dtype,
+            obs.saturation,
+            obs.quantum,
+            [c.t for c in covers],
+            devices=view_devices(devices, len(data)),
+        )
 
     @property
     def encoded(self) -> bool:
@@ -377,7 +435,7 @@ class Problem:
         off = 0
         for k, (vd, b) in enumerate(zip(self.data, self.views)):
             n = vd.target.shape[0]
-            I = np.asarray(img_flat[off * 3:(off + n) * 3], np.float64).reshape(n, 3)
+            I = np.asarray(img_flat[off * 3 : (off + n) * 3], np.float64).reshape(n, 3)
             off += n
             if b.encoding is None:
                 continue
@@ -387,8 +445,11 @@ class Problem:
             cens = np.asarray(vd.hi | vd.lo)
             t_new = np.where(cens, np.asarray(vd.target, np.float64), I + (b.codes - e) * slope)
             w_new = np.where(cens, np.asarray(vd.weight, np.float64), b.sqrt_mask / slope)
-            self.data[k] = eqx.tree_at(lambda d: (d.target, d.weight), vd,
-                                       (jnp.asarray(t_new, vd.target.dtype), jnp.asarray(w_new, vd.weight.dtype)))
+            self.data[k] = eqx.tree_at(
+                lambda d: (d.target, d.weight),
+                vd,
+                (jnp.asarray(t_new, vd.target.dtype), jnp.asarray(w_new, vd.weight.dtype)),
+            )
         self._placed.clear()
 
     # -- the views as the compiled programs take them ------------------------------------------
@@ -426,6 +487,7 @@ class Problem:
         """``fn(view, *args)`` for every stacked view, stacked: the views taken one by one, each
         its own piece of the program. (Not ``lax.map`` or ``vmap``: design notes: docs/fit-design-notes.md, "Stacked views".) Over several devices
         this runs inside ``shard_map``: each device takes its own views."""
+
         def body(d, *a):
             return jnp.stack([fn(jax.tree.map(lambda x: x[i], d), *a) for i in range(d.target.shape[0])])
 
@@ -433,8 +495,12 @@ class Problem:
             from jax.sharding import Mesh, PartitionSpec
 
             mesh = Mesh(np.asarray(self.devices), ("views",))
-            body = jax.shard_map(body, mesh=mesh, in_specs=(PartitionSpec("views"),) + (PartitionSpec(),) * len(args),
-                                 out_specs=PartitionSpec("views"))
+            body = jax.shard_map(
+                body,
+                mesh=mesh,
+                in_specs=(PartitionSpec("views"),) + (PartitionSpec(),) * len(args),
+                out_specs=PartitionSpec("views"),
+            )
         return body(data, *args)
 
     # -- evaluation ----------------------------------------------------------------------------
@@ -447,8 +513,9 @@ class Problem:
     def residual(self, theta, data):
         """Weighted, censored residual of every view's compacted pixels, flat."""
         if isinstance(data, ViewData):
-            r = self.map_views(lambda vd, th: censored_residual(self.image(vd, th), vd.target, vd.hi, vd.lo) * vd.weight,
-                               data, theta)
+            r = self.map_views(
+                lambda vd, th: censored_residual(self.image(vd, th), vd.target, vd.hi, vd.lo) * vd.weight, data, theta
+            )
             return r.reshape(-1)
         out = []
         for vd in data:
@@ -463,8 +530,12 @@ class Problem:
         pset = self.pset
         lo = np.concatenate([np.full(p.size, p.box[0]) for p in pset.params])
         hi = np.concatenate([np.full(p.size, p.box[1]) for p in pset.params])
-        pos = np.concatenate([np.full(p.size, p.domain == "positive" and p.path[-1] not in
-                                      ("color", "ambient", "emission")) for p in pset.params])
+        pos = np.concatenate(
+            [
+                np.full(p.size, p.domain == "positive" and p.path[-1] not in ("color", "ambient", "emission"))
+                for p in pset.params
+            ]
+        )
         return lo, np.where(pos, np.maximum(np.abs(theta) * 1e-6, 1e-12), lo), hi, pos
 
     def counts(self):
@@ -484,7 +555,7 @@ class Problem:
         out, off = [], 0
         for vd, b in zip(self.data, self.views):
             n = vd.target.shape[0]
-            r = np.asarray(r_flat[off * 3:(off + n) * 3], np.float64).reshape(n, 3)[:len(b.rows)]
+            r = np.asarray(r_flat[off * 3 : (off + n) * 3], np.float64).reshape(n, 3)[: len(b.rows)]
             off += n
             img = b.const.copy().reshape(-1, 3)
             img[b.rows] = r
@@ -497,7 +568,7 @@ class Problem:
         out, off = [], 0
         for vd, b in zip(self.data, self.views):
             n = vd.target.shape[0]
-            m = np.asarray(img_flat[off * 3:(off + n) * 3], np.float64).reshape(n, 3)[:len(b.rows)]
+            m = np.asarray(img_flat[off * 3 : (off + n) * 3], np.float64).reshape(n, 3)[: len(b.rows)]
             off += n
             bg = np.asarray(vd.scene.background, np.float64) * np.asarray(vd.scene.camera.gain(), np.float64)
             img = np.broadcast_to(bg, (b.shape[0] * b.shape[1], 3)).copy()
@@ -510,8 +581,8 @@ class Problem:
         out = []
         for vd, b in zip(self.data, self.views):
             m = np.zeros((b.shape[0] * b.shape[1], 3), bool)
-            w = np.broadcast_to(np.asarray(vd.weight) > 0, vd.hi.shape)[:len(b.rows)]
-            cens = np.asarray(vd.hi | vd.lo)[:len(b.rows)]
+            w = np.broadcast_to(np.asarray(vd.weight) > 0, vd.hi.shape)[: len(b.rows)]
+            cens = np.asarray(vd.hi | vd.lo)[: len(b.rows)]
             m[b.rows] = w & ~cens
             out.append(m.reshape(*b.shape, 3))
         return out

@@ -137,20 +137,43 @@ class FitResult:
         """The result as JSON-ready values (the CLI's fit.json)."""
         iv, res, diag = self.intervals, self.residual, self.diagnostics
         return {
-            "parameters": {n: {"value": float(v), "stderr": float(e), "start": float(s),
-                               **({"interval": [float(iv.bounds[i, 0]), float(iv.bounds[i, 1])]}
-                                  if iv is not None else {})}
-                           for i, (n, v, e, s) in enumerate(zip(self.names, self.values, self.stderr, self.start))},
+            "parameters": {
+                n: {
+                    "value": float(v),
+                    "stderr": float(e),
+                    "start": float(s),
+                    **({"interval": [float(iv.bounds[i, 0]), float(iv.bounds[i, 1])]} if iv is not None else {}),
+                }
+                for i, (n, v, e, s) in enumerate(zip(self.names, self.values, self.stderr, self.start))
+            },
             "interval_level": iv.level if iv is not None else INTERVAL_LEVEL,
-            "result": self.result or "successful", "successful": self.successful, "converged": self.converged,
-            "method": self.method, "steps": self.steps, "compile_s": self.compile_s, "solve_s": self.solve_s,
-            "rms": res.rms, "rss": res.rss, "n_residuals": res.n, "censored": res.censored,
-            "noise": res.noise, "noise_source": res.noise_source, "noise_ratio": res.noise_ratio,
-            "stderr_meaningful": self.successful, "on_bound": diag.on_bound, "psnr": res.psnr,
-            "ssim": res.ssim, "undetermined": diag.undetermined, "gauges": diag.gauges,
-            "float_limited": diag.float_limited, "ambiguous": iv.ambiguous if iv is not None else [],
-            **({"alternative": dict(zip(self.names, map(float, iv.alternative)))}
-               if iv is not None and iv.alternative is not None else {}),
+            "result": self.result or "successful",
+            "successful": self.successful,
+            "converged": self.converged,
+            "method": self.method,
+            "steps": self.steps,
+            "compile_s": self.compile_s,
+            "solve_s": self.solve_s,
+            "rms": res.rms,
+            "rss": res.rss,
+            "n_residuals": res.n,
+            "censored": res.censored,
+            "noise": res.noise,
+            "noise_source": res.noise_source,
+            "noise_ratio": res.noise_ratio,
+            "stderr_meaningful": self.successful,
+            "on_bound": diag.on_bound,
+            "psnr": res.psnr,
+            "ssim": res.ssim,
+            "undetermined": diag.undetermined,
+            "gauges": diag.gauges,
+            "float_limited": diag.float_limited,
+            "ambiguous": iv.ambiguous if iv is not None else [],
+            **(
+                {"alternative": dict(zip(self.names, map(float, iv.alternative)))}
+                if iv is not None and iv.alternative is not None
+                else {}
+            ),
             "notes": self.notes,
         }
 
@@ -189,8 +212,13 @@ def noise_level(prob, res_images, noise=None) -> tuple[float, str]:
         return float(noise), "given"
     sw, _, rms = white_noise(res_images, prob.used_masks(), prob.quantum)
     if sw < rms:
-        cands = [(sw, f"white part of the residual, robust estimate (the RMS estimate {rms:.3g} is "
-                      f"{rms / max(sw, 1e-300):.3g}× that: a few pixels with jumps, not noise)")]
+        cands = [
+            (
+                sw,
+                f"white part of the residual, robust estimate (the RMS estimate {rms:.3g} is "
+                f"{rms / max(sw, 1e-300):.3g}× that: a few pixels with jumps, not noise)",
+            )
+        ]
     else:
         cands = [(sw, "white part of the residual")]
     if prob.quantum:
@@ -209,8 +237,10 @@ def verdict(converged: bool, solver_msg: str, ratio: float, sigma: float, source
             msg += f"; the residual is {ratio:.3g}× the noise (σ = {sigma:.3g}, {source})"
         return False, msg
     if ratio > limit:
-        return False, (f"converged, but the residual is {ratio:.3g}× the noise (σ = {sigma:.3g}, {source}): "
-                       "a local minimum or a model that cannot explain the image")
+        return False, (
+            f"converged, but the residual is {ratio:.3g}× the noise (σ = {sigma:.3g}, {source}): "
+            "a local minimum or a model that cannot explain the image"
+        )
     return True, ""
 
 
@@ -234,8 +264,8 @@ def uncertainty(J, r, n_two_sided, labels, sigma: float = 0.0):
             v = vt[-1]
             lab = [labels[i] for i in np.flatnonzero(keep)]
             big = np.argsort(-np.abs(v))[:4]
-            gauges.append("condition number %.1e; weakest combination: %s" % (
-                cond, " ".join(f"{v[i]:+.2f}·{lab[i]}" for i in big if abs(v[i]) > 0.1)))
+            weakest = " ".join(f"{v[i]:+.2f}·{lab[i]}" for i in big if abs(v[i]) > 0.1)
+            gauges.append(f"condition number {cond:.1e}; weakest combination: {weakest}")
         cov = np.linalg.pinv(Js.T @ Js) * s2
         stderr[keep] = np.sqrt(np.clip(np.diag(cov), 0, None)) / col[keep]
     undetermined = [labels[i] for i in np.flatnonzero(undetermined_mask)]
@@ -297,9 +327,20 @@ def candidate(prob, p, res, n2, noise) -> Candidate:
     theta, r, J, img, fixed, p_steps, converged = p
     sigma, source = noise_level(prob, prob.residual_images(r), noise)
     s2 = float(r @ r) / max(n2 - len(theta), 1)
-    return Candidate(theta=theta, r=r, J=J, img=img, fixed=fixed, res=res, converged=bool(converged),
-                     ratio=float(np.sqrt(s2) / max(sigma, 1e-300)), sigma=sigma, source=source, rss=float(r @ r),
-                     polish=p_steps)
+    return Candidate(
+        theta=theta,
+        r=r,
+        J=J,
+        img=img,
+        fixed=fixed,
+        res=res,
+        converged=bool(converged),
+        ratio=float(np.sqrt(s2) / max(sigma, 1e-300)),
+        sigma=sigma,
+        source=source,
+        rss=float(r @ r),
+        polish=p_steps,
+    )
 
 
 def better(cand: Candidate, best: Candidate | None, n2) -> bool:
@@ -353,7 +394,8 @@ def _float_limited(prob, best: Candidate, stderr, successful, labels) -> tuple[l
     listed = ", ".join(f"{labels[i]} ({rel[i]:.1e})" for i in coarse)
     return [labels[i] for i in coarse], [
         f"float32 limits the relative precision of {listed} (the standard error at the float "
-        "floor); render in float64 (jax_enable_x64) to resolve them further"]
+        "floor); render in float64 (jax_enable_x64) to resolve them further"
+    ]
 
 
 def _intervals(ev, red, best: Candidate, s2, stderr, labels, basins: Basins, n2, bounds):
@@ -364,36 +406,50 @@ def _intervals(ev, red, best: Candidate, s2, stderr, labels, basins: Basins, n2,
     notes, ambiguous, alt_theta = [], [], None
     t0 = time.perf_counter()
     interval, n_ev = profile_intervals(ev, theta, r, J, s2, stderr, floor, hi, k=INTERVAL_LEVEL)
-    wide = [labels[i] for i in range(len(theta)) if np.isfinite(stderr[i])
-            and max(theta[i] - interval[i, 0], interval[i, 1] - theta[i]) > 1.2 * INTERVAL_LEVEL * stderr[i]]
+    wide = [
+        labels[i]
+        for i in range(len(theta))
+        if np.isfinite(stderr[i])
+        and max(theta[i] - interval[i, 0], interval[i, 1] - theta[i]) > 1.2 * INTERVAL_LEVEL * stderr[i]
+    ]
     alt = basins.alternative
     if alt is not None:
         se2 = uncertainty(alt.cand.J, alt.cand.r, n2, labels, alt.cand.sigma)[0]
         interval, ambiguous = cover_alternative(interval, alt.cand.theta, se2, floor, hi)
         alt_theta = alt.cand.theta if ambiguous else None
-        notes.append(f"other basins: {alt.start}, a second solution explains the images as well "
-                     f"(Δχ² {alt.dchi2:+.3g}): the images cannot tell them apart in "
-                     + ", ".join(f"{labels[i]} ({theta[i]:.4g} or {alt.cand.theta[i]:.4g})" for i in ambiguous)
-                     + "; the intervals cover both")
+        notes.append(
+            f"other basins: {alt.start}, a second solution explains the images as well "
+            f"(Δχ² {alt.dchi2:+.3g}): the images cannot tell them apart in "
+            + ", ".join(f"{labels[i]} ({theta[i]:.4g} or {alt.cand.theta[i]:.4g})" for i in ambiguous)
+            + "; the intervals cover both"
+        )
     points = list(basins.points)
     far = [(d, th) for d, th in points if ((th < interval[:, 0]) | (th > interval[:, 1])).any()]
-    interval, grown, best_point = cover_points(interval, points + linear_reach(ev, red, far, interval, r, s2, floor, hi))
+    interval, grown, best_point = cover_points(
+        interval, points + linear_reach(ev, red, far, interval, r, s2, floor, hi)
+    )
     if grown:
         ambiguous = sorted(set(ambiguous) | set(grown))
         alt_theta = best_point if alt_theta is None else alt_theta
-        notes.append("other basins: the scan met points within Δχ² = "
-                     f"{INTERVAL_LEVEL ** 2:g} beyond the intervals (the linear block solved there, or moved from "
-                     "there), so the images do not tell these apart: " + ", ".join(
-                         f"{labels[i]} [{interval[i, 0]:.4g}, {interval[i, 1]:.4g}]" for i in grown) + " now cover them")
+        notes.append(
+            "other basins: the scan met points within Δχ² = "
+            f"{INTERVAL_LEVEL**2:g} beyond the intervals (the linear block solved there, or moved from "
+            "there), so the images do not tell these apart: "
+            + ", ".join(f"{labels[i]} [{interval[i, 0]:.4g}, {interval[i, 1]:.4g}]" for i in grown)
+            + " now cover them"
+        )
     seconds = time.perf_counter() - t0 + basins.seconds
-    notes.append(f"profile-likelihood intervals (Δχ² = {INTERVAL_LEVEL ** 2:g}): {n_ev} evaluations, "
-                 f"{seconds:.3g} s" + (f"; wider than ±{INTERVAL_LEVEL:g} s.e. (the model bends there): "
-                                       f"{', '.join(wide)}" if wide else ""))
+    notes.append(
+        f"profile-likelihood intervals (Δχ² = {INTERVAL_LEVEL**2:g}): {n_ev} evaluations, "
+        f"{seconds:.3g} s"
+        + (f"; wider than ±{INTERVAL_LEVEL:g} s.e. (the model bends there): {', '.join(wide)}" if wide else "")
+    )
     return Intervals(interval, INTERVAL_LEVEL, seconds, [labels[i] for i in ambiguous], alt_theta), notes
 
 
-def build_result(prob, red, best: Candidate, theta0, run: Run, ev=None, intervals: bool = True,
-                 basins: Basins = Basins()) -> FitResult:
+def build_result(
+    prob, red, best: Candidate, theta0, run: Run, ev=None, intervals: bool = True, basins: Basins = Basins()
+) -> FitResult:
     """The :class:`FitResult` of the chosen solution ``best``: the verdict, standard errors,
     identifiability and gauges, scalars on a bound, image quality, float32's limits, and with
     ``intervals`` the profile-likelihood intervals (:mod:`fitting._intervals`) widened to what
@@ -402,23 +458,48 @@ def build_result(prob, red, best: Candidate, theta0, run: Run, ev=None, interval
     stderr, undetermined, gauges, s2 = uncertainty(best.J, best.r, n2, labels, best.sigma)
     successful, msg = verdict(best.converged, run.message, best.ratio, best.sigma, best.source, n2)
     _, floor, hi, _ = prob.bounds(theta)
-    on_bound = [f"{labels[i]} = {theta[i]:.6g} ({'upper' if theta[i] >= hi[i] else 'lower'} bound)"
-                for i in np.flatnonzero(best.fixed)]
+    on_bound = [
+        f"{labels[i]} = {theta[i]:.6g} ({'upper' if theta[i] >= hi[i] else 'lower'} bound)"
+        for i in np.flatnonzero(best.fixed)
+    ]
     psnr, ssim = image_quality(prob.full_images(best.img)[0], prob.targets[0])
     float_limited, notes = _float_limited(prob, best, stderr, successful, labels)
     notes = list(run.notes) + notes
     found = None
     if intervals and successful and ev is not None and best.source == FLOAT_FLOOR_SOURCE:
-        notes.append("no profile-likelihood intervals: the target is noise-free (σ is the float floor), so the "
-                     "standard errors are bounds from rounding, not from noise")
+        notes.append(
+            "no profile-likelihood intervals: the target is noise-free (σ is the float floor), so the "
+            "standard errors are bounds from rounding, not from noise"
+        )
     elif intervals and successful and ev is not None:
         found, more = _intervals(ev, red, best, s2, stderr, labels, basins, n2, (floor, hi))
         notes += more
-    residual = ResidualStats(rss=best.rss, rms=float(np.sqrt(best.rss / max(n2, 1))), n=n2, censored=run.censored,
-                             noise=best.sigma, noise_source=best.source, noise_ratio=best.ratio, psnr=psnr, ssim=ssim)
+    residual = ResidualStats(
+        rss=best.rss,
+        rms=float(np.sqrt(best.rss / max(n2, 1))),
+        n=n2,
+        censored=run.censored,
+        noise=best.sigma,
+        noise_source=best.source,
+        noise_ratio=best.ratio,
+        psnr=psnr,
+        ssim=ssim,
+    )
     return FitResult(
-        names=labels, values=theta, start=np.asarray(theta0, np.float64), stderr=stderr, result=msg,
-        successful=successful, converged=best.converged, method=red.method, steps=run.steps,
-        compile_s=run.compile_s, solve_s=run.solve_s, residual=residual,
-        diagnostics=Diagnostics(undetermined, gauges, on_bound, float_limited), intervals=found, notes=notes,
-        history=run.history)
+        names=labels,
+        values=theta,
+        start=np.asarray(theta0, np.float64),
+        stderr=stderr,
+        result=msg,
+        successful=successful,
+        converged=best.converged,
+        method=red.method,
+        steps=run.steps,
+        compile_s=run.compile_s,
+        solve_s=run.solve_s,
+        residual=residual,
+        diagnostics=Diagnostics(undetermined, gauges, on_bound, float_limited),
+        intervals=found,
+        notes=notes,
+        history=run.history,
+    )

@@ -94,8 +94,9 @@ class _VarProDriver:
         self.history, (self.n2, self.n_cens) = history, prob.counts()
         theta_ref = jnp.asarray(theta0, prob.dtype)
         self.U = candidates(red, np.asarray(theta0), strategy.starts if len(red.idx_n) else 1)
-        fn, self.compile_s = compiled_program(prob, red, self.U, theta_ref,
-                                              strategy.max_steps + 1 if history else 0, strategy.verbose)
+        fn, self.compile_s = compiled_program(
+            prob, red, self.U, theta_ref, strategy.max_steps + 1 if history else 0, strategy.verbose
+        )
         self.program = Program(fn, prob, red, theta_ref, self.U)
         self.ev = Evaluator(self.program)
         self.x_start = np.asarray(theta0, np.float64)[red.idx_l]
@@ -107,26 +108,39 @@ class _VarProDriver:
         if k:
             if self.costs is None:
                 self.costs = self.program.rank(self.x_start)
-                notes.append(f"global start: the given start was rejected; {len(self.U) - 1} further starts ranked "
-                             "by the reduced cost over the whole image")
+                notes.append(
+                    f"global start: the given start was rejected; {len(self.U) - 1} further starts ranked "
+                    "by the reduced cost over the whole image"
+                )
             b = int(np.argmin(np.where(exclude, np.inf, self.costs)))
         out = self.program.solve(np.concatenate([self.x_start, self.U[b]]), s.max_steps, self.rtol)
         z, k0 = np.asarray(out.z, np.float64), int(out.k)
         p = polish(self.ev, self.prob, self.red, np.asarray(out.theta, np.float64), s.polish_steps, self.rtol)
-        why = ("" if p.converged else f"the polish did not converge in {s.polish_steps} steps"
-               + (f" (variable-projection LM reached its step limit, max_steps={s.max_steps})"
-                  if k0 >= s.max_steps else ""))
+        why = (
+            ""
+            if p.converged
+            else f"the polish did not converge in {s.polish_steps} steps"
+            + (
+                f" (variable-projection LM reached its step limit, max_steps={s.max_steps})"
+                if k0 >= s.max_steps
+                else ""
+            )
+        )
         cand = candidate(self.prob, p, why, self.n2, self.noise)
-        notes.append(f"attempt {k + 1}: from {'the given start' if b == 0 else f'start {b + 1}'}: {k0} "
-                     f"variable-projection LM evaluations{'' if bool(out.conv) else ' (not converged)'}, "
-                     f"{p.evaluations} of the polish on the whole image"
-                     f"{' (converged)' if p.converged else ' (not converged)'}; residual {cand.ratio:.3g}× the noise")
+        notes.append(
+            f"attempt {k + 1}: from {'the given start' if b == 0 else f'start {b + 1}'}: {k0} "
+            f"variable-projection LM evaluations{'' if bool(out.conv) else ' (not converged)'}, "
+            f"{p.evaluations} of the polish on the whole image"
+            f"{' (converged)' if p.converged else ' (not converged)'}; residual {cand.ratio:.3g}× the noise"
+        )
         hist = []
         if self.history:
             nh = int(out.nh)
-            hist = [(0.5 * float(cc), np.asarray(th, np.float64))
-                    for th, cc in zip(np.asarray(out.hz)[:nh], np.asarray(out.hc)[:nh])]
-        return Attempt(cand, b, z[len(self.red.idx_l):], k0 + p.evaluations, notes, hist)
+            hist = [
+                (0.5 * float(cc), np.asarray(th, np.float64))
+                for th, cc in zip(np.asarray(out.hz)[:nh], np.asarray(out.hc)[:nh])
+            ]
+        return Attempt(cand, b, z[len(self.red.idx_l) :], k0 + p.evaluations, notes, hist)
 
     def finish_history(self, hist, best):
         return hist
@@ -136,9 +150,19 @@ class _VarProDriver:
         if len(self.U) <= 1:
             return best, Basins(), 0, []
         t1, s = time.perf_counter(), self.s
-        best, alternative, points, k, notes = other_basins(self.program, self.ev, self.prob, self.red, best,
-                                                           self.theta0, n2, self.noise, s.polish_steps, s.max_steps,
-                                                           self.rtol)
+        best, alternative, points, k, notes = other_basins(
+            self.program,
+            self.ev,
+            self.prob,
+            self.red,
+            best,
+            self.theta0,
+            n2,
+            self.noise,
+            s.polish_steps,
+            s.max_steps,
+            self.rtol,
+        )
         return best, Basins(alternative, points, time.perf_counter() - t1), k, notes
 
     def message(self, best) -> str:
@@ -169,38 +193,65 @@ class _OptimistixDriver:
             costs = jax.vmap(lambda u: red.cost(u, a))(Us)
             costs = jnp.where(jnp.isfinite(costs) & ~exclude, costs, jnp.inf)
             top = jnp.argmin(costs)
-            u, x, res, k, h, loss = lm_solve(red.residual, Us[top], a, rtol=rtol, atol=atol, max_steps=s.max_steps,
-                                             history=history, verbose=s.verbose, solver=s.solver)
+            u, x, res, k, h, loss = lm_solve(
+                red.residual,
+                Us[top],
+                a,
+                rtol=rtol,
+                atol=atol,
+                max_steps=s.max_steps,
+                history=history,
+                verbose=s.verbose,
+                solver=s.solver,
+            )
             return costs, top, u, x, res, k, h, loss
 
-        return compiled(self.prob, "coarse", coarse, jnp.asarray(self.U, self.u_dtype), jnp.zeros(len(self.U), bool),
-                        self.sub, extra=(rtol, atol, s.max_steps, history, s.verbose, s.solver, red.idx_n.tobytes()))
+        return compiled(
+            self.prob,
+            "coarse",
+            coarse,
+            jnp.asarray(self.U, self.u_dtype),
+            jnp.zeros(len(self.U), bool),
+            self.sub,
+            extra=(rtol, atol, s.max_steps, history, s.verbose, s.solver, red.idx_n.tobytes()),
+        )
 
     def attempt(self, k: int, exclude) -> Attempt:
         if self.coarse is None:
             return self._linear_only()
         s, red, U = self.s, self.red, self.U
-        costs, top, u, x, res, steps, h, loss = self.coarse(jnp.asarray(U, self.u_dtype), jnp.asarray(exclude), self.sub)
+        costs, top, u, x, res, steps, h, loss = self.coarse(
+            jnp.asarray(U, self.u_dtype), jnp.asarray(exclude), self.sub
+        )
         costs, top, res, loss, steps = np.asarray(costs), int(top), int(res), float(loss), int(steps)
         theta = np.asarray(red.theta(u, x, self.theta_ref), np.float64)
         u = np.asarray(u, np.float64)
         notes = []
         if k == 0 and len(U) > 1:
-            notes.append(f"global start: {len(U)} starts ranked on {SEARCH_PIXELS} pixels per view "
-                         f"(the given start ranked {int(np.flatnonzero(np.argsort(costs) == 0)[0]) + 1})")
-        notes.append(f"attempt {k + 1}: {s.solver} from start {top + 1}: {steps} steps, "
-                     f"{result_message(res).splitlines()[0] if res else 'converged'}, subset cost {2 * loss:.3g}")
+            notes.append(
+                f"global start: {len(U)} starts ranked on {SEARCH_PIXELS} pixels per view "
+                f"(the given start ranked {int(np.flatnonzero(np.argsort(costs) == 0)[0]) + 1})"
+            )
+        notes.append(
+            f"attempt {k + 1}: {s.solver} from start {top + 1}: {steps} steps, "
+            f"{result_message(res).splitlines()[0] if res else 'converged'}, subset cost {2 * loss:.3g}"
+        )
         hist = []
         if self.history and h is not None:
             cnt = int(h[3])
-            hist = [np.asarray(red.theta(jnp.asarray(uu), jnp.asarray(xx), self.theta_ref), np.float64)
-                    for uu, xx in zip(np.asarray(h[1])[:cnt], np.asarray(h[2])[:cnt])]
+            hist = [
+                np.asarray(red.theta(jnp.asarray(uu), jnp.asarray(xx), self.theta_ref), np.float64)
+                for uu, xx in zip(np.asarray(h[1])[:cnt], np.asarray(h[2])[:cnt])
+            ]
         # convergence is judged on the whole problem: the polish ends converged only where even an
         # undamped Gauss–Newton step gains nothing
         p = polish(self.ev, self.prob, red, theta, s.polish_steps, self.rtol)
         cand = candidate(self.prob, p, res, self.n2, self.noise)
-        notes.append(f"  polish: {p.evaluations} evaluation(s) of the whole residual"
-                     + (f" ({self.n_cens} censored entries)" if self.n_cens else "") + f"; residual {cand.ratio:.3g}× the noise")
+        notes.append(
+            f"  polish: {p.evaluations} evaluation(s) of the whole residual"
+            + (f" ({self.n_cens} censored entries)" if self.n_cens else "")
+            + f"; residual {cand.ratio:.3g}× the noise"
+        )
         return Attempt(cand, top, u, steps + p.evaluations, notes, hist)
 
     def _linear_only(self) -> Attempt:
@@ -208,8 +259,10 @@ class _OptimistixDriver:
         theta = np.asarray(self.theta0, np.float64)
         p = polish(self.ev, self.prob, self.red, theta, max(self.s.polish_steps, 20), self.rtol)
         cand = candidate(self.prob, p, 0, self.n2, self.noise)
-        notes = ["every free parameter is linear: projected Gauss–Newton on the whole image",
-                 f"  {p.evaluations} evaluation(s) of the whole residual; residual {cand.ratio:.3g}× the noise"]
+        notes = [
+            "every free parameter is linear: projected Gauss–Newton on the whole image",
+            f"  {p.evaluations} evaluation(s) of the whole residual; residual {cand.ratio:.3g}× the noise",
+        ]
         return Attempt(cand, 0, self.U[0], p.evaluations, notes, [theta])
 
     def finish_history(self, hist, best):

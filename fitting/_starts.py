@@ -18,8 +18,14 @@ from ._linear import Reduced
 from ._params import Param
 
 _RANGES = {  # plausible ranges (natural units) searched on a log scale for positive parameters
-    "shininess": (1.0, 1000.0), "a0": (1e-3, 10.0), "a1": (1e-3, 10.0), "a2": (1e-3, 10.0),
-    "density": (1e-3, 3.0), "exponent": (0.1, 100.0), "absorption": (1e-3, 10.0), "kay_power": (0.1, 10.0),
+    "shininess": (1.0, 1000.0),
+    "a0": (1e-3, 10.0),
+    "a1": (1e-3, 10.0),
+    "a2": (1e-3, 10.0),
+    "density": (1e-3, 3.0),
+    "exponent": (0.1, 100.0),
+    "absorption": (1e-3, 10.0),
+    "kay_power": (0.1, 10.0),
 }
 
 
@@ -50,7 +56,7 @@ def search_ranges(red: Reduced, theta0) -> list[tuple[str, float, float]]:
         if p.frame is not None:  # a direction's tilt, degrees
             out.append(("lin", x0 - 30.0, x0 + 30.0))
         elif p.domain == "real":
-            r = max(0.5, 0.5 * float(np.linalg.norm(np.asarray(theta0)[pset.offsets[k]:pset.offsets[k + 1]])))
+            r = max(0.5, 0.5 * float(np.linalg.norm(np.asarray(theta0)[pset.offsets[k] : pset.offsets[k + 1]])))
             out.append(("lin", x0 - r, x0 + r))
         elif p.bounds is None:
             lo, hi = _RANGES.get(field, (x0 / 30.0, x0 * 30.0))
@@ -96,4 +102,3 @@ def candidates(red: Reduced, theta0, count: int) -> np.ndarray:
     full[:, red.idx_n] = th
     u = pset.u_from_theta_np(full)[:, red.idx_n]
     return np.concatenate([u_start[None], u])
-

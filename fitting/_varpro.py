@@ -55,8 +55,12 @@ def flat_data(data):
     """Target, weight and censoring masks of every view's compacted pixels, flat ``[M]`` (``data``
     a list of views or the views stacked: :meth:`fitting._problem.Problem.device_data`)."""
     if isinstance(data, ViewData):
-        return (data.target.reshape(-1), jnp.broadcast_to(data.weight, data.target.shape).reshape(-1),
-                data.hi.reshape(-1), data.lo.reshape(-1))
+        return (
+            data.target.reshape(-1),
+            jnp.broadcast_to(data.weight, data.target.shape).reshape(-1),
+            data.hi.reshape(-1),
+            data.lo.reshape(-1),
+        )
     t = jnp.concatenate([vd.target.reshape(-1) for vd in data])
     w = jnp.concatenate([jnp.broadcast_to(vd.weight, vd.target.shape).reshape(-1) for vd in data])
     hi = jnp.concatenate([vd.hi.reshape(-1) for vd in data])
@@ -71,7 +75,7 @@ def columns(red: Reduced, T, M, dt):
         return jnp.zeros((0, M), dt)
     rowchan = jnp.arange(M) % 3
     colmask = jnp.asarray(red.chan, dt)[:, rowchan]
-    return T[:red.n_groups][red.group] * colmask
+    return T[: red.n_groups][red.group] * colmask
 
 
 def _damped_steps(H, g, lam, rcond):
@@ -148,8 +152,10 @@ class _Program:
 
     def images(self, z, c):
         """Flat image and its tangents, one per linear field and one per nonlinear scalar."""
+
         def f(zz):
             return self.prob.images(self.to_theta(zz, c.natural, c.theta_ref), c.data)
+
         img, T = jax.vmap(lambda e: jax.jvp(f, (z,), (e,)), out_axes=(None, 0))(jnp.asarray(self.E_all, c.dt))
         return keep(img, T)
 
@@ -159,9 +165,10 @@ class _Program:
         n_l, red, dt = self.n_l, self.red, c.dt
         img, T = self.images(z, c)
         A = columns(red, T, c.M, dt)
-        Juw = T[red.n_groups:] * c.wu
+        Juw = T[red.n_groups :] * c.wu
         d = (img - c.t) * c.wu
         if n_l:
+
             def project(_):
                 Aw = A * c.wu
                 r0 = d - Aw.T @ z[:n_l]
@@ -180,15 +187,17 @@ class _Program:
 
     def start(self, k, c):
         """Mode 2's k-th trial point: the given linear values with the k-th start's ``u``."""
-        return jnp.concatenate([c.z0[:self.n_l], c.U[jnp.minimum(k, c.C - 1)]])
+        return jnp.concatenate([c.z0[: self.n_l], c.U[jnp.minimum(k, c.C - 1)]])
 
     def record(self, s: _State, z_new, c_new, ok, c):
         """The accepted step's θ and cost into the history."""
         i = s.nh
-        th_new = self.red.theta(z_new[self.n_l:], z_new[:self.n_l], c.theta_ref)
-        return s._replace(hz=s.hz.at[i].set(jnp.where(ok, th_new, s.hz[i])),
-                          hc=s.hc.at[i].set(jnp.where(ok, c_new, s.hc[i])),
-                          nh=jnp.minimum(i + (ok & ~c.rank), self.S - 1))
+        th_new = self.red.theta(z_new[self.n_l :], z_new[: self.n_l], c.theta_ref)
+        return s._replace(
+            hz=s.hz.at[i].set(jnp.where(ok, th_new, s.hz[i])),
+            hc=s.hc.at[i].set(jnp.where(ok, c_new, s.hc[i])),
+            nh=jnp.minimum(i + (ok & ~c.rank), self.S - 1),
+        )
 
     def body(self, s: _State, c) -> _State:
         """One evaluation: accept or reject the trial point, then the next trial point."""
@@ -198,9 +207,13 @@ class _Program:
         s = s._replace(img=img, T=T, first=jnp.asarray(False), k=s.k + 1)
         # mode 2 ranks the starts: the reduced cost of each, then the next
         i = jnp.minimum(s.k - 1, c.C - 1)
-        s = s._replace(costs=jnp.where(c.rank, s.costs.at[i].set(jnp.where(jnp.isfinite(c_new), c_new, jnp.inf)),
-                                       s.costs),
-                       zc=upd(z_new, s.zc), cc=upd(c_new, s.cc), H=upd(H, s.H), g=upd(g, s.g))
+        s = s._replace(
+            costs=jnp.where(c.rank, s.costs.at[i].set(jnp.where(jnp.isfinite(c_new), c_new, jnp.inf)), s.costs),
+            zc=upd(z_new, s.zc),
+            cc=upd(c_new, s.cc),
+            H=upd(H, s.H),
+            g=upd(g, s.g),
+        )
         s = s._replace(lam=jnp.where(ok, jnp.maximum(s.lam * 0.1, 1e-9), s.lam * 10.0))
         if self.verbose:
             jax.debug.print("  variable projection: cost {}, accepted {}, lambda {}", c_new, ok, s.lam)
@@ -216,29 +229,53 @@ class _Program:
         conv = gain <= 1e-2 * s2 + 10.0 * self.p * c.float_var
         conv = conv | (jnp.max(jnp.abs(gn), initial=0.0) <= c.rtol)
         zc, n_l = s.zc, self.n_l
-        return s._replace(zt=jnp.where(c.rank, self.start(s.k, c), jnp.concatenate([zc[:n_l], zc[n_l:] + dm])),
-                          conv=conv,
-                          done=jnp.where(c.rank, s.k >= c.C,
-                                         c.natural | conv | (s.lam > 1e12) | (s.k >= c.max_steps)))
+        return s._replace(
+            zt=jnp.where(c.rank, self.start(s.k, c), jnp.concatenate([zc[:n_l], zc[n_l:] + dm])),
+            conv=conv,
+            done=jnp.where(c.rank, s.k >= c.C, c.natural | conv | (s.lam > 1e12) | (s.k >= c.max_steps)),
+        )
 
     def init(self, c) -> _State:
         dt, n_n = c.dt, self.n_n
         z_first = jnp.where(c.rank, self.start(0, c), c.z0)
         hist = {}
         if self.S:
-            hist = dict(hz=jnp.zeros((self.S, len(c.theta_ref)), dt), hc=jnp.full((self.S,), jnp.nan, dt),
-                        nh=jnp.asarray(0))
-        return _State(zt=z_first, zc=z_first, costs=jnp.full((c.C,), jnp.inf, dt), cc=jnp.asarray(jnp.inf, dt),
-                      first=jnp.asarray(True), lam=jnp.asarray(1e-3, dt), H=jnp.zeros((n_n, n_n), dt),
-                      g=jnp.zeros(n_n, dt), k=jnp.asarray(0), done=jnp.asarray(False), conv=jnp.asarray(False),
-                      img=jnp.zeros(c.M, dt), T=jnp.zeros((self.E_all.shape[0], c.M), dt), **hist)
+            hist = dict(
+                hz=jnp.zeros((self.S, len(c.theta_ref)), dt), hc=jnp.full((self.S,), jnp.nan, dt), nh=jnp.asarray(0)
+            )
+        return _State(
+            zt=z_first,
+            zc=z_first,
+            costs=jnp.full((c.C,), jnp.inf, dt),
+            cc=jnp.asarray(jnp.inf, dt),
+            first=jnp.asarray(True),
+            lam=jnp.asarray(1e-3, dt),
+            H=jnp.zeros((n_n, n_n), dt),
+            g=jnp.zeros(n_n, dt),
+            k=jnp.asarray(0),
+            done=jnp.asarray(False),
+            conv=jnp.asarray(False),
+            img=jnp.zeros(c.M, dt),
+            T=jnp.zeros((self.E_all.shape[0], c.M), dt),
+            **hist,
+        )
 
     def __call__(self, z0, data, theta_ref, n_res, mode, max_steps, rtol, U) -> ProgramOut:
         c = _Call.of(self.red, z0, data, theta_ref, n_res, mode, max_steps, rtol, U)
         s = jax.lax.while_loop(lambda s: ~s.done, lambda s: self.body(s, c), self.init(c))
         zc, n_l = s.zc, self.n_l
-        return ProgramOut(z=zc, theta=self.red.theta(zc[n_l:], zc[:n_l], theta_ref), conv=s.conv, k=s.k, img=s.img,
-                          T=s.T, costs=s.costs, hz=s.hz, hc=s.hc, nh=s.nh)
+        return ProgramOut(
+            z=zc,
+            theta=self.red.theta(zc[n_l:], zc[:n_l], theta_ref),
+            conv=s.conv,
+            k=s.k,
+            img=s.img,
+            T=s.T,
+            costs=s.costs,
+            hz=s.hz,
+            hc=s.hc,
+            nh=s.nh,
+        )
 
 
 class _Call(NamedTuple):
@@ -269,10 +306,26 @@ class _Call(NamedTuple):
         eps = float(jnp.finfo(dt).eps)
         t, w, hi, lo = flat_data(data)
         U = U.astype(dt)
-        return cls(z0=z0.astype(dt), data=data, theta_ref=theta_ref, n_res=n_res, max_steps=max_steps, rtol=rtol, U=U,
-                   C=U.shape[0], dt=dt, rcond=1e2 * eps, lo_x=jnp.asarray(red.lo, dt), hi_x=jnp.asarray(red.hi, dt),
-                   t=t, wu=w * ~(hi | lo), M=t.shape[0], float_var=(eps * jnp.max(jnp.abs(t) * (w > 0))) ** 2,
-                   natural=mode == 1, rank=mode == 2)
+        return cls(
+            z0=z0.astype(dt),
+            data=data,
+            theta_ref=theta_ref,
+            n_res=n_res,
+            max_steps=max_steps,
+            rtol=rtol,
+            U=U,
+            C=U.shape[0],
+            dt=dt,
+            rcond=1e2 * eps,
+            lo_x=jnp.asarray(red.lo, dt),
+            hi_x=jnp.asarray(red.hi, dt),
+            t=t,
+            wu=w * ~(hi | lo),
+            M=t.shape[0],
+            float_var=(eps * jnp.max(jnp.abs(t) * (w > 0))) ** 2,
+            natural=mode == 1,
+            rank=mode == 2,
+        )
 
 
 def make_program(red: Reduced, *, history: int = 0, verbose: bool = False):
@@ -297,10 +350,22 @@ def compiled_program(prob, red, U, theta_ref, history=0, verbose=False):
     dtype = prob.dtype
     n2, _ = prob.counts()
     z = jnp.zeros(len(red.idx_l) + len(red.idx_n), dtype)
-    args = (z, prob.device_data(), theta_ref, jnp.asarray(n2, dtype), jnp.asarray(0), *limits(0, 0.0, dtype),
-            jnp.asarray(U, dtype))
-    return compiled(prob, "program", make_program(red, history=history, verbose=verbose), *args,
-                    extra=(history, verbose, red.idx_n.tobytes()))
+    args = (
+        z,
+        prob.device_data(),
+        theta_ref,
+        jnp.asarray(n2, dtype),
+        jnp.asarray(0),
+        *limits(0, 0.0, dtype),
+        jnp.asarray(U, dtype),
+    )
+    return compiled(
+        prob,
+        "program",
+        make_program(red, history=history, verbose=verbose),
+        *args,
+        extra=(history, verbose, red.idx_n.tobytes()),
+    )
 
 
 class Program:
@@ -313,8 +378,15 @@ class Program:
         self.n2 = jnp.asarray(prob.counts()[0], self.dtype)
 
     def _call(self, z, mode, max_steps=0, rtol=0.0):
-        return self.fn(jnp.asarray(z, self.dtype), self.prob.device_data(), self.theta_ref, self.n2,
-                       jnp.asarray(mode), *limits(max_steps, rtol, self.dtype), self.U)
+        return self.fn(
+            jnp.asarray(z, self.dtype),
+            self.prob.device_data(),
+            self.theta_ref,
+            self.n2,
+            jnp.asarray(mode),
+            *limits(max_steps, rtol, self.dtype),
+            self.U,
+        )
 
     def solve(self, z0, max_steps, rtol):
         """Variable-projection LM from ``z0 = (x, u)``."""
@@ -371,7 +443,7 @@ class Evaluator:
         JT = np.empty((len(theta), len(d)))  # rows contiguous: the Jacobian's transpose
         if len(red.idx_l):
             JT[red.idx_l] = T[red.group] * self.lin_cols
-        JT[red.idx_n] = T[red.n_groups:]
+        JT[red.idx_n] = T[red.n_groups :]
         JT *= self.w * act
         return r, JT.T, img
 

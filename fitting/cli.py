@@ -27,8 +27,15 @@ class InputError(ValueError):
     """A bad command-line input (the message names the file and the problem)."""
 
 
-def load_target(path: Path, resolution: tuple[int, int], with_quantum: bool = False, encoding: str = "auto",
-                with_encoding: bool = False, decoded: bool = True, with_alpha: bool = False):
+def load_target(
+    path: Path,
+    resolution: tuple[int, int],
+    with_quantum: bool = False,
+    encoding: str = "auto",
+    with_encoding: bool = False,
+    decoded: bool = True,
+    with_alpha: bool = False,
+):
     """A target image as linear float64 ``[H, W, 3]`` and its saturation level (1.0 for integer
     files, whose brightest code is a clipped value; None for ``.npy`` floats, which are not
     clipped); ``with_quantum``: also the code step (1/255, 1/65535; None for floats);
@@ -122,23 +129,35 @@ def write_mtl(scene, opts, path: Path, header: str) -> None:
 
     o = _options.mtl_flags(opts)
     lines = [f"# {ln}" for ln in header.splitlines()]
-    lines.append(f"# Ns is the {'Blinn-Phong' if o['specular'] == 'blinn' else 'Phong'} exponent; "
-                 "colours are linear; Ke = emission")
+    lines.append(
+        f"# Ns is the {'Blinn-Phong' if o['specular'] == 'blinn' else 'Phong'} exponent; "
+        "colours are linear; Ke = emission"
+    )
     mats = [("material", scene.material)] + [(f"material_{i + 1}", m) for i, m in enumerate(scene.materials)]
     if scene.back_material is not None:
         mats.append(("back_material", scene.back_material))
     for name, m in mats:
         extra = []
-        if o['absorption']:
+        if o["absorption"]:
             extra.append(f"# absorption mu {rgb(m.absorption)} (per unit length)")
-        if o['transparency'] and m.kay:
-            extra.append(f"# Kay opacity t_min {float(m.kay_min):.6g} t_max {float(m.kay_max):.6g} "
-                         f"p {float(m.kay_power):.6g}")
-        opacity = float(m.opacity) if o['transparency'] and not m.kay else 1.0
-        lines += ["", *extra, f"newmtl {name}", f"Ka {rgb(m.ambient)}", f"Kd {rgb(m.diffuse)}",
-                  f"Ks {rgb(m.specular)}", f"Ns {float(m.shininess):.6g}", f"Ke {rgb(m.emission)}",
-                  f"Ni {float(m.ior):.6g}", f"d {opacity:.6g}"]
-        if o['transmission']:
+        if o["transparency"] and m.kay:
+            extra.append(
+                f"# Kay opacity t_min {float(m.kay_min):.6g} t_max {float(m.kay_max):.6g} p {float(m.kay_power):.6g}"
+            )
+        opacity = float(m.opacity) if o["transparency"] and not m.kay else 1.0
+        lines += [
+            "",
+            *extra,
+            f"newmtl {name}",
+            f"Ka {rgb(m.ambient)}",
+            f"Kd {rgb(m.diffuse)}",
+            f"Ks {rgb(m.specular)}",
+            f"Ns {float(m.shininess):.6g}",
+            f"Ke {rgb(m.emission)}",
+            f"Ni {float(m.ior):.6g}",
+            f"d {opacity:.6g}",
+        ]
+        if o["transmission"]:
             lines.append(f"Tf {rgb(m.transmission)}")
         lines.append(f"illum {1 if o['specular'] == 'none' else (4 if o['transparency'] else 2)}")
     _write_text("\n".join(lines) + "\n", path)
@@ -186,21 +205,23 @@ def _render(scene, opts, out: Path, overwrite: bool, encoding: str = "linear") -
         f"{scene.point.count} point, {scene.spot.count} spot, {scene.area.count} area, {scene.multi_lobe.count} multi-lobe"
     )
     extras = [name for name in ("absorption", "transmission") if o.get(name)]
-    if o['transparency']:
+    if o["transparency"]:
         extras.insert(0, f"transparency over {o['layers']} layer(s)")
-    if o['shadows']:
+    if o["shadows"]:
         extras.append(f"shadow maps {o['shadow_resolution']}² (PCF {o['shadow_pcf']}x{o['shadow_pcf']})")
-    if o['shadow_rays']:
+    if o["shadow_rays"]:
         extras.append(f"shadow rays (through up to {o['shadow_ray_crossings']} transparent surfaces)")
-    if o['ray_depth']:
+    if o["ray_depth"]:
         extras.append(f"mirror and refracted rays, {o['ray_depth']} bounce(s)")
     if extras:
         print("with " + ", ".join(extras))
-    if o['layered']:
+    if o["layered"]:
         cut = ds.truncated_pixels(scene, opts)
         if cut:
-            print(f"note: {cut} pixel(s) have more than {o['layers']} surfaces; what lies beyond the last layer "
-                  "is not composited (raise render.layers to include it)")
+            print(
+                f"note: {cut} pixel(s) have more than {o['layers']} surfaces; what lies beyond the last layer "
+                "is not composited (raise render.layers to include it)"
+            )
     print(f"first call (compile + run) {t1 - t0:.2f} s, steady state {1e3 * (t2 - t1):.1f} ms")
     print(f"wrote {out} ({encoding} encoding, declared in the file)")
 
@@ -223,8 +244,15 @@ def _check_encoding(name: str) -> str:
     return name
 
 
-DEMO_FREE = ["material.ambient", "material.diffuse", "material.specular", "material.shininess",
-             "point[0].a1", "point[0].a2", "fog.density"]
+DEMO_FREE = [
+    "material.ambient",
+    "material.diffuse",
+    "material.specular",
+    "material.shininess",
+    "point[0].a1",
+    "point[0].a2",
+    "fog.density",
+]
 
 
 def cmd_demo(args) -> int:
@@ -240,11 +268,21 @@ def cmd_demo(args) -> int:
     scene, opts = ds.default_scene()
     if args.size != scene.camera.width:
         c = scene.camera
-        cam = ds.Camera(eye=c.eye, target=c.target, up=c.up, fov_y=c.fov_y, near=c.near, far=c.far,
-                        width=args.size, height=args.size)
+        cam = ds.Camera(
+            eye=c.eye,
+            target=c.target,
+            up=c.up,
+            fov_y=c.fov_y,
+            near=c.near,
+            far=c.far,
+            width=args.size,
+            height=args.size,
+        )
         scene = eqx.tree_at(lambda s: s.camera, scene, cam)
-    print("diffshade demo: the built-in default scene (icosphere, point + directional light, exp fog), "
-          f"{args.size}x{args.size}, a0 = 1 fixed (the gauge of the attenuation)")
+    print(
+        "diffshade demo: the built-in default scene (icosphere, point + directional light, exp fog), "
+        f"{args.size}x{args.size}, a0 = 1 fixed (the gauge of the attenuation)"
+    )
     pset = ParamSet(DEMO_FREE, scene)
     true = np.asarray(pset.theta_of(scene))
     render = jax.jit(ds.render, static_argnames="opts")
@@ -257,9 +295,11 @@ def cmd_demo(args) -> int:
     print(f"{'parameter':22s} {'true':>10s} {'start':>10s} {'recovered':>10s} {'rel. error':>10s} {'std. error':>10s}")
     for n, t, s_, v, e, se in zip(r.names, true, start, r.values, err, r.stderr):
         print(f"{n:22s} {t:10.5f} {s_:10.5f} {v:10.5f} {e:10.2e} {se:10.2e}")
-    print(f"result: {r.result or 'successful'}; {r.steps} steps; compile {r.compile_s:.2f} s, solve {r.solve_s:.2f} s; "
-          f"max rel. error {err.max():.2e}; RMS residual {r.residual.rms:.2e}; PSNR {r.residual.psnr:.1f} dB; "
-          f"SSIM {r.residual.ssim:.6f}")
+    print(
+        f"result: {r.result or 'successful'}; {r.steps} steps; compile {r.compile_s:.2f} s, solve {r.solve_s:.2f} s; "
+        f"max rel. error {err.max():.2e}; RMS residual {r.residual.rms:.2e}; PSNR {r.residual.psnr:.1f} dB; "
+        f"SSIM {r.residual.ssim:.6f}"
+    )
     if r.diagnostics.undetermined or r.diagnostics.gauges:
         print(f"not determined by the image: {r.diagnostics.undetermined}; {r.diagnostics.gauges}")
     print(f"method: {r.method}")
@@ -281,28 +321,38 @@ def _report_table(r) -> list[str]:
     import numpy as np
 
     iv = r.intervals is not None
-    lines = [f"{'parameter':26s} {'start':>11s} {'fitted':>11s} {'std. error':>11s} {'rel. s.e.':>10s}"
-             + (f"  {'3σ profile interval':>25s}" if iv else "")]
+    lines = [
+        f"{'parameter':26s} {'start':>11s} {'fitted':>11s} {'std. error':>11s} {'rel. s.e.':>10s}"
+        + (f"  {'3σ profile interval':>25s}" if iv else "")
+    ]
     albedo = [i for i, n in enumerate(r.names) if n.startswith("mesh.colors[")]
     skip = set(albedo)
     for i, (n, s_, v, se) in enumerate(zip(r.names, r.start, r.values, r.stderr)):
         if i in skip:
             continue
         rel = se / abs(v) if v != 0 else float("inf")
-        lines.append(f"{n:26s} {s_:11.5g} {v:11.5g} {se:11.3g} {rel:10.2e}"
-                     + (f"  [{r.intervals.bounds[i, 0]:11.5g}, {r.intervals.bounds[i, 1]:11.5g}]" if iv else ""))
+        lines.append(
+            f"{n:26s} {s_:11.5g} {v:11.5g} {se:11.3g} {rel:10.2e}"
+            + (f"  [{r.intervals.bounds[i, 0]:11.5g}, {r.intervals.bounds[i, 1]:11.5g}]" if iv else "")
+        )
     if albedo:  # thousands of scalars: a summary here, every value in fit.json
         se = r.stderr[albedo]
         fin = np.isfinite(se)
-        lines.append(f"{'mesh.colors':26s} {len(albedo) // 3} vertices: values in [{r.values[albedo].min():.3g}, "
-                     f"{r.values[albedo].max():.3g}], median s.e. {np.median(se[fin]) if fin.any() else np.inf:.3g}, "
-                     f"{int((~fin).sum()) // 3} vertices undetermined (every value in fit.json)")
-    lines.append(f"result: {r.result or 'successful'}; {r.steps} steps; compile {r.compile_s:.2f} s, solve {r.solve_s:.2f} s; "
-                 f"RMS residual {r.residual.rms:.3e}; PSNR {r.residual.psnr:.2f} dB; SSIM {r.residual.ssim:.5f}")
+        lines.append(
+            f"{'mesh.colors':26s} {len(albedo) // 3} vertices: values in [{r.values[albedo].min():.3g}, "
+            f"{r.values[albedo].max():.3g}], median s.e. {np.median(se[fin]) if fin.any() else np.inf:.3g}, "
+            f"{int((~fin).sum()) // 3} vertices undetermined (every value in fit.json)"
+        )
+    lines.append(
+        f"result: {r.result or 'successful'}; {r.steps} steps; compile {r.compile_s:.2f} s, solve {r.solve_s:.2f} s; "
+        f"RMS residual {r.residual.rms:.3e}; PSNR {r.residual.psnr:.2f} dB; SSIM {r.residual.ssim:.5f}"
+    )
     lines.append(f"method: {r.method}")
-    lines.append(f"noise: σ = {r.residual.noise:.3g} ({r.residual.noise_source}); residual "
-                 f"{r.residual.noise_ratio:.3g}× the noise"
-                 + ("" if r.successful else " — the standard errors are NOT meaningful"))
+    lines.append(
+        f"noise: σ = {r.residual.noise:.3g} ({r.residual.noise_source}); residual "
+        f"{r.residual.noise_ratio:.3g}× the noise"
+        + ("" if r.successful else " — the standard errors are NOT meaningful")
+    )
     diag = r.diagnostics
     for b in diag.on_bound:
         lines.append("on a bound: " + b)
@@ -311,15 +361,19 @@ def _report_table(r) -> list[str]:
     if diag.undetermined:
         und = [u for u in diag.undetermined if not u.startswith("mesh.colors[")]
         n_v = len(diag.undetermined) - len(und)
-        lines.append("NOT DETERMINED by the images (values are the starts, not estimates): " + ", ".join(
-            und + ([f"the albedo of {n_v} vertices (seen by no view, or unlit where seen)"] if n_v else [])))
+        lines.append(
+            "NOT DETERMINED by the images (values are the starts, not estimates): "
+            + ", ".join(und + ([f"the albedo of {n_v} vertices (seen by no view, or unlit where seen)"] if n_v else []))
+        )
     for g in diag.gauges:
         lines.append("near-gauge (the images barely constrain this combination): " + g)
     if r.intervals is not None and r.intervals.ambiguous:
         alt = dict(zip(r.names, r.intervals.alternative))
-        lines.append("AMBIGUOUS: the images cannot tell these values apart (within Δχ² = 9); the intervals "
-                     "cover both: " + ", ".join(
-            f"{n} {r.values[r.names.index(n)]:.5g} or {alt[n]:.5g}" for n in r.intervals.ambiguous))
+        lines.append(
+            "AMBIGUOUS: the images cannot tell these values apart (within Δχ² = 9); the intervals "
+            "cover both: "
+            + ", ".join(f"{n} {r.values[r.names.index(n)]:.5g} or {alt[n]:.5g}" for n in r.intervals.ambiguous)
+        )
     return lines
 
 
@@ -329,14 +383,18 @@ def _load_views(args, scene):
 
     view_paths = [Path(v) for v in args.views] if args.views else []
     if view_paths and len(view_paths) != len(args.targets):
-        raise InputError(f"{len(args.targets)} target(s) but {len(view_paths)} --views scene file(s); give one per target")
+        raise InputError(
+            f"{len(args.targets)} target(s) but {len(view_paths)} --views scene file(s); give one per target"
+        )
     views = [ds.load_scene(v)[0] for v in view_paths] if view_paths else [scene] * len(args.targets)
     camera_paths = [Path(c) for c in args.cameras] if args.cameras else []
     if camera_paths:
         import equinox as eqx
 
         if len(camera_paths) != len(args.targets):
-            raise InputError(f"{len(args.targets)} target(s) but {len(camera_paths)} --cameras file(s); give one per target")
+            raise InputError(
+                f"{len(args.targets)} target(s) but {len(camera_paths)} --cameras file(s); give one per target"
+            )
         views = [eqx.tree_at(lambda s: s.camera, v, ds.load_camera(c)) for v, c in zip(views, camera_paths)]
     return views, view_paths, camera_paths
 
@@ -347,8 +405,18 @@ class _Targets:
 
     def __init__(self, args, views):
         self.paths = [Path(t) for t in args.targets]
-        loaded = [load_target(t, v.camera.resolution, with_quantum=True, encoding=args.encoding, with_encoding=True,
-                              decoded=False, with_alpha=True) for t, v in zip(self.paths, views)]
+        loaded = [
+            load_target(
+                t,
+                v.camera.resolution,
+                with_quantum=True,
+                encoding=args.encoding,
+                with_encoding=True,
+                decoded=False,
+                with_alpha=True,
+            )
+            for t, v in zip(self.paths, views)
+        ]
         self.images = [img for img, *_ in loaded]  # code values; the fit decodes them (clipping decided on the codes)
         self.sats = {sat for _, sat, _, _, _ in loaded}
         self.saturation = 1.0 if self.sats == {1.0} and not args.no_censor else None
@@ -378,8 +446,9 @@ def _load_masks(args, tg: _Targets, views):
             m = np.asarray(skimage.io.imread(mp), np.float64)
             m = m[..., 0] if m.ndim == 3 else m
             if m.shape != v.camera.resolution:
-                raise InputError(f"{mp}: mask is {m.shape[1]}x{m.shape[0]} but the camera renders "
-                                 f"{v.camera.width}x{v.camera.height}")
+                raise InputError(
+                    f"{mp}: mask is {m.shape[1]}x{m.shape[0]} but the camera renders {v.camera.width}x{v.camera.height}"
+                )
             masks.append(m / max(m.max(), 1e-300))
         return masks, mask_paths
     if any(a is not None for a in tg.alphas):  # a PNG's alpha channel is its mask (0: not the object)
@@ -407,10 +476,16 @@ def _undistort(args, tg: _Targets, masks, views):
         m = np.ones(v.camera.resolution) if masks is None or masks[k] is None else ds.undistort(masks[k], Kmat, dist)[0]
         masks = masks if masks is not None else [np.ones(w.camera.resolution) for w in views]
         masks[k] = m * valid
-        print(f"{tg.paths[k]}: undistorted (k1..: {np.round(dist, 5).tolist()}); "
-              f"{int((~valid).sum())} pixel(s) outside the photograph left out"
-              + ("" if args.noise else "; resampling averages neighbouring pixels' noise, so the estimate "
-                 "from the residual is low: pass --noise SIGMA if the camera's is known"))
+        print(
+            f"{tg.paths[k]}: undistorted (k1..: {np.round(dist, 5).tolist()}); "
+            f"{int((~valid).sum())} pixel(s) outside the photograph left out"
+            + (
+                ""
+                if args.noise
+                else "; resampling averages neighbouring pixels' noise, so the estimate "
+                "from the residual is low: pass --noise SIGMA if the camera's is known"
+            )
+        )
     return masks
 
 
@@ -433,15 +508,32 @@ def _compare(scene, opts, obs, args, r, fit_kw):
 
     fit_kw = dict(fit_kw, strategy=fit_kw["strategy"].replace(verbose=False))  # verbose: the main fit only
     scores = compare_models(scene, opts, obs, args.free, given=r, **fit_kw)
-    report = ["", "model comparison (lowest BIC first; ΔBIC > 10 is strong evidence):",
-              f"{'model':14s} {'k':>3s} {'RSS':>11s} {'AIC':>14s} {'BIC':>14s} {'ΔBIC':>9s} result"]
+    report = [
+        "",
+        "model comparison (lowest BIC first; ΔBIC > 10 is strong evidence):",
+        f"{'model':14s} {'k':>3s} {'RSS':>11s} {'AIC':>14s} {'BIC':>14s} {'ΔBIC':>9s} result",
+    ]
     comparison = []
     for m in scores:
-        report.append(f"{m.name:14s} {m.k:3d} {m.rss:11.4e} {m.aic:14.1f} {m.bic:14.1f} "
-                      f"{m.bic - scores[0].bic:9.1f} {m.fit.result or 'successful'}")
-        comparison.append({"model": m.name, "specular": _options.specular(m.opts), "fog": _options.fog(m.opts),
-                           "free": m.free, "k": m.k, "n": m.n, "rss": m.rss, "aic": m.aic, "bic": m.bic,
-                           "delta_bic": m.bic - scores[0].bic, "fit": m.fit.as_dict()})
+        report.append(
+            f"{m.name:14s} {m.k:3d} {m.rss:11.4e} {m.aic:14.1f} {m.bic:14.1f} "
+            f"{m.bic - scores[0].bic:9.1f} {m.fit.result or 'successful'}"
+        )
+        comparison.append(
+            {
+                "model": m.name,
+                "specular": _options.specular(m.opts),
+                "fog": _options.fog(m.opts),
+                "free": m.free,
+                "k": m.k,
+                "n": m.n,
+                "rss": m.rss,
+                "aic": m.aic,
+                "bic": m.bic,
+                "delta_bic": m.bic - scores[0].bic,
+                "fit": m.fit.as_dict(),
+            }
+        )
     report.append(f"the images support: {scores[0].name}")
     return report, comparison
 
@@ -490,8 +582,12 @@ def _write_outputs(args, meta, r, report, comparison, outputs, fitted, rows, enc
     if comparison:
         doc["comparison"] = comparison
     _write_text(json.dumps(doc, indent=2, default=float) + "\n", outputs[0])
-    write_mtl(fitted, opts, outputs[1], f"{report[0]}\nfree: {' '.join(args.free)}; result: "
-              f"{r.result or 'successful'}; standard errors in fit.json")
+    write_mtl(
+        fitted,
+        opts,
+        outputs[1],
+        f"{report[0]}\nfree: {' '.join(args.free)}; result: {r.result or 'successful'}; standard errors in fit.json",
+    )
     _write_png(np.concatenate(rows, axis=0), outputs[2], True, encoding)
     _write_text("\n".join(report) + "\n", outputs[3])
 
@@ -509,14 +605,27 @@ def cmd_fit(args) -> int:
     masks = _undistort(args, tg, masks, views)
     outputs = _check_outputs(args, [scene_path, *view_paths, *camera_paths, *tg.paths, *mask_paths])
     pset = ParamSet(args.free, scene, args.shared or (), n_views=len(tg.images))  # name errors before any compile
-    print(f"fitting {', '.join(args.free)} to {len(tg.images)} image(s) of {views[0].camera.width}x"
-          f"{views[0].camera.height} with {args.solver}" + (" (clipped pixels censored)" if tg.saturation else ""))
+    print(
+        f"fitting {', '.join(args.free)} to {len(tg.images)} image(s) of {views[0].camera.width}x"
+        f"{views[0].camera.height} with {args.solver}" + (" (clipped pixels censored)" if tg.saturation else "")
+    )
     if args.margin < 0:
         raise InputError(f"--margin {args.margin}: a number of pixels, 0 or more")
-    obs = Observations(tg.images, views=views, masks=masks, encoding=[e for e, _ in tg.encodings],
-                       saturation=tg.saturation, quantum=tg.quantum, noise=args.noise, margin=args.margin)
-    strategy = (VarPro(max_steps=args.max_steps, verbose=args.verbose) if args.solver == "varpro" else
-                Optimistix(solver=args.solver, max_steps=args.max_steps, verbose=args.verbose))
+    obs = Observations(
+        tg.images,
+        views=views,
+        masks=masks,
+        encoding=[e for e, _ in tg.encodings],
+        saturation=tg.saturation,
+        quantum=tg.quantum,
+        noise=args.noise,
+        margin=args.margin,
+    )
+    strategy = (
+        VarPro(max_steps=args.max_steps, verbose=args.verbose)
+        if args.solver == "varpro"
+        else Optimistix(solver=args.solver, max_steps=args.max_steps, verbose=args.verbose)
+    )
     fit_kw = dict(shared=args.shared or (), strategy=strategy, albedo_smoothness=args.albedo_smoothness)
     r = fit(scene, opts, obs, args.free, **fit_kw)
     report = [f"diffshade fit: scene {scene_path}, target(s) {', '.join(map(str, tg.paths))}", *_report_table(r)]
@@ -526,11 +635,18 @@ def cmd_fit(args) -> int:
         report += more
     print("\n".join(report[1:]))
     fitted, rows = _fit_images(pset, r, scene, opts, views, tg)
-    meta = {"scene": str(scene_path), "targets": [str(t) for t in tg.paths], "views": [str(v) for v in view_paths],
-            "cameras": [str(c) for c in camera_paths],
-            "encodings": [{"encoding": e, "from": why} for e, why in tg.encodings],
-            "free": args.free, "shared": args.shared or [], "solver": args.solver, "censored_at": tg.saturation,
-            "options": _options.as_dict(opts)}
+    meta = {
+        "scene": str(scene_path),
+        "targets": [str(t) for t in tg.paths],
+        "views": [str(v) for v in view_paths],
+        "cameras": [str(c) for c in camera_paths],
+        "encodings": [{"encoding": e, "from": why} for e, why in tg.encodings],
+        "free": args.free,
+        "shared": args.shared or [],
+        "solver": args.solver,
+        "censored_at": tg.saturation,
+        "options": _options.as_dict(opts),
+    }
     _write_outputs(args, meta, r, report, comparison, outputs, fitted, rows, tg.encodings[0][0], opts)
     if "mesh.colors" in pset.names:
         _write_albedo(fitted, Path(args.output_dir))
@@ -544,59 +660,114 @@ def _add_render(sub) -> None:
     p.add_argument("scene", help="scene file (.toml)")
     p.add_argument("-o", "--output", default="render.png", help="output PNG (default: render.png)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
-    p.add_argument("--encoding", default="linear", metavar="ENC",
-                   help="colour encoding of the PNG: linear (default), srgb, gamma:G; declared in its chunks")
+    p.add_argument(
+        "--encoding",
+        default="linear",
+        metavar="ENC",
+        help="colour encoding of the PNG: linear (default), srgb, gamma:G; declared in its chunks",
+    )
     p.set_defaults(func=cmd_render)
 
 
 def _add_fit(sub) -> None:
     """The ``fit`` command's arguments."""
-    p = sub.add_parser("fit", help="fit named scene parameters to target image(s)",
-                       description="Fit the named free parameters of a scene file to target images (PNG: 8/16-bit, "
-                       "encoding from the file or --encoding; or .npy floats, linear). Start values are the scene file's. Writes fit.json, material.mtl, "
-                       "fit.png and report.txt into --output-dir.")
+    p = sub.add_parser(
+        "fit",
+        help="fit named scene parameters to target image(s)",
+        description="Fit the named free parameters of a scene file to target images (PNG: 8/16-bit, "
+        "encoding from the file or --encoding; or .npy floats, linear). Start values are the scene file's. Writes fit.json, material.mtl, "
+        "fit.png and report.txt into --output-dir.",
+    )
     p.add_argument("scene", help="scene file (.toml); its values are the starting point")
     p.add_argument("targets", nargs="+", help="target image(s), one per view, each the camera's size")
-    p.add_argument("-p", "--free", nargs="+", required=True, metavar="NAME",
-                   help="free parameters, e.g. material.diffuse material.shininess point[0].a1 fog.density; view[i].NAME is view i's own (view[*].NAME: every view but the reference view 0), e.g. view[*].camera.exposure")
+    p.add_argument(
+        "-p",
+        "--free",
+        nargs="+",
+        required=True,
+        metavar="NAME",
+        help="free parameters, e.g. material.diffuse material.shininess point[0].a1 fog.density; view[i].NAME is view i's own (view[*].NAME: every view but the reference view 0), e.g. view[*].camera.exposure",
+    )
     p.add_argument("--shared", nargs="+", metavar="NAME", help="RGB parameters fitted as one value for all channels")
     p.add_argument("--views", nargs="+", metavar="SCENE", help="one scene file per target (other cameras/lights)")
-    p.add_argument("--cameras", nargs="+", metavar="FILE",
-                   help="one camera file per target (JSON or TOML: an OpenCV calibration K, R or rvec, t or tvec, "
-                   "distortion, width, height; replaces the view's camera; a distorted target is undistorted)")
-    p.add_argument("--mask", nargs="+", metavar="IMAGE",
-                   help="one weight image per target (0 = ignore); default: an RGBA target's alpha channel")
-    p.add_argument("--albedo-smoothness", type=float, default=0.0, metavar="LAMBDA",
-                   help="with mesh.colors free (per-vertex albedo): weight of a prior on the albedo differences "
-                   "across mesh edges (0, the default: none; vertices no view sees stay undetermined)")
-    p.add_argument("--margin", type=int, default=0, metavar="PX",
-                   help="leave out pixels within PX of the model's silhouette, of an occlusion edge inside it, or of "
-                   "the mask's edge (where a slightly misregistered mesh puts the wrong surface into the residual); "
-                   "default 0")
-    p.add_argument("--solver", default="varpro", choices=["varpro", "lm", "dogleg", "gauss-newton"],
-                   help="varpro (default): the compiled variable-projection LM; lm, dogleg, gauss-newton: "
-                   "optimistix's solver on the same reduced problem")
-    p.add_argument("--noise", type=float, default=None, metavar="SIGMA",
-                   help="the targets' noise level (in code values of an encoded target, else linear), for the "
-                   "chi-square verdict; default: "
-                   "estimated from the residual (its pixel-to-pixel white part) and the quantisation")
+    p.add_argument(
+        "--cameras",
+        nargs="+",
+        metavar="FILE",
+        help="one camera file per target (JSON or TOML: an OpenCV calibration K, R or rvec, t or tvec, "
+        "distortion, width, height; replaces the view's camera; a distorted target is undistorted)",
+    )
+    p.add_argument(
+        "--mask",
+        nargs="+",
+        metavar="IMAGE",
+        help="one weight image per target (0 = ignore); default: an RGBA target's alpha channel",
+    )
+    p.add_argument(
+        "--albedo-smoothness",
+        type=float,
+        default=0.0,
+        metavar="LAMBDA",
+        help="with mesh.colors free (per-vertex albedo): weight of a prior on the albedo differences "
+        "across mesh edges (0, the default: none; vertices no view sees stay undetermined)",
+    )
+    p.add_argument(
+        "--margin",
+        type=int,
+        default=0,
+        metavar="PX",
+        help="leave out pixels within PX of the model's silhouette, of an occlusion edge inside it, or of "
+        "the mask's edge (where a slightly misregistered mesh puts the wrong surface into the residual); "
+        "default 0",
+    )
+    _add_fit_solve(p)
+    p.set_defaults(func=cmd_fit)
+
+
+def _add_fit_solve(p) -> None:
+    """The ``fit`` command's arguments on how it solves, what it assumes and what it writes."""
+    p.add_argument(
+        "--solver",
+        default="varpro",
+        choices=["varpro", "lm", "dogleg", "gauss-newton"],
+        help="varpro (default): the compiled variable-projection LM; lm, dogleg, gauss-newton: "
+        "optimistix's solver on the same reduced problem",
+    )
+    p.add_argument(
+        "--noise",
+        type=float,
+        default=None,
+        metavar="SIGMA",
+        help="the targets' noise level (in code values of an encoded target, else linear), for the "
+        "chi-square verdict; default: "
+        "estimated from the residual (its pixel-to-pixel white part) and the quantisation",
+    )
     p.add_argument("--max-steps", type=int, default=100)
-    p.add_argument("--compare", action="store_true",
-                   help="also fit the nested term sets (no specular, Phong<->Blinn, no fog) and rank by BIC")
-    p.add_argument("--encoding", default="auto", metavar="ENC",
-                   help="the targets' colour encoding: auto (default: a PNG's sRGB/iCCP/gAMA chunks; none: linear, "
-                   "with a warning), linear, srgb, gamma:G; the fit weighs residuals in code values")
-    p.add_argument("--no-censor", action="store_true",
-                   help="do not treat fully saturated channels of 8/16-bit targets as clipped")
+    p.add_argument(
+        "--compare",
+        action="store_true",
+        help="also fit the nested term sets (no specular, Phong<->Blinn, no fog) and rank by BIC",
+    )
+    p.add_argument(
+        "--encoding",
+        default="auto",
+        metavar="ENC",
+        help="the targets' colour encoding: auto (default: a PNG's sRGB/iCCP/gAMA chunks; none: linear, "
+        "with a warning), linear, srgb, gamma:G; the fit weighs residuals in code values",
+    )
+    p.add_argument(
+        "--no-censor", action="store_true", help="do not treat fully saturated channels of 8/16-bit targets as clipped"
+    )
     p.add_argument("-v", "--verbose", action="store_true", help="print the loss at every solver step")
     p.add_argument("-o", "--output-dir", default="fit_out", help="output folder (default: fit_out)")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs (never inputs)")
-    p.set_defaults(func=cmd_fit)
 
 
 def _add_demo(sub) -> None:
     """The ``demo`` command's arguments."""
-    p = sub.add_parser("demo", help="fit the built-in default scene's material, attenuation and fog back from its image")
+    p = sub.add_parser(
+        "demo", help="fit the built-in default scene's material, attenuation and fog back from its image"
+    )
     p.add_argument("-o", "--output", default="out/demo.png", help="output PNG (default: out/demo.png)")
     p.add_argument("--size", type=int, default=256, help="image side in pixels (default 256)")
     p.add_argument("--seed", type=int, default=0, help="seed of the perturbed start (default 0)")
@@ -604,10 +775,12 @@ def _add_demo(sub) -> None:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="diffshade", description=__doc__.replace("``", ""),
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--no-cache", action="store_true",
-                        help="do not use the persistent compilation cache (~/.cache/diffshade/xla)")
+    parser = argparse.ArgumentParser(
+        prog="diffshade", description=__doc__.replace("``", ""), formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--no-cache", action="store_true", help="do not use the persistent compilation cache (~/.cache/diffshade/xla)"
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     for add in (_add_render, _add_fit, _add_demo):
         add(sub)

@@ -55,7 +55,9 @@ def with_blinn(s):
 """
 
 TOUR = [
-    ("md", """\
+    (
+        "md",
+        """\
 # 1 · A tour of every illumination term
 
 The classic local model of `docs/model.md` (eq. 14–15):
@@ -65,13 +67,23 @@ $$I = I_{emit} + k_a I_a + \\sum_i f_{rad,i}\\, f_{ang,i} \\big(k_a I_{a,i} + I_
 then optional clamping, then fog. Each term is switched on in `RenderOptions` (static: a term
 a scene does not use is not in the compiled program) and every number lives in the `Scene`
 (traced: changing it never recompiles). All images are linear and unclamped; they are clipped
-only for display."""),
-    ("code", SETUP + """
+only for display.""",
+    ),
+    (
+        "code",
+        SETUP
+        + """
 SIZE = 64 if SMALL else 192
 scene, opts = scene_with(SIZE, fog=None, background=[0, 0, 0])
-print(opts)"""),
-    ("md", "## The terms one at a time, and their sum\n\nThe image is linear in the terms: ambient + diffuse + specular rendered separately add up to the full render (checked below)."),
-    ("code", """\
+print(opts)""",
+    ),
+    (
+        "md",
+        "## The terms one at a time, and their sum\n\nThe image is linear in the terms: ambient + diffuse + specular rendered separately add up to the full render (checked below).",
+    ),
+    (
+        "code",
+        """\
 nofog = opts.with_keys(fog="none")
 parts = {
     "ambient k_a I_a": nofog.with_keys(diffuse=False, specular="none"),
@@ -85,9 +97,15 @@ summed = imgs["ambient k_a I_a"] + imgs["Lambert k_d (n·l)"] + imgs["Phong k_s 
 err = float(jnp.max(jnp.abs(summed - full)))
 print(f"max |ambient + diffuse + specular - full| = {err:.2e}")
 assert err < 1e-5
-show(list(imgs.values()) + [full], list(imgs) + ["sum (no fog)"], cols=5)"""),
-    ("md", "## Light kinds: directional, point with radial attenuation $1/(a_0 + a_1 d + a_2 d^2)$, spot with a hard and a smooth cutoff"),
-    ("code", """\
+show(list(imgs.values()) + [full], list(imgs) + ["sum (no fog)"], cols=5)""",
+    ),
+    (
+        "md",
+        "## Light kinds: directional, point with radial attenuation $1/(a_0 + a_1 d + a_2 d^2)$, spot with a hard and a smooth cutoff",
+    ),
+    (
+        "code",
+        """\
 base = dict(ds.DEFAULT_SCENE["material"])
 lights = {
     "directional": [{"type": "directional", "color": [1, 1, 1], "direction": [1, -0.5, -1]}],
@@ -107,9 +125,15 @@ for name, ls in lights.items():
 centre, corner = np.asarray(out[3])[SIZE // 2, SIZE // 2], np.asarray(out[3])[SIZE // 2, int(SIZE * 0.82)]
 print("hard spot: centre", centre.round(3), " outside the cone", corner.round(3))
 assert centre.sum() > 3 * corner.sum()
-show(out, list(lights), cols=5)"""),
-    ("md", "## Specular variants: Fresnel (Schlick, dielectric), per-light ambient, emission, two-sided lighting with a back material"),
-    ("code", """\
+show(out, list(lights), cols=5)""",
+    ),
+    (
+        "md",
+        "## Specular variants: Fresnel (Schlick, dielectric), per-light ambient, emission, two-sided lighting with a back material",
+    ),
+    (
+        "code",
+        """\
 variants = {
     "Blinn–Phong": {"specular": "blinn"},
     "Blinn + Schlick Fresnel": {"specular": "blinn", "fresnel": "schlick"},
@@ -123,23 +147,38 @@ for name, r in variants.items():
 s, o = scene_with(SIZE, material=dict(base, emission=[0.25, 0.0, 0.1]), render={"fog": "none", "emission": True},
                   fog=None, background=[0, 0, 0])
 out.append(render(s, o))
-show(out, list(variants) + ["emission (0.25, 0, 0.1)"], cols=5)"""),
-    ("md", "## Shading modes: flat (one colour per triangle), Gouraud (vertex colours interpolated), Phong (normals interpolated) — on a coarse sphere, where they differ most"),
-    ("code", """\
+show(out, list(variants) + ["emission (0.25, 0, 0.1)"], cols=5)""",
+    ),
+    (
+        "md",
+        "## Shading modes: flat (one colour per triangle), Gouraud (vertex colours interpolated), Phong (normals interpolated) — on a coarse sphere, where they differ most",
+    ),
+    (
+        "code",
+        """\
 out = []
 for mode in ("flat", "gouraud", "phong"):
     s, o = scene_with(SIZE, mesh={"icosphere": 1}, render={"shading": mode, "fog": "none"}, fog=None, background=[0, 0, 0])
     out.append(render(s, o))
-show(out, ["flat", "Gouraud", "Phong"], cols=3)"""),
+show(out, ["flat", "Gouraud", "Phong"], cols=3)""",
+    ),
     ("md", "## Fog: linear, exp, exp² by eye distance; the background takes the fog colour"),
-    ("code", """\
+    (
+        "code",
+        """\
 out, names = [], []
 for mode, f in (("linear", {"start": 2.0, "end": 4.5}), ("exp", {"density": 0.3}), ("exp2", {"density": 0.3})):
     s, o = scene_with(SIZE, render={"fog": mode}, fog=dict(f, color=[0.55, 0.6, 0.7]))
     out.append(render(s, o)); names.append(f"{mode} {f}")
-show(out, names, cols=3)"""),
-    ("md", "## Model only what a scene needs\n\nThe compiled program of a diffuse-only scene against the all-terms one (XLA HLO lines)."),
-    ("code", """\
+show(out, names, cols=3)""",
+    ),
+    (
+        "md",
+        "## Model only what a scene needs\n\nThe compiled program of a diffuse-only scene against the all-terms one (XLA HLO lines).",
+    ),
+    (
+        "code",
+        """\
 s, _ = scene_with(SIZE)
 s_all = eqx.tree_at(lambda x: x.back_material, s, s.material, is_leaf=lambda x: x is None)
 diffuse_only = ds.RenderOptions(lighting=ds.Lighting(specular="none", ambient=False))
@@ -149,11 +188,14 @@ sizes = {}
 for name, o in (("diffuse only", diffuse_only), ("all terms", all_terms)):
     sizes[name] = render.lower(s_all, o).compile().as_text().count("\\n")
 print(sizes)
-assert sizes["all terms"] > 1.5 * sizes["diffuse only"]"""),
+assert sizes["all terms"] > 1.5 * sizes["diffuse only"]""",
+    ),
 ]
 
 FITTING = [
-    ("md", """\
+    (
+        "md",
+        """\
 # 2 · Fitting material, attenuation and fog from images
 
 The default scene (5,120-face icosphere, a point and a directional light, exp fog) is rendered
@@ -163,8 +205,12 @@ the attenuation, as OpenGL's default) and the fog density from a start up to 30%
 projection (the reflectances solved exactly at every step, Levenberg–Marquardt on the rest), a
 float64 polish, and for each parameter the standard error and the profile-likelihood interval
 (the range where the χ², the others re-fitted, rises by less than 9: ±3 s.e. where the image is
-linear in the parameters, wider where a trade-off bends)."""),
-    ("code", SETUP + """
+linear in the parameters, wider where a trade-off bends).""",
+    ),
+    (
+        "code",
+        SETUP
+        + """
 from fitting import Observations, Optimistix, ParamSet, VarPro, fit
 from fitting.cli import DEMO_FREE
 
@@ -189,9 +235,15 @@ print(f"{'parameter':22s} {'true':>9s} {'fitted':>9s} {'std.err':>9s} {'z':>6s} 
 for n, t, v, e, (lo, hi) in zip(r.names, true, r.values, r.stderr, r.intervals.bounds):
     print(f"{n:22s} {t:9.4f} {v:9.4f} {e:9.2e} {(v - t) / e:6.2f}   [{lo:.4f}, {hi:.4f}]")
 print(r.notes[-1])
-assert r.successful and r.within(true).all()"""),
-    ("md", "## Convergence\n\nThe loss of every accepted step (variable-projection LM, then the polish) and the relative error of every parameter along the way (recorded with `fit(..., history=True)`)."),
-    ("code", """\
+assert r.successful and r.within(true).all()""",
+    ),
+    (
+        "md",
+        "## Convergence\n\nThe loss of every accepted step (variable-projection LM, then the polish) and the relative error of every parameter along the way (recorded with `fit(..., history=True)`).",
+    ),
+    (
+        "code",
+        """\
 loss = np.array([h[0] for h in r.history]); th = np.array([h[1] for h in r.history])
 fig, ax = plt.subplots(1, 2, figsize=(11, 3.6))
 ax[0].semilogy(loss, ".-"); ax[0].set_xlabel("step"); ax[0].set_ylabel("½‖r‖²"); ax[0].set_title("loss")
@@ -202,13 +254,19 @@ ax[1].set_xlabel("step"); ax[1].set_title("relative parameter error"); ax[1].leg
 plt.tight_layout(); plt.show()
 fitted = render(pset.apply(scene, jnp.asarray(r.values, jnp.float32)), opts)
 show([target, render(s0, opts), fitted, 0.5 + 10 * (np.asarray(fitted) - target)],
-     ["target (8-bit + noise)", "start", "fit", "10 × residual + ½"])"""),
-    ("md", """\
+     ["target (8-bit + noise)", "start", "fit", "10 × residual + ½"])""",
+    ),
+    (
+        "md",
+        """\
 ## Uncertainty: are the reported standard errors honest?
 
 Over independent noise seeds, $z = (\\hat\\theta - \\theta)/\\mathrm{se}$ should be close to a
-standard normal: nearly all $|z| \\le 3$."""),
-    ("code", """\
+standard normal: nearly all $|z| \\le 3$.""",
+    ),
+    (
+        "code",
+        """\
 seeds = range(3 if SMALL else 20)
 zs = []
 for seed in seeds:
@@ -220,40 +278,59 @@ print(f"{len(zs)} seeds × {zs.shape[1]} parameters: {100 * inside:.1f}% within 
       f"std of z = {zs.std():.2f}")
 plt.figure(figsize=(5, 3)); plt.hist(zs.ravel(), bins=20, density=True, alpha=0.7)
 x = np.linspace(-4, 4, 200); plt.plot(x, np.exp(-x ** 2 / 2) / np.sqrt(2 * np.pi)); plt.xlabel("z"); plt.show()
-assert inside >= 0.95"""),
-    ("md", """\
+assert inside >= 0.95""",
+    ),
+    (
+        "md",
+        """\
 ## Identifiability: what the images cannot tell
 
 Without a specular term the image says nothing about $m$ (a zero Jacobian column: reported as
 *undetermined*, standard error ∞, value = the start). $k_a$ and the ambient light $I_a$ appear only
 as a product: a *gauge*, reported with the weakest combination. The fit never returns these as
-if they were recovered."""),
-    ("code", """\
+if they were recovered.""",
+    ),
+    (
+        "code",
+        """\
 s2, o2 = scene_with(SIZE, render={"specular": "none"})
 t2 = render(s2, o2)
 r2 = fit(s2, o2, Observations(t2), ["material.diffuse", "material.shininess", "material.ambient", "ambient_light"],
          shared=["material.ambient", "ambient_light"], strategy=VarPro(max_steps=30))
 print("undetermined:", r2.diagnostics.undetermined)
 print("gauges:", r2.diagnostics.gauges)
-assert r2.diagnostics.undetermined == ["material.shininess"] and r2.diagnostics.gauges"""),
-    ("md", "## Which terms do the images support?\n\n`compare_models` fits nested term sets (no specular, Phong ↔ Blinn, no fog) and ranks them by BIC."),
-    ("code", """\
+assert r2.diagnostics.undetermined == ["material.shininess"] and r2.diagnostics.gauges""",
+    ),
+    (
+        "md",
+        "## Which terms do the images support?\n\n`compare_models` fits nested term sets (no specular, Phong ↔ Blinn, no fog) and ranks them by BIC.",
+    ),
+    (
+        "code",
+        """\
 from fitting import compare_models
 scores = compare_models(s0, opts, Observations(target, saturation=1.0), DEMO_FREE, given=r)
 for m in scores:
     print(f"{m.name:12s} k={m.k:2d}  RSS={m.rss:.4e}  ΔBIC={m.bic - scores[0].bic:10.1f}  {m.fit.result or 'successful'}")
-assert scores[0].name == "as given\""""),
+assert scores[0].name == "as given\"""",
+    ),
 ]
 
 SPEED = [
-    ("md", """\
+    (
+        "md",
+        """\
 # 3 · Speed against error
 
 Every choice trades time for accuracy. Errors are measured against a reference render (Phong
 shading of a finely subdivided sphere, 4× supersampled, float64); times are steady-state
 medians (compile apart). Points on the Pareto front (no other configuration is both faster and
-more accurate) are marked."""),
-    ("code", SETUP + """
+more accurate) are marked.""",
+    ),
+    (
+        "code",
+        SETUP
+        + """
 jax.config.update("jax_enable_x64", True)
 SIZE = 48 if SMALL else 192
 
@@ -283,9 +360,12 @@ def pareto(points):
     for i, (t, e) in enumerate(points):
         if not any((t2 <= t and e2 <= e) and (t2 < t or e2 < e) for t2, e2 in points):
             front.append(i)
-    return front"""),
+    return front""",
+    ),
     ("md", "## Shading mode × mesh resolution × supersampling"),
-    ("code", """\
+    (
+        "code",
+        """\
 rows = []
 subs = (2, 3) if SMALL else (2, 3, 4, 5)
 sss = (1, 2) if SMALL else (1, 2, 3)
@@ -311,9 +391,12 @@ ax.loglog([pts[i][0] for i in fr], [pts[i][1] for i in fr], "k--", lw=1, label="
 ax.set_xlabel("render time (ms)"); ax.set_ylabel("RMS error vs reference"); ax.legend(); plt.show()
 # Phong shading of the finest mesh, supersampled, is the most accurate of all.
 best = min(range(len(rows)), key=lambda i: rows[i][4])
-assert rows[best][0] == "phong" and rows[best][2] == max(sss)"""),
+assert rows[best][0] == "phong" and rows[best][2] == max(sss)""",
+    ),
     ("md", "## float32 against float64"),
-    ("code", """\
+    (
+        "code",
+        """\
 res = {}
 for dt in (jnp.float32, jnp.float64):
     s, o = scene_at(SIZE, 4, dt)
@@ -321,9 +404,15 @@ for dt in (jnp.float32, jnp.float64):
     res[jnp.dtype(dt).name] = (timed(fn, s), np.asarray(fn(s), np.float64))
 d = float(np.max(np.abs(res["float32"][1] - res["float64"][1])))
 print(f"float32 {res['float32'][0]:.2f} ms, float64 {res['float64'][0]:.2f} ms; max |difference| {d:.1e}")
-assert d < 1e-4"""),
-    ("md", "## Method and iteration count: time to fit against parameter error\n\nThe 13 parameters of the demo from a start 30% off, noise-free target, from that start alone (no global search, no polish), each method with a cap on its steps: the default compiled variable-projection program (9 reflectances solved exactly under their bounds at every step, Marquardt-scaled LM on the 4 nonlinear parameters with Kaufman's Jacobian), optimistix's LM or Dogleg on the same reduced residual, and Levenberg–Marquardt on all 13."),
-    ("code", """\
+assert d < 1e-4""",
+    ),
+    (
+        "md",
+        "## Method and iteration count: time to fit against parameter error\n\nThe 13 parameters of the demo from a start 30% off, noise-free target, from that start alone (no global search, no polish), each method with a cap on its steps: the default compiled variable-projection program (9 reflectances solved exactly under their bounds at every step, Marquardt-scaled LM on the 4 nonlinear parameters with Kaufman's Jacobian), optimistix's LM or Dogleg on the same reduced residual, and Levenberg–Marquardt on all 13.",
+    ),
+    (
+        "code",
+        """\
 from fitting import Observations, Optimistix, ParamSet, VarPro, fit
 from fitting.cli import DEMO_FREE
 fs, fo = scene_with(SIZE)
@@ -358,12 +447,15 @@ for name in methods:
     ax.loglog([pts[i][0] for i in sel], [pts[i][1] for i in sel], "o-", label=name)
 ax.set_xlabel("solve time (ms)"); ax.set_ylabel("max relative parameter error"); ax.legend(); plt.show()
 lm = [r for r in runs if r[0] == "varpro + lm" and r[1] == 100][0]
-assert lm[4] < 1e-4"""),
+assert lm[4] < 1e-4""",
+    ),
 ]
 
 
 GLASS = [
-    ("md", """\
+    (
+        "md",
+        """\
 # 4 · Transparency, absorption, transmission and shadows
 
 docs/model.md §2 and §5 and the lecture notes' part on transparency (docs/model.md §5), on a floor,
@@ -375,8 +467,12 @@ a glass box and a ball with Kay's opacity (`examples/glass_and_shadows.toml`):
 - directed transmission `k_t I_p cos^m β` with Snell refraction and total internal reflection;
 - shadow maps for directional, point (six views) and spot lights, with percentage-closer filtering.
 
-Everything numeric stays differentiable; the last section fits the glass back from an image."""),
-    ("code", SETUP + """
+Everything numeric stays differentiable; the last section fits the glass back from an image.""",
+    ),
+    (
+        "code",
+        SETUP
+        + """
 from pathlib import Path
 import diffshade._shade as S
 EXAMPLE = Path(ds.__file__).resolve().parent.parent / "examples" / "glass_and_shadows.toml"
@@ -388,31 +484,43 @@ scene = eqx.tree_at(lambda s: s.camera, scene, ds.Camera(
 if SMALL:
     opts = opts.with_keys(shadow_resolution=128)
 print(opts)
-print(len(scene.all_materials()), "materials,", scene.mesh.faces.shape[0], "faces")"""),
-    ("md", """\
+print(len(scene.all_materials()), "materials,", scene.mesh.faces.shape[0], "faces")""",
+    ),
+    (
+        "md",
+        """\
 ## Depth layers
 
 With `K` layers each pixel composites its `K` nearest surfaces; what lies beyond the last one is
 replaced by the background (the light left over, `Π(1 − t_k)`, comes from it).
 `ds.truncated_pixels` counts the pixels where that happens: here the floor seen through both walls
-of the box and both sides of the ball needs `K = 5`."""),
-    ("code", """\
+of the box and both sides of the ball needs `K = 5`.""",
+    ),
+    (
+        "code",
+        """\
 images, titles = [render(scene, opts.with_keys(transparency=False, absorption=False, transmission=False))], ["opaque"]
 for K in ((1, 5) if SMALL else (1, 2, 3, 5)):
     o = opts.with_keys(layers=K, absorption=K >= 2)
     images.append(render(scene, o))
     titles.append(f"K = {K}: {ds.truncated_pixels(scene, o)} px truncated")
 show(images, titles, cols=5)
-assert ds.truncated_pixels(scene, opts.with_keys(layers=5)) == 0"""),
-    ("md", """\
+assert ds.truncated_pixels(scene, opts.with_keys(layers=5)) == 0""",
+    ),
+    (
+        "md",
+        """\
 ## Kay's opacity
 
 `n_z` is the view-space z of the unit normal: 1 face-on, 0 at a silhouette. The seed's names
 `t_min`, `t_max` are the values at `|n_z| = 0` and `1`; Kay's look — the material appears
 thicker, more opaque, towards the silhouette — has `t_min > t_max`. The power `p` sets how close to
 the silhouette the change happens. The rendered ball below is the example's (t_min 0.95,
-t_max 0.35, p 2) against linear opacity 0.35."""),
-    ("code", """\
+t_max 0.35, p 2) against linear opacity 0.35.""",
+    ),
+    (
+        "code",
+        """\
 nz = np.linspace(0, 1, 201)
 fig, ax = plt.subplots(1, 2, figsize=(11, 3.6))
 for p in (0.5, 1, 2, 4, 8):
@@ -424,14 +532,20 @@ linear = eqx.tree_at(lambda s: s.materials[1], scene, plain_ball)
 both = np.concatenate([np.clip(render(linear, opts), 0, 1), np.clip(render(scene, opts), 0, 1)], axis=1)
 ax[1].imshow(both); ax[1].axis("off"); ax[1].set_title("linear t = 0.35  |  Kay")
 plt.tight_layout(); plt.show()
-assert abs(float(S.kay_opacity(1.0, 0.95, 0.35, 2.0)) - 0.35) < 1e-7 and abs(float(S.kay_opacity(0.0, 0.95, 0.35, 2.0)) - 0.95) < 1e-7"""),
-    ("md", """\
+assert abs(float(S.kay_opacity(1.0, 0.95, 0.35, 2.0)) - 0.35) < 1e-7 and abs(float(S.kay_opacity(0.0, 0.95, 0.35, 2.0)) - 0.95) < 1e-7""",
+    ),
+    (
+        "md",
+        """\
 ## Absorption through a slab
 
 A slab of thickness 0.6 with invisible surfaces (`t = 0`) in front of a lit plane: each pixel is
 the plane's colour times `e^{−μℓ}`, `ℓ = 0.6/|cos|` along its view ray. Measured on the centre
-pixel against the closed form, per channel:"""),
-    ("code", """\
+pixel against the closed form, per channel:""",
+    ),
+    (
+        "code",
+        """\
 def slab(mu, size=32):
     mats = (ds.Material(ambient=0.2, diffuse=(0.9, 0.8, 0.7), specular=0.0),
             ds.Material(specular=0.0, opacity=0.0, absorption=mu))
@@ -453,16 +567,22 @@ for c, col in enumerate("rgb"):
 plt.xlabel("μ"); plt.ylabel("centre pixel"); plt.title("dots: render, lines: C e^{−μℓ}"); plt.show()
 err = np.abs(centre / (C * np.exp(-mus[:, None] * ell)) - 1).max()
 print(f"max relative error {err:.1e}")
-assert err < 1e-5"""),
-    ("md", """\
+assert err < 1e-5""",
+    ),
+    (
+        "md",
+        """\
 ## Directed transmission and the critical angle
 
 The factor `W cos^m β` for light from inside glass (η = 1.5) reaching a viewer on the normal,
 as the light's angle of incidence grows. Without Fresnel (`W = 1`) it drops to 0 at the critical
 angle `arcsin(1/η)` = 41.8° (total internal reflection; `f` turns tangent, so `cos β → 0`); with
 the Fresnel split `W = 1 − F` falls to 0 there as well. From the other side (a back face: light
-entering the denser medium) there is no critical angle."""),
-    ("code", """\
+entering the denser medium) there is no critical angle.""",
+    ),
+    (
+        "code",
+        """\
 theta = np.radians(np.linspace(0, 89.5, 400))
 n = (jnp.zeros_like(theta), jnp.zeros_like(theta), jnp.ones_like(theta))
 l = (jnp.sin(theta), jnp.zeros_like(theta), -jnp.cos(theta))
@@ -474,14 +594,20 @@ for back, fres, style in ((False, "none", "-"), (False, "dielectric", "--"), (Fa
 plt.axvline(np.degrees(np.arcsin(1 / 1.5)), color="k", lw=0.5)
 plt.xlabel("angle of incidence (deg)"); plt.ylabel("W cos^m β (m = 1)"); plt.legend(fontsize=8); plt.show()
 g = jax.grad(lambda e: S.directed_transmission(n, l, v, 1.0, e, False, "dielectric").sum())(1.5)
-assert np.isfinite(g)"""),
-    ("md", """\
+assert np.isfinite(g)""",
+    ),
+    (
+        "md",
+        """\
 ## Shadows
 
 One light at a time, with and without percentage-closer filtering, and the cost of the maps
 (steady state, compile apart). A point light renders six 90° views; receiver-plane depth keeps
-the lit floor free of acne with a bias of 10⁻³."""),
-    ("code", """\
+the lit floor free of acne with a bias of 10⁻³.""",
+    ),
+    (
+        "code",
+        """\
 def timed(fn, *args, repeats=3 if SMALL else 10):
     jax.block_until_ready(fn(*args))
     ts = []
@@ -504,8 +630,11 @@ for kind in ("directional", "point", "spot"):
     if not SMALL:  # (the test suite skips the timing without shadows)
         off = jax.jit(lambda s: ds.render(s, plain.with_keys(shadows=False)))
         print(f"{kind:11s} without shadows {timed(off, one):6.1f} ms")
-show(images, titles, cols=6, scale=2.4)"""),
-    ("md", """\
+show(images, titles, cols=6, scale=2.4)""",
+    ),
+    (
+        "md",
+        """\
 ## Fitting the glass
 
 Opacity, absorption and transmission of the box and Kay's three parameters of the ball, from
@@ -514,8 +643,11 @@ discrete, so the fit would see them as fixed: they are off here).
 
 In the example every light is on the camera's side of the glass, so no light reaches the eye
 *through* it: the image does not depend on `k_t` at all, and the fit says so — the transmission
-is reported undetermined (infinite standard error) and left at its start."""),
-    ("code", """\
+is reported undetermined (infinite standard error) and left at its start.""",
+    ),
+    (
+        "code",
+        """\
 from fitting import Observations, Optimistix, ParamSet, VarPro, fit
 names = ["material[1].opacity", "material[1].absorption", "material[1].transmission",
          "material[2].kay_min", "material[2].kay_max", "material[2].kay_power"]
@@ -537,9 +669,12 @@ def fit_glass(scene):
 r, rel, ps = fit_glass(scene)
 assert r.successful and sorted(r.diagnostics.undetermined) == [f"material[1].transmission[{c}]" for c in "bgr"]
 known = np.array(["transmission" not in lab for lab in ps.labels])
-assert rel[known].max() < 1e-3"""),
+assert rel[known].max() < 1e-3""",
+    ),
     ("md", "A point light behind the box makes the transmission visible; now all ten values come back:"),
-    ("code", """\
+    (
+        "code",
+        """\
 back = ds.PointLights(color=[[1.0, 1.0, 1.0]], position=[[-0.5, -0.1, -0.2]], attenuation=[[1.0, 0.0, 0.5]],
                       ambient=[[0.0, 0.0, 0.0]])
 lit_behind = eqx.tree_at(lambda s: s.point, scene, ds.PointLights(
@@ -548,11 +683,14 @@ lit_behind = eqx.tree_at(lambda s: s.point, scene, ds.PointLights(
     ambient=jnp.concatenate([scene.point.ambient, back.ambient])))
 show([render(scene, fopts), render(lit_behind, fopts)], ["example", "+ a light behind the glass"], cols=2, scale=3.5)
 r2, rel2, _ = fit_glass(lit_behind)
-assert r2.successful and not r2.diagnostics.undetermined and rel2.max() < 1e-3"""),
+assert r2.successful and not r2.diagnostics.undetermined and rel2.max() < 1e-3""",
+    ),
 ]
 
 MIRRORS = [
-    ("md", """\
+    (
+        "md",
+        """\
 # 5 · Mirrors and glass: the global model by ray tracing
 
 docs/model.md §6 and the lecture notes' global model: at every surface point seen along a ray,
@@ -567,8 +705,12 @@ visibility is the rasterizer's; secondary rays come from Intel Embree (or a port
 and every hit is recomputed in JAX from the vertices, so the image is differentiable in `η`,
 `μ`, the weights, the lights and the geometry.
 
-A glass ball (`refraction` 0.9, `mirror` 0.1) over a chequered floor, in front of a wall."""),
-    ("code", SETUP + """
+A glass ball (`refraction` 0.9, `mirror` 0.1) over a chequered floor, in front of a wall.""",
+    ),
+    (
+        "code",
+        SETUP
+        + """
 SIZE = 48 if SMALL else 160
 
 def glass_scene(size, ball=None, render=None, tiles=6, floor=None):
@@ -594,14 +736,20 @@ def glass_scene(size, ball=None, render=None, tiles=6, floor=None):
 
 scene, opts = glass_scene(SIZE)
 print(scene.mesh.faces.shape[0], "faces,", len(scene.all_materials()), "materials; ray engine:",
-      ds._rays.resolve_ray_backend("auto"))"""),
-    ("md", """\
+      ds._rays.resolve_ray_backend("auto"))""",
+    ),
+    (
+        "md",
+        """\
 ## Term by term
 
 The rasterizer's local terms alone (the ball is black glass with a highlight), then the mirror
 ray, the refracted ray (bending the floor's chequers), absorption inside the glass, and the
-Fresnel split of the weights (`k_r + k_rt F`, `k_rt (1 − F)`: more reflection at grazing angles)."""),
-    ("code", """\
+Fresnel split of the weights (`k_r + k_rt F`, `k_rt (1 − F)`: more reflection at grazing angles).""",
+    ),
+    (
+        "code",
+        """\
 D = 2 if SMALL else 4
 steps = [("local (rasterizer)", dict(refraction=0.0, mirror=0.1), dict(ray_depth=0)),
          ("+ reflection", dict(refraction=0.0, mirror=0.1), dict(ray_depth=1)),
@@ -615,16 +763,22 @@ for title, ball, r in steps:
 show(images, [t for t, _, _ in steps], cols=5, scale=2.8)
 diff = [float(np.abs(np.asarray(a) - np.asarray(b)).max()) for a, b in zip(images, images[1:])]
 print("each step changes the image by up to", ", ".join(f"{d:.2f}" for d in diff))
-assert min(diff) > 1e-2"""),
-    ("md", """\
+assert min(diff) > 1e-2""",
+    ),
+    (
+        "md",
+        """\
 ## Depth against error and time
 
 How deep must the recursion go? Each depth against a reference traced to depth 7 (error: RMS
 over the image), and the time of a frame (median, compile apart) with the generations compacted
 to the rays that live (`ray_capacity` from `ds.ray_counts`): only the ball's pixels spawn rays.
 The error falls by the light lost inside the glass at each bounce; the cost grows with the rays
-that stay alive."""),
-    ("code", """\
+that stay alive.""",
+    ),
+    (
+        "code",
+        """\
 def timed(fn, *args, repeats=3 if SMALL else 9):
     jax.block_until_ready(fn(*args))
     ts = []
@@ -650,15 +804,21 @@ for depth, ms, err in rows:
     ax.annotate(f"D={depth}", (ms, err), textcoords="offset points", xytext=(4, 4), fontsize=8)
 ax.set_xlabel("ms per frame"); ax.set_ylabel(f"RMS error vs depth {REF}"); plt.show()
 errs = [r[2] for r in rows]
-assert all(b < a for a, b in zip(errs, errs[1:])), errs  # every bounce brings the image closer"""),
-    ("md", """\
+assert all(b < a for a, b in zip(errs, errs[1:])), errs  # every bounce brings the image closer""",
+    ),
+    (
+        "md",
+        """\
 ## Exact shadows against shadow maps
 
 Shadow rays decide each light's visibility exactly (no bias to tune, no texels); shadow maps
 approximate it with a depth texture. An opaque ball here (maps leave glass out or treat it as
 opaque; rays let it tint the shadow, next cell). Error: the fraction of floor pixels whose shadow
-differs from the exact one, and the frame time."""),
-    ("code", """\
+differs from the exact one, and the frame time.""",
+    ),
+    (
+        "code",
+        """\
 opaque = dict(refraction=0.0, mirror=0.0, diffuse=[0.7, 0.3, 0.2], absorption=[0.0, 0.0, 0.0])
 s_op, o_op = glass_scene(SIZE, ball=opaque)
 exact = np.asarray(render(s_op, o_op.with_keys(shadow_rays=True)))
@@ -670,26 +830,38 @@ for res, pcf in ((512, 3),) if SMALL else ((128, 1), (512, 1), (2048, 1), (512, 
     wrong = float(np.mean(np.abs(img - exact).max(-1)[floor] > 0.02))
     images.append(img)
     titles.append(f"map {res}², PCF {pcf}: {timed(render, s_op, o):.1f} ms, {wrong:.1%} off")
-show(images, titles, cols=len(images), scale=3.0)"""),
-    ("md", """\
+show(images, titles, cols=len(images), scale=3.0)""",
+    ),
+    (
+        "md",
+        """\
 Through glass, a straight shadow ray is multiplied by `k_rt` at each surface it crosses and by
-`e^{−μℓ}` inside (up to `shadow_ray_crossings` surfaces): the coloured shadow of the ball."""),
-    ("code", """\
+`e^{−μℓ}` inside (up to `shadow_ray_crossings` surfaces): the coloured shadow of the ball.""",
+    ),
+    (
+        "code",
+        """\
 s_g, o_g = glass_scene(SIZE, render={"fresnel": "dielectric"})
 DEPTH = 1 if SMALL else 4
 img_g = render(s_g, o_g.with_keys(ray_depth=DEPTH, shadow_rays=True))
 img_b = render(s_g, o_g.with_keys(ray_depth=DEPTH, shadow_rays=True, shadow_ray_crossings=0))
 show([img_b, img_g], ["glass as an opaque occluder", "coloured shadow (k_rt e^{−μℓ})"], cols=2, scale=3.6)
-assert float(jnp.abs(img_g - img_b).max()) > 0.05"""),
-    ("md", """\
+assert float(jnp.abs(img_g - img_b).max()) > 0.05""",
+    ),
+    (
+        "md",
+        """\
 ## Fitting η and k_rt from a photograph
 
 A "photograph" of the glass ball: rendered at η = 1.52 and `k_rt` = 0.85, with Gaussian noise
 (σ = 2/255) and 8-bit quantisation. First the cost as a function of η alone (the rest at the
 truth): seen through the ball, the chequers move with η, so away from the truth the cost is far
 from a parabola (its local minima are counted below) — a fit of a refractive index needs a start
-in the right basin, as any local method does on a textured background."""),
-    ("code", """\
+in the right basin, as any local method does on a textured background.""",
+    ),
+    (
+        "code",
+        """\
 from fitting import Observations, Optimistix, ParamSet, VarPro, fit
 truth, topts = glass_scene(SIZE, ball=dict(ior=1.52, refraction=0.85), render={"ray_depth": 2 if SMALL else 3, "fresnel": "dielectric"})
 clean = np.asarray(render(truth, topts))
@@ -701,15 +873,21 @@ plt.figure(figsize=(5.5, 3.2)); plt.semilogy(etas, cost, ".-"); plt.axvline(1.52
 plt.xlabel("η"); plt.ylabel("sum of squared residuals"); plt.show()
 minima = [i for i in range(1, len(cost) - 1) if cost[i] < cost[i - 1] and cost[i] < cost[i + 1]]
 print(f"{len(minima)} local minima of the cost in η ∈ [1.2, 1.8]")
-assert etas[int(np.argmin(cost))] == min(etas, key=lambda e: abs(e - 1.52))"""),
-    ("md", """\
+assert etas[int(np.argmin(cost))] == min(etas, key=lambda e: abs(e - 1.52))""",
+    ),
+    (
+        "md",
+        """\
 On the chequers the refracted rays also cross tile edges as η changes: the image jumps there, no
 derivative sees it, and a fit's standard errors come out optimistic (measured: η 3.8 s.e. off,
 with the residual at the noise level). The fit below takes a plain floor lit by a nearby lamp
 instead: what is seen through the ball varies smoothly, so the image is smooth in η. From η 2 %
 off and the rest 15–25 % off, the fit recovers all five values and says how well the image
-determines each."""),
-    ("code", """\
+determines each.""",
+    ),
+    (
+        "code",
+        """\
 truth, topts = glass_scene(SIZE, ball=dict(ior=1.52, refraction=0.85), tiles=1, floor={"diffuse": [0.8, 0.75, 0.6]},
                            render={"ray_depth": 2 if SMALL else 3, "fresnel": "dielectric"})
 truth = eqx.tree_at(lambda s: (s.point.position, s.point.attenuation), truth,
@@ -728,12 +906,15 @@ print(f"successful: {r.successful}; {r.steps} steps, solve {r.solve_s:.1f} s (co
       f"residual {r.residual.noise_ratio:.2f}× the noise")
 show([photo, render(ps.apply(truth, jnp.asarray(r.values, truth.mesh.vertices.dtype)), topts), np.abs(photo - clean) * 10],
      ["photograph (8-bit, noise)", "fitted", "|noise| × 10"], cols=3, scale=3.2)
-assert r.successful and abs(r.values[0] - 1.52) < 5e-3 and np.all(np.abs(r.values - theta) <= 4 * r.stderr)"""),
+assert r.successful and abs(r.values[0] - 1.52) < 5e-3 and np.all(np.abs(r.values - theta) <= 4 * r.stderr)""",
+    ),
 ]
 
 
 PHOTOS = [
-    ("md", """\
+    (
+        "md",
+        """\
 # 6 · Photographs: sRGB, exposure, calibrated cameras, per-vertex albedo
 
 A user's targets are photographs, not renders. They are 8-bit sRGB files, each with its own
@@ -750,8 +931,12 @@ The data set:
 The fit frees:
 - the albedo of every vertex (the sparse linear block of docs/model.md §12);
 - each other view's white balance;
-- the attenuation `a1, a2`, `k_s` and `m`."""),
-    ("code", SETUP + """
+- the attenuation `a1, a2`, `k_s` and `m`.""",
+    ),
+    (
+        "code",
+        SETUP
+        + """
 import importlib.util, json, tempfile
 from pathlib import Path
 from diffshade import color as _color
@@ -771,14 +956,20 @@ views = []
 for i, (_, setup, _, _) in enumerate(M.VIEWS):
     s, opts = ds.load_scene(data / f"setup_{setup}.toml")
     views.append(eqx.tree_at(lambda x: x.camera, s, ds.load_camera(data / f"view{i}.json")))
-show(codes, [f"view {i}: set-up {v[1]}, exposure {v[2]}" for i, v in enumerate(M.VIEWS)], cols=6)"""),
-    ("md", """\
+show(codes, [f"view {i}: set-up {v[1]}, exposure {v[2]}" for i, v in enumerate(M.VIEWS)], cols=6)""",
+    ),
+    (
+        "md",
+        """\
 ## The fit, as `diffshade fit` runs it
 
 The photographs declare sRGB in their PNG chunks. The fit measures every residual in code values
 (docs/model.md §9), with the clipped codes censored. `margin=1` leaves out the pixels next to
-the silhouette and next to the occlusion edges inside it (an ear in front of the head)."""),
-    ("code", """\
+the silhouette and next to the occlusion edges inside it (an ear in front of the head).""",
+    ),
+    (
+        "code",
+        """\
 free = ["mesh.colors", "view[*].camera.white_balance", "point[0].a1", "point[0].a2", "material.specular",
         "material.shininess"]
 kw = dict(views=views, saturation=1.0, quantum=1 / 255, noise=2 / 255, margin=1)
@@ -797,14 +988,20 @@ for n, t in rows:
     i = idx[n]; z.append(abs(r.values[i] - t) / r.stderr[i])
     print(f"{n:34s} {t:8.4g} {r.values[i]:8.4g} {r.stderr[i]:8.2g} {z[-1]:5.2f}")
 assert r.successful, r.result
-assert max(z) < 4.5, max(z)   # 21 scalars: every one within a few standard errors"""),
-    ("md", """\
+assert max(z) < 4.5, max(z)   # 21 scalars: every one within a few standard errors""",
+    ),
+    (
+        "md",
+        """\
 ## The albedo on the mesh
 
 The fitted colours next to the true ones, seen from a view no photograph was taken from. Below
 them is the error of each vertex in standard errors. Grey marks the vertices the images cannot
-determine, because no view shows them or the light never reaches them where a view does."""),
-    ("code", """\
+determine, because no view shows them or the light never reaches them where a view does.""",
+    ),
+    (
+        "code",
+        """\
 nv = views[0].mesh.vertices.shape[0]
 alb = r.values[:3 * nv].reshape(nv, 3); se = r.stderr[:3 * nv].reshape(nv, 3)
 true_alb = np.asarray(truth["albedo"])
@@ -825,14 +1022,20 @@ def on_mesh(colors):
     s = eqx.tree_at(lambda x: x.material.ambient, s, jnp.zeros(3))
     return render(s, flat_light.with_keys(vertex_color="ambient_and_diffuse"))
 show([on_mesh(true_alb), on_mesh(alb), on_mesh(zcol)], ["true albedo", "fitted albedo", "|error| / s.e. (0 → 4), grey: undetermined"], cols=3, scale=3.2)
-assert np.mean(zv[det] < 3) > 0.9"""),
-    ("md", """\
+assert np.mean(zv[det] < 3) > 0.9""",
+    ),
+    (
+        "md",
+        """\
 ## The same photographs, read as linear
 
 This is what happens when a file's encoding is not declared and the code values are taken as
 light. The fit cannot explain the images and says so. Every parameter it reports is biased, and
-the specular term is explained away."""),
-    ("code", """\
+the specular term is explained away.""",
+    ),
+    (
+        "code",
+        """\
 t0 = time.perf_counter()
 wrong = fit(views[0], opts, Observations(codes, encoding="linear", **kw), free)
 print(f"{wrong.result or 'successful'} ({time.perf_counter() - t0:.1f} s)")
@@ -844,18 +1047,26 @@ ax.bar(x - 0.2, rel(r), 0.4, label=f"sRGB declared: residual {r.residual.noise_r
 ax.bar(x + 0.2, rel(wrong), 0.4, label=f"read as linear: residual {wrong.residual.noise_ratio:.1f}× the noise")
 ax.axhline(0, color="k", lw=0.5); ax.set_xticks(x, [n.replace("camera.white_balance", "wb") for n in names], rotation=60, fontsize=7)
 ax.set_ylabel("relative error"); ax.set_yscale("symlog", linthresh=0.1); ax.legend(fontsize=8); plt.tight_layout(); plt.show()
-assert not wrong.successful and wrong.residual.noise_ratio > 3"""),
+assert not wrong.successful and wrong.residual.noise_ratio > 3""",
+    ),
 ]
 
-NOTEBOOKS = {"01_tour_of_terms.ipynb": TOUR, "02_fitting.ipynb": FITTING, "03_speed_vs_error.ipynb": SPEED,
-             "04_transparency_and_shadows.ipynb": GLASS, "05_mirrors_and_glass.ipynb": MIRRORS,
-             "06_photographs.ipynb": PHOTOS}
+NOTEBOOKS = {
+    "01_tour_of_terms.ipynb": TOUR,
+    "02_fitting.ipynb": FITTING,
+    "03_speed_vs_error.ipynb": SPEED,
+    "04_transparency_and_shadows.ipynb": GLASS,
+    "05_mirrors_and_glass.ipynb": MIRRORS,
+    "06_photographs.ipynb": PHOTOS,
+}
 
 
 def build(name: str, cells) -> nbformat.NotebookNode:
     nb = nbformat.v4.new_notebook()
     nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
-    nb.cells = [nbformat.v4.new_markdown_cell(src) if kind == "md" else nbformat.v4.new_code_cell(src) for kind, src in cells]
+    nb.cells = [
+        nbformat.v4.new_markdown_cell(src) if kind == "md" else nbformat.v4.new_code_cell(src) for kind, src in cells
+    ]
     return nb
 
 

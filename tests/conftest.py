@@ -10,8 +10,7 @@ from importlib.metadata import version
 # and 0.10.2 checked), and never over an XLA_FLAGS that already sets it (to run the suite on the
 # default emitters: XLA_FLAGS=--xla_cpu_use_fusion_emitters=true).
 FAST_COMPILE = "--xla_cpu_use_fusion_emitters=false"
-if (re.match(r"0\.10\.", version("jaxlib"))
-        and "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", "")):
+if re.match(r"0\.10\.", version("jaxlib")) and "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {FAST_COMPILE}".strip()
 
 # Tests compare against float64 finite differences; the library itself never changes jax.config.
@@ -110,6 +109,7 @@ def check_grads(f, args, order=1, modes=("fwd", "rev"), atol=None, rtol=None, ep
 
         test_util.check_jvp(primal, lambda a, t: push(tuple(a), tuple(t)), args, **kw)
     if "rev" in modes:
+
         def both(a, u):
             out, back = jax.vjp(f, *a)
             return out, back(u)
@@ -117,8 +117,10 @@ def check_grads(f, args, order=1, modes=("fwd", "rev"), atol=None, rtol=None, ep
         pull = jax.jit(both)
         u0 = zeros(jax.eval_shape(f, *args))
         if "fwd" not in modes:  # (a custom_vjp function has no JVP)
+
             def primal(*a):
                 return pull(a, u0)[0]
+
         test_util.check_vjp(primal, lambda *a: (primal(*a), lambda u: pull(a, u)[1]), args, **kw)
 
 

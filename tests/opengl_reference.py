@@ -125,15 +125,28 @@ def _lights(scene, opts, view):
             col = a(L.color[i])
             spec = col if L.specular is None else a(L.specular[i])
             amb = a(L.ambient[i]) if opts.per_light_ambient else np.zeros(3)
-            d = {"diffuse": col, "specular": spec, "ambient": amb, "att": np.array([1.0, 0.0, 0.0]),
-                 "axis": np.array([0.0, 0.0, -1.0]), "cutoff": 180.0, "exponent": 0.0, "edge": 0.0}
+            d = {
+                "diffuse": col,
+                "specular": spec,
+                "ambient": amb,
+                "att": np.array([1.0, 0.0, 0.0]),
+                "axis": np.array([0.0, 0.0, -1.0]),
+                "cutoff": 180.0,
+                "exponent": 0.0,
+                "edge": 0.0,
+            }
             if kind == "directional":
                 d["pos"] = np.r_[R @ -a(L.direction[i]), 0.0]
             else:
                 d["pos"] = np.r_[R @ a(L.position[i]) + t, 1.0]
                 d["att"] = a(L.attenuation[i])
             if kind == "spot":
-                d.update(axis=R @ a(L.axis[i]), cutoff=float(L.cutoff[i]), exponent=float(L.exponent[i]), edge=float(L.edge[i]))
+                d.update(
+                    axis=R @ a(L.axis[i]),
+                    cutoff=float(L.cutoff[i]),
+                    exponent=float(L.exponent[i]),
+                    edge=float(L.edge[i]),
+                )
             out.append(d)
     if scene.area.count or scene.multi_lobe.count:
         raise ValueError("OpenGL reference: area and multi-lobe lights have no OpenGL counterpart")
@@ -165,8 +178,14 @@ def render(scene, opts):
     pos, nrm = _f32(V[corners]), _f32(N[corners])
     if scene.mesh.material_ids is not None and len(scene.materials):
         raise ValueError("OpenGL reference: one material per scene")
-    if (opts.transparency or opts.shadows or opts.shadow_rays or opts.ray_depth or opts.transmission
-            or opts.fresnel != "none"):
+    if (
+        opts.transparency
+        or opts.shadows
+        or opts.shadow_rays
+        or opts.ray_depth
+        or opts.transmission
+        or opts.fresnel != "none"
+    ):
         raise ValueError("OpenGL reference: no transparency, shadows, rays, transmission or Fresnel")
     bg = np.asarray(scene.background, np.float64)
 
@@ -223,8 +242,10 @@ def _fixed_function(gl, scene, opts, lights, front, back):
     gl.glLightModelfv(gl.GL_LIGHT_MODEL_AMBIENT, _rgba(ga))
     gl.glLightModeli(gl.GL_LIGHT_MODEL_LOCAL_VIEWER, gl.GL_TRUE if opts.viewer == "local" else gl.GL_FALSE)
     gl.glLightModeli(gl.GL_LIGHT_MODEL_TWO_SIDE, gl.GL_TRUE if opts.two_sided else gl.GL_FALSE)
-    gl.glLightModeli(gl.GL_LIGHT_MODEL_COLOR_CONTROL,
-                     gl.GL_SEPARATE_SPECULAR_COLOR if opts.color_sum == "separate" else gl.GL_SINGLE_COLOR)
+    gl.glLightModeli(
+        gl.GL_LIGHT_MODEL_COLOR_CONTROL,
+        gl.GL_SEPARATE_SPECULAR_COLOR if opts.color_sum == "separate" else gl.GL_SINGLE_COLOR,
+    )
     for side, m in ((gl.GL_FRONT, front), (gl.GL_BACK, back)):
         gl.glMaterialfv(side, gl.GL_EMISSION, _rgba(m.emission if opts.emission else 0.0))
         gl.glMaterialfv(side, gl.GL_AMBIENT, _rgba(m.ambient))
@@ -384,10 +405,19 @@ def _phong_program(c, scene, opts, lights, front, back, view):
     gl.glDisable(gl.GL_LIGHTING)
     gl.glDisable(gl.GL_FOG)
     defs = ["#version 120"]
-    for flag, on in (("TWO_SIDED", opts.two_sided), ("INFINITE_VIEWER", opts.viewer == "infinite"), ("AMBIENT", opts.ambient),
-                     ("EMISSION", opts.emission), ("PER_LIGHT_AMBIENT", opts.per_light_ambient), ("DIFFUSE", opts.diffuse),
-                     ("SPECULAR_PHONG", opts.specular == "phong"), ("SPECULAR_BLINN", opts.specular == "blinn"),
-                     ("SMOOTH_EDGE", opts.spot_edge == "smooth"), ("CLAMP", opts.clamp), ("FOG_DEPTH", opts.fog_distance == "depth")):
+    for flag, on in (
+        ("TWO_SIDED", opts.two_sided),
+        ("INFINITE_VIEWER", opts.viewer == "infinite"),
+        ("AMBIENT", opts.ambient),
+        ("EMISSION", opts.emission),
+        ("PER_LIGHT_AMBIENT", opts.per_light_ambient),
+        ("DIFFUSE", opts.diffuse),
+        ("SPECULAR_PHONG", opts.specular == "phong"),
+        ("SPECULAR_BLINN", opts.specular == "blinn"),
+        ("SMOOTH_EDGE", opts.spot_edge == "smooth"),
+        ("CLAMP", opts.clamp),
+        ("FOG_DEPTH", opts.fog_distance == "depth"),
+    ):
         if on:
             defs.append(f"#define {flag}")
     defs.append("#define BACK_SIDE 1")
@@ -405,7 +435,9 @@ def _phong_program(c, scene, opts, lights, front, back, view):
         for key in ("cutoff", "exponent", "edge"):
             gl.glUniform1fv(u(f"l_{key}"), n, _f32([L[key] for L in lights]))
     for key in ("emission", "ambient", "diffuse", "specular"):
-        gl.glUniform3fv(u(f"m_{key}"), 2, _f32([np.broadcast_to(np.asarray(getattr(m, key)), (3,)) for m in (front, back)]))
+        gl.glUniform3fv(
+            u(f"m_{key}"), 2, _f32([np.broadcast_to(np.asarray(getattr(m, key)), (3,)) for m in (front, back)])
+        )
     gl.glUniform1fv(u("m_shininess"), 2, _f32([float(front.shininess), float(back.shininess)]))
     gl.glUniform3fv(u("ambient_light"), 1, _f32(scene.ambient_light))
     gl.glUniform3fv(u("fog_color"), 1, _f32(scene.fog.color))
@@ -423,6 +455,10 @@ def compare(img, covered, ref, ref_covered, margin: int = 0):
         for dx in range(-margin, margin + 1):
             inner &= np.roll(np.roll(both, dy, 0), dx, 1)
     d = np.abs(img - ref)[inner].reshape(-1)
-    return {"median": float(np.median(d)) if d.size else np.nan, "p99": float(np.percentile(d, 99)) if d.size else np.nan,
-            "max": float(d.max()) if d.size else np.nan, "pixels": int(inner.sum()),
-            "coverage": float(both.sum() / max(either.sum(), 1))}
+    return {
+        "median": float(np.median(d)) if d.size else np.nan,
+        "p99": float(np.percentile(d, 99)) if d.size else np.nan,
+        "max": float(d.max()) if d.size else np.nan,
+        "pixels": int(inner.sum()),
+        "coverage": float(both.sum() / max(either.sum(), 1)),
+    }

@@ -66,7 +66,16 @@ class Ref:
             lights.append((col, -_n(d), 1.0, amb, scol, ("dir", -_n(d))))
         for col, pos, att, amb, scol in s["point"]:
             dist = np.linalg.norm(pos - P)
-            lights.append((col, _n(pos - P), 1.0 / max(att[0] + att[1] * dist + att[2] * dist**2, 1e-300), amb, scol, ("pos", pos)))
+            lights.append(
+                (
+                    col,
+                    _n(pos - P),
+                    1.0 / max(att[0] + att[1] * dist + att[2] * dist**2, 1e-300),
+                    amb,
+                    scol,
+                    ("pos", pos),
+                )
+            )
         for col, pos, att, amb, axis, cut, expo, edge, scol in s["spot"]:
             dist = np.linalg.norm(pos - P)
             l = _n(pos - P)
@@ -81,7 +90,9 @@ class Ref:
                 t = np.clip((cc - cos_cut) / (cos_in - cos_cut), 0, 1)
                 fang = lobe * t * t * (3 - 2 * t)
                 margin.append(abs(cc - cos_in))
-            lights.append((col, l, fang / max(att[0] + att[1] * dist + att[2] * dist**2, 1e-300), amb, scol, ("pos", pos)))
+            lights.append(
+                (col, l, fang / max(att[0] + att[1] * dist + att[2] * dist**2, 1e-300), amb, scol, ("pos", pos))
+            )
         for col, l, f, amb, scol, src in lights:
             ndl = float(np.dot(n, l))
             margin.append(abs(ndl))
@@ -199,22 +210,43 @@ class Ref:
         if o.shading == "phong":
             Pi = wts @ tri
             n = sign * _n(wts @ s["normals"][f])
-            color = lit(self.point_color(Pi, n, colored(bmat, None if cols_f is None else wts @ cols_f), margin, parts=True))
+            color = lit(
+                self.point_color(Pi, n, colored(bmat, None if cols_f is None else wts @ cols_f), margin, parts=True)
+            )
         elif o.shading == "gouraud":
-            cols = [lit(self.point_color(tri[k], sign * s["normals"][f[k]],
-                                         colored(bmat, None if cols_f is None else cols_f[k]), [], parts=True))
-                    for k in range(3)]
+            cols = [
+                lit(
+                    self.point_color(
+                        tri[k],
+                        sign * s["normals"][f[k]],
+                        colored(bmat, None if cols_f is None else cols_f[k]),
+                        [],
+                        parts=True,
+                    )
+                )
+                for k in range(3)
+            ]
             color = wts @ np.array(cols)
             Pi = wts @ tri
         elif getattr(o, "flat_source", "centroid") == "provoking":  # the last vertex, its normal
-            color = lit(self.point_color(tri[2], sign * s["normals"][f[2]],
-                                         colored(bmat, None if cols_f is None else cols_f[2]), margin, parts=True))
+            color = lit(
+                self.point_color(
+                    tri[2],
+                    sign * s["normals"][f[2]],
+                    colored(bmat, None if cols_f is None else cols_f[2]),
+                    margin,
+                    parts=True,
+                )
+            )
             Pi = P
         else:
             cen = tri.mean(0)
             fn = _n(np.cross(tri[1] - tri[0], tri[2] - tri[0]))
-            color = lit(self.point_color(cen, sign * fn, colored(bmat, None if cols_f is None else cols_f.mean(0)),
-                                         margin, parts=True))
+            color = lit(
+                self.point_color(
+                    cen, sign * fn, colored(bmat, None if cols_f is None else cols_f.mean(0)), margin, parts=True
+                )
+            )
             Pi = P
         if o.clamp and not vertex_clamp:
             color = np.clip(color, 0, 1)

@@ -15,7 +15,6 @@ the critical angle), so that tests compare only where the two must agree.
 from __future__ import annotations
 
 import numpy as np
-
 from reference_shade import Ref, _n, vertex_normals
 
 
@@ -27,8 +26,14 @@ def to_trace_ref(scene) -> dict:
     s = to_ref(scene)
     mats = scene.all_materials()
     s["casts_shadow"] = [m.casts_shadow for m in mats]
-    s["materials"] = [{k: a(getattr(m, k)) for k in ("emission", "ambient", "diffuse", "specular", "mirror", "refraction", "absorption")}
-                      | {"shininess": float(m.shininess), "ior": float(m.ior)} for m in mats]
+    s["materials"] = [
+        {
+            k: a(getattr(m, k))
+            for k in ("emission", "ambient", "diffuse", "specular", "mirror", "refraction", "absorption")
+        }
+        | {"shininess": float(m.shininess), "ior": float(m.ior)}
+        for m in mats
+    ]
     nf = len(s["faces"])
     ids = scene.mesh.material_ids
     s["single_material"] = ids is None or len(mats) == 1

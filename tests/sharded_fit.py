@@ -23,8 +23,12 @@ import jax  # noqa: E402
 if __name__ == "__main__" and sys.argv[1] == "process":
     # before anything else touches JAX's backends
     jax.config.update("jax_num_cpu_devices", 2)
-    jax.distributed.initialize(coordinator_address=f"localhost:{sys.argv[4]}", num_processes=int(sys.argv[3]),
-                               process_id=int(sys.argv[2]), initialization_timeout=120)
+    jax.distributed.initialize(
+        coordinator_address=f"localhost:{sys.argv[4]}",
+        num_processes=int(sys.argv[3]),
+        process_id=int(sys.argv[2]),
+        initialization_timeout=120,
+    )
 jax.config.update("jax_enable_x64", True)
 
 import equinox as eqx  # noqa: E402
@@ -33,8 +37,13 @@ import diffshade as ds  # noqa: E402
 from fitting import Observations, fit  # noqa: E402
 from fitting._problem import Problem  # noqa: E402
 
-TRUTH = {"material.diffuse": [0.75, 0.35, 0.25], "material.specular": [0.5, 0.5, 0.5], "material.shininess": 30.0,
-         "point[0].a1": 0.05, "view[*].camera.exposure": [1.1, 1.2, 1.3]}
+TRUTH = {
+    "material.diffuse": [0.75, 0.35, 0.25],
+    "material.specular": [0.5, 0.5, 0.5],
+    "material.shininess": 30.0,
+    "point[0].a1": 0.05,
+    "view[*].camera.exposure": [1.1, 1.2, 1.3],
+}
 
 FREE = ["material.diffuse", "material.specular", "material.shininess", "point[0].a1", "view[*].camera.exposure"]
 SIZE, N_VIEWS = 32, 4
@@ -49,13 +58,25 @@ def views():
     for k in range(N_VIEWS):
         a = 2 * np.pi * k / N_VIEWS
         c = scene.camera
-        cam = ds.Camera(eye=[3 * np.sin(a), 0.5, 3 * np.cos(a)], target=c.target, up=c.up, fov_y=c.fov_y,
-                        near=c.near, far=c.far, width=SIZE, height=SIZE, exposure=1.0 + 0.1 * k)
+        cam = ds.Camera(
+            eye=[3 * np.sin(a), 0.5, 3 * np.cos(a)],
+            target=c.target,
+            up=c.up,
+            fov_y=c.fov_y,
+            near=c.near,
+            far=c.far,
+            width=SIZE,
+            height=SIZE,
+            exposure=1.0 + 0.1 * k,
+        )
         out.append(eqx.tree_at(lambda s: s.camera, scene, cam))
     targets = [np.asarray(ds.render(v, opts)) for v in out]
     # the start: every view at exposure 1, the material off
-    start = eqx.tree_at(lambda s: (s.material.diffuse, s.material.shininess), scene,
-                        (scene.material.diffuse * 0.7, scene.material.shininess * 1.5))
+    start = eqx.tree_at(
+        lambda s: (s.material.diffuse, s.material.shininess),
+        scene,
+        (scene.material.diffuse * 0.7, scene.material.shininess * 1.5),
+    )
     starts = [eqx.tree_at(lambda s: s.camera, start, eqx.tree_at(lambda c: c.exposure, v.camera, 1.0)) for v in out]
     return start, opts, targets, starts
 
@@ -66,10 +87,15 @@ def collectives():
 
     out = []
     for c in _CACHE.values():
-        for m in re.finditer(r"= (.+?) (all-gather|all-reduce|all-to-all|collective-permute|reduce-scatter)"
-                             r"(?:-start)?\(", c.as_text()):
-            sizes = [int(np.prod([int(d) for d in dims.split(",") if d] or [1]))
-                     for dims in re.findall(r"\w+\[([\d,]*)\]", m.group(1))]
+        for m in re.finditer(
+            r"= (.+?) (all-gather|all-reduce|all-to-all|collective-permute|reduce-scatter)"
+            r"(?:-start)?\(",
+            c.as_text(),
+        ):
+            sizes = [
+                int(np.prod([int(d) for d in dims.split(",") if d] or [1]))
+                for dims in re.findall(r"\w+\[([\d,]*)\]", m.group(1))
+            ]
             out.append((m.group(2), max(sizes)))
     return out
 
@@ -83,14 +109,34 @@ def main(mode):
             placed = prob.device_data()
             shards = [(s.device.id, s.data.shape[0]) for s in placed.target.addressable_shards]
             r = fit(scene, opts, Observations(targets, views=starts), FREE, devices=devs)
-            print(json.dumps(dict(devices=n, values=r.values.tolist(), successful=bool(r.successful),
-                                  names=r.names, shards=shards, pixels=int(placed.target.shape[1]),
-                                  collectives=collectives() if n > 1 else [])), flush=True)
+            print(
+                json.dumps(
+                    dict(
+                        devices=n,
+                        values=r.values.tolist(),
+                        successful=bool(r.successful),
+                        names=r.names,
+                        shards=shards,
+                        pixels=int(placed.target.shape[1]),
+                        collectives=collectives() if n > 1 else [],
+                    )
+                ),
+                flush=True,
+            )
     else:
         r = fit(scene, opts, Observations(targets, views=starts), FREE)
-        print(json.dumps(dict(process=jax.process_index(), devices=len(jax.devices()),
-                              local=len(jax.local_devices()), values=r.values.tolist(),
-                              successful=bool(r.successful))), flush=True)
+        print(
+            json.dumps(
+                dict(
+                    process=jax.process_index(),
+                    devices=len(jax.devices()),
+                    local=len(jax.local_devices()),
+                    values=r.values.tolist(),
+                    successful=bool(r.successful),
+                )
+            ),
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

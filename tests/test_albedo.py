@@ -14,10 +14,10 @@ import pytest
 import trimesh
 
 import diffshade as ds
-from fitting._albedo import AlbedoProblem, vertex_colouring
-from fitting.cli import EXIT_OK, main
 from fitting import Observations, fit
+from fitting._albedo import AlbedoProblem, vertex_colouring
 from fitting._problem import Problem
+from fitting.cli import EXIT_OK, main
 
 SIZE = 40
 EYES = [(0.0, 0.0, 3.0), (2.5, 0.6, 1.5), (-2.5, 0.6, 1.5)]
@@ -40,7 +40,9 @@ def setup():
     views = []
     for eye in EYES:
         c = scene.camera
-        cam = ds.Camera(eye=eye, target=c.target, up=c.up, fov_y=c.fov_y, near=c.near, far=c.far, width=SIZE, height=SIZE)
+        cam = ds.Camera(
+            eye=eye, target=c.target, up=c.up, fov_y=c.fov_y, near=c.near, far=c.far, width=SIZE, height=SIZE
+        )
         views.append(eqx.tree_at(lambda s: s.camera, scene, cam))
     render = jax.jit(ds.render, static_argnames="opts")
     targets = [np.asarray(render(v, opts)) for v in views]
@@ -51,8 +53,11 @@ def _start(views, colors=0.5, a=(1.0, 0.1, 0.05)):
     out = []
     for v in views:
         m = v.mesh
-        out.append(eqx.tree_at(lambda s: (s.mesh.colors, s.point.attenuation), v,
-                               (jnp.full(m.colors.shape, colors), jnp.asarray([a]))))
+        out.append(
+            eqx.tree_at(
+                lambda s: (s.mesh.colors, s.point.attenuation), v, (jnp.full(m.colors.shape, colors), jnp.asarray([a]))
+            )
+        )
     return out
 
 
@@ -123,7 +128,9 @@ def test_the_smoothness_prior_fills_unseen_vertices(setup):
     # the prior pulls the unseen caps toward their neighbours, away from the flat 0.5 start
     r0 = fit(starts[0], opts, Observations(targets, views=starts), ["mesh.colors"])
     assert r0.successful, r0.result
-    assert r.residual.rms < 1e-5  # the prior's pull on the seen vertices: far below any real noise, above float rounding
+    assert (
+        r.residual.rms < 1e-5
+    )  # the prior's pull on the seen vertices: far below any real noise, above float rounding
     unseen = ~np.isfinite(r0.stderr[:n])
     err_prior = np.abs(r.values[:n][unseen] - truth.reshape(-1)[unseen]).mean()
     err_start = np.abs(0.5 - truth.reshape(-1)[unseen]).mean()
@@ -139,7 +146,12 @@ def test_noisy_8bit_albedo_errors_are_covered_by_their_standard_errors(setup):
     rng = np.random.default_rng(11)
     noisy = [np.round(np.clip(t + rng.normal(0, 2 / 255, t.shape), 0, 1) * 255) / 255 for t in targets]
     starts = _start(views, a=(1.0, 0.1, 0.02))  # a1 free (from twice its truth), a0 and a2 at theirs
-    r = fit(starts[0], opts, Observations(noisy, views=starts, saturation=1.0, quantum=1 / 255), ["mesh.colors", "point[0].a1"])
+    r = fit(
+        starts[0],
+        opts,
+        Observations(noisy, views=starts, saturation=1.0, quantum=1 / 255),
+        ["mesh.colors", "point[0].a1"],
+    )
     assert r.successful, r.result
     n = truth.size
     seen = np.isfinite(r.stderr[:n])
@@ -152,13 +164,17 @@ def test_noisy_8bit_albedo_errors_are_covered_by_their_standard_errors(setup):
 
 def test_cli_fits_the_albedo_and_writes_it_on_the_mesh(tmp_path, setup, capsys):
     views, opts, targets, truth = setup
-    tm = trimesh.Trimesh(np.asarray(views[0].mesh.vertices), np.asarray(views[0].mesh.faces),
-                         vertex_colors=np.full((truth.shape[0], 4), [128, 128, 128, 255], np.uint8), process=False)
+    tm = trimesh.Trimesh(
+        np.asarray(views[0].mesh.vertices),
+        np.asarray(views[0].mesh.faces),
+        vertex_colors=np.full((truth.shape[0], 4), [128, 128, 128, 255], np.uint8),
+        process=False,
+    )
     tm.export(tmp_path / "grey.ply")
     scene_toml = f"""
 ambient_light = [0.3, 0.3, 0.3]
 [mesh]
-path = "{tmp_path / 'grey.ply'}"
+path = "{tmp_path / "grey.ply"}"
 [camera]
 eye = [0, 0, 3]
 width = {SIZE}
@@ -187,14 +203,17 @@ direction = [1.0, -0.5, -1.0]
     scene, sopts = ds.load_scene(tmp_path / "s.toml")
     scene = eqx.tree_at(lambda s: s.mesh.colors, scene, jnp.asarray(truth))
     np.save(tmp_path / "t.npy", np.asarray(ds.render(scene, sopts)))
-    rc = main(["fit", str(tmp_path / "s.toml"), str(tmp_path / "t.npy"), "-p", "mesh.colors",
-               "-o", str(tmp_path / "out")])
+    rc = main(
+        ["fit", str(tmp_path / "s.toml"), str(tmp_path / "t.npy"), "-p", "mesh.colors", "-o", str(tmp_path / "out")]
+    )
     out = capsys.readouterr().out
     assert rc == EXIT_OK, out
     assert "vertices undetermined" in out and "albedo.ply" in out
     fitted = ds.load_mesh(tmp_path / "out" / "albedo.ply")  # sRGB 8-bit colours
     doc = json.loads((tmp_path / "out" / "fit.json").read_text())
-    vals = np.array([doc["parameters"][f"mesh.colors[{v}][{c}]"]["value"] for v in range(truth.shape[0]) for c in "rgb"])
+    vals = np.array(
+        [doc["parameters"][f"mesh.colors[{v}][{c}]"]["value"] for v in range(truth.shape[0]) for c in "rgb"]
+    )
     seen = np.isfinite([doc["parameters"][f"mesh.colors[{v}][r]"]["stderr"] for v in range(truth.shape[0])])
     np.testing.assert_allclose(vals.reshape(-1, 3)[seen], truth[seen], atol=1e-6)
     np.testing.assert_allclose(np.asarray(fitted.colors)[seen], truth[seen], atol=0.01)  # 8-bit sRGB

@@ -6,23 +6,36 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import check_grads
 
 import diffshade as ds
 import diffshade._lighting as R
 
-from conftest import check_grads
-
 
 def _scene(area, dtype=jnp.float64):
-    cam = ds.Camera(eye=[0.0, 0.0, 5.0], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.5, far=10.0, width=8, height=8)
-    sc = ds.Scene(mesh=ds.icosphere(0), camera=cam, material=ds.Material(ambient=0.0, diffuse=1.0, specular=0.0),
-                  ambient_light=0.0, area=area)
+    cam = ds.Camera(
+        eye=[0.0, 0.0, 5.0], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.5, far=10.0, width=8, height=8
+    )
+    sc = ds.Scene(
+        mesh=ds.icosphere(0),
+        camera=cam,
+        material=ds.Material(ambient=0.0, diffuse=1.0, specular=0.0),
+        ambient_light=0.0,
+        area=area,
+    )
     return jax.tree.map(lambda a: a.astype(dtype) if jnp.issubdtype(a.dtype, jnp.floating) else a, sc)
 
 
 def _rect_light(c, a, b, L, dtype=np.float64):
-    return ds.AreaLights(color=[[L * a * b] * 3], position=[[0.0, 0.0, c]], normal=[[0.0, 0.0, -1.0]],
-                         up=[[0.0, 1.0, 0.0]], size=[[a, b]], attenuation=[[0.0, 0.0, 1.0]], ambient=[[0.0, 0.0, 0.0]])
+    return ds.AreaLights(
+        color=[[L * a * b] * 3],
+        position=[[0.0, 0.0, c]],
+        normal=[[0.0, 0.0, -1.0]],
+        up=[[0.0, 1.0, 0.0]],
+        size=[[a, b]],
+        attenuation=[[0.0, 0.0, 1.0]],
+        ambient=[[0.0, 0.0, 0.0]],
+    )
 
 
 def _irradiance_closed_form(c, a, b, L):
@@ -70,7 +83,9 @@ def test_area_light_gradients_match_finite_differences():
     ids = ds.scene_visibility(base, opts)
 
     def f(color, position, normal, up, size):
-        area = eqx.tree_at(lambda a: (a.color, a.position, a.normal, a.up, a.size), base.area, (color, position, normal, up, size))
+        area = eqx.tree_at(
+            lambda a: (a.color, a.position, a.normal, a.up, a.size), base.area, (color, position, normal, up, size)
+        )
         return jnp.sum(ds.render(eqx.tree_at(lambda s: s.area, base, area), opts, ids) ** 2)
 
     A = base.area
@@ -98,16 +113,22 @@ def test_scene_file_area_light_and_errors():
 
 
 def test_fit_recovers_an_area_lights_colour_and_size():
-    from fitting import Observations, fit
-    from fitting import ParamSet
+    from fitting import Observations, ParamSet, fit
 
     d = dict(ds.DEFAULT_SCENE)
     d["mesh"] = {"quad": [4, 4], "normal": [0, 0, 1]}
     d["camera"] = dict(d["camera"], width=24, height=24, eye=[0.0, -1.0, 3.0])
     d["render"] = {"shading": "phong", "specular": "none", "fog": "none", "area_grid": [4, 4]}
     d.pop("fog", None)
-    d["light"] = [{"type": "area", "color": [1.5, 1.2, 0.9], "position": [0.3, 0.2, 0.6], "normal": [0, 0, -1],
-                   "size": [1.6, 0.8]}]
+    d["light"] = [
+        {
+            "type": "area",
+            "color": [1.5, 1.2, 0.9],
+            "position": [0.3, 0.2, 0.6],
+            "normal": [0, 0, -1],
+            "size": [1.6, 0.8],
+        }
+    ]
     scene, opts = ds.scene_from_dict(d)
     free = ["area[0].color", "area[0].width", "area[0].height"]
     pset = ParamSet(free, scene)
@@ -123,17 +144,23 @@ def test_fit_recovers_an_area_lights_colour_and_size():
 def test_fit_recovers_light_positions():
     # a position is a real parameter (x, y, z; no bounds): an area light's and a point light's,
     # moved by 0.2-0.4 units, come back from one image
-    from fitting import Observations, fit
-    from fitting import ParamSet
+    from fitting import Observations, ParamSet, fit
 
     d = dict(ds.DEFAULT_SCENE)
     d["mesh"] = {"quad": [4, 4], "normal": [0, 0, 1]}
     d["camera"] = dict(d["camera"], width=24, height=24, eye=[0.0, -1.0, 3.0])
     d["render"] = {"shading": "phong", "specular": "blinn", "fog": "none", "area_grid": [3, 3]}
     d.pop("fog", None)
-    d["light"] = [{"type": "area", "color": [1.5, 1.2, 0.9], "position": [0.3, 0.2, 0.6], "normal": [0, 0, -1],
-                   "size": [0.8, 0.5]},
-                  {"type": "point", "color": [0.4, 0.4, 0.5], "position": [-1.0, 0.5, 1.2], "attenuation": [1.0, 0.0, 0.3]}]
+    d["light"] = [
+        {
+            "type": "area",
+            "color": [1.5, 1.2, 0.9],
+            "position": [0.3, 0.2, 0.6],
+            "normal": [0, 0, -1],
+            "size": [0.8, 0.5],
+        },
+        {"type": "point", "color": [0.4, 0.4, 0.5], "position": [-1.0, 0.5, 1.2], "attenuation": [1.0, 0.0, 0.3]},
+    ]
     scene, opts = ds.scene_from_dict(d)
     free = ["area[0].position", "point[0].position"]
     pset = ParamSet(free, scene)

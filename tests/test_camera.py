@@ -13,10 +13,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import check_grads, small_default_scene
+from conftest import opencv_look_at as _look_at
 
 import diffshade as ds
-from conftest import check_grads, opencv_look_at as _look_at
-from conftest import small_default_scene
 
 
 def _rotation(axis, angle):
@@ -76,8 +76,9 @@ def test_a_point_is_drawn_on_the_pixel_the_opencv_formula_gives(rng):
 
 
 def test_rodrigues_closed_forms_inverse_and_gradients():
-    np.testing.assert_allclose(np.asarray(ds.rodrigues(jnp.asarray([0.0, 0.0, np.pi / 2]))),
-                               [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-15)
+    np.testing.assert_allclose(
+        np.asarray(ds.rodrigues(jnp.asarray([0.0, 0.0, np.pi / 2]))), [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-15
+    )
     np.testing.assert_array_equal(np.asarray(ds.rodrigues(jnp.zeros(3))), np.eye(3))
     from diffshade._camera import rotation_to_rvec
 
@@ -101,8 +102,9 @@ def test_an_opencv_camera_renders_what_the_equal_opengl_camera_renders():
     f = 30 / 2 / np.tan(np.deg2rad(float(c.fov_y)) / 2)
     K = np.array([[f, 0, 39 / 2], [0, f, 29 / 2], [0, 0, 1]])
     R = np.diag([1.0, -1.0, -1.0])  # looking down -z from (0, 0, 3), y up
-    cam = ds.OpenCVCamera.from_opencv(K, R=R, t=-R @ np.asarray(c.eye), width=40, height=30, near=float(c.near),
-                                      far=float(c.far))
+    cam = ds.OpenCVCamera.from_opencv(
+        K, R=R, t=-R @ np.asarray(c.eye), width=40, height=30, near=float(c.near), far=float(c.far)
+    )
     a = np.asarray(ds.render(scene, opts))
     b = np.asarray(ds.render(eqx.tree_at(lambda s: s.camera, scene, cam), opts))
     assert (a > 0).any()
@@ -141,8 +143,9 @@ def test_gain_scales_the_whole_image():
     scene, opts = small_default_scene(24, 24)
     scene = eqx.tree_at(lambda s: s.background, scene, jnp.asarray([0.1, 0.2, 0.3]))
     base = np.asarray(ds.render(scene, opts))
-    g = eqx.tree_at(lambda s: (s.camera.exposure, s.camera.white_balance), scene,
-                    (jnp.asarray(1.7), jnp.asarray([1.2, 1.0, 0.6])))
+    g = eqx.tree_at(
+        lambda s: (s.camera.exposure, s.camera.white_balance), scene, (jnp.asarray(1.7), jnp.asarray([1.2, 1.0, 0.6]))
+    )
     np.testing.assert_allclose(np.asarray(ds.render(g, opts)), base * 1.7 * np.array([1.2, 1.0, 0.6]), rtol=1e-13)
 
 
@@ -207,8 +210,16 @@ def test_undistort_keeps_clipped_codes_clipped():
 
 def test_camera_files_json_and_toml(tmp_path):
     R = _rotation([0.0, 1.0, 0.0], 0.3)
-    d = {"K": K_OFF.tolist(), "R": R.tolist(), "t": [0.1, 0.0, 3.0], "distortion": DIST.tolist(), "width": 48,
-         "height": 36, "exposure": 1.5, "white_balance": [1.1, 1.0, 0.9]}
+    d = {
+        "K": K_OFF.tolist(),
+        "R": R.tolist(),
+        "t": [0.1, 0.0, 3.0],
+        "distortion": DIST.tolist(),
+        "width": 48,
+        "height": 36,
+        "exposure": 1.5,
+        "white_balance": [1.1, 1.0, 0.9],
+    }
     (tmp_path / "cam.json").write_text(json.dumps(d))
     cam = ds.load_camera(tmp_path / "cam.json")
     assert isinstance(cam, ds.OpenCVCamera) and cam.resolution == (36, 48)
@@ -216,36 +227,43 @@ def test_camera_files_json_and_toml(tmp_path):
     np.testing.assert_allclose(np.asarray(cam.intrinsics()), K_OFF)
     np.testing.assert_allclose(np.asarray(cam.distortion), DIST)
     np.testing.assert_allclose(np.asarray(cam.gain()), [1.65, 1.5, 1.35])
-    (tmp_path / "cam.toml").write_text("[camera]\nfx = 61.0\nfy = 57.5\ncx = 27.3\ncy = 17.8\n"
-                                       f"rvec = {[float(x) for x in np.asarray(cam.rvec)]}\ntvec = [0.1, 0.0, 3.0]\nwidth = 48\nheight = 36\n")
+    (tmp_path / "cam.toml").write_text(
+        "[camera]\nfx = 61.0\nfy = 57.5\ncx = 27.3\ncy = 17.8\n"
+        f"rvec = {[float(x) for x in np.asarray(cam.rvec)]}\ntvec = [0.1, 0.0, 3.0]\nwidth = 48\nheight = 36\n"
+    )
     cam2 = ds.load_camera(tmp_path / "cam.toml")
-    np.testing.assert_allclose(np.asarray(cam2.world_to_clip(jnp.ones(3))), np.asarray(cam.world_to_clip(jnp.ones(3))),
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(cam2.world_to_clip(jnp.ones(3))), np.asarray(cam.world_to_clip(jnp.ones(3))), atol=1e-12
+    )
     # in a scene file, with the rest of the scene
     d2 = dict(ds.DEFAULT_SCENE, camera={"model": "opencv", **d})
     scene, _ = ds.scene_from_dict(d2)
     assert isinstance(scene.camera, ds.OpenCVCamera)
 
 
-@pytest.mark.parametrize("change, message", [
-    ({"R": [[1, 0, 0], [0, 1, 0], [0, 0.5, 1]]}, "R is not a rotation"),
-    ({"K": [[60, 2, 20], [0, 60, 20], [0, 0, 1]]}, "no skew"),
-    ({"K": [[60, 0], [0, 60]]}, "camera.K: must be a 3x3 matrix"),
-    ({"distortion": [0.1, 0.2, 0.3]}, "camera.distortion"),
-    ({"t": None}, "translation"),
-    ({"rvec": [0.0, 0.1, 0.0]}, "one of them"),
-    ({"fov_y": 40}, "unknown field(s) ['fov_y']"),
-    ({"width": 0}, "camera.width"),
-    ({"exposure": -1.0}, "camera.exposure"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"R": [[1, 0, 0], [0, 1, 0], [0, 0.5, 1]]}, "R is not a rotation"),
+        ({"K": [[60, 2, 20], [0, 60, 20], [0, 0, 1]]}, "no skew"),
+        ({"K": [[60, 0], [0, 60]]}, "camera.K: must be a 3x3 matrix"),
+        ({"distortion": [0.1, 0.2, 0.3]}, "camera.distortion"),
+        ({"t": None}, "translation"),
+        ({"rvec": [0.0, 0.1, 0.0]}, "one of them"),
+        ({"fov_y": 40}, "unknown field(s) ['fov_y']"),
+        ({"width": 0}, "camera.width"),
+        ({"exposure": -1.0}, "camera.exposure"),
+    ],
+)
 def test_bad_camera_files_are_named(tmp_path, change, message):
     d = {"K": K_OFF.tolist(), "R": np.eye(3).tolist(), "t": [0, 0, 3.0], "width": 48, "height": 36}
     d.update(change)
     d = {k: v for k, v in d.items() if v is not None}
     p = tmp_path / "cam.json"
     p.write_text(json.dumps(d))
-    with pytest.raises(ds.SceneError, match=message.replace("[", r"\[").replace("]", r"\]").replace("(", r"\(")
-                       .replace(")", r"\)")) as e:
+    with pytest.raises(
+        ds.SceneError, match=message.replace("[", r"\[").replace("]", r"\]").replace("(", r"\(").replace(")", r"\)")
+    ) as e:
         ds.load_camera(p)
     assert str(p) in str(e.value)
     with pytest.raises(ds.SceneError, match="not found"):
@@ -259,9 +277,9 @@ def test_a_camera_two_degrees_off_is_refined_to_the_truth_from_one_view():
     """Pose refinement from one view of a textured (per-vertex-coloured) sphere: the fit re-
     rasterises the visibility between passes (it has no gradient) and moves the pose by the
     shading and colours inside the silhouette (margin 2 keeps the silhouette out)."""
-    from fitting import Observations, fit
-
     from conftest import pose_problem
+
+    from fitting import Observations, fit
 
     start, opts, target, R, t, off_deg = pose_problem()
     assert off_deg(start.camera.rvec) > 1.9

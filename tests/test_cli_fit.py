@@ -11,8 +11,8 @@ import pytest
 import skimage.io
 
 import diffshade as ds
-from fitting.cli import EXIT_INPUT, EXIT_OK, main
 from fitting import Observations, VarPro, fit
+from fitting.cli import EXIT_INPUT, EXIT_OK, main
 
 SCENE = """
 [mesh]
@@ -71,8 +71,19 @@ def test_fit_writes_parameters_mtl_image_and_report(files, tmp_path, capsys):
     out = tmp_path / "out"
     target = files / "target.png"
     before = target.read_bytes()
-    rc = main(["fit", str(files / "start.toml"), str(target), "-p", "material.diffuse", "material.shininess",
-               "-o", str(out), "--compare"])
+    rc = main(
+        [
+            "fit",
+            str(files / "start.toml"),
+            str(target),
+            "-p",
+            "material.diffuse",
+            "material.shininess",
+            "-o",
+            str(out),
+            "--compare",
+        ]
+    )
     text = capsys.readouterr().out
     assert rc == EXIT_OK, text
     assert target.read_bytes() == before
@@ -197,6 +208,8 @@ def test_targets_are_decoded_as_their_files_declare(files, tmp_path, capsys):
     img16, sat16, q16, (enc16, _) = load_target(deep, (32, 32), with_quantum=True, with_encoding=True)
     assert enc16 == "gamma:2.2" and q16 == 1 / 65535
     assert np.abs(img16 - np.clip(linear, 0, 1)).max() < 1e-4  # 16 bits, not 8
-    assert main(["render", str(files / "true.toml"), "-o", str(tmp_path / "x.png"), "--encoding", "gamma:-1"]) \
+    assert (
+        main(["render", str(files / "true.toml"), "-o", str(tmp_path / "x.png"), "--encoding", "gamma:-1"])
         == EXIT_INPUT
+    )
     assert "the gamma must be a number" in capsys.readouterr().err

@@ -34,13 +34,17 @@ def test_srgb_transfer_function_closed_forms():
 
 
 def test_gamma_and_linear_and_bad_names():
-    np.testing.assert_allclose(C.decode(np.array([0.5]), "gamma:2.2"), [0.5 ** 2.2], rtol=1e-12)
-    np.testing.assert_allclose(C.encode(np.array([0.5 ** 2.2]), "gamma:2.2"), [0.5], rtol=1e-12)
+    np.testing.assert_allclose(C.decode(np.array([0.5]), "gamma:2.2"), [0.5**2.2], rtol=1e-12)
+    np.testing.assert_allclose(C.encode(np.array([0.5**2.2]), "gamma:2.2"), [0.5], rtol=1e-12)
     assert C.parse_encoding("gamma:1") == ("linear", 1.0) and C.parse_encoding(" sRGB ") == ("srgb", 2.4)
     v = np.array([0.1, 0.7])
     assert np.array_equal(C.decode(v, "linear"), v)
-    for bad, words in (("cmyk", "unknown colour encoding"), ("gamma:abc", "gamma must be"), ("gamma:0", "gamma must be"),
-                       (2.2, "must be a string")):
+    for bad, words in (
+        ("cmyk", "unknown colour encoding"),
+        ("gamma:abc", "gamma must be"),
+        ("gamma:0", "gamma must be"),
+        (2.2, "must be a string"),
+    ):
         with pytest.raises(C.EncodingError, match=words):
             C.parse_encoding(bad)
 
@@ -115,8 +119,12 @@ def _png16_with_filters(codes, kinds):
         return struct.pack(">I", len(payload)) + cid + payload + struct.pack(">I", zlib.crc32(cid + payload))
 
     ctype = {1: 0, 2: 4, 3: 2, 4: 6}[c]
-    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 16, ctype, 0, 0, 0))
-            + chunk(b"IDAT", zlib.compress(b"".join(out))) + chunk(b"IEND", b""))
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 16, ctype, 0, 0, 0))
+        + chunk(b"IDAT", zlib.compress(b"".join(out)))
+        + chunk(b"IEND", b"")
+    )
 
 
 @pytest.mark.parametrize("channels", [1, 3, 4])
@@ -139,10 +147,10 @@ def test_a_fit_to_an_srgb_photograph_declared_as_such_and_declared_wrongly():
     # fit decodes it, weighs residuals in code values and recovers every parameter within 3
     # reported standard errors, with the residual at the noise; read as linear (the mistake the
     # encoding chunks exist to prevent), the same fit is biased and says so
-    import diffshade as ds
     from conftest import small_default_scene
-    from fitting import Observations, fit
-    from fitting import ParamSet
+
+    import diffshade as ds
+    from fitting import Observations, ParamSet, fit
 
     scene, opts = small_default_scene(32, 32)
     free = ["material.diffuse", "material.shininess", "point[0].a1"]
@@ -157,6 +165,8 @@ def test_a_fit_to_an_srgb_photograph_declared_as_such_and_declared_wrongly():
     z = np.abs(r.values - true) / r.stderr
     assert np.all(z < 3), z
     assert 0.8 < r.residual.noise_ratio < 1.2 and abs(r.residual.noise * 255 - 2.0) < 0.3  # σ in code values: 2/255
-    wrong = fit(start, opts, Observations(codes, saturation=1.0, quantum=1 / 255), free)  # the codes taken for linear values
+    wrong = fit(
+        start, opts, Observations(codes, saturation=1.0, quantum=1 / 255), free
+    )  # the codes taken for linear values
     zw = np.abs(wrong.values - true) / wrong.stderr
     assert not wrong.successful or zw.max() > 10, (wrong.result, zw)

@@ -6,12 +6,10 @@ import equinox as eqx
 import jax
 import numpy as np
 import pytest
+from conftest import small_default_scene
 
 import diffshade as ds
-from fitting import FitError, Observations, VarPro, fit
-from fitting import ParamError, ParamSet
-
-from conftest import small_default_scene
+from fitting import FitError, Observations, ParamError, ParamSet, VarPro, fit
 
 
 def small_scene(**render):
@@ -20,8 +18,17 @@ def small_scene(**render):
 
 def test_parameter_names_and_domains():
     scene, _ = small_scene()
-    ps = ParamSet(["material.diffuse", "point[0].a2", "fog.density", "material.specular"], scene, shared=["material.specular"])
-    assert ps.labels == ["material.diffuse[r]", "material.diffuse[g]", "material.diffuse[b]", "point[0].a2", "fog.density", "material.specular"]
+    ps = ParamSet(
+        ["material.diffuse", "point[0].a2", "fog.density", "material.specular"], scene, shared=["material.specular"]
+    )
+    assert ps.labels == [
+        "material.diffuse[r]",
+        "material.diffuse[g]",
+        "material.diffuse[b]",
+        "point[0].a2",
+        "fog.density",
+        "material.specular",
+    ]
     theta = ps.theta_of(scene)
     np.testing.assert_allclose(np.asarray(ps.theta_from_u(ps.u_from_theta(theta))), np.asarray(theta), rtol=1e-6)
     with pytest.raises(ParamError, match="unknown parameter 'material.colour'"):
@@ -66,10 +73,21 @@ def test_undetermined_parameter_and_gauge_are_reported():
     # No specular term: the image says nothing about m. k_a and I_a only appear as a product.
     scene, opts = small_scene(specular="none")
     target = jax.jit(ds.render, static_argnames="opts")(scene, opts)
-    r = fit(scene, opts, Observations(target), ["material.diffuse", "material.shininess", "material.ambient", "ambient_light"], shared=["material.ambient", "ambient_light"], strategy=VarPro(max_steps=20))
+    r = fit(
+        scene,
+        opts,
+        Observations(target),
+        ["material.diffuse", "material.shininess", "material.ambient", "ambient_light"],
+        shared=["material.ambient", "ambient_light"],
+        strategy=VarPro(max_steps=20),
+    )
     assert r.diagnostics.undetermined == ["material.shininess"]
     assert np.isinf(r.stderr[r.names.index("material.shininess")])
-    assert r.diagnostics.gauges and "material.ambient" in r.diagnostics.gauges[0] and "ambient_light" in r.diagnostics.gauges[0]
+    assert (
+        r.diagnostics.gauges
+        and "material.ambient" in r.diagnostics.gauges[0]
+        and "ambient_light" in r.diagnostics.gauges[0]
+    )
 
 
 def test_float32_scene_fits_in_a_float64_session():
@@ -136,7 +154,9 @@ def test_step_limit_is_reported_and_the_default_fit_converges():
     free = ["material.diffuse", "material.shininess", "point[0].a1", "point[0].a2"]
     ps = ParamSet(free, scene)
     s0 = ps.apply(scene, ps.theta_of(scene) * jax.numpy.asarray([0.5, 1.5, 2.0, 3.0, 0.2, 4.0]))
-    capped = fit(s0, opts, Observations(target), free, strategy=VarPro(max_steps=1, starts=1, restarts=0, polish_steps=0))
+    capped = fit(
+        s0, opts, Observations(target), free, strategy=VarPro(max_steps=1, starts=1, restarts=0, polish_steps=0)
+    )
     assert not capped.successful and not capped.converged and "step limit" in capped.result
     r = fit(s0, opts, Observations(target), free)
     assert r.successful, (r.result, r.notes)
@@ -152,9 +172,19 @@ def test_starts_exactly_on_every_bound_move():
     d["mesh"] = {"icosphere": 2}
     d["render"] = dict(d["render"], fog="none", fresnel="dielectric", spot_edge="smooth")
     del d["fog"]
-    d["light"] = [{"type": "spot", "color": [3, 3, 3], "position": [1.0, 1.5, 3.0], "axis": [-1.0, -1.5, -3.0],
-                   "attenuation": [1.0, 0.0, 0.0], "cutoff": 12.0, "exponent": 1.0, "edge": 6.0},
-                  {"type": "directional", "color": [0.5, 0.5, 0.5], "direction": [1.0, -0.5, -1.0]}]
+    d["light"] = [
+        {
+            "type": "spot",
+            "color": [3, 3, 3],
+            "position": [1.0, 1.5, 3.0],
+            "axis": [-1.0, -1.5, -3.0],
+            "attenuation": [1.0, 0.0, 0.0],
+            "cutoff": 12.0,
+            "exponent": 1.0,
+            "edge": 6.0,
+        },
+        {"type": "directional", "color": [0.5, 0.5, 0.5], "direction": [1.0, -0.5, -1.0]},
+    ]
     d["material"] = dict(d["material"], ior=1.7)
     scene, opts = ds.scene_from_dict(d)
     target = jax.jit(ds.render, static_argnames="opts")(scene, opts)
@@ -173,7 +203,12 @@ def test_a_model_that_cannot_explain_the_image_is_not_called_a_success():
     # is far above the noise: the verdict says so and the standard errors are not meaningful.
     scene, opts = small_scene()
     target = jax.jit(ds.render, static_argnames="opts")(scene, opts)
-    r = fit(scene, opts.with_keys(specular="none"), Observations(target), ["material.ambient", "material.diffuse", "point[0].a1"])
+    r = fit(
+        scene,
+        opts.with_keys(specular="none"),
+        Observations(target),
+        ["material.ambient", "material.diffuse", "point[0].a1"],
+    )
     assert r.converged and not r.successful
     # (at 32² a missed highlight varies from pixel to pixel, so part of it counts as "white")
     assert "× the noise" in r.result and r.residual.noise_ratio > 2
@@ -219,7 +254,7 @@ def test_white_noise_is_noise_spread_over_every_pixel_not_a_few_jumps():
     jumps += rng.normal(0, 1e-6, jumps.shape)
     s, n, rms = white_noise([jumps], [m])
     assert rms > 0.1 and s < 1e-5
-    ok, msg = verdict(True, "", float(np.sqrt(np.mean(jumps ** 2))) / s, s, "white part", n)
+    ok, msg = verdict(True, "", float(np.sqrt(np.mean(jumps**2))) / s, s, "white part", n)
     assert not ok and "× the noise" in msg and noise_ratio_limit(n) < 1.1
 
 
@@ -294,7 +329,13 @@ def test_second_fit_of_the_same_structure_compiles_nothing():
     r = fit(ps.apply(scene, ps.theta_of(scene) * 0.7), opts, Observations(target * 0.9), free)
     assert r.compile_s == 0.0
     # the step limit, the tolerances and the polish's steps are numbers: still nothing compiled
-    r = fit(ps.apply(scene, ps.theta_of(scene) * 0.8), opts, Observations(target), free, strategy=VarPro(max_steps=7, rtol=1e-5, polish_steps=3))
+    r = fit(
+        ps.apply(scene, ps.theta_of(scene) * 0.8),
+        opts,
+        Observations(target),
+        free,
+        strategy=VarPro(max_steps=7, rtol=1e-5, polish_steps=3),
+    )
     assert r.compile_s == 0.0 and r.steps > 0
 
 
@@ -304,23 +345,49 @@ def test_recovers_transparency_absorption_transmission_and_kay():
     ball = ds.icosphere(2, 0.6)
     ball = ds.Mesh(vertices=np.asarray(ball.vertices) + np.array([0.8, 0.0, 0.2]), faces=ball.faces)
     plane = ds.quad((6, 6), (0, 0, -1.0), divisions=4)
-    mats = (ds.Material(ambient=0.3, diffuse=(0.8, 0.75, 0.7), specular=0.0),
-            ds.Material(ambient=0.2, diffuse=(0.2, 0.3, 0.6), specular=0.3, shininess=12.0, opacity=0.35,
-                        absorption=(0.5, 1.0, 2.0), transmission=(0.6, 0.5, 0.4), ior=1.3),
-            ds.Material(ambient=0.2, diffuse=(0.8, 0.3, 0.2), specular=0.2, kay=True, kay_min=0.85, kay_max=0.25,
-                        kay_power=2.5))
-    cam = ds.Camera(eye=[0.2, 0.3, 4.0], target=[0, 0, 0], up=[0, 1, 0], fov_y=40.0, near=0.5, far=20.0,
-                    width=32, height=32)
+    mats = (
+        ds.Material(ambient=0.3, diffuse=(0.8, 0.75, 0.7), specular=0.0),
+        ds.Material(
+            ambient=0.2,
+            diffuse=(0.2, 0.3, 0.6),
+            specular=0.3,
+            shininess=12.0,
+            opacity=0.35,
+            absorption=(0.5, 1.0, 2.0),
+            transmission=(0.6, 0.5, 0.4),
+            ior=1.3,
+        ),
+        ds.Material(
+            ambient=0.2, diffuse=(0.8, 0.3, 0.2), specular=0.2, kay=True, kay_min=0.85, kay_max=0.25, kay_power=2.5
+        ),
+    )
+    cam = ds.Camera(
+        eye=[0.2, 0.3, 4.0], target=[0, 0, 0], up=[0, 1, 0], fov_y=40.0, near=0.5, far=20.0, width=32, height=32
+    )
     truth = ds.Scene(
-        mesh=ds.combine(plane, slab, ball), camera=cam, material=mats[0], materials=mats[1:],
+        mesh=ds.combine(plane, slab, ball),
+        camera=cam,
+        material=mats[0],
+        materials=mats[1:],
         directional=ds.DirectionalLights(color=[0.9, 0.9, 0.9], direction=[0.2, -0.3, -1.0], ambient=[0, 0, 0]),
-        point=ds.PointLights(color=[2.0, 2.0, 2.0], position=[-0.6, 0.2, -0.6], attenuation=[1, 0, 0.5],
-                             ambient=[0, 0, 0]),
-        ambient_light=0.5, background=(0.1, 0.1, 0.15))
-    opts = ds.RenderOptions(transparency=ds.Transparency(layers=4, absorption=True), lighting=ds.Lighting(transmission=True))
+        point=ds.PointLights(
+            color=[2.0, 2.0, 2.0], position=[-0.6, 0.2, -0.6], attenuation=[1, 0, 0.5], ambient=[0, 0, 0]
+        ),
+        ambient_light=0.5,
+        background=(0.1, 0.1, 0.15),
+    )
+    opts = ds.RenderOptions(
+        transparency=ds.Transparency(layers=4, absorption=True), lighting=ds.Lighting(transmission=True)
+    )
     target = jax.jit(ds.render, static_argnames="opts")(truth, opts)
-    names = ["material[1].opacity", "material[1].absorption", "material[1].transmission",
-             "material[2].kay_min", "material[2].kay_max", "material[2].kay_power"]
+    names = [
+        "material[1].opacity",
+        "material[1].absorption",
+        "material[1].transmission",
+        "material[2].kay_min",
+        "material[2].kay_max",
+        "material[2].kay_power",
+    ]
     ps = ParamSet(names, truth)
     theta = np.asarray(ps.theta_of(truth))
     start = ps.apply(truth, theta * np.random.default_rng(0).uniform(0.75, 1.25, theta.size))
@@ -343,10 +410,23 @@ def test_a_converged_fit_replaces_an_unconverged_one_when_both_are_below_the_flo
     n2 = 10_000
 
     def cand(converged, ratio, rss, source):
-        return Candidate(theta=theta, r=None, J=None, img=None, fixed=None, res="", converged=converged, ratio=ratio,
-                         sigma=1.0, source=source, rss=rss, polish=0)
+        return Candidate(
+            theta=theta,
+            r=None,
+            J=None,
+            img=None,
+            fixed=None,
+            res="",
+            converged=converged,
+            ratio=ratio,
+            sigma=1.0,
+            source=source,
+            rss=rss,
+            polish=0,
+        )
 
     from fitting._report import FLOAT_FLOOR_SOURCE as floor
+
     assert better(cand(True, 0.24, 1e-24, floor), cand(False, 0.007, 1e-27, floor), n2)
     assert not better(cand(False, 0.24, 1e-24, floor), cand(False, 0.007, 1e-27, floor), n2)
     noisy = "white part of the residual"
@@ -361,15 +441,20 @@ def test_the_polish_leaves_an_exp2_fog_density_of_zero_that_the_image_does_not_w
     truth, 0.061 ± 0.005, had Δχ² = 33 less) with the reflectances compensating, called it a
     success and put k_a 26 s.e. from the truth. From that kind of point — density ~0, the
     reflectances at their best for it — the polish must find the fog again."""
+    from fitting._linear import Reduced
     from fitting._polish import polish
     from fitting._problem import Problem
     from fitting._varpro import evaluator
-    from fitting._linear import Reduced
 
     scene, opts = small_default_scene(32, 32, fog="exp2")
     clean = np.asarray(jax.jit(ds.render, static_argnames="opts")(scene, opts))
     noisy = np.round(np.clip(clean + np.random.default_rng(3).normal(0, 2 / 255, clean.shape), 0, 1) * 255) / 255
-    prob = Problem.build(scene, opts, Observations([noisy], saturation=1.0, quantum=1 / 255), ["material.ambient", "material.diffuse", "fog.density"])
+    prob = Problem.build(
+        scene,
+        opts,
+        Observations([noisy], saturation=1.0, quantum=1 / 255),
+        ["material.ambient", "material.diffuse", "fog.density"],
+    )
     red = Reduced(prob)
     truth = np.asarray(prob.pset.theta_of(scene), np.float64)
     ev, _ = evaluator(prob, red, truth)
@@ -392,9 +477,9 @@ def test_a_polish_step_that_would_cross_a_bound_holds_that_variable_there():
     clipped after it was solved is no descent step there: the polish used to reject, damp and
     crawl (20 evaluations without converging from two of these starts); holding a1 at the
     bound and solving for a2 again reaches the optimum in a few, and a1 is reported on its bound."""
+    from fitting._linear import Reduced
     from fitting._polish import polish
     from fitting._problem import Problem
-    from fitting._linear import Reduced
 
     scene, opts = small_default_scene(8, 8)
     prob = Problem.build(scene, opts, Observations([np.zeros((8, 8, 3))]), ["point[0].a1", "point[0].a2"])
@@ -424,8 +509,9 @@ def _gouraud_highlight(m):
     import jax.numpy as jnp
 
     scene, opts = small_default_scene(32, 32, shading="gouraud")
-    scene = eqx.tree_at(lambda s: (s.material.shininess, s.material.specular), scene,
-                        (jnp.asarray(m), jnp.full(3, 0.5)))
+    scene = eqx.tree_at(
+        lambda s: (s.material.shininess, s.material.specular), scene, (jnp.asarray(m), jnp.full(3, 0.5))
+    )
     clean = np.asarray(jax.jit(ds.render, static_argnames="opts")(scene, opts))
     noisy = np.round(np.clip(clean + np.random.default_rng(3).normal(0, 2 / 255, clean.shape), 0, 1) * 255) / 255
     free = ["material.ambient", "material.diffuse", "material.specular", "material.shininess", "point[0].a1"]
@@ -461,16 +547,20 @@ def test_grid_points_within_the_level_widen_the_intervals_however_far_from_the_s
     r, truth, ps, scene, opts, noisy = _gouraud_highlight(3000.0)
     assert r.successful, r.result
     assert r.values[9] < 100 and r.intervals.bounds[9, 1] >= 3000.0, (r.values, r.intervals.bounds)
-    assert {"material.specular[r]", "material.specular[g]", "material.specular[b]"} <= set(r.intervals.ambiguous), r.intervals.ambiguous
+    assert {"material.specular[r]", "material.specular[g]", "material.specular[b]"} <= set(r.intervals.ambiguous), (
+        r.intervals.ambiguous
+    )
     # k_s in all three channels: the truth is inside now (green, 0 at the grid point, through the
     # linear reach there: at m = 10⁴ no pixel sees the highlight, so k_s is free across its box)
     for i in (6, 7, 8):
         assert r.intervals.bounds[i, 0] <= truth[i] <= r.intervals.bounds[i, 1], r.intervals.bounds[i]
     # what the note claims, checked on renders of its own: the point is within Δχ² = 9 of the fit
     render = jax.jit(ds.render, static_argnames="opts")
-    rss = [float(np.sum((np.asarray(render(ps.apply(scene, jnp.asarray(th)), opts)) - noisy) ** 2))
-           for th in (r.values, r.intervals.alternative)]
-    assert 0.0 < (rss[1] - rss[0]) / r.residual.noise ** 2 < 9.0, rss
+    rss = [
+        float(np.sum((np.asarray(render(ps.apply(scene, jnp.asarray(th)), opts)) - noisy) ** 2))
+        for th in (r.values, r.intervals.alternative)
+    ]
+    assert 0.0 < (rss[1] - rss[0]) / r.residual.noise**2 < 9.0, rss
 
 
 def test_the_linear_reach_from_a_point_ends_at_the_level_inside_the_box():
@@ -493,12 +583,12 @@ def test_the_linear_reach_from_a_point_ends_at_the_level_inside_the_box():
     r_best = A[:, :2] @ x - t
     point = np.array([np.linalg.lstsq(A[:, :1], t, rcond=None)[0][0], 0.0, 0.3, 7.0])
     ev = lambda th: (A @ th - t, A, A @ th)  # noqa: E731
-    d = lambda th: (np.sum(ev(th)[0] ** 2) - r_best @ r_best) / sigma ** 2  # noqa: E731
+    d = lambda th: (np.sum(ev(th)[0] ** 2) - r_best @ r_best) / sigma**2  # noqa: E731
     assert 0.0 < d(point) < 9.0 and x[1] > 0.0
     lo, hi = np.zeros(4), np.array([1.0, 1.0, 1.0, np.inf])
     red = types.SimpleNamespace(idx_l=np.array([0, 1, 2]))
     tight = np.stack([point, point], axis=1)
-    out = linear_reach(ev, red, [(d(point), point)], tight, r_best, sigma ** 2, lo, hi)
+    out = linear_reach(ev, red, [(d(point), point)], tight, r_best, sigma**2, lo, hi)
     for dc, th in out:
         assert dc < 9.0 and abs(dc - d(th)) < 1e-9 and np.all(th >= lo) and np.all(th <= hi), (dc, th)
     along = {0: [], 1: [], 2: []}  # by the scalar moved: 0 alone moves nothing else of 1 and 2
@@ -512,7 +602,7 @@ def test_the_linear_reach_from_a_point_ends_at_the_level_inside_the_box():
     assert sorted(th[2] for th in along[2]) == [0.0, 1.0]  # unseen: across its box
     # a point beyond the level reaches nothing
     far = point + np.array([1.0, 0, 0, 0])
-    assert d(far) > 9.0 and linear_reach(ev, red, [(0.0, far)], tight, r_best, sigma ** 2, lo, hi) == []
+    assert d(far) > 9.0 and linear_reach(ev, red, [(0.0, far)], tight, r_best, sigma**2, lo, hi) == []
 
 
 def test_points_within_the_level_join_the_intervals():
@@ -539,7 +629,9 @@ def test_intervals_cover_a_second_solution_the_images_cannot_tell_apart():
     J = rng.normal(size=(200, 3))
     alternative = dict(theta=np.array([0.2, 87.0, 0.1]), J=J, r=rng.normal(0, 0.01, 200), sigma=0.01)
     se2 = uncertainty(alternative["J"], alternative["r"], 200, labels, alternative["sigma"])[0]
-    out, ambiguous = cover_alternative(interval, alternative["theta"], se2, np.zeros(3), np.array([1.0, np.inf, np.inf]))
+    out, ambiguous = cover_alternative(
+        interval, alternative["theta"], se2, np.zeros(3), np.array([1.0, np.inf, np.inf])
+    )
     assert ambiguous == [0, 1]
     assert out[0, 0] == 0.0 and 0.2 < out[0, 1] <= 1.0 and out[1, 0] == 0.1 and out[1, 1] > 87.0
     np.testing.assert_array_equal(out[2], interval[2])

@@ -8,12 +8,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from conftest import small_default_scene
 
 import diffshade as ds
-from fitting import Observations, VarPro, fit
-from fitting import ParamSet
-
-from conftest import small_default_scene
+from fitting import Observations, ParamSet, VarPro, fit
 
 
 def _render(scene, opts):
@@ -46,15 +44,16 @@ def test_a_bending_trade_off_widens_the_interval_and_the_ends_are_where_an_indep
     (−10 %, +20 %: the search stops in [9, 9.9] or at a bracket of 5 % in σ, the refits within Δχ²
     0.1), and at Wald's end by less."""
     scene, opts = small_default_scene(32, 32, shading="flat")
-    scene = eqx.tree_at(lambda s: (s.material.specular, s.material.shininess), scene,
-                        (jnp.asarray([0.2, 0.2, 0.2]), jnp.asarray(40.0)))
+    scene = eqx.tree_at(
+        lambda s: (s.material.specular, s.material.shininess), scene, (jnp.asarray([0.2, 0.2, 0.2]), jnp.asarray(40.0))
+    )
     free = ["material.diffuse", "material.specular", "material.shininess"]
     target = _render(scene, opts)
     noisy = np.round(np.clip(target + np.random.default_rng(2).normal(0, 2 / 255, target.shape), 0, 1) * 255) / 255
     r = fit(scene, opts, Observations(noisy, saturation=1.0, quantum=1 / 255), free, shared=["material.specular"])
     assert r.successful, (r.result, r.notes)
     p = len(r.values)
-    s2 = max(r.residual.rss / (r.residual.n - p), r.residual.noise ** 2)
+    s2 = max(r.residual.rss / (r.residual.n - p), r.residual.noise**2)
     i = r.names.index("material.specular")
     se, ks, ks_hi = r.stderr[i], r.values[i], r.intervals.bounds[i, 1]
     assert ks_hi > ks + 3.6 * se, (ks, se, r.intervals.bounds[i])  # wider than Wald
@@ -65,8 +64,15 @@ def test_a_bending_trade_off_widens_the_interval_and_the_ends_are_where_an_indep
     ps = ParamSet(free, scene, shared=["material.specular"])
 
     def dchi2(k_s):
-        s = ps.apply(scene, jnp.asarray(np.r_[r.values[:i], k_s, r.values[i + 1:]]))
-        q = fit(s, opts, Observations(noisy, saturation=1.0, quantum=1 / 255), held, intervals=False, strategy=VarPro(starts=1))
+        s = ps.apply(scene, jnp.asarray(np.r_[r.values[:i], k_s, r.values[i + 1 :]]))
+        q = fit(
+            s,
+            opts,
+            Observations(noisy, saturation=1.0, quantum=1 / 255),
+            held,
+            intervals=False,
+            strategy=VarPro(starts=1),
+        )
         assert q.converged, q.result
         return (q.residual.rss - r.residual.rss) / s2
 

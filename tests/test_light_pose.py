@@ -9,12 +9,10 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import check_grads
 
 import diffshade as ds
-from fitting import Observations, fit
-from fitting import ParamError, ParamSet, direction_frame, direction_of, tilt_of
-
-from conftest import check_grads
+from fitting import Observations, ParamError, ParamSet, direction_frame, direction_of, fit, tilt_of
 
 
 def _angle_deg(a, b):
@@ -67,8 +65,17 @@ SPOT = {
     "camera": {"eye": [0.0, 3.0, 3.0], "target": [0.0, 0.0, 0.0], "width": 40, "height": 40, "near": 0.5, "far": 20.0},
     "render": {"shading": "phong", "spot_edge": "smooth"},  # the cone's edge a smoothstep: the cutoff has a gradient
     "material": {"ambient": 0.1, "diffuse": [0.7, 0.6, 0.5], "specular": 0.2, "shininess": 20.0},
-    "light": [{"type": "spot", "position": [0.2, 2.0, 0.1], "axis": [0.0, -1.0, 0.0], "cutoff": 30.0, "exponent": 4.0,
-               "edge": 6.0, "attenuation": [1.0, 0.0, 0.05]}],
+    "light": [
+        {
+            "type": "spot",
+            "position": [0.2, 2.0, 0.1],
+            "axis": [0.0, -1.0, 0.0],
+            "cutoff": 30.0,
+            "exponent": 4.0,
+            "edge": 6.0,
+            "attenuation": [1.0, 0.0, 0.05],
+        }
+    ],
     "ambient_light": 0.1,
 }
 
@@ -80,8 +87,9 @@ def test_a_spot_pointing_straight_down_tilted_by_three_degrees_is_found():
     truth_axis = _tilted([0.0, -1.0, 0.0], 2.0, 2.2)
     scene = eqx.tree_at(lambda s: s.spot.axis, scene, jnp.asarray([truth_axis]))
     target = np.asarray(ds.render(scene, opts))
-    start = eqx.tree_at(lambda s: (s.spot.axis, s.spot.cutoff), scene,
-                        (jnp.asarray([[0.0, -1.0, 0.0]]), jnp.asarray([26.0])))
+    start = eqx.tree_at(
+        lambda s: (s.spot.axis, s.spot.cutoff), scene, (jnp.asarray([[0.0, -1.0, 0.0]]), jnp.asarray([26.0]))
+    )
     free = ["spot[0].axis", "spot[0].cutoff", "material.diffuse"]
     r = fit(start, opts, Observations(target), free)
     assert r.successful, r.result
@@ -94,8 +102,9 @@ def _views(scene, eyes):
     out = []
     for eye in eyes:
         c = scene.camera
-        cam = ds.Camera(eye=eye, target=c.target, up=c.up, fov_y=c.fov_y, near=c.near, far=c.far, width=c.width,
-                        height=c.height)
+        cam = ds.Camera(
+            eye=eye, target=c.target, up=c.up, fov_y=c.fov_y, near=c.near, far=c.far, width=c.width, height=c.height
+        )
         out.append(eqx.tree_at(lambda s: s.camera, scene, cam))
     return out
 

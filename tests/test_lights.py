@@ -18,11 +18,19 @@ def many_lights_scene(n_point, n_spot, n_dir, size=12, shading="phong", seed=0, 
     if wall:  # a wall behind the sphere receives its shadows
         mat = d.pop("material")
         d.pop("mesh")
-        d["object"] = [{"icosphere": 1, "material": mat},
-                       {"quad": [8, 8], "normal": [0, 0, 1], "translate": [0, 0, -1.5], "material": mat}]
+        d["object"] = [
+            {"icosphere": 1, "material": mat},
+            {"quad": [8, 8], "normal": [0, 0, 1], "translate": [0, 0, -1.5], "material": mat},
+        ]
     d["camera"] = dict(d["camera"], width=size, height=size)
-    d["render"] = {"shading": shading, "specular": "blinn", "fog": "none", "per_light_ambient": True,
-                   "spot_edge": "smooth", **render}
+    d["render"] = {
+        "shading": shading,
+        "specular": "blinn",
+        "fog": "none",
+        "per_light_ambient": True,
+        "spot_edge": "smooth",
+        **render,
+    }
     d.pop("fog", None)
 
     def pos():
@@ -35,13 +43,30 @@ def many_lights_scene(n_point, n_spot, n_dir, size=12, shading="phong", seed=0, 
 
     lights = []
     for _ in range(n_point):
-        lights.append({"type": "point", "color": col(), "position": pos(), "ambient": col(),
-                       "attenuation": [1.0, float(rng.uniform(0, 0.2)), float(rng.uniform(0, 0.1))]})
+        lights.append(
+            {
+                "type": "point",
+                "color": col(),
+                "position": pos(),
+                "ambient": col(),
+                "attenuation": [1.0, float(rng.uniform(0, 0.2)), float(rng.uniform(0, 0.1))],
+            }
+        )
     for _ in range(n_spot):
         p = pos()
-        lights.append({"type": "spot", "color": col(), "position": p, "axis": [-c for c in p], "ambient": col(),
-                       "cutoff": float(rng.uniform(20, 60)), "exponent": float(rng.uniform(0, 8)), "edge": 5.0,
-                       "attenuation": [1.0, 0.1, 0.05]})
+        lights.append(
+            {
+                "type": "spot",
+                "color": col(),
+                "position": p,
+                "axis": [-c for c in p],
+                "ambient": col(),
+                "cutoff": float(rng.uniform(20, 60)),
+                "exponent": float(rng.uniform(0, 8)),
+                "edge": 5.0,
+                "attenuation": [1.0, 0.1, 0.05],
+            }
+        )
     for _ in range(n_dir):
         lights.append({"type": "directional", "color": col(), "direction": [-c for c in pos()], "ambient": col()})
     d["light"] = lights
@@ -60,8 +85,9 @@ def _with_unroll(k, fn, *args):
 
 # the scan is the same code for every interpolation mode: phong in the default run, the others
 # in the full one (pytest -m "")
-@pytest.mark.parametrize("shading", ["phong", pytest.param("gouraud", marks=pytest.mark.slow),
-                                     pytest.param("flat", marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "shading", ["phong", pytest.param("gouraud", marks=pytest.mark.slow), pytest.param("flat", marks=pytest.mark.slow)]
+)
 def test_scan_over_lights_equals_the_unrolled_sum_values_and_tangents(shading):
     scene, opts = many_lights_scene(7, 6, 6, shading=shading)
     ids = ds.scene_visibility(scene, opts)
@@ -74,7 +100,7 @@ def test_scan_over_lights_equals_the_unrolled_sum_values_and_tangents(shading):
     rng = np.random.default_rng(1)
     tangent = jax.tree.map(lambda a: jnp.asarray(rng.normal(size=a.shape) * 0.01, a.dtype), params)
     scanned = _with_unroll(2, lambda: jax.jvp(f, (params,), (tangent,)))
-    unrolled = _with_unroll(10 ** 6, lambda: jax.jvp(f, (params,), (tangent,)))
+    unrolled = _with_unroll(10**6, lambda: jax.jvp(f, (params,), (tangent,)))
     assert float(jnp.max(scanned[0])) > 0.05  # the lights do light the sphere
     np.testing.assert_allclose(scanned[0], unrolled[0], rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(scanned[1], unrolled[1], rtol=1e-10, atol=1e-12)
@@ -90,14 +116,19 @@ def test_scanned_lights_gradients_match_finite_differences():
         sc = eqx.tree_at(lambda s: (s.point.position, s.point.attenuation), scene, (pos, att))
         return jnp.sum(ds.render(sc, opts, ids) ** 2)
 
-    _with_unroll(2, lambda: check_grads(f, (scene.point.position, scene.point.attenuation), order=1,
-                                         modes=("fwd", "rev"), atol=1e-6, rtol=1e-5))
+    _with_unroll(
+        2,
+        lambda: check_grads(
+            f, (scene.point.position, scene.point.attenuation), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-5
+        ),
+    )
 
 
 @pytest.mark.parametrize("shading", ["phong", pytest.param("gouraud", marks=pytest.mark.slow)])
 def test_shadows_over_the_light_axis_equal_the_unrolled_ones(shading):
-    scene, opts = many_lights_scene(3, 3, 3, size=10, shading=shading, wall=True, shadows=True,
-                                    shadow_resolution=16, shadow_pcf=3)
+    scene, opts = many_lights_scene(
+        3, 3, 3, size=10, shading=shading, wall=True, shadows=True, shadow_resolution=16, shadow_pcf=3
+    )
     ids = ds.scene_visibility(scene, opts)
     params, rest = eqx.partition(scene, eqx.is_inexact_array)
 
@@ -107,7 +138,7 @@ def test_shadows_over_the_light_axis_equal_the_unrolled_ones(shading):
     rng = np.random.default_rng(2)
     tangent = jax.tree.map(lambda a: jnp.asarray(rng.normal(size=a.shape) * 0.01, a.dtype), params)
     scanned = _with_unroll(2, lambda: jax.jvp(f, (params,), (tangent,)))
-    unrolled = _with_unroll(10 ** 6, lambda: jax.jvp(f, (params,), (tangent,)))
+    unrolled = _with_unroll(10**6, lambda: jax.jvp(f, (params,), (tangent,)))
     lit = ds.render(scene, opts.replace(shadows=None), ids)
     assert float(jnp.sum(scanned[0] < lit - 1e-3)) > 3  # the shadows darken pixels
     np.testing.assert_allclose(scanned[0], unrolled[0], rtol=1e-12, atol=1e-12)
@@ -126,7 +157,7 @@ def test_program_size_does_not_grow_with_the_number_of_lights():
         sizes.append(_program_size(scene, opts, ds.scene_visibility(scene, opts)))
     assert sizes[1] <= sizes[0] * 1.02, sizes
     scene, opts = many_lights_scene(8, 8, 8, size=8)
-    unrolled = _with_unroll(10 ** 6, lambda: _program_size(scene, opts, ds.scene_visibility(scene, opts)))
+    unrolled = _with_unroll(10**6, lambda: _program_size(scene, opts, ds.scene_visibility(scene, opts)))
     assert unrolled > 2 * sizes[0], (unrolled, sizes)  # unrolled, it does grow
 
 

@@ -12,7 +12,8 @@ import diffshade as ds
 
 
 @pytest.mark.parametrize(
-    "name,faces", [("bunny.ply", 16301), ("fandisk.obj", 5750), ("featuretype.STL", 3476), ("fuze.obj", 1000), ("rabbit.obj", 1252)]
+    "name,faces",
+    [("bunny.ply", 16301), ("fandisk.obj", 5750), ("featuretype.STL", 3476), ("fuze.obj", 1000), ("rabbit.obj", 1252)],
 )
 def test_shared_meshes_load(name, faces, meshes_dir):
     path = os.path.join(meshes_dir, name)
@@ -33,7 +34,14 @@ def test_stl_is_closed_after_merging(meshes_dir):
     assert trimesh.Trimesh(np.asarray(m.vertices), np.asarray(m.faces), process=False).is_watertight
 
 
-@pytest.mark.parametrize("name,msg", [("empty.obj", "no triangles"), ("obj_points.obj", "no triangles"), ("notenoughindices.obj", r"line \d+: a face needs at least 3")])
+@pytest.mark.parametrize(
+    "name,msg",
+    [
+        ("empty.obj", "no triangles"),
+        ("obj_points.obj", "no triangles"),
+        ("notenoughindices.obj", r"line \d+: a face needs at least 3"),
+    ],
+)
 def test_bad_meshes_are_rejected_clearly(name, msg, meshes_dir):
     path = os.path.join(meshes_dir, "bad", name)
     with pytest.raises(ds.MeshError, match=msg) as exc:
@@ -93,7 +101,9 @@ def test_meshes_load_as_authored_with_their_normals(tmp_path):
     assert abs(float(np.linalg.norm(merged.vertex_normals()[0])) - 1) < 1e-12
     # Gouraud on the authored cube: each face one colour (a directional light, no specular),
     # k_d (n·l)⁺ + k_a I_a exactly; merged, the faces blend
-    cam = ds.Camera(eye=[2.5, 2.0, 3.0], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.5, far=20.0, width=32, height=32)
+    cam = ds.Camera(
+        eye=[2.5, 2.0, 3.0], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.5, far=20.0, width=32, height=32
+    )
     light = ds.DirectionalLights(color=[[1.0, 1.0, 1.0]], direction=[[-0.3, -1.0, -0.6]], ambient=[[0, 0, 0]])
     mat = ds.Material(ambient=0.1, diffuse=0.7, specular=0.0)
     opts = ds.RenderOptions(raster=ds.Raster(shading="gouraud"), lighting=ds.Lighting(specular="none"))
@@ -113,10 +123,12 @@ def test_meshes_load_as_authored_with_their_normals(tmp_path):
 
 def test_file_normals_from_ply_scene_files_and_errors(tmp_path):
     ply = tmp_path / "tri.ply"
-    ply.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
-                   "property float nx\nproperty float ny\nproperty float nz\nelement face 1\n"
-                   "property list uchar int vertex_indices\nend_header\n"
-                   "0 0 0 0 0 2\n1 0 0 0 0.6 0.8\n0 1 0 0 0 1\n3 0 1 2\n")
+    ply.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+        "property float nx\nproperty float ny\nproperty float nz\nelement face 1\n"
+        "property list uchar int vertex_indices\nend_header\n"
+        "0 0 0 0 0 2\n1 0 0 0 0.6 0.8\n0 1 0 0 0 1\n3 0 1 2\n"
+    )
     m = ds.load_mesh(ply)
     np.testing.assert_allclose(m.vertex_normals(), [[0, 0, 1], [0, 0.6, 0.8], [0, 0, 1]], atol=1e-7)
     d = dict(ds.DEFAULT_SCENE)
@@ -128,11 +140,21 @@ def test_file_normals_from_ply_scene_files_and_errors(tmp_path):
     # an object scaled along z: its normals transform by the inverse scale
     mat = {"diffuse": 0.5}
     bare = {k: x for k, x in d.items() if k not in ("mesh", "material")}
-    scene, _ = ds.scene_from_dict({**bare, "object": [{"path": str(ply), "scale": [1, 1, 4], "material": mat},
-                                                   {"icosphere": 0, "translate": [3, 0, 0], "material": mat}]})
+    scene, _ = ds.scene_from_dict(
+        {
+            **bare,
+            "object": [
+                {"path": str(ply), "scale": [1, 1, 4], "material": mat},
+                {"icosphere": 0, "translate": [3, 0, 0], "material": mat},
+            ],
+        }
+    )
     n = np.asarray(scene.mesh.vertex_normals())
     np.testing.assert_allclose(n[1], np.array([0, 0.6, 0.2]) / np.linalg.norm([0, 0.6, 0.2]), atol=1e-7)
-    for mesh, msg in [({"path": str(ply), "vertices": "welded"}, "mesh.vertices"), ({"icosphere": 1, "vertices": "merged"}, "only applies")]:
+    for mesh, msg in [
+        ({"path": str(ply), "vertices": "welded"}, "mesh.vertices"),
+        ({"icosphere": 1, "vertices": "merged"}, "only applies"),
+    ]:
         with pytest.raises(ds.SceneError, match=msg):
             ds.scene_from_dict({**d, "mesh": mesh})
     bad = tmp_path / "nan_normal.obj"
@@ -186,8 +208,14 @@ def scene_dict(**over):
 @pytest.mark.parametrize(
     "patch,msg",
     [
-        ({"light": [{"type": "point", "position": [0, 0, 1], "attenuation": [-1, 0, 0]}]}, r"light\[0\].attenuation: each entry must be >= 0"),
-        ({"light": [{"type": "spot", "position": [0, 0, 1], "axis": [0, 0, -1], "cutoff": 120}]}, r"light\[0\].cutoff: must lie in \(0.0, 90.0\]"),
+        (
+            {"light": [{"type": "point", "position": [0, 0, 1], "attenuation": [-1, 0, 0]}]},
+            r"light\[0\].attenuation: each entry must be >= 0",
+        ),
+        (
+            {"light": [{"type": "spot", "position": [0, 0, 1], "axis": [0, 0, -1], "cutoff": 120}]},
+            r"light\[0\].cutoff: must lie in \(0.0, 90.0\]",
+        ),
         ({"light": [{"type": "laser"}]}, r"light\[0\].type: must be one of"),
         ({"camera": {"eye": [0, 0, 3.0], "width": 0}}, r"camera.width: must be an integer in \[1, 8192\]"),
         ({"camera": {"eye": [0, 0, 3.0], "fov_y": "wide"}}, r"camera.fov_y: must be a number"),
@@ -200,9 +228,15 @@ def scene_dict(**over):
         ({"material": {"opacity": 1.5}}, r"material.opacity: must lie in \[0.0, 1.0\]"),
         ({"material": {"kay": 1}}, r"material.kay: must be true or false"),
         ({"material": {"absorption": [0, -1, 0]}}, r"material.absorption: each entry must be >= 0"),
-        ({"render": {"absorption": True, "transparency": True}}, r"render: absorption \(Transparency.absorption needs layers >= 2"),
+        (
+            {"render": {"absorption": True, "transparency": True}},
+            r"render: absorption \(Transparency.absorption needs layers >= 2",
+        ),
         # (shadow_pcf is read with shadows on: ShadowMaps holds it)
-        ({"render": {"fog": "linear", "shadows": True, "shadow_pcf": 2}}, r"render: shadow_pcf \(ShadowMaps.pcf must be odd"),
+        (
+            {"render": {"fog": "linear", "shadows": True, "shadow_pcf": 2}},
+            r"render: shadow_pcf \(ShadowMaps.pcf must be odd",
+        ),
         # a key whose group is off is still checked (scene files may carry it)
         ({"render": {"shadow_pcf": 2}}, r"render: shadow_pcf \(ShadowMaps.pcf must be odd"),
         ({"render": {"clamp_at": "face"}}, r"render: clamp_at \(Output.clamp must be one of .*'face'"),
@@ -238,7 +272,9 @@ def test_objects_scene_file_example():
     s2, _ = ds.scene_from_dict(d)
     assert len(s2.all_materials()) == 2 and float(s2.materials[0].diffuse[0]) == 0.3
     s3, _ = ds.scene_from_dict(scene_dict(render={"fog": "linear", "shadows": True}, shadow={"slope_bias": 2.0}))
-    assert float(s3.shadow_slope_bias) == 2.0 and float(s3.shadow_bias) == float(ds.Scene(s3.mesh, s3.camera).shadow_bias)
+    assert float(s3.shadow_slope_bias) == 2.0 and float(s3.shadow_bias) == float(
+        ds.Scene(s3.mesh, s3.camera).shadow_bias
+    )
 
 
 def test_scene_file_roundtrip_and_fog_background(tmp_path):
@@ -269,15 +305,26 @@ def test_changing_numbers_never_recompiles():
         return ds.render(s, opts)
 
     f(scene)
-    s2 = eqx.tree_at(lambda s: (s.material.diffuse, s.camera.eye, s.point.attenuation, s.fog.end),
-                     scene, (jnp.array([0.1, 0.2, 0.3]), jnp.array([0.3, 0.2, 2.5]), jnp.array([[1.0, 0.3, 0.1]]), jnp.asarray(9.0, jnp.float64)))
+    s2 = eqx.tree_at(
+        lambda s: (s.material.diffuse, s.camera.eye, s.point.attenuation, s.fog.end),
+        scene,
+        (
+            jnp.array([0.1, 0.2, 0.3]),
+            jnp.array([0.3, 0.2, 2.5]),
+            jnp.array([[1.0, 0.3, 0.1]]),
+            jnp.asarray(9.0, jnp.float64),
+        ),
+    )
     out = f(s2)
     assert np.isfinite(np.asarray(out)).all()
 
 
 def test_lambert_sphere_centre_closed_form():
     # Directional light along the view axis: the pixel at the image centre sees n = (0, 0, 1).
-    d = scene_dict(render={"shading": "phong", "specular": "none"}, light=[{"type": "directional", "direction": [0, 0, -1.0], "color": [0.8, 0.6, 0.4]}])
+    d = scene_dict(
+        render={"shading": "phong", "specular": "none"},
+        light=[{"type": "directional", "direction": [0, 0, -1.0], "color": [0.8, 0.6, 0.4]}],
+    )
     d.pop("fog")
     d["mesh"] = {"icosphere": 5}
     d["camera"] = {"eye": [0, 0, 3.0], "width": 33, "height": 33}
@@ -326,8 +373,12 @@ def test_vertex_colours_are_read_decoded_and_merged(tmp_path):
     assert ds.load_mesh(tmp_path / "c.ply", colors="ignore").colors is None
     # a triangle soup (every face its own vertices, with its corners' colours): merged, each vertex
     # gets the mean colour of the copies it replaces, here all equal
-    soup = trimesh.Trimesh(tm.vertices[tm.faces.reshape(-1)], np.arange(3 * len(tm.faces)).reshape(-1, 3),
-                           vertex_colors=rgba[tm.faces.reshape(-1)], process=False)
+    soup = trimesh.Trimesh(
+        tm.vertices[tm.faces.reshape(-1)],
+        np.arange(3 * len(tm.faces)).reshape(-1, 3),
+        vertex_colors=rgba[tm.faces.reshape(-1)],
+        process=False,
+    )
     soup.export(tmp_path / "soup.ply")
     mm = ds.load_mesh(tmp_path / "soup.ply", "merged", colors="linear")
     assert mm.vertices.shape[0] == len(tm.vertices)
@@ -336,8 +387,11 @@ def test_vertex_colours_are_read_decoded_and_merged(tmp_path):
     np.testing.assert_allclose(np.asarray(mm.colors), codes[np.argmin(d, axis=1)] / 255.0, atol=1e-12)
     # a scene asking for vertex colours from a mesh without them is told so
     (tmp_path / "plain.ply").write_bytes(trimesh.Trimesh(tm.vertices, tm.faces).export(file_type="ply"))
-    d = dict(ds.DEFAULT_SCENE, mesh={"path": str(tmp_path / "plain.ply")},
-             render=dict(ds.DEFAULT_SCENE["render"], vertex_color="diffuse"))
+    d = dict(
+        ds.DEFAULT_SCENE,
+        mesh={"path": str(tmp_path / "plain.ply")},
+        render=dict(ds.DEFAULT_SCENE["render"], vertex_color="diffuse"),
+    )
     with pytest.raises(ds.SceneError, match="render.vertex_color.*has no vertex colours"):
         ds.scene_from_dict(d)
     d["mesh"] = {"path": str(tmp_path / "c.ply"), "colors": "linear"}

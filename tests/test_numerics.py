@@ -12,10 +12,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from jax import test_util
+from test_shading import make_scene
 
 import diffshade as ds
 from diffshade import _shade as S
-from test_shading import make_scene
 
 DTYPES = [jnp.float32, jnp.float64]
 
@@ -31,7 +31,9 @@ def test_pow_at_zero_small_and_huge_exponent(dtype, m):
     m = jnp.asarray(m, dtype)
     val = S.safe_pow(xs, m)
     assert val[0] == 0 and finite(val)
-    np.testing.assert_allclose(np.asarray(val[3:]), np.asarray(xs[3:], np.float64) ** float(m), rtol=1e-5 if dtype == jnp.float32 else 1e-12)
+    np.testing.assert_allclose(
+        np.asarray(val[3:]), np.asarray(xs[3:], np.float64) ** float(m), rtol=1e-5 if dtype == jnp.float32 else 1e-12
+    )
     gx = jax.vmap(jax.grad(S.safe_pow, argnums=0), (0, None))(xs, m)
     gm = jax.vmap(jax.grad(S.safe_pow, argnums=1), (0, None))(xs, m)
     tx = jax.jvp(lambda x: S.safe_pow(x, m), (xs,), (jnp.ones_like(xs),))[1]
@@ -49,9 +51,11 @@ def test_grazing_light_and_spot_cutoff(dtype):
     n = S.vec(jnp.asarray([[0.0, 0.0, 1.0]], dtype))
     l = S.vec(jnp.asarray([[1.0, 0.0, 0.0]], dtype))  # n.l = 0 exactly
     v = S.vec(jnp.asarray([[0.0, 0.6, 0.8]], dtype))
-    for f in (lambda l0: S.lambert(S.dot(n, (l0, l[1], l[2]))),
-              lambda l0: S.phong_specular(n, (l0, l[1], l[2]), v, 20.0),
-              lambda l0: S.blinn_specular(n, (l0, l[1], l[2]), v, 20.0)):
+    for f in (
+        lambda l0: S.lambert(S.dot(n, (l0, l[1], l[2]))),
+        lambda l0: S.phong_specular(n, (l0, l[1], l[2]), v, 20.0),
+        lambda l0: S.blinn_specular(n, (l0, l[1], l[2]), v, 20.0),
+    ):
         val, tan = jax.jvp(f, (l[0],), (jnp.ones_like(l[0]),))
         assert float(val[0]) == 0 and finite(tan) and finite(jax.grad(lambda a: f(a).sum())(l[0]))
     # A point exactly on the cutoff cone: hard edge includes it (c >= cos), value c^a.
@@ -63,7 +67,9 @@ def test_grazing_light_and_spot_cutoff(dtype):
     hard = S.spot_factor(lneg, axis, cut, jnp.asarray(2.0, dtype), jnp.asarray(5.0, dtype), smooth=False)
     np.testing.assert_allclose(float(hard[0]), float(c) ** 2, rtol=1e-5)
     for smooth in (False, True):
-        g = jax.grad(lambda cu, ex, ed: S.spot_factor(lneg, axis, cu, ex, ed, smooth).sum(), argnums=(0, 1, 2))(cut, jnp.asarray(2.0, dtype), jnp.asarray(5.0, dtype))
+        g = jax.grad(lambda cu, ex, ed: S.spot_factor(lneg, axis, cu, ex, ed, smooth).sum(), argnums=(0, 1, 2))(
+            cut, jnp.asarray(2.0, dtype), jnp.asarray(5.0, dtype)
+        )
         assert finite(g)
     # Smooth edge: the cutoff angle has a gradient inside the band; width 0 falls back to hard.
     inside = S.vec(jnp.asarray([[-np.sin(np.deg2rad(27.0)), 0.0, np.cos(np.deg2rad(27.0))]], dtype))
@@ -99,7 +105,7 @@ def test_fog_start_equals_end_is_a_step():
         assert finite(jax.grad(lambda r: S.fog_factor(d, mode, 0.0, 0.0, r).sum())(0.0))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _scene_fn(opts):
     return jax.jit(lambda s: ds.render(s, opts))
 
@@ -108,13 +114,24 @@ def _scaled(scene, k):
     """The same scene k times larger: lengths times k, a1 / k, a2 / k^2, fog density / k."""
     sc = lambda a: a * k  # noqa: E731
     s = eqx.tree_at(lambda s: s.mesh.vertices, scene, sc(scene.mesh.vertices))
-    s = eqx.tree_at(lambda s: (s.camera.eye, s.camera.target, s.camera.near, s.camera.far), s,
-                    (sc(scene.camera.eye), sc(scene.camera.target), sc(scene.camera.near), sc(scene.camera.far)))
+    s = eqx.tree_at(
+        lambda s: (s.camera.eye, s.camera.target, s.camera.near, s.camera.far),
+        s,
+        (sc(scene.camera.eye), sc(scene.camera.target), sc(scene.camera.near), sc(scene.camera.far)),
+    )
     for kind in ("point", "spot"):
         lights = getattr(scene, kind)
         att = lights.attenuation * jnp.asarray([1.0, 1.0 / k, 1.0 / k**2], lights.attenuation.dtype)
-        s = eqx.tree_at(lambda s, kind=kind: (getattr(s, kind).position, getattr(s, kind).attenuation), s, (sc(lights.position), att))
-    s = eqx.tree_at(lambda s: (s.fog.start, s.fog.end, s.fog.density), s, (sc(scene.fog.start), sc(scene.fog.end), scene.fog.density / k))
+        s = eqx.tree_at(
+            lambda s, kind=kind: (getattr(s, kind).position, getattr(s, kind).attenuation),
+            s,
+            (sc(lights.position), att),
+        )
+    s = eqx.tree_at(
+        lambda s: (s.fog.start, s.fog.end, s.fog.density),
+        s,
+        (sc(scene.fog.start), sc(scene.fog.end), scene.fog.density / k),
+    )
     return s
 
 
@@ -127,7 +144,9 @@ def test_tiny_and_huge_scene_scales(dtype):
         s = _scaled(scene, jnp.asarray(k, dtype))
         img = np.asarray(f(s))
         assert np.isfinite(img).all()
-        close = np.isclose(img, base, rtol=1e-3 if dtype == jnp.float32 else 1e-8, atol=1e-4 if dtype == jnp.float32 else 1e-9).all(-1)
+        close = np.isclose(
+            img, base, rtol=1e-3 if dtype == jnp.float32 else 1e-8, atol=1e-4 if dtype == jnp.float32 else 1e-9
+        ).all(-1)
         assert close.mean() > 0.98, (k, close.mean())  # a few silhouette pixels may change sides
         g = eqx.filter_grad(lambda s: jnp.sum(_scene_fn(opts)(s) ** 2))(s)
         assert finite(g), k
@@ -225,13 +244,17 @@ def _program(opts, scene):
 
 def test_only_the_terms_a_scene_uses_are_compiled():
     scene, _ = make_scene("all-lights-back-material-exp2", "phong", dtype=jnp.float32)
-    diffuse = ds.RenderOptions(raster=ds.Raster(shading="phong"),
-                               lighting=ds.Lighting(specular="none", ambient=False, two_sided=False))
+    diffuse = ds.RenderOptions(
+        raster=ds.Raster(shading="phong"), lighting=ds.Lighting(specular="none", ambient=False, two_sided=False)
+    )
     # (the scene's back material lights the back faces: two-sided lighting with a back material)
-    every = ds.RenderOptions(raster=ds.Raster(shading="phong"),
-                             lighting=ds.Lighting(specular="blinn", fresnel="dielectric", emission=True, per_light_ambient=True,
-                                                  spot_edge="smooth"),
-                             fog=ds.FogModel("exp2"))
+    every = ds.RenderOptions(
+        raster=ds.Raster(shading="phong"),
+        lighting=ds.Lighting(
+            specular="blinn", fresnel="dielectric", emission=True, per_light_ambient=True, spot_edge="smooth"
+        ),
+        fog=ds.FogModel("exp2"),
+    )
     d_txt, a_txt = _program(diffuse, scene), _program(every, scene)
     count = lambda t, op: t.count(f" {op}(")  # noqa: E731
     # No power, exponential or logarithm at all without specular, spot exponent or fog.

@@ -9,20 +9,36 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
-import diffshade as ds
+from conftest import check_grads
 from test_shading import make_scene
 
-from conftest import check_grads
+import diffshade as ds
 
 
-@pytest.mark.parametrize("config,shading", [("opengl-separate-specular", "gouraud"), ("opengl-specular-colours", "flat"),
-                                            ("infinite-viewer-vertex-clamp", "phong")])
+@pytest.mark.parametrize(
+    "config,shading",
+    [
+        ("opengl-separate-specular", "gouraud"),
+        ("opengl-specular-colours", "flat"),
+        ("infinite-viewer-vertex-clamp", "phong"),
+    ],
+)
 def test_gradients_through_vertex_clamp_and_specular_colours(config, shading):
     scene, opts = make_scene(config, shading)
-    scene = eqx.tree_at(lambda s: s.camera, scene, ds.Camera(eye=scene.camera.eye, target=scene.camera.target,
-                                                             up=scene.camera.up, fov_y=scene.camera.fov_y,
-                                                             near=scene.camera.near, far=scene.camera.far, width=10, height=10))
+    scene = eqx.tree_at(
+        lambda s: s.camera,
+        scene,
+        ds.Camera(
+            eye=scene.camera.eye,
+            target=scene.camera.target,
+            up=scene.camera.up,
+            fov_y=scene.camera.fov_y,
+            near=scene.camera.near,
+            far=scene.camera.far,
+            width=10,
+            height=10,
+        ),
+    )
     ids = ds.scene_visibility(scene, opts)
     img = ds.render(scene, opts.replace(fog=None), ids)
     assert float(jnp.max(img)) >= 1.0 - 1e-12  # something saturates: the clamp is on the path
@@ -40,8 +56,15 @@ def test_gradients_through_vertex_clamp_and_specular_colours(config, shading):
 
     m = scene.material
     # a small step: a finite difference must not cross a vertex's clamp kink
-    check_grads(f, (m.diffuse, m.specular, m.shininess, lights.color, spec), order=1, modes=("fwd", "rev"),
-                eps=1e-6, atol=1e-5, rtol=1e-5)
+    check_grads(
+        f,
+        (m.diffuse, m.specular, m.shininess, lights.color, spec),
+        order=1,
+        modes=("fwd", "rev"),
+        eps=1e-6,
+        atol=1e-5,
+        rtol=1e-5,
+    )
 
 
 def test_compat_preset_from_scene_files_and_overrides():
@@ -49,15 +72,29 @@ def test_compat_preset_from_scene_files_and_overrides():
     d.pop("fog", None)
     _, opts = ds.scene_from_dict({**d, "render": {"compat": "opengl"}})
     assert opts == ds.RenderOptions.opengl()
-    assert (opts.raster.shading, opts.lighting.specular, opts.output.clamp, opts.raster.flat_source, opts.lighting.viewer,
-            opts.output.color_sum) == ("gouraud", "blinn", "vertex", "provoking", "infinite", "single")
+    assert (
+        opts.raster.shading,
+        opts.lighting.specular,
+        opts.output.clamp,
+        opts.raster.flat_source,
+        opts.lighting.viewer,
+        opts.output.color_sum,
+    ) == ("gouraud", "blinn", "vertex", "provoking", "infinite", "single")
     _, opts = ds.scene_from_dict({**d, "render": {"compat": "opengl", "shading": "flat", "viewer": "local"}})
     assert opts == ds.RenderOptions.opengl(shading="flat", viewer="local")
     _, default = ds.scene_from_dict({**d, "render": {}})
     assert (default.output.clamp, default.raster.flat_source, default.lighting.viewer, default.output.color_sum) == (
-        None, "centroid", "local", "single")
-    for render, message in [({"compat": "gl"}, "render.compat"), ({"viewer": "far"}, "viewer"),
-                            ({"clamp_at": "face"}, r"clamp_at \(Output.clamp must be one of .*'face'"), ({"color_sum": "both"}, "color_sum")]:
+        None,
+        "centroid",
+        "local",
+        "single",
+    )
+    for render, message in [
+        ({"compat": "gl"}, "render.compat"),
+        ({"viewer": "far"}, "viewer"),
+        ({"clamp_at": "face"}, r"clamp_at \(Output.clamp must be one of .*'face'"),
+        ({"color_sum": "both"}, "color_sum"),
+    ]:
         with pytest.raises(ds.SceneError, match=message):
             ds.scene_from_dict({**d, "render": render})
 
@@ -83,8 +120,14 @@ def test_light_specular_colour_in_scene_files():
     with pytest.raises(ds.SceneError, match=r"light\[0\].specular"):
         ds.scene_from_dict({**d, "light": [dict(lights[0], specular=[1, -1, 0])]})
     with pytest.raises(ds.SceneError, match="specular"):
-        ds.scene_from_dict({**d, "light": [{"type": "area", "position": [0, 1, 0], "normal": [0, -1, 0], "size": [1, 1],
-                                            "specular": [1, 1, 1]}]})
+        ds.scene_from_dict(
+            {
+                **d,
+                "light": [
+                    {"type": "area", "position": [0, 1, 0], "normal": [0, -1, 0], "size": [1, 1], "specular": [1, 1, 1]}
+                ],
+            }
+        )
 
 
 def test_shadows_with_vertex_clamp_is_a_clear_error():
@@ -94,8 +137,7 @@ def test_shadows_with_vertex_clamp_is_a_clear_error():
 
 
 def test_fit_names_and_recovery_of_a_separate_specular_colour():
-    from fitting import Observations, fit
-    from fitting import ParamError, ParamSet
+    from fitting import Observations, ParamError, ParamSet, fit
 
     d = dict(ds.DEFAULT_SCENE)
     d.pop("fog", None)

@@ -10,11 +10,11 @@ Marked ``opengl``: skipped, with the reason, where Mesa's OSMesa or PyOpenGL is 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import opengl_reference as GL
 import pytest
+from test_shading import make_scene
 
 import diffshade as ds
-import opengl_reference as GL
-from test_shading import make_scene
 
 _WHY = GL.unavailable()
 pytestmark = [pytest.mark.opengl, pytest.mark.skipif(_WHY is not None, reason=f"OpenGL reference unavailable: {_WHY}")]
@@ -43,12 +43,21 @@ def _hard_box_scene(opts):
     Vs = V[F.reshape(-1)]
     Fs = np.arange(len(Vs)).reshape(-1, 3)
     mesh = ds.mesh_from_arrays(Vs, Fs)
-    cam = ds.Camera(eye=[1.6, 1.3, 2.4], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.5, far=10.0, width=48, height=36)
-    scene = ds.Scene(mesh=mesh, camera=cam, material=ds.Material(ambient=[0.2, 0.1, 0.1], diffuse=[0.6, 0.5, 0.3],
-                                                                 specular=0.4, shininess=20.0),
-                     point=ds.PointLights(color=[[1.0, 0.9, 0.8]], position=[[2.0, 2.5, 1.5]], attenuation=[[1.0, 0.05, 0.02]],
-                                          ambient=[[0.05, 0.05, 0.05]]),
-                     directional=ds.DirectionalLights(color=[[0.3, 0.3, 0.4]], direction=[[-1.0, -0.3, -0.5]], ambient=[[0, 0, 0]]))
+    cam = ds.Camera(
+        eye=[1.6, 1.3, 2.4], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.5, far=10.0, width=48, height=36
+    )
+    scene = ds.Scene(
+        mesh=mesh,
+        camera=cam,
+        material=ds.Material(ambient=[0.2, 0.1, 0.1], diffuse=[0.6, 0.5, 0.3], specular=0.4, shininess=20.0),
+        point=ds.PointLights(
+            color=[[1.0, 0.9, 0.8]],
+            position=[[2.0, 2.5, 1.5]],
+            attenuation=[[1.0, 0.05, 0.02]],
+            ambient=[[0.05, 0.05, 0.05]],
+        ),
+        directional=ds.DirectionalLights(color=[[0.3, 0.3, 0.4]], direction=[[-1.0, -0.3, -0.5]], ambient=[[0, 0, 0]]),
+    )
     return scene, opts
 
 
@@ -58,19 +67,25 @@ SCENES = {
     "gouraud, three light kinds, exp fog, specular colours": lambda: make_scene("opengl-specular-colours", "gouraud"),
     "gouraud, separate specular, two-sided back material": lambda: make_scene("opengl-separate-specular", "gouraud"),
     "gouraud, linear fog, local viewer, non-square": lambda: (
-        lambda s, o: (_resize(s, 52, 30), o.with_keys(fog="linear", viewer="local")))(*make_scene("opengl-specular-colours", "gouraud")),
+        lambda s, o: (_resize(s, 52, 30), o.with_keys(fog="linear", viewer="local"))
+    )(*make_scene("opengl-specular-colours", "gouraud")),
     "gouraud, exp2 fog, emission, per-light ambient": lambda: (
-        lambda s, o: (s, o.replace(fog=ds.FogModel("exp2", distance="depth"))))(*make_scene("opengl-separate-specular", "gouraud")),
+        lambda s, o: (s, o.replace(fog=ds.FogModel("exp2", distance="depth")))
+    )(*make_scene("opengl-separate-specular", "gouraud")),
     "flat, hard-edged box": lambda: _hard_box_scene(ds.RenderOptions.opengl(shading="flat")),
     "gouraud, hard-edged box": lambda: _hard_box_scene(ds.RenderOptions.opengl()),
     "phong (GLSL), all lights, back material, exp2 fog": lambda: make_scene("all-lights-back-material-exp2", "phong"),
-    "phong (GLSL), blinn, smooth spot, per-light ambient": lambda: (
-        lambda s, o: (s, o.with_keys(fresnel="none")))(*make_scene("dielectric-spot-smooth-light-ambient", "phong")),
+    "phong (GLSL), blinn, smooth spot, per-light ambient": lambda: (lambda s, o: (s, o.with_keys(fresnel="none")))(
+        *make_scene("dielectric-spot-smooth-light-ambient", "phong")
+    ),
     "phong (GLSL), linear fog by depth, clamped": lambda: make_scene("linear-fog-depth-clamped", "phong"),
     "phong (GLSL), emission and ambient only": lambda: make_scene("emission+ambient", "phong"),
     "phong (GLSL), blinn, infinite viewer, hard box": lambda: _hard_box_scene(
-        ds.RenderOptions(raster=ds.Raster(shading="phong"),
-                         lighting=ds.Lighting(specular="blinn", viewer="infinite", emission=True, per_light_ambient=True))),
+        ds.RenderOptions(
+            raster=ds.Raster(shading="phong"),
+            lighting=ds.Lighting(specular="blinn", viewer="infinite", emission=True, per_light_ambient=True),
+        )
+    ),
 }
 
 

@@ -14,8 +14,11 @@ from diffshade._options import KEYS
 def _valid_key_sets():
     """Flat key sets over the switches and a value of each group's own keys."""
     for shading, fog, shadows, tr, clamp in itertools.product(
-        ("flat", "gouraud", "phong"), ("none", "linear", "exp2"), ("none", "maps", "rays"), (False, True),
-        (False, "pixel", "vertex")
+        ("flat", "gouraud", "phong"),
+        ("none", "linear", "exp2"),
+        ("none", "maps", "rays"),
+        (False, True),
+        (False, "pixel", "vertex"),
     ):
         k = dict(shading=shading, fog=fog)
         if fog != "none":
@@ -46,9 +49,21 @@ def test_keys_round_trip():
 
 
 def test_groups_hold_the_keys():
-    opts = ds.RenderOptions.from_keys(shading="gouraud", specular="blinn", fog="exp2", fog_distance="depth",
-                                      shadows=True, shadow_resolution=128, shadow_pcf=3, transparency=True, layers=3,
-                                      absorption=True, clamp=True, clamp_at="pixel", ray_backend="jax")
+    opts = ds.RenderOptions.from_keys(
+        shading="gouraud",
+        specular="blinn",
+        fog="exp2",
+        fog_distance="depth",
+        shadows=True,
+        shadow_resolution=128,
+        shadow_pcf=3,
+        transparency=True,
+        layers=3,
+        absorption=True,
+        clamp=True,
+        clamp_at="pixel",
+        ray_backend="jax",
+    )
     assert opts.raster == ds.Raster(shading="gouraud")
     assert opts.lighting == ds.Lighting(specular="blinn")
     assert opts.shadows == ds.ShadowMaps(resolution=128, pcf=3)

@@ -7,32 +7,44 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import trimesh
-
-import diffshade as ds
-from diffshade import _native
 from conftest import check_grads, shared_mesh_dir
 from reference import brute_force
 
-BACKENDS = ["jax", pytest.param("native", marks=pytest.mark.skipif(not _native.available(), reason="native kernel unavailable: no C++ compiler, or JAX's default device is not the CPU"))]
+import diffshade as ds
+from diffshade import _native
+
+BACKENDS = [
+    "jax",
+    pytest.param(
+        "native",
+        marks=pytest.mark.skipif(
+            not _native.available(),
+            reason="native kernel unavailable: no C++ compiler, or JAX's default device is not the CPU",
+        ),
+    ),
+]
 TIE = dict(tie_eps=1e-5, depth_eps=1e-5)
 
 
 def camera(res=64, eye=(0.0, 0.0, 3.0), near=0.1, far=20.0):
     h, w = (res, res) if isinstance(res, int) else res
-    return ds.Camera(eye=eye, target=[0.0, 0.0, 0.0], up=[0.0, 1.0, 0.0], fov_y=45.0, near=near, far=far, width=w, height=h)
-
-
-@functools.lru_cache(maxsize=None)
-def _vis_fn(res_h, res_w, layers, backend, tile_capacity=None, pair_capacity=None):
-    return jax.jit(
-        lambda c, f: ds.visibility(c, f, (res_h, res_w), layers, backend, tile_capacity, pair_capacity)
+    return ds.Camera(
+        eye=eye, target=[0.0, 0.0, 0.0], up=[0.0, 1.0, 0.0], fov_y=45.0, near=near, far=far, width=w, height=h
     )
+
+
+@functools.cache
+def _vis_fn(res_h, res_w, layers, backend, tile_capacity=None, pair_capacity=None):
+    return jax.jit(lambda c, f: ds.visibility(c, f, (res_h, res_w), layers, backend, tile_capacity, pair_capacity))
 
 
 def vis(clip, faces, res, layers=1, backend="jax", **kw):
     h, w = (res, res) if isinstance(res, int) else res
-    return np.asarray(_vis_fn(h, w, layers, backend, kw.get("tile_capacity"), kw.get("pair_capacity"))(
-        jnp.asarray(clip, jnp.float32), jnp.asarray(faces, jnp.int32)))
+    return np.asarray(
+        _vis_fn(h, w, layers, backend, kw.get("tile_capacity"), kw.get("pair_capacity"))(
+            jnp.asarray(clip, jnp.float32), jnp.asarray(faces, jnp.int32)
+        )
+    )
 
 
 def random_soup(rng, n, spread=1.0, size=0.4):
@@ -88,14 +100,18 @@ def _unit(mesh):
 def test_shared_meshes_match_brute_force(name, meshes_dir):
     mesh = ds.load_mesh(os.path.join(meshes_dir, name))
     v, f = _unit(mesh)
-    cam = ds.Camera(eye=[1.2, 0.9, 2.4], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.1, far=10.0, width=40, height=40)
+    cam = ds.Camera(
+        eye=[1.2, 0.9, 2.4], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.1, far=10.0, width=40, height=40
+    )
     clip = np.asarray(cam.world_to_clip(jnp.asarray(v)))
     for backend in ["jax", "native"] if _native.available() else ["jax"]:
         ids = vis(clip, f, 40, 2, backend)
         assert_matches_reference(ids, clip, f, 40, 2, min_checked=0.75)
 
 
-@pytest.mark.skipif(not _native.available(), reason="native kernel unavailable: no C++ compiler, or JAX's default device is not the CPU")
+@pytest.mark.skipif(
+    not _native.available(), reason="native kernel unavailable: no C++ compiler, or JAX's default device is not the CPU"
+)
 def test_native_and_jax_agree_pixel_for_pixel(rng):
     # Bit-for-bit agreement, ties included: the bunny (which has duplicate faces, so exact depth
     # ties), a random soup, and a pixel-aligned grid whose edges and vertices pass through pixel
@@ -190,7 +206,9 @@ def test_triangle_larger_than_screen(backend):
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_degenerate_triangles_cover_nothing(backend, rng):
     v, f = random_soup(rng, 30)
-    degenerate_v = np.array([[0, 0, 0.5], [0, 0, 0.5], [0.3, 0.3, 0.5], [0.1, 0.1, 0.1], [0.2, 0.2, 0.2], [0.3, 0.3, 0.3]])
+    degenerate_v = np.array(
+        [[0, 0, 0.5], [0, 0, 0.5], [0.3, 0.3, 0.5], [0.1, 0.1, 0.1], [0.2, 0.2, 0.2], [0.3, 0.3, 0.3]]
+    )
     v2 = np.concatenate([degenerate_v, v])
     f2 = np.concatenate([[[0, 1, 2], [3, 4, 5], [0, 0, 0]], f + len(degenerate_v)])
     cam = camera(48)
@@ -258,7 +276,10 @@ def test_vmap_over_vertices(backend, rng):
     f = jnp.asarray(m.faces)
     cam = camera(32)
     vs = jnp.stack([jnp.asarray(m.vertices) * s + o for s, o in [(1.0, 0.0), (0.7, 0.2), (1.2, -0.1)]])
-    fn = lambda v: ds.rasterize(cam.world_to_clip(v), f, (32, 32), 2, backend)
+
+    def fn(v):
+        return ds.rasterize(cam.world_to_clip(v), f, (32, 32), 2, backend)
+
     batched = jax.jit(jax.vmap(fn))(vs)
     for i in range(3):
         single = fn(vs[i])
@@ -275,8 +296,12 @@ def test_bary_reproduce_pixel_position():
     c = ds.interpolate(clip, jnp.asarray(m.faces), fr)[0]
     xs, ys = ds.pixel_centres(32, 32, jnp.float64)
     mask = np.asarray(fr.tri_id[0] >= 0)
-    np.testing.assert_allclose(np.asarray(c[..., 0] / c[..., 3])[mask], np.broadcast_to(np.asarray(xs), (32, 32))[mask], atol=1e-9)
-    np.testing.assert_allclose(np.asarray(c[..., 1] / c[..., 3])[mask], np.broadcast_to(np.asarray(ys)[:, None], (32, 32))[mask], atol=1e-9)
+    np.testing.assert_allclose(
+        np.asarray(c[..., 0] / c[..., 3])[mask], np.broadcast_to(np.asarray(xs), (32, 32))[mask], atol=1e-9
+    )
+    np.testing.assert_allclose(
+        np.asarray(c[..., 1] / c[..., 3])[mask], np.broadcast_to(np.asarray(ys)[:, None], (32, 32))[mask], atol=1e-9
+    )
     np.testing.assert_allclose(np.asarray(c[..., 2] / c[..., 3])[mask], np.asarray(fr.depth[0])[mask], atol=1e-9)
 
 

@@ -8,11 +8,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import check_grads
 
 import diffshade as ds
 from diffshade import _rays
-
-from conftest import check_grads
 
 EMBREE = pytest.mark.skipif(not _rays.embree_available(), reason="embreex is not installed")
 
@@ -62,7 +61,9 @@ def test_embree_batches_split_over_threads_give_the_same_hits():
     one = sc.run(np.ascontiguousarray(o), np.ascontiguousarray(d))
     assert (one >= 0).sum() > n // 3 and (one < 0).sum() > 100
     for k in (2, 3):
-        np.testing.assert_array_equal(_rays._run_split(sc, np.ascontiguousarray(o), np.ascontiguousarray(d), threads=k), one)
+        np.testing.assert_array_equal(
+            _rays._run_split(sc, np.ascontiguousarray(o), np.ascontiguousarray(d), threads=k), one
+        )
     active = rng.uniform(size=n) < 0.7
     tmin = rng.uniform(0, 0.5, n).astype(np.float32)
     got = _rays._embree_hits(o, d, tmin, active, tris)
@@ -74,14 +75,25 @@ def test_embree_batches_split_over_threads_give_the_same_hits():
 
 def test_camera_rays_hit_what_the_rasterizer_sees():
     scene, opts = ds.default_scene()
-    cam = ds.Camera(eye=scene.camera.eye, target=scene.camera.target, up=scene.camera.up, fov_y=scene.camera.fov_y,
-                    near=scene.camera.near, far=scene.camera.far, width=40, height=30)
+    cam = ds.Camera(
+        eye=scene.camera.eye,
+        target=scene.camera.target,
+        up=scene.camera.up,
+        fov_y=scene.camera.fov_y,
+        near=scene.camera.near,
+        far=scene.camera.far,
+        width=40,
+        height=30,
+    )
     mesh = scene.mesh
     ids = np.asarray(ds.visibility(cam.world_to_clip(mesh.vertices), mesh.faces, cam.resolution, 1)[0])
     o, d = (np.asarray(a) for a in cam.pixel_rays(jnp.float64))  # a ray through each pixel centre
     for backend in ["jax"] + (["embree"] if _rays.embree_available() else []):
-        hit = np.asarray(_rays.first_hits(jnp.asarray(o), jnp.asarray(d), jnp.asarray(mesh.vertices, jnp.float64),
-                                          mesh.faces, backend=backend))
+        hit = np.asarray(
+            _rays.first_hits(
+                jnp.asarray(o), jnp.asarray(d), jnp.asarray(mesh.vertices, jnp.float64), mesh.faces, backend=backend
+            )
+        )
         clear = _edge_margin(mesh, o.reshape(-1, 3), d.reshape(-1, 3), ids.reshape(-1)).reshape(ids.shape) > 1e-4
         assert clear.mean() > 0.9 and (ids[clear] >= 0).sum() > 200
         np.testing.assert_array_equal(hit[clear], ids[clear])
@@ -114,8 +126,11 @@ def test_secondary_rays_leave_their_triangle(backend):
     d = d + 0.3 * rng.normal(size=d.shape)
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     skip = jnp.asarray(k, jnp.int32)
-    hit = np.asarray(_rays.first_hits(jnp.asarray(o), jnp.asarray(d), jnp.asarray(V), mesh.faces, tmin=1e-4,
-                                      skip=skip, backend=backend))
+    hit = np.asarray(
+        _rays.first_hits(
+            jnp.asarray(o), jnp.asarray(d), jnp.asarray(V), mesh.faces, tmin=1e-4, skip=skip, backend=backend
+        )
+    )
     assert (hit >= 0).all() and (hit != k).all()
     t, b1, b2, valid = _rays.intersect(jnp.asarray(o), jnp.asarray(d), jnp.asarray(V), mesh.faces, jnp.asarray(hit))
     assert bool(jnp.all(valid)) and float(jnp.min(t)) > 0.5  # it crossed the sphere
@@ -133,7 +148,7 @@ def test_intersect_is_exact_and_differentiable():
 
     def f(o, d, V):
         t, b1, b2, _ = _rays.intersect(o, d, V, F, ids)
-        return jnp.sum(t ** 2 + b1 * b2)
+        return jnp.sum(t**2 + b1 * b2)
 
     d2 = jnp.asarray([[0.1, -0.05, -1.0], [0.0, 0.0, -1.0]])
     check_grads(f, (o, d2, V), order=1, modes=("fwd", "rev"), atol=1e-7, rtol=1e-7)

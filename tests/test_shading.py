@@ -13,9 +13,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import trimesh
+from reference_shade import Ref, vertex_normals
 
 import diffshade as ds
-from reference_shade import Ref, vertex_normals
 
 W, H = 40, 32
 
@@ -33,13 +33,36 @@ def scene_mesh():
 
 
 LIGHTS = {
-    "directional": dict(directional=ds.DirectionalLights(color=[[0.9, 0.8, 0.7]], direction=[[-0.4, -0.5, -1.0]], ambient=[[0.05, 0.04, 0.03]])),
-    "point": dict(point=ds.PointLights(color=[[1.0, 0.9, 0.8]], position=[[1.2, 1.5, 2.0]], attenuation=[[1.0, 0.2, 0.05]], ambient=[[0.1, 0.05, 0.0]])),
-    "spot": dict(spot=ds.SpotLights(color=[[1.2, 1.0, 0.9]], position=[[-0.5, 0.8, 2.5]], attenuation=[[0.8, 0.1, 0.02]], ambient=[[0.02, 0.03, 0.04]],
-                                    axis=[[0.15, -0.3, -1.0]], cutoff=[22.0], exponent=[3.0], edge=[6.0])),
+    "directional": dict(
+        directional=ds.DirectionalLights(
+            color=[[0.9, 0.8, 0.7]], direction=[[-0.4, -0.5, -1.0]], ambient=[[0.05, 0.04, 0.03]]
+        )
+    ),
+    "point": dict(
+        point=ds.PointLights(
+            color=[[1.0, 0.9, 0.8]],
+            position=[[1.2, 1.5, 2.0]],
+            attenuation=[[1.0, 0.2, 0.05]],
+            ambient=[[0.1, 0.05, 0.0]],
+        )
+    ),
+    "spot": dict(
+        spot=ds.SpotLights(
+            color=[[1.2, 1.0, 0.9]],
+            position=[[-0.5, 0.8, 2.5]],
+            attenuation=[[0.8, 0.1, 0.02]],
+            ambient=[[0.02, 0.03, 0.04]],
+            axis=[[0.15, -0.3, -1.0]],
+            cutoff=[22.0],
+            exponent=[3.0],
+            edge=[6.0],
+        )
+    ),
 }
 # A light behind the plane (lights its back-facing side with the normal as given).
-BEHIND = ds.PointLights(color=[[0.7, 0.7, 0.9]], position=[[0.5, -0.5, -3.0]], attenuation=[[1.0, 0.0, 0.02]], ambient=[[0.0, 0.0, 0.0]])
+BEHIND = ds.PointLights(
+    color=[[0.7, 0.7, 0.9]], position=[[0.5, -0.5, -3.0]], attenuation=[[1.0, 0.0, 0.02]], ambient=[[0.0, 0.0, 0.0]]
+)
 
 CONFIGS = {
     # name: (lights, the scene file's flat render keys); "back_material": the scene keeps its back
@@ -48,8 +71,14 @@ CONFIGS = {
     "diffuse-directional": (["directional"], dict(ambient=False, specular="none")),
     "phong-point": (["point"], dict(specular="phong")),
     "blinn-schlick-spot-hard": (["spot"], dict(specular="blinn", fresnel="schlick")),
-    "dielectric-spot-smooth-light-ambient": (["spot", "point"], dict(specular="blinn", fresnel="dielectric", spot_edge="smooth", per_light_ambient=True, emission=True)),
-    "all-lights-back-material-exp2": (["directional", "point", "spot"], dict(back_material=True, fog="exp2", per_light_ambient=True)),
+    "dielectric-spot-smooth-light-ambient": (
+        ["spot", "point"],
+        dict(specular="blinn", fresnel="dielectric", spot_edge="smooth", per_light_ambient=True, emission=True),
+    ),
+    "all-lights-back-material-exp2": (
+        ["directional", "point", "spot"],
+        dict(back_material=True, fog="exp2", per_light_ambient=True),
+    ),
     "linear-fog-depth-clamped": (["point", "directional"], dict(fog="linear", fog_distance="depth", clamp=True)),
     "linear-fog-start-equals-end": (["point"], dict(fog="linear")),
     "exp-fog-one-sided": (["point", "behind"], dict(fog="exp", two_sided=False)),
@@ -57,12 +86,18 @@ CONFIGS = {
     # OpenGL's fixed-function choices (RenderOptions.opengl), lights with separate specular colours,
     # a bright point light so that vertices saturate (the clamp order matters)
     "opengl-specular-colours": (["directional", "bright", "spot"], dict(compat="opengl", fog="exp")),
-    "opengl-separate-specular": (["bright", "spot"], dict(compat="opengl", color_sum="separate", two_sided=True,
-                                                           back_material=True)),
-    "infinite-viewer-vertex-clamp": (["point", "directional"], dict(viewer="infinite", clamp=True, clamp_at="vertex",
-                                                                    specular="blinn")),
+    "opengl-separate-specular": (
+        ["bright", "spot"],
+        dict(compat="opengl", color_sum="separate", two_sided=True, back_material=True),
+    ),
+    "infinite-viewer-vertex-clamp": (
+        ["point", "directional"],
+        dict(viewer="infinite", clamp=True, clamp_at="vertex", specular="blinn"),
+    ),
 }
-BRIGHT = ds.PointLights(color=[[2.2, 1.9, 1.6]], position=[[0.8, 1.0, 1.6]], attenuation=[[1.0, 0.1, 0.05]], ambient=[[0.2, 0.1, 0.1]])
+BRIGHT = ds.PointLights(
+    color=[[2.2, 1.9, 1.6]], position=[[0.8, 1.0, 1.6]], attenuation=[[1.0, 0.1, 0.05]], ambient=[[0.2, 0.1, 0.1]]
+)
 
 
 def make_scene(config, shading, dtype=jnp.float64, **keys):
@@ -74,7 +109,11 @@ def make_scene(config, shading, dtype=jnp.float64, **keys):
         if n == "bright":
             lights["point"] = BRIGHT
         elif n == "behind":
-            lights["point"] = BEHIND if "point" not in lights else jax.tree.map(lambda a, b: jnp.concatenate([a, b]), lights["point"], BEHIND)
+            lights["point"] = (
+                BEHIND
+                if "point" not in lights
+                else jax.tree.map(lambda a, b: jnp.concatenate([a, b]), lights["point"], BEHIND)
+            )
         else:
             lights.update(LIGHTS[n])
     fog = ds.Fog(color=[0.5, 0.55, 0.6], start=2.5, end=4.2, density=0.35)
@@ -82,22 +121,52 @@ def make_scene(config, shading, dtype=jnp.float64, **keys):
         fog = ds.Fog(color=[0.5, 0.55, 0.6], start=3.6, end=3.6, density=0.35)
     scene = ds.Scene(
         mesh=ds.Mesh(vertices=v, faces=f),
-        camera=ds.Camera(eye=[0.3, 0.2, 3.0], target=[0.0, 0.0, -0.2], up=[0.0, 1.0, 0.0], fov_y=50.0, near=0.5, far=20.0, width=W, height=H),
-        material=ds.Material(emission=[0.03, 0.02, 0.01], ambient=[0.2, 0.15, 0.1], diffuse=[0.7, 0.5, 0.3], specular=[0.6, 0.5, 0.4], shininess=12.0, ior=1.6),
-        back_material=ds.Material(emission=[0.0, 0.01, 0.02], ambient=[0.1, 0.2, 0.3], diffuse=[0.2, 0.6, 0.4], specular=[0.3, 0.3, 0.5], shininess=5.0, ior=1.3),
-        ambient_light=[0.25, 0.3, 0.35], background=[0.05, 0.1, 0.15], fog=fog, **lights,
+        camera=ds.Camera(
+            eye=[0.3, 0.2, 3.0],
+            target=[0.0, 0.0, -0.2],
+            up=[0.0, 1.0, 0.0],
+            fov_y=50.0,
+            near=0.5,
+            far=20.0,
+            width=W,
+            height=H,
+        ),
+        material=ds.Material(
+            emission=[0.03, 0.02, 0.01],
+            ambient=[0.2, 0.15, 0.1],
+            diffuse=[0.7, 0.5, 0.3],
+            specular=[0.6, 0.5, 0.4],
+            shininess=12.0,
+            ior=1.6,
+        ),
+        back_material=ds.Material(
+            emission=[0.0, 0.01, 0.02],
+            ambient=[0.1, 0.2, 0.3],
+            diffuse=[0.2, 0.6, 0.4],
+            specular=[0.3, 0.3, 0.5],
+            shininess=5.0,
+            ior=1.3,
+        ),
+        ambient_light=[0.25, 0.3, 0.35],
+        background=[0.05, 0.1, 0.15],
+        fog=fog,
+        **lights,
     )
     if config.startswith("opengl"):  # separate specular colours (white, blue-ish, none at all)
         spec = {"directional": [[1.0, 1.0, 1.0]], "point": [[0.6, 0.7, 1.4]], "spot": [[0.0, 0.0, 0.0]]}
         for kind in names:
             kind = "point" if kind == "bright" else kind
-            scene = eqx.tree_at(lambda s: getattr(s, kind).specular, scene, jnp.asarray(spec[kind]),
-                                is_leaf=lambda x: x is None)
+            scene = eqx.tree_at(
+                lambda s: getattr(s, kind).specular, scene, jnp.asarray(spec[kind]), is_leaf=lambda x: x is None
+            )
     scene = jax.tree.map(lambda a: a.astype(dtype) if jnp.issubdtype(a.dtype, jnp.floating) else a, scene)
     kw = {**kw, **keys}
     back = kw.pop("back_material", False)
-    opts = (ds.RenderOptions.opengl(shading=shading, **kw) if kw.pop("compat", None) == "opengl"
-            else ds.RenderOptions.from_keys(shading=shading, **kw))
+    opts = (
+        ds.RenderOptions.opengl(shading=shading, **kw)
+        if kw.pop("compat", None) == "opengl"
+        else ds.RenderOptions.from_keys(shading=shading, **kw)
+    )
     # the scene's back material lights back faces under two-sided lighting: kept where the config
     # says back_material (and under one-sided lighting, where it is unused), else removed
     if not back and opts.lighting.two_sided:
@@ -107,27 +176,62 @@ def make_scene(config, shading, dtype=jnp.float64, **keys):
 
 def to_ref(scene: ds.Scene) -> dict:
     a = lambda x: np.asarray(x, np.float64)  # noqa: E731
-    mat = lambda m: {k: a(getattr(m, k)) for k in ("emission", "ambient", "diffuse", "specular")} | {"shininess": float(m.shininess), "ior": float(m.ior)}  # noqa: E731
+
+    def mat(m):
+        return {k: a(getattr(m, k)) for k in ("emission", "ambient", "diffuse", "specular")} | {
+            "shininess": float(m.shininess),
+            "ior": float(m.ior),
+        }
+
     spec = lambda k, i: a(k.color[i] if k.specular is None else k.specular[i])  # noqa: E731
     cam = scene.camera
     V, F = a(scene.mesh.vertices), np.asarray(scene.mesh.faces)
     d, p, s = scene.directional, scene.point, scene.spot
     return {
-        "vertices": V, "faces": F, "normals": vertex_normals(V, F),
-        "eye": a(cam.eye), "target": a(cam.target), "up": a(cam.up), "fov_y": float(cam.fov_y),
-        "near": float(cam.near), "far": float(cam.far), "width": cam.width, "height": cam.height,
-        "material": mat(scene.material), "back_material": mat(scene.back_material or scene.material),
+        "vertices": V,
+        "faces": F,
+        "normals": vertex_normals(V, F),
+        "eye": a(cam.eye),
+        "target": a(cam.target),
+        "up": a(cam.up),
+        "fov_y": float(cam.fov_y),
+        "near": float(cam.near),
+        "far": float(cam.far),
+        "width": cam.width,
+        "height": cam.height,
+        "material": mat(scene.material),
+        "back_material": mat(scene.back_material or scene.material),
         "directional": [(a(d.color[i]), a(d.direction[i]), a(d.ambient[i]), spec(d, i)) for i in range(d.count)],
-        "point": [(a(p.color[i]), a(p.position[i]), a(p.attenuation[i]), a(p.ambient[i]), spec(p, i)) for i in range(p.count)],
-        "spot": [(a(s.color[i]), a(s.position[i]), a(s.attenuation[i]), a(s.ambient[i]), a(s.axis[i]), float(s.cutoff[i]),
-                  float(s.exponent[i]), float(s.edge[i]), spec(s, i)) for i in range(s.count)],
-        "ambient_light": a(scene.ambient_light), "background": a(scene.background),
+        "point": [
+            (a(p.color[i]), a(p.position[i]), a(p.attenuation[i]), a(p.ambient[i]), spec(p, i)) for i in range(p.count)
+        ],
+        "spot": [
+            (
+                a(s.color[i]),
+                a(s.position[i]),
+                a(s.attenuation[i]),
+                a(s.ambient[i]),
+                a(s.axis[i]),
+                float(s.cutoff[i]),
+                float(s.exponent[i]),
+                float(s.edge[i]),
+                spec(s, i),
+            )
+            for i in range(s.count)
+        ],
+        "ambient_light": a(scene.ambient_light),
+        "background": a(scene.background),
         "colors": None if scene.mesh.colors is None else a(scene.mesh.colors),
-        "fog": {"color": a(scene.fog.color), "start": float(scene.fog.start), "end": float(scene.fog.end), "density": float(scene.fog.density)},
+        "fog": {
+            "color": a(scene.fog.color),
+            "start": float(scene.fog.start),
+            "end": float(scene.fog.end),
+            "density": float(scene.fog.density),
+        },
     }
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _render_fn(opts):
     return jax.jit(lambda s: (ds.render(s, opts), ds.scene_visibility(s, opts)[0]))
 
@@ -148,8 +252,10 @@ def test_render_matches_reference(config, shading):
     assert np.isfinite(img).all()
 
 
-@pytest.mark.parametrize("shading, mode", [("flat", "diffuse"), ("gouraud", "ambient_and_diffuse"),
-                                           ("phong", "diffuse"), ("phong", "ambient_and_diffuse")])
+@pytest.mark.parametrize(
+    "shading, mode",
+    [("flat", "diffuse"), ("gouraud", "ambient_and_diffuse"), ("phong", "diffuse"), ("phong", "ambient_and_diffuse")],
+)
 def test_vertex_colours_match_reference(shading, mode):
     """Per-vertex colours in place of k_d (and k_a), glColorMaterial's way: interpolated per pixel
     (Phong), lit at the vertices (Gouraud), averaged over the face (flat)."""
@@ -178,11 +284,16 @@ def test_vertex_colours_equal_to_the_material_change_nothing():
     nv = scene.mesh.vertices.shape[0]
     # ambient and diffuse differ in the material: a colour can stand for both only in "diffuse" mode
     col = jnp.broadcast_to(m.diffuse, (nv, 3))
-    with_col = eqx.tree_at(lambda s: (s.mesh.colors, s.material.ambient), scene, (col, m.diffuse),
-                           is_leaf=lambda x: x is None)
+    with_col = eqx.tree_at(
+        lambda s: (s.mesh.colors, s.material.ambient), scene, (col, m.diffuse), is_leaf=lambda x: x is None
+    )
     plain = eqx.tree_at(lambda s: s.material.ambient, scene, m.diffuse)
-    np.testing.assert_allclose(np.asarray(_render_fn(opts)(with_col)[0]),
-                               np.asarray(_render_fn(opts.with_keys(vertex_color="none"))(plain)[0]), rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(
+        np.asarray(_render_fn(opts)(with_col)[0]),
+        np.asarray(_render_fn(opts.with_keys(vertex_color="none"))(plain)[0]),
+        rtol=1e-12,
+        atol=1e-14,
+    )
     with pytest.raises(ValueError, match="the mesh has no colours"):
         ds.render(scene, opts)
 
@@ -200,8 +311,11 @@ def test_linear_in_light_colour_and_additive_over_lights():
     ids = np.asarray(f(scene)[1])
     lit = img[ids >= 0]
     # Linear: every light colour times 2.5 scales the (direct-only) image by 2.5.
-    s2 = eqx.tree_at(lambda s: (s.directional.color, s.point.color, s.spot.color), scene,
-                     (2.5 * scene.directional.color, 2.5 * scene.point.color, 2.5 * scene.spot.color))
+    s2 = eqx.tree_at(
+        lambda s: (s.directional.color, s.point.color, s.spot.color),
+        scene,
+        (2.5 * scene.directional.color, 2.5 * scene.point.color, 2.5 * scene.spot.color),
+    )
     np.testing.assert_allclose(np.asarray(f(s2)[0])[ids >= 0], 2.5 * lit, rtol=1e-10, atol=1e-12)
     np.testing.assert_allclose(np.asarray(f(s2)[0])[ids < 0], np.broadcast_to(bg, (int((ids < 0).sum()), 3)))
     # Additive: the sum of the images lit by each light alone (same static light counts, the
@@ -222,7 +336,11 @@ def _rigid(scene, R, t):
     pt = lambda p: p @ R.T + t  # noqa: E731
     dv = lambda d: d @ R.T  # noqa: E731
     s = eqx.tree_at(lambda s: s.mesh.vertices, scene, pt(scene.mesh.vertices))
-    s = eqx.tree_at(lambda s: (s.camera.eye, s.camera.target, s.camera.up), s, (pt(scene.camera.eye), pt(scene.camera.target), dv(scene.camera.up)))
+    s = eqx.tree_at(
+        lambda s: (s.camera.eye, s.camera.target, s.camera.up),
+        s,
+        (pt(scene.camera.eye), pt(scene.camera.target), dv(scene.camera.up)),
+    )
     s = eqx.tree_at(lambda s: s.directional.direction, s, dv(scene.directional.direction))
     s = eqx.tree_at(lambda s: s.point.position, s, pt(scene.point.position))
     s = eqx.tree_at(lambda s: (s.spot.position, s.spot.axis), s, (pt(scene.spot.position), dv(scene.spot.axis)))
@@ -252,12 +370,23 @@ def test_sphere_directional_closed_form_all_pixels():
     # Phong shading of a fine icosphere: every interior pixel within the tessellation error of
     # the analytic image k_a I_a + k_d I_p max(n.l, 0), n the sphere normal where the ray hits.
     m = ds.icosphere(5)
-    cam = ds.Camera(eye=[0, 0, 4.0], target=[0, 0, 0], up=[0, 1, 0], fov_y=40.0, near=1.0, far=10.0, width=48, height=48)
+    cam = ds.Camera(
+        eye=[0, 0, 4.0], target=[0, 0, 0], up=[0, 1, 0], fov_y=40.0, near=1.0, far=10.0, width=48, height=48
+    )
     light = ds.DirectionalLights(color=[[0.9, 0.8, 0.7]], direction=[[0.3, -0.4, -1.0]], ambient=[[0.0, 0.0, 0.0]])
     mat = ds.Material(ambient=[0.1, 0.2, 0.3], diffuse=[0.6, 0.5, 0.4])
     scene = ds.Scene(mesh=m, camera=cam, material=mat, directional=light, ambient_light=[0.5, 0.5, 0.5])
-    img = np.asarray(ds.render(scene, ds.RenderOptions(raster=ds.Raster(shading="phong"), lighting=ds.Lighting(specular="none"))))
-    cam_only = {"eye": np.array([0, 0, 4.0]), "target": np.zeros(3), "up": np.array([0, 1.0, 0]), "fov_y": 40.0, "width": 48, "height": 48}
+    img = np.asarray(
+        ds.render(scene, ds.RenderOptions(raster=ds.Raster(shading="phong"), lighting=ds.Lighting(specular="none")))
+    )
+    cam_only = {
+        "eye": np.array([0, 0, 4.0]),
+        "target": np.zeros(3),
+        "up": np.array([0, 1.0, 0]),
+        "fov_y": 40.0,
+        "width": 48,
+        "height": 48,
+    }
     ref = Ref(cam_only, ds.RenderOptions())
     l = -np.array([0.3, -0.4, -1.0]) / np.linalg.norm([0.3, -0.4, -1.0])
     errs = []
@@ -270,7 +399,9 @@ def test_sphere_directional_closed_form_all_pixels():
             if disc < 0.05:  # misses, or too close to the silhouette for the tessellation
                 continue
             P = o + (-b - np.sqrt(disc)) * d
-            expected = 0.5 * np.array([0.1, 0.2, 0.3]) + np.array([0.6, 0.5, 0.4]) * np.array([0.9, 0.8, 0.7]) * max(np.dot(P, l), 0)
+            expected = 0.5 * np.array([0.1, 0.2, 0.3]) + np.array([0.6, 0.5, 0.4]) * np.array([0.9, 0.8, 0.7]) * max(
+                np.dot(P, l), 0
+            )
             errs.append(np.abs(img[j, i] - expected).max())
     assert len(errs) > 700
     assert max(errs) < 5e-3 and np.median(errs) < 1e-3

@@ -14,12 +14,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from conftest import small_default_scene
 
 import diffshade as ds
 from fitting import Observations
 from fitting._problem import Problem, ViewData, stack_views, view_devices
-
-from conftest import small_default_scene
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 WORKER = os.path.join(HERE, "sharded_fit.py")
@@ -35,8 +34,14 @@ def _run(args, env_extra):
     env = dict(os.environ)
     env.pop("XLA_FLAGS", None)
     env.update(env_extra)
-    return subprocess.Popen([sys.executable, WORKER, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env=env, cwd=os.path.join(HERE, ".."))
+    return subprocess.Popen(
+        [sys.executable, WORKER, *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        cwd=os.path.join(HERE, ".."),
+    )
 
 
 def _result(p, timeout=420):
@@ -51,8 +56,17 @@ def _views(n=3):
     for k in range(n):
         a = 2 * np.pi * k / n
         c = scene.camera
-        cam = ds.Camera(eye=[3 * np.sin(a), 0.5, 3 * np.cos(a)], target=c.target, up=c.up, fov_y=c.fov_y,
-                        near=c.near, far=c.far, width=32, height=32, exposure=1.0 + 0.2 * k)
+        cam = ds.Camera(
+            eye=[3 * np.sin(a), 0.5, 3 * np.cos(a)],
+            target=c.target,
+            up=c.up,
+            fov_y=c.fov_y,
+            near=c.near,
+            far=c.far,
+            width=32,
+            height=32,
+            exposure=1.0 + 0.2 * k,
+        )
         out.append(eqx.tree_at(lambda s: s.camera, scene, cam))
     return scene, opts, out
 
@@ -87,8 +101,11 @@ def test_views_of_another_structure_are_not_stacked():
     """A view with another image size (or light count) is its own piece of the program."""
     scene, opts, views = _views(2)
     c = views[1].camera
-    big = eqx.tree_at(lambda s: s.camera, views[1], ds.Camera(eye=c.eye, target=c.target, up=c.up, fov_y=c.fov_y,
-                                                                 near=c.near, far=c.far, width=40, height=40))
+    big = eqx.tree_at(
+        lambda s: s.camera,
+        views[1],
+        ds.Camera(eye=c.eye, target=c.target, up=c.up, fov_y=c.fov_y, near=c.near, far=c.far, width=40, height=40),
+    )
     targets = [np.asarray(ds.render(v, opts)) for v in (views[0], big)]
     prob = Problem.build(scene, opts, Observations(targets, views=[views[0], big]), ["material.diffuse"])
     assert not prob.stacked and isinstance(prob.device_data(), list)

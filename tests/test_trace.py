@@ -7,11 +7,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import check_grads
 
 import diffshade as ds
 from diffshade import _rays
-
-from conftest import check_grads
 
 _render = jax.jit(ds.render, static_argnames="opts")
 
@@ -23,15 +22,38 @@ def _f64(scene):
 
 
 def _scene(floor=None, ball=None, size=(32, 24), render=None, lights=None, ico=3):
-    d = {"camera": {"eye": [0, 1.5, 4], "target": [0, 0, 0], "up": [0, 1, 0], "fov_y": 45, "near": 0.1, "far": 50,
-                    "width": size[0], "height": size[1]},
-         "render": {"shading": "phong", "specular": "blinn", "fog": "none", **(render or {})},
-         "object": [{"icosphere": ico, "translate": [0, 0.3, 0], "scale": 0.7,
-                     "material": {"diffuse": [0.8, 0.3, 0.2], "specular": 0.4, "shininess": 40, **(ball or {})}},
-                    {"quad": [10, 10], "normal": [0, 1, 0], "translate": [0, -0.7, 0],
-                     "material": {"diffuse": 0.5, "specular": 0.0, **(floor or {})}}],
-         "light": lights or [{"type": "point", "position": [2, 3, 3], "attenuation": [1, 0, 0.02]},
-                             {"type": "directional", "direction": [-1, -1, -0.5], "color": 0.3}]}
+    d = {
+        "camera": {
+            "eye": [0, 1.5, 4],
+            "target": [0, 0, 0],
+            "up": [0, 1, 0],
+            "fov_y": 45,
+            "near": 0.1,
+            "far": 50,
+            "width": size[0],
+            "height": size[1],
+        },
+        "render": {"shading": "phong", "specular": "blinn", "fog": "none", **(render or {})},
+        "object": [
+            {
+                "icosphere": ico,
+                "translate": [0, 0.3, 0],
+                "scale": 0.7,
+                "material": {"diffuse": [0.8, 0.3, 0.2], "specular": 0.4, "shininess": 40, **(ball or {})},
+            },
+            {
+                "quad": [10, 10],
+                "normal": [0, 1, 0],
+                "translate": [0, -0.7, 0],
+                "material": {"diffuse": 0.5, "specular": 0.0, **(floor or {})},
+            },
+        ],
+        "light": lights
+        or [
+            {"type": "point", "position": [2, 3, 3], "attenuation": [1, 0, 0.02]},
+            {"type": "directional", "direction": [-1, -1, -0.5], "color": 0.3},
+        ],
+    }
     if d["render"]["fog"] != "none":
         d["fog"] = {"color": [0.5, 0.5, 0.6], "density": 0.15, "start": 2.0, "end": 9.0}
     scene, opts = ds.scene_from_dict(d)
@@ -42,10 +64,15 @@ _NO_EMBREE = pytest.mark.skipif(not _rays.embree_available(), reason="no embreex
 
 
 # both engines on the plain options; the other options (terms, not engines) on the default engine
-@pytest.mark.parametrize("render,backend", [
-    ({}, "jax"), pytest.param({}, "embree", marks=_NO_EMBREE),
-    ({"fog": "exp", "two_sided": True, "per_light_ambient": True}, "auto"),
-    ({"specular": "phong", "fresnel": "schlick", "viewer": "infinite"}, "auto")])
+@pytest.mark.parametrize(
+    "render,backend",
+    [
+        ({}, "jax"),
+        pytest.param({}, "embree", marks=_NO_EMBREE),
+        ({"fog": "exp", "two_sided": True, "per_light_ambient": True}, "auto"),
+        ({"specular": "phong", "fresnel": "schlick", "viewer": "infinite"}, "auto"),
+    ],
+)
 def test_without_mirrors_or_glass_the_modes_agree_exactly(backend, render):
     scene, opts = _scene(render=render)
     raster = _render(scene, opts)
@@ -58,8 +85,11 @@ def test_without_mirrors_or_glass_the_modes_agree_exactly(backend, render):
 def test_shadow_rays_give_the_exact_shadow_of_a_sphere(backend):
     # light straight down: the sphere (radius 0.7 at x = z = 0) shades the disc of radius 0.7 on
     # the floor; every floor pixel away from the disc's edge is lit or not as the disc says
-    scene, opts = _scene(size=(48, 36), lights=[{"type": "directional", "direction": [0, -1, 0], "color": 1.0}],
-                         render={"ambient": False, "specular": "none"})
+    scene, opts = _scene(
+        size=(48, 36),
+        lights=[{"type": "directional", "direction": [0, -1, 0], "color": 1.0}],
+        render={"ambient": False, "specular": "none"},
+    )
     opts = opts.with_keys(shadow_rays=True, ray_backend=backend)
     img = np.asarray(_render(scene, opts))
     ids = np.asarray(ds.scene_visibility(scene, opts)[0])
@@ -82,7 +112,9 @@ def test_a_mirror_floor_shows_what_the_mirror_ray_meets(backend):
     # a perfect black mirror (k_d = 0, k_r = 1): a floor pixel is the background where the mirror
     # ray misses the sphere and the sphere's colour where it meets it
     scene, opts = _scene(floor={"diffuse": 0.0, "ambient": 0.0, "mirror": 1.0}, render={"ambient": False})
-    scene = ds.Scene(**{**{f: getattr(scene, f) for f in scene.__dataclass_fields__}, "background": jnp.asarray([0.1, 0.2, 0.3])})
+    scene = ds.Scene(
+        **{**{f: getattr(scene, f) for f in scene.__dataclass_fields__}, "background": jnp.asarray([0.1, 0.2, 0.3])}
+    )
     img = np.asarray(_render(scene, opts.with_keys(ray_depth=1, ray_backend=backend)))
     raster = np.asarray(_render(scene, opts))
     ids = np.asarray(ds.scene_visibility(scene, opts)[0])
@@ -100,7 +132,7 @@ def test_a_mirror_floor_shows_what_the_mirror_ray_meets(backend):
     R = d * [1, -1, 1]
     oc = hit - [0, 0.3, 0]
     b = np.sum(oc * R, -1)
-    disc = b * b - (np.sum(oc * oc, -1) - 0.7 ** 2)
+    disc = b * b - (np.sum(oc * oc, -1) - 0.7**2)
     meets = disc > 0.05  # clearly through the (faceted) sphere
     misses = disc < -0.05
     assert (floor & meets).sum() > 5
@@ -109,16 +141,48 @@ def test_a_mirror_floor_shows_what_the_mirror_ray_meets(backend):
 
 def _slab_scene(eta, backend, depth=3):
     # a glass slab (a box, thickness 0.5 along z) in front of a two-colour wall: refraction
-    d = {"camera": {"eye": [0.0, 0.0, 4.0], "target": [0, 0, 0], "up": [0, 1, 0], "fov_y": 30, "near": 0.1, "far": 50,
-                    "width": 20, "height": 16},
-         "render": {"shading": "phong", "specular": "none", "fog": "none", "ambient": False, "ray_depth": depth,
-                    "ray_backend": backend},
-         "object": [{"box": [1.2, 1.2, 0.5], "translate": [0, 0, 1.0],
-                     "material": {"diffuse": 0.0, "ambient": 0.0, "specular": 0.0, "refraction": 1.0, "ior": eta,
-                                  "absorption": [0.2, 0.4, 0.8]}},
-                    {"quad": [6, 6], "normal": [0, 0, 1], "translate": [0, 0, -1.0], "divisions": 4,
-                     "material": {"diffuse": [0.9, 0.6, 0.3], "specular": 0.0}}],
-         "light": [{"type": "directional", "direction": [0.3, -0.2, -1.0], "color": 1.0}]}
+    d = {
+        "camera": {
+            "eye": [0.0, 0.0, 4.0],
+            "target": [0, 0, 0],
+            "up": [0, 1, 0],
+            "fov_y": 30,
+            "near": 0.1,
+            "far": 50,
+            "width": 20,
+            "height": 16,
+        },
+        "render": {
+            "shading": "phong",
+            "specular": "none",
+            "fog": "none",
+            "ambient": False,
+            "ray_depth": depth,
+            "ray_backend": backend,
+        },
+        "object": [
+            {
+                "box": [1.2, 1.2, 0.5],
+                "translate": [0, 0, 1.0],
+                "material": {
+                    "diffuse": 0.0,
+                    "ambient": 0.0,
+                    "specular": 0.0,
+                    "refraction": 1.0,
+                    "ior": eta,
+                    "absorption": [0.2, 0.4, 0.8],
+                },
+            },
+            {
+                "quad": [6, 6],
+                "normal": [0, 0, 1],
+                "translate": [0, 0, -1.0],
+                "divisions": 4,
+                "material": {"diffuse": [0.9, 0.6, 0.3], "specular": 0.0},
+            },
+        ],
+        "light": [{"type": "directional", "direction": [0.3, -0.2, -1.0], "color": 1.0}],
+    }
     scene, opts = ds.scene_from_dict(d)
     return _f64(scene), opts
 
@@ -133,9 +197,12 @@ def test_refraction_through_a_slab_is_absorbed_by_its_true_path(backend):
     centre = img[7:9, 9:11].reshape(-1, 3)  # rays through the slab's middle (almost normal incidence)
     assert (ids[7:9, 9:11] >= 0).all() and (ids[7:9, 9:11] < 12).all()
     # the wall seen through the slab: its colour (lit by the directional light) times the absorption
-    wall_colour = np.array([0.9, 0.6, 0.3]) * max(0.0, np.dot([0, 0, 1], -np.array([0.3, -0.2, -1.0]) / np.linalg.norm([0.3, -0.2, -1.0])))
-    np.testing.assert_allclose(centre, np.broadcast_to(wall_colour * np.exp(-np.array([0.2, 0.4, 0.8]) * 0.5), centre.shape),
-                               rtol=2e-2)
+    wall_colour = np.array([0.9, 0.6, 0.3]) * max(
+        0.0, np.dot([0, 0, 1], -np.array([0.3, -0.2, -1.0]) / np.linalg.norm([0.3, -0.2, -1.0]))
+    )
+    np.testing.assert_allclose(
+        centre, np.broadcast_to(wall_colour * np.exp(-np.array([0.2, 0.4, 0.8]) * 0.5), centre.shape), rtol=2e-2
+    )
     assert np.abs(wall[7:9, 9:11]).max() < 1e-12  # the rasterizer sees the (black) slab
 
 
@@ -146,10 +213,18 @@ def test_traced_gradients_match_finite_differences():
     assert mat is not None
 
     def f(ior, mu, kr, kd_wall):
-        m = ds.Material(**{**{k: getattr(scene.material, k) for k in scene.material.__dataclass_fields__}, "ior": ior,
-                           "absorption": mu, "mirror": kr})
+        m = ds.Material(
+            **{
+                **{k: getattr(scene.material, k) for k in scene.material.__dataclass_fields__},
+                "ior": ior,
+                "absorption": mu,
+                "mirror": kr,
+            }
+        )
         w = ds.Material(**{**{k: getattr(mat, k) for k in mat.__dataclass_fields__}, "diffuse": kd_wall})
-        sc = ds.Scene(**{**{k: getattr(scene, k) for k in scene.__dataclass_fields__}, "material": m, "materials": (w,)})
+        sc = ds.Scene(
+            **{**{k: getattr(scene, k) for k in scene.__dataclass_fields__}, "material": m, "materials": (w,)}
+        )
         return jnp.sum(ds.render(sc, opts, ids) ** 2)
 
     args = (scene.material.ior, scene.material.absorption, jnp.asarray([0.1, 0.2, 0.3]), mat.diffuse)
@@ -184,7 +259,9 @@ def test_no_nan_at_grazing_incidence_critical_angle_and_eta_one():
     # (depth 2 traces the rays inside the slab to the faces where they reflect totally)
     scene, opts = _slab_scene(1.5, "jax", depth=2)
     p, rest = eqx.partition(scene, eqx.is_inexact_array)
-    jvp = jax.jit(lambda p: jax.jvp(lambda q: ds.render(eqx.combine(q, rest), opts), (p,), (jax.tree.map(jnp.ones_like, p),)))
+    jvp = jax.jit(
+        lambda p: jax.jvp(lambda q: ds.render(eqx.combine(q, rest), opts), (p,), (jax.tree.map(jnp.ones_like, p),))
+    )
     for eta, mu in ((1.0, None), (1.5, None), (3.0, None), (1.5, 0.0)):
         q = eqx.tree_at(lambda s: s.material.ior, p, jnp.asarray(eta))
         if mu is not None:  # no absorption inside
@@ -214,27 +291,54 @@ def test_fit_recovers_the_index_of_glass_before_a_chequered_wall(tmp_path):
     # the verdict rejects it: see test_report's white-noise test)
     import trimesh
 
-    from fitting import Observations, fit
-    from fitting import ParamSet
+    from fitting import Observations, ParamSet, fit
 
     b = trimesh.creation.box(extents=[1.4, 1.2, 0.5])
     b.apply_transform(trimesh.transformations.rotation_matrix(np.deg2rad(30), [0, 1, 0]))
     b.apply_translation([0, 0, 1.0])
     b.export(tmp_path / "slab.obj")
-    objs = [{"path": str(tmp_path / "slab.obj"),
-             "material": {"diffuse": 0.0, "ambient": 0.0, "specular": 0.0, "refraction": 1.0, "ior": 1.5,
-                          "absorption": [0.3, 0.5, 0.9], "mirror": 0.15}}]
+    objs = [
+        {
+            "path": str(tmp_path / "slab.obj"),
+            "material": {
+                "diffuse": 0.0,
+                "ambient": 0.0,
+                "specular": 0.0,
+                "refraction": 1.0,
+                "ior": 1.5,
+                "absorption": [0.3, 0.5, 0.9],
+                "mirror": 0.15,
+            },
+        }
+    ]
     for i in range(6):
         for j in range(6):
-            objs.append({"quad": [1.0, 1.0], "normal": [0, 0, 1], "translate": [-2.5 + i, -2.5 + j, -1.0],
-                         "material": {"diffuse": [0.85, 0.8, 0.7] if (i + j) % 2 else [0.15, 0.25, 0.55],
-                                      "specular": 0.0}})
-    d = {"camera": {"eye": [0.0, 0.3, 4.0], "target": [0, 0, 0], "up": [0, 1, 0], "fov_y": 35, "near": 0.1, "far": 50,
-                    "width": 64, "height": 54},
-         "render": {"shading": "phong", "specular": "none", "fog": "none", "ambient": False, "ray_depth": 2},
-         "object": objs,
-         "light": [{"type": "point", "position": [0.4, 0.3, -0.6], "attenuation": [0.2, 0.0, 1.0], "color": 0.6},
-                   {"type": "directional", "direction": [0.2, -0.3, -1.0], "color": 0.5}]}
+            objs.append(
+                {
+                    "quad": [1.0, 1.0],
+                    "normal": [0, 0, 1],
+                    "translate": [-2.5 + i, -2.5 + j, -1.0],
+                    "material": {"diffuse": [0.85, 0.8, 0.7] if (i + j) % 2 else [0.15, 0.25, 0.55], "specular": 0.0},
+                }
+            )
+    d = {
+        "camera": {
+            "eye": [0.0, 0.3, 4.0],
+            "target": [0, 0, 0],
+            "up": [0, 1, 0],
+            "fov_y": 35,
+            "near": 0.1,
+            "far": 50,
+            "width": 64,
+            "height": 54,
+        },
+        "render": {"shading": "phong", "specular": "none", "fog": "none", "ambient": False, "ray_depth": 2},
+        "object": objs,
+        "light": [
+            {"type": "point", "position": [0.4, 0.3, -0.6], "attenuation": [0.2, 0.0, 1.0], "color": 0.6},
+            {"type": "directional", "direction": [0.2, -0.3, -1.0], "color": 0.5},
+        ],
+    }
     scene, opts = ds.scene_from_dict(d)
     free, shared = ["material.ior", "material.absorption", "material.mirror"], ["material.mirror"]
     pset = ParamSet(free, scene, shared=shared)
@@ -254,18 +358,37 @@ def test_fit_recovers_a_mirrors_weight_from_the_reflection_of_a_lit_ball():
     # black background: the floor shows nothing but the ball's reflection, so k_r is seen only
     # there; fitted with the ball's own k_d (their product is what the reflection shows, the
     # ball seen directly tells them apart), the mirror weight starting on its lower bound 0
-    from fitting import Observations, fit
-    from fitting import ParamSet
+    from fitting import Observations, ParamSet, fit
 
-    d = {"camera": {"eye": [0, 0.8, 4], "target": [0, -0.3, 0], "up": [0, 1, 0], "fov_y": 40, "near": 0.1, "far": 50,
-                    "width": 28, "height": 24},
-         "render": {"shading": "phong", "specular": "blinn", "fog": "none", "ray_depth": 1},
-         "object": [{"icosphere": 2, "translate": [0, 0.2, 0], "scale": 0.7,
-                     "material": {"diffuse": [0.8, 0.3, 0.2], "specular": 0.4, "shininess": 40}},
-                    {"quad": [8, 8], "normal": [0, 1, 0], "translate": [0, -0.7, 0],
-                     "material": {"diffuse": 0.0, "ambient": 0.0, "specular": 0.0, "mirror": [0.8, 0.6, 0.45]}}],
-         "light": [{"type": "point", "position": [2, 3, 3], "attenuation": [1, 0, 0.02]}],
-         "background": [0, 0, 0]}
+    d = {
+        "camera": {
+            "eye": [0, 0.8, 4],
+            "target": [0, -0.3, 0],
+            "up": [0, 1, 0],
+            "fov_y": 40,
+            "near": 0.1,
+            "far": 50,
+            "width": 28,
+            "height": 24,
+        },
+        "render": {"shading": "phong", "specular": "blinn", "fog": "none", "ray_depth": 1},
+        "object": [
+            {
+                "icosphere": 2,
+                "translate": [0, 0.2, 0],
+                "scale": 0.7,
+                "material": {"diffuse": [0.8, 0.3, 0.2], "specular": 0.4, "shininess": 40},
+            },
+            {
+                "quad": [8, 8],
+                "normal": [0, 1, 0],
+                "translate": [0, -0.7, 0],
+                "material": {"diffuse": 0.0, "ambient": 0.0, "specular": 0.0, "mirror": [0.8, 0.6, 0.45]},
+            },
+        ],
+        "light": [{"type": "point", "position": [2, 3, 3], "attenuation": [1, 0, 0.02]}],
+        "background": [0, 0, 0],
+    }
     scene, opts = ds.scene_from_dict(d)
     scene = _f64(scene)
     free = ["material[1].mirror", "material.diffuse"]
@@ -287,15 +410,22 @@ def test_fit_recovers_a_mirrors_weight_from_the_reflection_of_a_lit_ball():
 def test_shadow_rays_over_many_lights_follow_the_light_axis_rule():
     import diffshade._lighting as Lg
 
-    lights = [{"type": "point", "position": [float(np.cos(a)) * 2, 2.0, float(np.sin(a)) * 2], "attenuation": [1, 0, 0.05],
-               "color": 0.3} for a in np.linspace(0, 5, 6)]
+    lights = [
+        {
+            "type": "point",
+            "position": [float(np.cos(a)) * 2, 2.0, float(np.sin(a)) * 2],
+            "attenuation": [1, 0, 0.05],
+            "color": 0.3,
+        }
+        for a in np.linspace(0, 5, 6)
+    ]
     scene, opts = _scene(size=(20, 16), lights=lights, render={"specular": "none"})
     opts = opts.with_keys(shadow_rays=True, ray_backend="jax")
     old = Lg.LIGHTS_UNROLLED
     try:
         Lg.LIGHTS_UNROLLED = 2
         scanned = ds.render(scene, opts)
-        Lg.LIGHTS_UNROLLED = 10 ** 6
+        Lg.LIGHTS_UNROLLED = 10**6
         unrolled = ds.render(scene, opts)
     finally:
         Lg.LIGHTS_UNROLLED = old
@@ -328,14 +458,15 @@ def test_snell_total_internal_reflection_and_fresnel_weights():
     # exactly at the critical angle (leaving glass of index 1.5): finite, reflected, and gradients finite
     crit = np.arcsin(1 / 1.5)
     g = jax.grad(lambda th: jnp.sum(jnp.stack(T.refracted_direction(n, (jnp.sin(th), 0.0 * th, jnp.cos(th)), 1.5)[0])))(
-        jnp.asarray(crit))
+        jnp.asarray(crit)
+    )
     assert bool(jnp.isfinite(g))
     # Fresnel: the two weights of a refracting material (k_r = 0) sum to k_rt, TIR included
     kt = _v([0.8, 0.5, 0.2])
     zero = _v([0.0, 0.0, 0.0])
     for fres in ("schlick", "dielectric"):
         for cos1, eta in ((0.9, 1.5), (0.3, 1.5), (0.9, 1 / 1.5), (0.2, 1 / 1.5)):
-            _, tir = T.refracted_direction(n, _v([np.sqrt(1 - cos1 ** 2), 0.0, cos1]), 1.0 / eta)
+            _, tir = T.refracted_direction(n, _v([np.sqrt(1 - cos1**2), 0.0, cos1]), 1.0 / eta)
             w_r, w_t = T.ray_weights(fres, zero, kt, jnp.asarray(cos1), jnp.asarray(eta), jnp.asarray(1.5), tir)
             np.testing.assert_allclose([float(a + b) for a, b in zip(w_r, w_t)], [0.8, 0.5, 0.2], rtol=1e-12)
             assert all(float(w) >= 0 for w in w_t) and (not bool(tir) or all(float(w) == 0 for w in w_t))
@@ -359,17 +490,21 @@ def test_a_slab_shifts_a_ray_by_the_closed_form(backend):
         n_in = _v([0.0, 0.0, 1.0])
         t1, _ = T.refracted_direction(n_in, tuple(-c[0] for c in d.T), 1 / eta)
         d1 = jnp.stack(t1)[None]
-        hit2 = _rays.first_hits(p1, d1, V, mesh.faces, tmin=1e-4, skip=hit, backend=backend)  # the tracer's kind of t_min
+        hit2 = _rays.first_hits(
+            p1, d1, V, mesh.faces, tmin=1e-4, skip=hit, backend=backend
+        )  # the tracer's kind of t_min
         t2, _, _, ok2 = _rays.intersect(p1, d1, V, mesh.faces, hit2)
         p2 = p1 + t2[:, None] * d1
-        t3, tir = T.refracted_direction(n_in, tuple(-c[0] for c in d1.T), eta)  # leaving: the normal facing the ray is +z
+        t3, tir = T.refracted_direction(
+            n_in, tuple(-c[0] for c in d1.T), eta
+        )  # leaving: the normal facing the ray is +z
         out = jnp.stack(t3)
         assert bool(ok[0]) and bool(ok2[0]) and not bool(tir)
         np.testing.assert_allclose(np.asarray(out), np.asarray(d[0]), atol=1e-12)  # parallel to the incoming ray
         # perpendicular distance between the incoming line and the outgoing one
         w = np.asarray(p2[0] - o[0])
         shift = np.linalg.norm(w - np.dot(w, np.asarray(d[0])) * np.asarray(d[0]))
-        expect = d_slab * np.sin(theta) * (1 - np.cos(theta) / np.sqrt(eta ** 2 - np.sin(theta) ** 2))
+        expect = d_slab * np.sin(theta) * (1 - np.cos(theta) / np.sqrt(eta**2 - np.sin(theta) ** 2))
         np.testing.assert_allclose(shift, expect, rtol=1e-9)
 
 
@@ -389,8 +524,9 @@ def test_traced_image_matches_an_independent_numpy_tracer(case):
     else:
         render = {"two_sided": True, "specular": "phong", "per_light_ambient": True}
         extra = dict(ray_depth=3)
-    scene, opts = _scene(floor={"mirror": 0.3, "diffuse": [0.4, 0.5, 0.3]}, ball=ball, size=(24, 18), render=render, ico=2,
-                         lights=lights)
+    scene, opts = _scene(
+        floor={"mirror": 0.3, "diffuse": [0.4, 0.5, 0.3]}, ball=ball, size=(24, 18), render=render, ico=2, lights=lights
+    )
     opts = opts.with_keys(**extra)
     img = np.asarray(_render(scene, opts))
     s = to_trace_ref(scene)
@@ -416,16 +552,47 @@ def test_a_coloured_filter_tints_the_shadow_by_its_transmittance(backend):
     # floor below it gets k_d (n.l) k_rt^2 e^{-mu 0.3} (two surfaces crossed, straight shadow rays);
     # with shadow_ray_crossings = 0, or a second slab beyond the crossings, it is black
     k_rt, mu, h = np.array([0.9, 0.7, 0.5]), np.array([0.5, 1.0, 2.0]), 0.3
-    d = {"camera": {"eye": [0.0, 2.5, 2.5], "target": [0, -0.5, 0], "up": [0, 1, 0], "fov_y": 50, "near": 0.1, "far": 50,
-                    "width": 24, "height": 20},
-         "render": {"shading": "phong", "specular": "none", "fog": "none", "ambient": False, "shadow_rays": True,
-                    "ray_backend": backend},
-         "object": [{"box": [1.2, h, 1.2], "translate": [0, 0.5, 0],
-                     "material": {"diffuse": 0.0, "ambient": 0.0, "specular": 0.0, "refraction": k_rt.tolist(),
-                                  "absorption": mu.tolist()}},
-                    {"quad": [8, 8], "normal": [0, 1, 0], "translate": [0, -0.7, 0], "divisions": 2,
-                     "material": {"diffuse": [0.8, 0.8, 0.8], "specular": 0.0}}],
-         "light": [{"type": "directional", "direction": [0, -1, 0], "color": 1.0}]}
+    d = {
+        "camera": {
+            "eye": [0.0, 2.5, 2.5],
+            "target": [0, -0.5, 0],
+            "up": [0, 1, 0],
+            "fov_y": 50,
+            "near": 0.1,
+            "far": 50,
+            "width": 24,
+            "height": 20,
+        },
+        "render": {
+            "shading": "phong",
+            "specular": "none",
+            "fog": "none",
+            "ambient": False,
+            "shadow_rays": True,
+            "ray_backend": backend,
+        },
+        "object": [
+            {
+                "box": [1.2, h, 1.2],
+                "translate": [0, 0.5, 0],
+                "material": {
+                    "diffuse": 0.0,
+                    "ambient": 0.0,
+                    "specular": 0.0,
+                    "refraction": k_rt.tolist(),
+                    "absorption": mu.tolist(),
+                },
+            },
+            {
+                "quad": [8, 8],
+                "normal": [0, 1, 0],
+                "translate": [0, -0.7, 0],
+                "divisions": 2,
+                "material": {"diffuse": [0.8, 0.8, 0.8], "specular": 0.0},
+            },
+        ],
+        "light": [{"type": "directional", "direction": [0, -1, 0], "color": 1.0}],
+    }
     scene, opts = ds.scene_from_dict(d)
     scene = _f64(scene)
     img = np.asarray(_render(scene, opts))
@@ -437,27 +604,44 @@ def test_a_coloured_filter_tints_the_shadow_by_its_transmittance(backend):
     under = floor & (np.maximum(np.abs(x[..., 0]), np.abs(x[..., 2])) < 0.6 * 0.9)
     free = floor & (np.maximum(np.abs(x[..., 0]), np.abs(x[..., 2])) > 0.6 * 1.1)
     assert under.sum() > 10 and free.sum() > 50
-    np.testing.assert_allclose(img[under], np.broadcast_to(0.8 * k_rt ** 2 * np.exp(-mu * h), img[under].shape), rtol=1e-9)
+    np.testing.assert_allclose(
+        img[under], np.broadcast_to(0.8 * k_rt**2 * np.exp(-mu * h), img[under].shape), rtol=1e-9
+    )
     np.testing.assert_allclose(img[free], 0.8, rtol=1e-9)
     blocked = np.asarray(_render(scene, opts.with_keys(shadow_ray_crossings=0)))
     np.testing.assert_allclose(blocked[under], 0.0, atol=1e-12)
     np.testing.assert_allclose(blocked[free], 0.8, rtol=1e-9)
+
     # the shadow's colour is differentiable in k_rt and mu (forward and reverse)
     def f(k, m):
         mat = scene.material
         mm = ds.Material(**{**{q: getattr(mat, q) for q in mat.__dataclass_fields__}, "refraction": k, "absorption": m})
-        return ds.render(ds.Scene(**{**{q: getattr(scene, q) for q in scene.__dataclass_fields__}, "material": mm}), opts)[under]
-    check_grads(jax.jit(f), (jnp.asarray(k_rt), jnp.asarray(mu)), order=1, modes=("fwd", "rev"), eps=1e-6, atol=1e-6, rtol=1e-5)
+        return ds.render(
+            ds.Scene(**{**{q: getattr(scene, q) for q in scene.__dataclass_fields__}, "material": mm}), opts
+        )[under]
+
+    check_grads(
+        jax.jit(f), (jnp.asarray(k_rt), jnp.asarray(mu)), order=1, modes=("fwd", "rev"), eps=1e-6, atol=1e-6, rtol=1e-5
+    )
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_area_lights_cast_soft_shadows_by_rays(backend):
     # a 4 x 4 area light above the ball: the floor under it has an umbra (every emitter hidden),
     # a penumbra (some hidden) and is unshadowed far away; each emitter's ray is an exact shadow ray
-    lights = [{"type": "area", "color": 3.0, "position": [0.0, 2.0, 0.0], "normal": [0, -1, 0], "up": [0, 0, 1],
-               "size": [1.2, 1.2]}]
-    scene, opts = _scene(size=(40, 30), lights=lights, render={"ambient": False, "specular": "none", "area_grid": [4, 4]},
-                         ico=2)
+    lights = [
+        {
+            "type": "area",
+            "color": 3.0,
+            "position": [0.0, 2.0, 0.0],
+            "normal": [0, -1, 0],
+            "up": [0, 0, 1],
+            "size": [1.2, 1.2],
+        }
+    ]
+    scene, opts = _scene(
+        size=(40, 30), lights=lights, render={"ambient": False, "specular": "none", "area_grid": [4, 4]}, ico=2
+    )
     lit = np.asarray(_render(scene, opts))
     img = np.asarray(_render(scene, opts.with_keys(shadow_rays=True, ray_backend=backend)))
     floor = np.asarray(ds.scene_visibility(scene, opts)[0]) >= 320
@@ -480,7 +664,9 @@ def test_ray_capacity_traces_only_the_live_rays_and_says_what_a_scene_needs():
     assert counts[0] == 2 * ball_px and 0 < counts[1] <= 2 * counts[0], (counts, ball_px)
     full = np.asarray(_render(scene, opts))
     cap = max(counts)
-    np.testing.assert_allclose(np.asarray(_render(scene, opts.with_keys(ray_capacity=cap))), full, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(
+        np.asarray(_render(scene, opts.with_keys(ray_capacity=cap))), full, rtol=1e-12, atol=1e-14
+    )
     short = np.asarray(_render(scene, opts.with_keys(ray_capacity=counts[0] // 2)))
     assert np.abs(short - full).max() > 1e-3
     # compacted, the image stays differentiable (forward and reverse)
@@ -489,11 +675,21 @@ def test_ray_capacity_traces_only_the_live_rays_and_says_what_a_scene_needs():
     def f(ior, mu):
         m = scene.material
         mm = ds.Material(**{**{q: getattr(m, q) for q in m.__dataclass_fields__}, "ior": ior, "absorption": mu})
-        return jnp.sum(ds.render(ds.Scene(**{**{q: getattr(scene, q) for q in scene.__dataclass_fields__}, "material": mm}), o2) ** 2)
+        return jnp.sum(
+            ds.render(ds.Scene(**{**{q: getattr(scene, q) for q in scene.__dataclass_fields__}, "material": mm}), o2)
+            ** 2
+        )
 
     # (forward mode, the fits' mode; the gather and scatter of the compaction transpose to each other)
-    check_grads(jax.jit(f), (scene.material.ior, scene.material.absorption), order=1, modes=("fwd",), eps=1e-6,
-                atol=1e-5, rtol=1e-4)
+    check_grads(
+        jax.jit(f),
+        (scene.material.ior, scene.material.absorption),
+        order=1,
+        modes=("fwd",),
+        eps=1e-6,
+        atol=1e-5,
+        rtol=1e-4,
+    )
     with pytest.raises(ValueError, match=r"Rays.capacity must be an integer >= 0"):
         ds.RenderOptions(rays=ds.Rays(capacity=-1))
 
@@ -542,8 +738,15 @@ def test_a_prism_face_beyond_the_critical_angle_reflects_totally(backend):
             hit3 = _rays.first_hits(p2, jnp.asarray([out]), V, F, tmin=1e-6, skip=hit2, backend=backend)
             t3, _, _, ok3 = _rays.intersect(p2, jnp.asarray([out]), V, F, hit3)
             np.testing.assert_allclose(np.asarray(p2[0] + t3[0] * out), [0.0, 0.7, 0.2], atol=1e-12)  # the other leg
-            w_r, w_t = T.ray_weights("dielectric", _v([0, 0, 0]), _v([0.9, 0.9, 0.9]),
-                                     jnp.asarray(np.cos(np.pi / 4)), jnp.asarray(1 / eta), jnp.asarray(eta), tir2)
+            w_r, w_t = T.ray_weights(
+                "dielectric",
+                _v([0, 0, 0]),
+                _v([0.9, 0.9, 0.9]),
+                jnp.asarray(np.cos(np.pi / 4)),
+                jnp.asarray(1 / eta),
+                jnp.asarray(eta),
+                tir2,
+            )
             assert [float(w) for w in w_r] == [0.9] * 3 and [float(w) for w in w_t] == [0.0] * 3
         else:
             assert not bool(tir2)
@@ -600,18 +803,54 @@ def test_float32_engines_agree_on_a_glass_ball():
     # sums over a last axis of 3 in float32 (one ray's t came out 5e-7 instead of 5.34 inside a batch):
     # the pure-JAX engine then missed the ball's exit faces, and float32 fits got wrong absorption
     # tangents (standard errors 2.6x too small). Both engines, float32, must give the float64 image.
-    d = {"camera": {"eye": [0, 0.9, 3.6], "target": [0, -0.2, 0], "up": [0, 1, 0], "fov_y": 40, "near": 0.1, "far": 50,
-                    "width": 48, "height": 48},
-         "render": {"shading": "phong", "specular": "blinn", "fog": "none", "ray_depth": 2, "fresnel": "dielectric"},
-         "object": [{"icosphere": 3, "translate": [0.0, 0.05, 0.0], "scale": 0.75,
-                     "material": {"diffuse": 0.0, "ambient": 0.0, "specular": 0.6, "shininess": 120, "refraction": 0.85,
-                                  "mirror": 0.1, "ior": 1.52, "absorption": [0.05, 0.3, 0.9]}},
-                    {"quad": [8, 8], "normal": [0, 1, 0], "translate": [0, -0.7, -1], "material": {"diffuse": [0.8, 0.75, 0.6]}},
-                    {"quad": [8, 4], "normal": [0, 0, 1], "translate": [0, 1.3, -5], "divisions": 2,
-                     "material": {"diffuse": [0.6, 0.35, 0.3], "specular": 0.0}}],
-         "light": [{"type": "point", "position": [0.8, -0.4, -1.2], "attenuation": [0.2, 0, 1.5]},
-                   {"type": "directional", "direction": [-0.5, -1, -0.3], "color": 0.35}],
-         "background": [0.55, 0.65, 0.8]}
+    d = {
+        "camera": {
+            "eye": [0, 0.9, 3.6],
+            "target": [0, -0.2, 0],
+            "up": [0, 1, 0],
+            "fov_y": 40,
+            "near": 0.1,
+            "far": 50,
+            "width": 48,
+            "height": 48,
+        },
+        "render": {"shading": "phong", "specular": "blinn", "fog": "none", "ray_depth": 2, "fresnel": "dielectric"},
+        "object": [
+            {
+                "icosphere": 3,
+                "translate": [0.0, 0.05, 0.0],
+                "scale": 0.75,
+                "material": {
+                    "diffuse": 0.0,
+                    "ambient": 0.0,
+                    "specular": 0.6,
+                    "shininess": 120,
+                    "refraction": 0.85,
+                    "mirror": 0.1,
+                    "ior": 1.52,
+                    "absorption": [0.05, 0.3, 0.9],
+                },
+            },
+            {
+                "quad": [8, 8],
+                "normal": [0, 1, 0],
+                "translate": [0, -0.7, -1],
+                "material": {"diffuse": [0.8, 0.75, 0.6]},
+            },
+            {
+                "quad": [8, 4],
+                "normal": [0, 0, 1],
+                "translate": [0, 1.3, -5],
+                "divisions": 2,
+                "material": {"diffuse": [0.6, 0.35, 0.3], "specular": 0.0},
+            },
+        ],
+        "light": [
+            {"type": "point", "position": [0.8, -0.4, -1.2], "attenuation": [0.2, 0, 1.5]},
+            {"type": "directional", "direction": [-0.5, -1, -0.3], "color": 0.35},
+        ],
+        "background": [0.55, 0.65, 0.8],
+    }
     scene, opts = ds.scene_from_dict(d)
     scene = _f64(scene)
     ref = np.asarray(_render(scene, opts.with_keys(ray_backend="jax")))
@@ -619,15 +858,24 @@ def test_float32_engines_agree_on_a_glass_ball():
     engines = ["jax"] + (["embree"] if _rays.embree_available() else [])
     for be in engines:
         img = np.asarray(_render(s32, opts.with_keys(ray_backend=be)), np.float64)
-        assert np.abs(img - ref).max() < 1e-4, (be, np.abs(img - ref).max(), int((np.abs(img - ref).max(-1) > 1e-3).sum()))
+        assert np.abs(img - ref).max() < 1e-4, (
+            be,
+            np.abs(img - ref).max(),
+            int((np.abs(img - ref).max(-1) > 1e-3).sum()),
+        )
 
 
 def test_traced_gradients_of_refraction_specular_light_and_camera():
     # k_rt, k_s, a light's position and the camera's eye through a depth-1 traced image with a
     # Fresnel split, against central differences, forward and reverse (primary ids held fixed)
     ball = {"refraction": 0.8, "mirror": 0.1, "ior": 1.5, "absorption": [0.2, 0.5, 1.0], "specular": 0.4}
-    scene, opts = _scene(ball=ball, size=(20, 16), ico=2, render={"fresnel": "dielectric"},
-                         lights=[{"type": "point", "position": [2, 3, 3], "attenuation": [1, 0, 0.02]}])
+    scene, opts = _scene(
+        ball=ball,
+        size=(20, 16),
+        ico=2,
+        render={"fresnel": "dielectric"},
+        lights=[{"type": "point", "position": [2, 3, 3], "attenuation": [1, 0, 0.02]}],
+    )
     opts = opts.with_keys(ray_depth=1, ray_backend="jax")
     ids = ds.scene_visibility(scene, opts)
 
@@ -655,9 +903,13 @@ def test_a_scene_without_rays_compiles_none_of_the_tracer():
 
 def test_no_nan_when_every_secondary_ray_misses():
     # a mirror facing the empty sky: finite values and tangents
-    sky, o2 = _scene(floor={"mirror": 1.0}, size=(16, 12), ico=1, lights=[{"type": "directional", "direction": [0, -1, 0]}])
+    sky, o2 = _scene(
+        floor={"mirror": 1.0}, size=(16, 12), ico=1, lights=[{"type": "directional", "direction": [0, -1, 0]}]
+    )
     sky = eqx.tree_at(lambda s: s.camera.eye, sky, jnp.asarray([0.0, 6.0, 0.5]))  # looking down: mirror rays go up
     p2, rest2 = eqx.partition(sky, eqx.is_inexact_array)
     o2 = o2.with_keys(ray_depth=1, ray_backend="jax")
-    img2, t2 = jax.jit(lambda p: jax.jvp(lambda q: ds.render(eqx.combine(q, rest2), o2), (p,), (jax.tree.map(jnp.ones_like, p),)))(p2)
+    img2, t2 = jax.jit(
+        lambda p: jax.jvp(lambda q: ds.render(eqx.combine(q, rest2), o2), (p,), (jax.tree.map(jnp.ones_like, p),))
+    )(p2)
     assert bool(jnp.all(jnp.isfinite(img2))) and bool(jnp.all(jnp.isfinite(t2)))

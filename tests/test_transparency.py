@@ -38,7 +38,7 @@ def rays(cam: ds.Camera):
     return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _jit_render(opts):
     return jax.jit(lambda s: ds.render(s, opts))
 
@@ -53,7 +53,9 @@ def render(scene, opts):
 
 
 def dlight(direction, color=1.0):
-    return ds.DirectionalLights(color=jnp.broadcast_to(jnp.asarray(color, F64), (3,)), direction=direction, ambient=[0.0, 0.0, 0.0])
+    return ds.DirectionalLights(
+        color=jnp.broadcast_to(jnp.asarray(color, F64), (3,)), direction=direction, ambient=[0.0, 0.0, 0.0]
+    )
 
 
 # --- closed forms ----------------------------------------------------------------------------
@@ -63,8 +65,9 @@ def test_plane_with_opacity_over_background():
     cam = camera([0, 0, 3], [0, 0, 0], 24, fov=50)
     mat = ds.Material(ambient=(0.1, 0.2, 0.3), diffuse=(0.6, 0.3, 0.1), specular=0.0, opacity=0.35)
     bg = np.array([0.2, 0.4, 0.9])
-    scene = ds.Scene(mesh=ds.quad((2, 2)), camera=cam, material=mat, directional=dlight([0, 0, -1]),
-                     ambient_light=0.5, background=bg)
+    scene = ds.Scene(
+        mesh=ds.quad((2, 2)), camera=cam, material=mat, directional=dlight([0, 0, -1]), ambient_light=0.5, background=bg
+    )
     opts = ds.RenderOptions(lighting=ds.Lighting(specular="none"), transparency=ds.Transparency(layers=2))
     img = render(scene, opts)
     d = rays(cam)
@@ -77,26 +80,42 @@ def test_plane_with_opacity_over_background():
     assert inside.sum() > 100 and outside.sum() > 50
     # t = 1 is the opaque render; t = 0 shows the background alone.
     for t, want in ((1.0, C), (0.0, bg)):
-        s = ds.Scene(mesh=scene.mesh, camera=cam, material=ds.Material(
-            ambient=(0.1, 0.2, 0.3), diffuse=(0.6, 0.3, 0.1), specular=0.0, opacity=t), directional=scene.directional,
-            ambient_light=0.5, background=bg)
+        s = ds.Scene(
+            mesh=scene.mesh,
+            camera=cam,
+            material=ds.Material(ambient=(0.1, 0.2, 0.3), diffuse=(0.6, 0.3, 0.1), specular=0.0, opacity=t),
+            directional=scene.directional,
+            ambient_light=0.5,
+            background=bg,
+        )
         np.testing.assert_allclose(render(s, opts)[inside], np.broadcast_to(want, img[inside].shape), atol=1e-12)
 
 
 def slab_scene(mu, size=24, thickness=0.6, opacity=0.0):
     slab = ds.box((1.6, 1.6, thickness), (0, 0, 0.5))
     plane = ds.quad((6, 6), (0, 0, -1))
-    mats = (ds.Material(ambient=0.2, diffuse=(0.9, 0.8, 0.7), specular=0.0),
-            ds.Material(diffuse=(0.1, 0.9, 0.1), specular=0.0, opacity=opacity, absorption=mu))
+    mats = (
+        ds.Material(ambient=0.2, diffuse=(0.9, 0.8, 0.7), specular=0.0),
+        ds.Material(diffuse=(0.1, 0.9, 0.1), specular=0.0, opacity=opacity, absorption=mu),
+    )
     cam = camera([0.3, 0.2, 4], [0, 0, 0], size, fov=25)
-    return ds.Scene(mesh=ds.combine(plane, slab), camera=cam, material=mats[0], materials=mats[1:],
-                    directional=dlight([0, 0, -1]), ambient_light=1.0, background=0.0)
+    return ds.Scene(
+        mesh=ds.combine(plane, slab),
+        camera=cam,
+        material=mats[0],
+        materials=mats[1:],
+        directional=dlight([0, 0, -1]),
+        ambient_light=1.0,
+        background=0.0,
+    )
 
 
 def test_slab_absorption_bouguer():
     mu = np.array([0.3, 0.8, 1.5])
     scene = slab_scene(mu)
-    opts = ds.RenderOptions(lighting=ds.Lighting(specular="none"), transparency=ds.Transparency(layers=3, absorption=True))
+    opts = ds.RenderOptions(
+        lighting=ds.Lighting(specular="none"), transparency=ds.Transparency(layers=3, absorption=True)
+    )
     img = render(scene, opts)
     cam = scene.camera
     d = rays(cam)
@@ -125,9 +144,11 @@ def test_kay_opacity_on_sphere_centre_and_silhouette(shading):
     cam = camera([0, 0, 40], [0, 0, 0], 48, fov=3.4)
     mat = ds.Material(emission=1.0, kay=True, kay_min=0.9, kay_max=0.2, kay_power=2.0)
     scene = ds.Scene(mesh=ds.icosphere(5), camera=cam, material=mat, background=0.0)
-    opts = ds.RenderOptions(raster=ds.Raster(shading=shading),
-                            lighting=ds.Lighting(ambient=False, diffuse=False, specular="none", emission=True),
-                            transparency=ds.Transparency(layers=1))
+    opts = ds.RenderOptions(
+        raster=ds.Raster(shading=shading),
+        lighting=ds.Lighting(ambient=False, diffuse=False, specular="none", emission=True),
+        transparency=ds.Transparency(layers=1),
+    )
     t = render(scene, opts)[..., 0]
     d = rays(cam)
     eye = np.asarray(cam.eye)
@@ -159,8 +180,9 @@ def transmission_scene(light_dir, fresnel="none", m=20.0, ior=1.5, size=16):
     cam = camera([0, 0, 3], [0, 0, 0], size, fov=20)
     mat = ds.Material(ambient=0.0, diffuse=0.0, specular=0.0, shininess=m, ior=ior, transmission=(0.5, 0.7, 0.9))
     scene = ds.Scene(mesh=ds.quad((3, 3)), camera=cam, material=mat, directional=dlight(light_dir, (1.0, 0.8, 0.6)))
-    opts = ds.RenderOptions(lighting=ds.Lighting(transmission=True, ambient=False, diffuse=False, specular="none",
-                                                 fresnel=fresnel))
+    opts = ds.RenderOptions(
+        lighting=ds.Lighting(transmission=True, ambient=False, diffuse=False, specular="none", fresnel=fresnel)
+    )
     return scene, opts
 
 
@@ -226,14 +248,32 @@ def shadow_scene(kind, size=48, pcf=1, shading="phong"):
     if kind == "directional":
         lights["directional"] = dlight([0.3, -1.0, 0.2])
     elif kind == "point":
-        lights["point"] = ds.PointLights(color=[1.0, 1.0, 1.0], position=[-0.4, 2.6, 0.5], attenuation=[1, 0, 0], ambient=[0, 0, 0])
+        lights["point"] = ds.PointLights(
+            color=[1.0, 1.0, 1.0], position=[-0.4, 2.6, 0.5], attenuation=[1, 0, 0], ambient=[0, 0, 0]
+        )
     else:
-        lights["spot"] = ds.SpotLights(color=[1.0, 1.0, 1.0], position=[0.6, 2.8, -0.4], attenuation=[1, 0, 0], ambient=[0, 0, 0],
-                                       axis=[-0.2, -1, 0.1], cutoff=60.0, exponent=0.0, edge=0.0)
-    scene = ds.Scene(mesh=ds.combine(plane, sph), camera=cam, material=mats[0], materials=mats[1:],
-                     ambient_light=1.0, background=0.0, **lights)
-    opts = ds.RenderOptions(raster=ds.Raster(shading=shading), lighting=ds.Lighting(specular="none"),
-                            shadows=ds.ShadowMaps(pcf=pcf))
+        lights["spot"] = ds.SpotLights(
+            color=[1.0, 1.0, 1.0],
+            position=[0.6, 2.8, -0.4],
+            attenuation=[1, 0, 0],
+            ambient=[0, 0, 0],
+            axis=[-0.2, -1, 0.1],
+            cutoff=60.0,
+            exponent=0.0,
+            edge=0.0,
+        )
+    scene = ds.Scene(
+        mesh=ds.combine(plane, sph),
+        camera=cam,
+        material=mats[0],
+        materials=mats[1:],
+        ambient_light=1.0,
+        background=0.0,
+        **lights,
+    )
+    opts = ds.RenderOptions(
+        raster=ds.Raster(shading=shading), lighting=ds.Lighting(specular="none"), shadows=ds.ShadowMaps(pcf=pcf)
+    )
     return scene, opts
 
 
@@ -252,8 +292,16 @@ def _to_light(kind, scene, X):
 
 @pytest.mark.parametrize(
     "kind,pcf,shading",
-    [("directional", 1, "phong"), ("directional", 3, "phong"), ("point", 1, "phong"), ("point", 3, "phong"),
-     ("spot", 1, "phong"), ("spot", 3, "phong"), ("directional", 1, "gouraud"), ("directional", 1, "flat")],
+    [
+        ("directional", 1, "phong"),
+        ("directional", 3, "phong"),
+        ("point", 1, "phong"),
+        ("point", 3, "phong"),
+        ("spot", 1, "phong"),
+        ("spot", 3, "phong"),
+        ("directional", 1, "gouraud"),
+        ("directional", 1, "flat"),
+    ],
 )
 def test_sphere_shadow_on_plane(kind, pcf, shading):
     """Shadowed exactly where the segment to the light meets the sphere (away from the edge);
@@ -384,8 +432,12 @@ def seed_zbuffer_with_transparency(V, F, face_color, face_t, eye, d, background,
             if sort_transparent:
                 ks.sort(key=lambda k: depth[k, j, i])
             for k in ks:
-                i_buf[j, i] += (1 - t_buf[j, i]) * face_t[k] * face_color[k] if sort_transparent else face_t[k] * face_color[k]
-                t_buf[j, i] = t_buf[j, i] + (1 - t_buf[j, i]) * face_t[k] if sort_transparent else t_buf[j, i] + face_t[k]
+                i_buf[j, i] += (
+                    (1 - t_buf[j, i]) * face_t[k] * face_color[k] if sort_transparent else face_t[k] * face_color[k]
+                )
+                t_buf[j, i] = (
+                    t_buf[j, i] + (1 - t_buf[j, i]) * face_t[k] if sort_transparent else t_buf[j, i] + face_t[k]
+                )
     return i_buf + (1 - t_buf)[..., None] * frame
 
 
@@ -401,8 +453,15 @@ def _panes_scene(size, n_panes, opaque_sphere=True):
         meshes.append(ds.quad((2.0 - 0.3 * p, 1.6), (0.2 * p - 0.2, 0.1 * p, -0.3 + 0.45 * p), normal))
         mats.append(ds.Material(ambient=0.3, diffuse=rng.uniform(0.2, 0.9, 3), specular=0.0, opacity=0.25 + 0.2 * p))
     cam = camera([0.2, 0.3, 4.0], [0, 0, -0.5], size, fov=40)
-    return ds.Scene(mesh=ds.combine(*meshes), camera=cam, material=mats[0], materials=tuple(mats[1:]),
-                    directional=dlight([-0.3, -0.4, -1.0]), ambient_light=0.6, background=(0.1, 0.2, 0.3))
+    return ds.Scene(
+        mesh=ds.combine(*meshes),
+        camera=cam,
+        material=mats[0],
+        materials=tuple(mats[1:]),
+        directional=dlight([-0.3, -0.4, -1.0]),
+        ambient_light=0.6,
+        background=(0.1, 0.2, 0.3),
+    )
 
 
 def _face_data(scene):
@@ -418,8 +477,9 @@ def _face_data(scene):
     cen = V[F].mean(1)
     towards = np.einsum("fc,fc->f", n, eye - cen) > 0
     n = np.where(towards[:, None], n, -n)  # two-sided: lit on the side the eye sees (flat shading)
-    color = np.stack([np.asarray(mats[m].ambient) * 0.6 + np.asarray(mats[m].diffuse) * max(n[k] @ l, 0)
-                      for k, m in enumerate(mid)])
+    color = np.stack(
+        [np.asarray(mats[m].ambient) * 0.6 + np.asarray(mats[m].diffuse) * max(n[k] @ l, 0) for k, m in enumerate(mid)]
+    )
     t = np.array([float(mats[m].opacity) for m in mid])
     return V, F, color, t
 
@@ -427,13 +487,17 @@ def _face_data(scene):
 @pytest.mark.parametrize("n_panes,layers,sort", [(1, 2, False), (3, 5, True)])
 def test_compositing_matches_seed_zbuffer_with_transparency_buffers(n_panes, layers, sort):
     scene = _panes_scene(32, n_panes)
-    opts = ds.RenderOptions(raster=ds.Raster(shading="flat"), lighting=ds.Lighting(specular="none"),
-                            transparency=ds.Transparency(layers=layers))
+    opts = ds.RenderOptions(
+        raster=ds.Raster(shading="flat"),
+        lighting=ds.Lighting(specular="none"),
+        transparency=ds.Transparency(layers=layers),
+    )
     img = render(scene, opts)
     V, F, color, t = _face_data(scene)
     d = rays(scene.camera)
-    ref = seed_zbuffer_with_transparency(V, F, color, t, np.asarray(scene.camera.eye), d,
-                                         np.asarray(scene.background), sort_transparent=sort)
+    ref = seed_zbuffer_with_transparency(
+        V, F, color, t, np.asarray(scene.camera.eye), d, np.asarray(scene.background), sort_transparent=sort
+    )
     # Compare away from triangle edges (ray casting and rasterization may disagree exactly there).
     depth = _ray_hits(V, F, np.asarray(scene.camera.eye), d)
     hits = np.isfinite(depth).sum(0)
@@ -444,8 +508,9 @@ def test_compositing_matches_seed_zbuffer_with_transparency_buffers(n_panes, lay
 
 def test_more_surfaces_than_layers_fall_back_to_background():
     scene = _panes_scene(24, 3, opaque_sphere=False)
-    full = ds.RenderOptions(raster=ds.Raster(shading="flat"), lighting=ds.Lighting(specular="none"),
-                            transparency=ds.Transparency(layers=3))
+    full = ds.RenderOptions(
+        raster=ds.Raster(shading="flat"), lighting=ds.Lighting(specular="none"), transparency=ds.Transparency(layers=3)
+    )
     cut = full.replace(transparency=ds.Transparency(layers=2))
     a, b = render(scene, full), render(scene, cut)
     assert ds.truncated_pixels(scene, full) == 0
@@ -469,8 +534,11 @@ def test_more_surfaces_than_layers_fall_back_to_background():
 
 # --- gradients and hard cases ---------------------------------------------------------------------
 
-GRAD_OPTS = ds.RenderOptions(lighting=ds.Lighting(transmission=True, fresnel="dielectric"),
-                             transparency=ds.Transparency(layers=3, absorption=True), shadows=ds.ShadowMaps(resolution=64))
+GRAD_OPTS = ds.RenderOptions(
+    lighting=ds.Lighting(transmission=True, fresnel="dielectric"),
+    transparency=ds.Transparency(layers=3, absorption=True),
+    shadows=ds.ShadowMaps(resolution=64),
+)
 
 
 def grad_scene(size=12):
@@ -478,16 +546,36 @@ def grad_scene(size=12):
     ball = ds.icosphere(1, 0.5)
     ball = ds.Mesh(vertices=ball.vertices + np.array([0.5, 0.3, -0.6]), faces=ball.faces)
     plane = ds.quad((5, 5), (0, 0, -1.2))
-    mats = (ds.Material(ambient=0.3, diffuse=(0.8, 0.7, 0.6), specular=0.2, shininess=10.0),
-            ds.Material(ambient=0.1, diffuse=(0.2, 0.3, 0.5), specular=0.3, opacity=0.4, absorption=(0.4, 0.7, 1.1),
-                        transmission=(0.3, 0.4, 0.5), ior=1.4, shininess=8.0, casts_shadow=False),
-            ds.Material(ambient=0.2, diffuse=(0.7, 0.2, 0.2), specular=0.1, kay=True, kay_min=0.9, kay_max=0.3,
-                        kay_power=1.7))
+    mats = (
+        ds.Material(ambient=0.3, diffuse=(0.8, 0.7, 0.6), specular=0.2, shininess=10.0),
+        ds.Material(
+            ambient=0.1,
+            diffuse=(0.2, 0.3, 0.5),
+            specular=0.3,
+            opacity=0.4,
+            absorption=(0.4, 0.7, 1.1),
+            transmission=(0.3, 0.4, 0.5),
+            ior=1.4,
+            shininess=8.0,
+            casts_shadow=False,
+        ),
+        ds.Material(
+            ambient=0.2, diffuse=(0.7, 0.2, 0.2), specular=0.1, kay=True, kay_min=0.9, kay_max=0.3, kay_power=1.7
+        ),
+    )
     cam = camera([0.4, 0.5, 4], [0, 0, -0.3], size, fov=40)
-    return ds.Scene(mesh=ds.combine(plane, slab, ball), camera=cam, material=mats[0], materials=mats[1:],
-                    point=ds.PointLights(color=(0.9, 0.8, 0.7), position=[-0.5, -0.4, -0.5], attenuation=[1, 0.1, 0.05],
-                                         ambient=[0, 0, 0]),
-                    directional=dlight([0.2, -0.3, -1.0], 0.5), ambient_light=0.4, background=(0.1, 0.1, 0.2))
+    return ds.Scene(
+        mesh=ds.combine(plane, slab, ball),
+        camera=cam,
+        material=mats[0],
+        materials=mats[1:],
+        point=ds.PointLights(
+            color=(0.9, 0.8, 0.7), position=[-0.5, -0.4, -0.5], attenuation=[1, 0.1, 0.05], ambient=[0, 0, 0]
+        ),
+        directional=dlight([0.2, -0.3, -1.0], 0.5),
+        ambient_light=0.4,
+        background=(0.1, 0.1, 0.2),
+    )
 
 
 NEW_PARAMS = {  # name: (where in the scene, value, size)
@@ -551,6 +639,7 @@ def _hard_fn(opts):
     import equinox as eqx
 
     if opts not in _HARD:
+
         def run(scene, x, where_id):
             where = _WHERES[where_id]
             f = lambda x: ds.render(eqx.tree_at(where, scene, x), opts)  # noqa: E731
@@ -582,8 +671,11 @@ def test_hard_cases_finite(case):
         where, x = "ior", jnp.asarray(1.5, F64)
     else:
         scene, opts = grad_scene(size=8), GRAD_OPTS
-        where, x = {"t=0": ("opacity", jnp.asarray(0.0, F64)), "t=1": ("opacity", jnp.asarray(1.0, F64)),
-                    "mu=0": ("absorption", jnp.zeros(3, F64))}[case]
+        where, x = {
+            "t=0": ("opacity", jnp.asarray(0.0, F64)),
+            "t=1": ("opacity", jnp.asarray(1.0, F64)),
+            "mu=0": ("absorption", jnp.zeros(3, F64)),
+        }[case]
     val, jf, jr = _hard_fn(opts)(scene, x, where)
     assert np.all(np.isfinite(np.asarray(val))) and np.all(np.isfinite(np.asarray(jf)))
     np.testing.assert_allclose(np.asarray(jf), np.asarray(jr), rtol=1e-9, atol=1e-12)

@@ -8,13 +8,12 @@ import itertools
 import jax
 import jax.numpy as jnp
 import numpy as np
+from conftest import small_default_scene
 
 import diffshade as ds
-from fitting._problem import Problem
-from fitting._linear import Reduced, bounded_lsq, split_linear
 from fitting import Observations, ParamSet
-
-from conftest import small_default_scene
+from fitting._linear import Reduced, bounded_lsq, split_linear
+from fitting._problem import Problem
 
 
 def small(**render):
@@ -37,13 +36,23 @@ def test_render_at_a_pixel_subset_equals_the_full_render_there():
 def test_term_images_are_the_jacobian_columns_of_the_linear_parameters():
     """Every term is per colour channel: one tangent per RGB field gives its three columns."""
     scene, opts = small(fog="exp")
-    free = ["material.ambient", "material.diffuse", "material.specular", "material.shininess", "fog.color",
-            "point[0].a1"]
+    free = [
+        "material.ambient",
+        "material.diffuse",
+        "material.specular",
+        "material.shininess",
+        "fog.color",
+        "point[0].a1",
+    ]
     target = np.zeros(scene.camera.resolution + (3,))
     prob = Problem.build(scene, opts, Observations(target), free, shared=["material.specular"])
     red = Reduced(prob)
-    assert [prob.pset.params[i].name for i in red.linear_params] == ["material.ambient", "material.diffuse",
-                                                                      "material.specular", "fog.color"]
+    assert [prob.pset.params[i].name for i in red.linear_params] == [
+        "material.ambient",
+        "material.diffuse",
+        "material.specular",
+        "fog.color",
+    ]
     theta = prob.pset.theta_of(scene)
     vd = prob.data[0]
     A, b = jax.jit(lambda t: red.design(vd, t))(theta)  # compiled: op by op it took 27 s
@@ -51,8 +60,12 @@ def test_term_images_are_the_jacobian_columns_of_the_linear_parameters():
     np.testing.assert_allclose(np.asarray(A), np.asarray(J)[:, red.idx_l], rtol=1e-10, atol=1e-12)
     # affine: b + A x reproduces the image at any x
     x = theta[red.idx_l]
-    np.testing.assert_allclose(np.asarray(b).reshape(-1) + np.asarray(A @ x), np.asarray(jax.jit(lambda t: prob.image(vd, t))(theta)).reshape(-1),
-                               rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(b).reshape(-1) + np.asarray(A @ x),
+        np.asarray(jax.jit(lambda t: prob.image(vd, t))(theta)).reshape(-1),
+        rtol=1e-10,
+        atol=1e-12,
+    )
 
 
 def test_bilinear_pairs_and_clamp_are_not_linear():
@@ -106,8 +119,9 @@ def test_bounded_lsq_matches_brute_force():
 
 def test_bounded_lsq_keeps_the_start_of_a_column_the_image_does_not_show():
     A = np.array([[1.0, 0.0], [2.0, 0.0], [0.5, 0.0]])
-    x, free = bounded_lsq(jnp.asarray(A), jnp.asarray([-0.5, -1.0, -0.25]), jnp.zeros(2), jnp.ones(2),
-                          jnp.asarray([0.2, 0.7]))
+    x, free = bounded_lsq(
+        jnp.asarray(A), jnp.asarray([-0.5, -1.0, -0.25]), jnp.zeros(2), jnp.ones(2), jnp.asarray([0.2, 0.7])
+    )
     np.testing.assert_allclose(np.asarray(x), [0.5, 0.7], atol=1e-12)
     assert list(np.asarray(free)) == [True, False]
 
@@ -117,10 +131,9 @@ def test_the_program_ranks_the_starts_by_their_reduced_cost_and_is_the_only_prog
     linear block projected out): against :meth:`Reduced.cost`, an independent path (a design matrix
     per view and a bounded solve). A fit of the same structure then compiles nothing more: the
     render is compiled once per fit, for the solve, the ranking and the polish alike."""
-    from fitting import _cache
-    from fitting import Observations, VarPro, fit
-    from fitting._varpro import Program, compiled_program
+    from fitting import Observations, VarPro, _cache, fit
     from fitting._starts import candidates
+    from fitting._varpro import Program, compiled_program
 
     scene, opts = small()
     free = ["material.ambient", "material.diffuse", "material.specular", "material.shininess", "point[0].a1"]

@@ -10,13 +10,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
-import diffshade as ds
 from conftest import opencv_look_at as _look_at
 from conftest import small_default_scene
+
+import diffshade as ds
+from fitting import Observations, ParamError, ParamSet, fit
 from fitting.cli import EXIT_INPUT, EXIT_OK, main
-from fitting import Observations, fit
-from fitting import ParamError, ParamSet
 
 SIZE = 32
 EYES = [(0.0, 0.0, 3.0), (1.5, 0.5, 2.5), (-1.2, 1.0, 2.6)]
@@ -38,8 +37,9 @@ def views():
     out = []
     for eye, (e, wb) in zip(EYES, GAINS):
         R, t = _look_at(eye)
-        cam = ds.OpenCVCamera.from_opencv(_K(SIZE), R=R, t=t, width=SIZE, height=SIZE, near=0.5, far=10.0,
-                                          exposure=e, white_balance=wb)
+        cam = ds.OpenCVCamera.from_opencv(
+            _K(SIZE), R=R, t=t, width=SIZE, height=SIZE, near=0.5, far=10.0, exposure=e, white_balance=wb
+        )
         out.append(eqx.tree_at(lambda s: s.camera, scene, cam))
     render = jax.jit(ds.render, static_argnames="opts")
     return out, opts, [np.asarray(render(v, opts)) for v in out]
@@ -55,14 +55,21 @@ def test_per_view_white_balance_and_the_material_are_recovered(views):
     from gains of 1 and a grey k_d."""
     vs, opts, targets = views
     starts = [_unit_gains(v) for v in vs]
-    s0 = eqx.tree_at(lambda s: (s.material.diffuse, s.material.shininess), starts[0],
-                     (jnp.asarray([0.5, 0.5, 0.5]), jnp.asarray(10.0)))
+    s0 = eqx.tree_at(
+        lambda s: (s.material.diffuse, s.material.shininess),
+        starts[0],
+        (jnp.asarray([0.5, 0.5, 0.5]), jnp.asarray(10.0)),
+    )
     free = ["material.diffuse", "material.specular", "material.shininess", "view[*].camera.white_balance"]
     r = fit(s0, opts, Observations(targets, views=starts), free)
     assert r.successful, r.result
     assert r.names[-6:] == [f"view[{i}].camera.white_balance[{c}]" for i in (1, 2) for c in "rgb"]
-    truth = np.r_[np.asarray(vs[0].material.diffuse), np.asarray(vs[0].material.specular), 30.0,
-                  np.ravel([e * np.asarray(wb) for e, wb in GAINS[1:]])]
+    truth = np.r_[
+        np.asarray(vs[0].material.diffuse),
+        np.asarray(vs[0].material.specular),
+        30.0,
+        np.ravel([e * np.asarray(wb) for e, wb in GAINS[1:]]),
+    ]
     np.testing.assert_allclose(r.values, truth, rtol=1e-6)
     assert "variable projection" in r.method  # the k's linear, the gains (which multiply them) not
 
@@ -162,27 +169,53 @@ def test_cli_fits_through_a_calibrated_distorting_camera(tmp_path, capsys):
     (tmp_path / "true.toml").write_text(SCENE.format(size=CLI_SIZE, diffuse=truth))
     K = _K(CLI_SIZE, 0.7, -0.4)
     R, t = _look_at([0.6, 0.4, 2.8])
-    cam = {"K": K.tolist(), "R": R.tolist(), "t": t.tolist(), "width": CLI_SIZE, "height": CLI_SIZE,
-           "near": 0.5, "far": 10.0}
+    cam = {
+        "K": K.tolist(),
+        "R": R.tolist(),
+        "t": t.tolist(),
+        "width": CLI_SIZE,
+        "height": CLI_SIZE,
+        "near": 0.5,
+        "far": 10.0,
+    }
     scene, opts = ds.load_scene(tmp_path / "true.toml")
-    scene = eqx.tree_at(lambda s: s.camera, scene,
-                        ds.OpenCVCamera.from_opencv(K, R=R, t=t, width=CLI_SIZE, height=CLI_SIZE, near=0.5, far=10.0))
+    scene = eqx.tree_at(
+        lambda s: s.camera,
+        scene,
+        ds.OpenCVCamera.from_opencv(K, R=R, t=t, width=CLI_SIZE, height=CLI_SIZE, near=0.5, far=10.0),
+    )
     pinhole = np.asarray(ds.render(scene, opts), np.float64)
     photo = _distort_image(pinhole, K, DIST)
     from diffshade import color as _color
 
     # an 8-bit sRGB photograph with sensor noise of 2 codes: above the resampling's own error
     # (double bilinear interpolation on a 40-pixel sphere: 1.4e-3 RMS in linear values)
-    noisy = _color.decode(np.clip(_color.encode(photo, "srgb") + np.random.default_rng(3).normal(0, 2 / 255, photo.shape),
-                                  0, 1), "srgb")
+    noisy = _color.decode(
+        np.clip(_color.encode(photo, "srgb") + np.random.default_rng(3).normal(0, 2 / 255, photo.shape), 0, 1), "srgb"
+    )
     _color.write_png(tmp_path / "photo.png", noisy, "srgb", bits=8)
     (tmp_path / "cam.json").write_text(json.dumps({**cam, "distortion": DIST}))
     (tmp_path / "cam_nodist.json").write_text(json.dumps(cam))
     # the lens moves the photo: read as a pinhole image it disagrees with the truth's render
     assert np.abs(photo - pinhole).max() > 0.2
     out = tmp_path / "out"
-    rc = main(["fit", str(tmp_path / "start.toml"), str(tmp_path / "photo.png"), "-p", "material.diffuse",
-               "--cameras", str(tmp_path / "cam.json"), "--margin", "2", "--noise", str(2 / 255), "-o", str(out)])
+    rc = main(
+        [
+            "fit",
+            str(tmp_path / "start.toml"),
+            str(tmp_path / "photo.png"),
+            "-p",
+            "material.diffuse",
+            "--cameras",
+            str(tmp_path / "cam.json"),
+            "--margin",
+            "2",
+            "--noise",
+            str(2 / 255),
+            "-o",
+            str(out),
+        ]
+    )
     text = capsys.readouterr().out
     assert rc == EXIT_OK, text
     assert "undistorted" in text
@@ -192,13 +225,39 @@ def test_cli_fits_through_a_calibrated_distorting_camera(tmp_path, capsys):
     assert (np.abs(fitted - truth) < 3 * se).all(), (fitted, se)
     assert (se < 0.01).all()
     # the same photograph taken as undistorted: the fit is rejected
-    rc = main(["fit", str(tmp_path / "start.toml"), str(tmp_path / "photo.png"), "-p", "material.diffuse",
-               "--cameras", str(tmp_path / "cam_nodist.json"), "--margin", "2", "--noise", str(2 / 255),
-               "-o", str(tmp_path / "out2")])
+    rc = main(
+        [
+            "fit",
+            str(tmp_path / "start.toml"),
+            str(tmp_path / "photo.png"),
+            "-p",
+            "material.diffuse",
+            "--cameras",
+            str(tmp_path / "cam_nodist.json"),
+            "--margin",
+            "2",
+            "--noise",
+            str(2 / 255),
+            "-o",
+            str(tmp_path / "out2"),
+        ]
+    )
     assert rc != EXIT_OK
     assert "the noise" in json.loads((tmp_path / "out2" / "fit.json").read_text())["result"]
-    rc = main(["fit", str(tmp_path / "start.toml"), str(tmp_path / "photo.png"), "-p", "material.diffuse",
-               "--cameras", str(tmp_path / "cam.json"), str(tmp_path / "cam.json"), "-o", str(tmp_path / "o3")])
+    rc = main(
+        [
+            "fit",
+            str(tmp_path / "start.toml"),
+            str(tmp_path / "photo.png"),
+            "-p",
+            "material.diffuse",
+            "--cameras",
+            str(tmp_path / "cam.json"),
+            str(tmp_path / "cam.json"),
+            "-o",
+            str(tmp_path / "o3"),
+        ]
+    )
     assert rc == EXIT_INPUT and "1 target(s) but 2 --cameras file(s)" in capsys.readouterr().err
 
 
@@ -223,7 +282,9 @@ def test_relinearised_residuals_are_the_code_value_residuals(views):
     vs, opts, targets = views
     rng = np.random.default_rng(4)
     codes = [np.clip(np.asarray(_color.encode(t, "srgb")) + rng.normal(0, 0.01, t.shape), 0, 1) for t in targets]
-    prob = Problem.build(vs[0], opts, Observations(codes, views=vs, encoding="srgb", saturation=1.0), ["material.diffuse"])
+    prob = Problem.build(
+        vs[0], opts, Observations(codes, views=vs, encoding="srgb", saturation=1.0), ["material.diffuse"]
+    )
     theta = prob.pset.theta_of(vs[0])
     model = [np.asarray(prob.image(vd, theta), np.float64) for vd in prob.data]
     flat = np.concatenate([m.reshape(-1) for m in model])

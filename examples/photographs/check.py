@@ -41,9 +41,11 @@ def main(data: Path, fit_dir: Path) -> int:
     det = np.isfinite(se)
     err = np.abs(val - alb)[det]
     z = err / se[det]
-    print(f"albedo: {int(det.all(axis=1).sum())} of {n} vertices determined; |error| median {np.median(err):.4f}, "
-          f"90th percentile {np.quantile(err, 0.9):.4f}; within 1 s.e. {np.mean(z < 1):.0%}, within 3 s.e. "
-          f"{np.mean(z < 3):.0%}")
+    print(
+        f"albedo: {int(det.all(axis=1).sum())} of {n} vertices determined; |error| median {np.median(err):.4f}, "
+        f"90th percentile {np.quantile(err, 0.9):.4f}; within 1 s.e. {np.mean(z < 1):.0%}, within 3 s.e. "
+        f"{np.mean(z < 3):.0%}"
+    )
     print(f"others: {sum(z < 3 for z in zs)} of {len(zs)} within 3 s.e.")
     return 0
 

@@ -74,9 +74,14 @@ attenuation = [1.0, {a1}, {a2}]
 
 def albedo(v: np.ndarray) -> np.ndarray:
     """A smooth pattern of colours over the surface (linear RGB, in [0.08, 0.9])."""
-    c = np.stack([0.5 + 0.3 * np.sin(1.7 * v[:, 0] + 0.5 * v[:, 1]),
-                  0.45 + 0.3 * np.sin(1.3 * v[:, 1] - 0.8 * v[:, 2]),
-                  0.4 + 0.3 * np.cos(1.1 * v[:, 2] + 0.6 * v[:, 0])], -1)
+    c = np.stack(
+        [
+            0.5 + 0.3 * np.sin(1.7 * v[:, 0] + 0.5 * v[:, 1]),
+            0.45 + 0.3 * np.sin(1.3 * v[:, 1] - 0.8 * v[:, 2]),
+            0.4 + 0.3 * np.cos(1.1 * v[:, 2] + 0.6 * v[:, 0]),
+        ],
+        -1,
+    )
     return np.clip(c, 0.08, 0.9)
 
 
@@ -100,7 +105,8 @@ def main(out: Path) -> None:
     trimesh.Trimesh(v, f, vertex_colors=grey, process=False).export(out / "object.ply")
     codes = np.round(np.asarray(_color.encode(truth, "srgb")) * 255).astype(np.uint8)
     trimesh.Trimesh(v, f, vertex_colors=np.c_[codes, np.full(len(v), 255, np.uint8)], process=False).export(
-        out / "truth.ply")
+        out / "truth.ply"
+    )
     for name, pos in LIGHTS.items():
         (out / f"setup_{name}.toml").write_text(SCENE.format(size=SIZE, position=pos, **START))
     f_px = SIZE / 2 / np.tan(np.deg2rad(20.0))
@@ -111,22 +117,43 @@ def main(out: Path) -> None:
         (out / "true.toml").write_text(SCENE.format(size=SIZE, position=LIGHTS[setup], **TRUE))
         scene, opts = ds.load_scene(out / "true.toml")
         R, t = look_at(eye)
-        cam = ds.OpenCVCamera.from_opencv(K, R=R, t=t, width=SIZE, height=SIZE, near=0.5, far=50.0,
-                                          exposure=exposure, white_balance=wb)
+        cam = ds.OpenCVCamera.from_opencv(
+            K, R=R, t=t, width=SIZE, height=SIZE, near=0.5, far=50.0, exposure=exposure, white_balance=wb
+        )
         scene = eqx.tree_at(lambda s: (s.camera, s.mesh.colors), scene, (cam, jnp.asarray(truth)))
         img = np.asarray(render(scene, opts), np.float64)
         # the sensor's noise first, then the clip to the file's range: a highlight above 1 stays
         # clipped (censored in the fit) unless the noise takes it below the top code
         coded = np.asarray(_color.encode(img, "srgb")) + rng.normal(0, NOISE, img.shape)
         _color.write_png(out / f"view{i}.png", _color.decode(np.clip(coded, 0, 1), "srgb"), "srgb", bits=8)
-        (out / f"view{i}.json").write_text(json.dumps(
-            {"K": K.tolist(), "R": R.tolist(), "t": t.tolist(), "width": SIZE, "height": SIZE, "near": 0.5, "far": 50.0},
-            indent=1))
+        (out / f"view{i}.json").write_text(
+            json.dumps(
+                {
+                    "K": K.tolist(),
+                    "R": R.tolist(),
+                    "t": t.tolist(),
+                    "width": SIZE,
+                    "height": SIZE,
+                    "near": 0.5,
+                    "far": 50.0,
+                },
+                indent=1,
+            )
+        )
     (out / "true.toml").unlink()
-    (out / "truth.json").write_text(json.dumps({
-        "albedo": truth.tolist(), **TRUE,
-        "white_balance": {f"view[{i}]": (e * np.asarray(wb)).tolist() for i, (_, _, e, wb) in enumerate(VIEWS) if i},
-        "setups": [s for _, s, _, _ in VIEWS]}, indent=1))
+    (out / "truth.json").write_text(
+        json.dumps(
+            {
+                "albedo": truth.tolist(),
+                **TRUE,
+                "white_balance": {
+                    f"view[{i}]": (e * np.asarray(wb)).tolist() for i, (_, _, e, wb) in enumerate(VIEWS) if i
+                },
+                "setups": [s for _, s, _, _ in VIEWS],
+            },
+            indent=1,
+        )
+    )
     print(f"wrote {len(VIEWS)} photographs of {len(v)}-vertex {MESH.name} at {SIZE}x{SIZE} into {out}")
 
 
