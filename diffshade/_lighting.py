@@ -312,9 +312,16 @@ def illuminate(
         )
         return tuple(b + d for b, d in zip(to_px(base), direct))
 
-    color = side(sites.normal, sites.material, False)
-    if lighting.two_sided:
-        color = _select(surface.front, color, side(S.neg(sites.normal), sites.back_material, True))
+    if lighting.two_sided and to_px is None:
+        # per pixel both sides are lit with the normal facing the viewer (the mesh's, reversed on
+        # back faces), so that what depends on the normal alone is computed once for both
+        n_face = tuple(jnp.where(surface.front, c, -c) for c in sites.normal)
+        front, back = side(n_face, sites.material, False), side(n_face, sites.back_material, True)
+        color = _select(surface.front, front, back)
+    else:
+        color = side(sites.normal, sites.material, False)
+        if lighting.two_sided:
+            color = _select(surface.front, color, side(S.neg(sites.normal), sites.back_material, True))
     if to_px is None:
         color = _color_sum(_vertex_clamp(color, output))
     return color

@@ -540,7 +540,7 @@ def rasterize(
 
 
 def interpolate(
-    attr: Float[Array, "V C"] | tuple, faces: Int[Array, "F 3"], frags: Fragments
+    attr: Float[Array, "V C"] | tuple, faces: Int[Array, "F 3"], frags: Fragments, bary: tuple | None = None
 ) -> Float[Array, "K H W C"] | tuple:
     r"""Perspective-correct interpolation of per-vertex attributes, :math:`\sum_j b_j a_{v_j}`;
     zeros on empty pixels.
@@ -548,11 +548,12 @@ def interpolate(
     ``attr``: ``[V, C]`` (returns ``[K, H, W, C]``), or a tuple of ``[V]`` components (returns a
     tuple of ``[K, H, W]``, the form the shading stages work in). ``faces`` index ``attr``'s rows:
     per-corner attributes (``[3F]``, face-major) are interpolated with
-    ``faces = arange(3F).reshape(F, 3)``."""
+    ``faces = arange(3F).reshape(F, 3)``. ``bary``: the three barycentric components to use
+    instead of ``frags.bary`` (the surface stage passes them materialised, each contiguous)."""
     valid = frags.tri_id >= 0
     vid = _pixel_vertex_ids(faces, frags.tri_id, valid)
     shape = frags.tri_id.shape
     comps = attr if isinstance(attr, tuple) else tuple(jnp.asarray(attr).T)
-    bary = [frags.bary[..., j] for j in range(3)]
+    bary = [frags.bary[..., j] for j in range(3)] if bary is None else list(bary)
     out = tuple(jnp.where(valid, sum(bary[j] * a[vid[j]].reshape(shape) for j in range(3)), 0.0) for a in comps)
     return out if isinstance(attr, tuple) else jnp.stack(out, axis=-1)

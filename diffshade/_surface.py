@@ -119,9 +119,11 @@ def _affine(frags: Fragments, clip, faces) -> Fragments:
     return eqx.tree_at(lambda f: f.bary, frags, jnp.stack([jnp.where(ok, wv[j] * inv, 0.0) for j in range(3)], -1))
 
 
-def _lerp(frags: Fragments, faces) -> Callable[[Components], Components]:
-    """Interpolation of per-vertex components to the fragments' pixels (materialised)."""
-    return lambda attr: keep(*interpolate(tuple(attr), faces, frags))
+def _lerp(frags: Fragments, faces, bary: Components) -> Callable[[Components], Components]:
+    """Interpolation of per-vertex components to the fragments' pixels (materialised), with the
+    barycentrics ``bary`` (materialised once, each component contiguous: the interpolations then
+    read them rather than recompute them, and not strided)."""
+    return lambda attr: keep(*interpolate(tuple(attr), faces, frags, bary))
 
 
 def _vertex_colored(mat: Material, col, mode: str) -> Material:
@@ -145,7 +147,7 @@ def surface_points(
     clip = scene.camera.world_to_clip(mesh.vertices) if clip is None else clip
     if raster.interpolation == "affine":
         frags = _affine(frags, clip, mesh.faces)
-    frags = eqx.tree_at(lambda f: f.bary, frags, jnp.stack(keep(*(frags.bary[..., j] for j in range(3))), -1))
+    bary = keep(*(frags.bary[..., j] for j in range(3)))
     tid = frags.tri_id
     valid = tid >= 0
     safe_tid = jnp.where(valid, tid, 0)
@@ -156,7 +158,7 @@ def surface_points(
     if raster.vertex_color != "none" and mesh.colors is None:
         raise ValueError(f"Raster.vertex_color is {raster.vertex_color!r} but the mesh has no colours")
 
-    lerp = _lerp(frags, mesh.faces)
+    lerp = _lerp(frags, mesh.faces, bary)
     pix_mid = mesh.material_ids[safe_tid] if multi else None
     pixel_fields = need.fields if raster.shading == "phong" else need.fields & _COMPOSITING_FIELDS
     pmat = _material_at(mats, pix_mid, pixel_fields) if multi else scene.material
@@ -165,7 +167,7 @@ def surface_points(
     kay = tuple(bool(m.kay) for m in mats) if multi else (bool(scene.material.kay),)
     need = Needs(need.fields, need.positions, need.kay and any(kay))
     build = {"phong": _phong_sites, "gouraud": _gouraud_sites, "flat": _flat_sites}[raster.shading]
-    sites, normal, pmat = build(scene, raster, need, frags, multi, pmat, back, position)
+    sites, normal, pmat = build(scene, raster, need, frags, bary, multi, pmat, back, position)
     return Surface(
         frags=frags,
         valid=valid,
@@ -180,10 +182,10 @@ def surface_points(
     )
 
 
-def _phong_sites(scene, raster, need, frags, multi, pmat, back, position):
+def _phong_sites(scene, raster, need, frags, bary, multi, pmat, back, position):
     """Phong: every pixel is a site, with the interpolated unit normal."""
     mesh = scene.mesh
-    lerp = _lerp(frags, mesh.faces)
+    lerp = _lerp(frags, mesh.faces, bary)
     if raster.vertex_color != "none":  # interpolated to the pixel
         col = jnp.stack(lerp(tuple(mesh.colors[:, c] for c in range(3))), axis=-1)
         pmat, back = _vertex_colored(pmat, col, raster.vertex_color), _vertex_colored(back, col, raster.vertex_color)
@@ -191,11 +193,11 @@ def _phong_sites(scene, raster, need, frags, multi, pmat, back, position):
     return Sites(position, n, pmat, back, None), n, pmat
 
 
-def _gouraud_sites(scene, raster, need, frags, multi, pmat, back, position):
+def _gouraud_sites(scene, raster, need, frags, bary, multi, pmat, back, position):
     """Gouraud: the vertices are the sites (the face corners with several materials); their
     colours are interpolated to the pixels."""
     mesh = scene.mesh
-    lerp = _lerp(frags, mesh.faces)
+    lerp = _lerp(frags, mesh.faces, bary)
     vn = mesh.vertex_normals()
     mode = raster.vertex_color
     if multi:
@@ -215,13 +217,13 @@ def _gouraud_sites(scene, raster, need, frags, multi, pmat, back, position):
             vmat, vback = _vertex_colored(vmat, mesh.colors, mode), _vertex_colored(vback, mesh.colors, mode)
 
     def to_pixels(col: Components) -> Components:
-        return keep(*interpolate(tuple(keep(*col)), frags_faces, frags))
+        return keep(*interpolate(tuple(keep(*col)), frags_faces, frags, bary))
 
     normal = S.normalize(lerp(S.vec(vn))) if need.kay else None
     return Sites(pts, keep(*nrm), vmat, vback, to_pixels), normal, pmat
 
 
-def _flat_sites(scene, raster, need, frags, multi, pmat, back, position):
+def _flat_sites(scene, raster, need, frags, bary, multi, pmat, back, position):
     """Flat: one site per triangle (centroid and face normal, or the provoking vertex and its
     normal), gathered to the pixels."""
     mesh = scene.mesh
