@@ -253,7 +253,7 @@ def main():
                     ok=r.successful and right,
                     false=r.successful and not right,
                     false_wald=r.successful and not honest,
-                    interval_s=r.intervals.seconds,
+                    interval_s=r.intervals.seconds if r.intervals is not None else 0.0,
                     outside=outside,
                     solve=r.solve_s,
                     compile=r.compile_s,
