@@ -69,6 +69,7 @@ from typing import Any
 import numpy as np
 
 from ._camera import Camera, OpenCVCamera
+from ._materials import _MATERIAL_FIELDS
 from ._mesh import COLOR_MODES, VERTEX_MODES, Mesh, MeshError, box, combine, icosphere, load_mesh, quad
 from ._options import RenderOptions, ShadowMaps, ShadowRays
 from ._scene import (
@@ -205,24 +206,7 @@ def _options(v: _V, r: dict) -> RenderOptions:
 def _material(v: _V, m: dict, where: str, gl: bool = False) -> Material:
     """A material table; with ``gl`` (``render.compat = "opengl"``) the values left out are
     OpenGL's defaults, and shininess 0 is allowed (as in ``glMaterial``)."""
-    keys = (
-        "emission",
-        "ambient",
-        "diffuse",
-        "specular",
-        "shininess",
-        "ior",
-        "opacity",
-        "kay",
-        "kay_min",
-        "kay_max",
-        "kay_power",
-        "transmission",
-        "absorption",
-        "mirror",
-        "refraction",
-        "casts_shadow",
-    )
+    keys = (*_MATERIAL_FIELDS, "kay", "casts_shadow")  # the numbers and the two static flags
     v.unknown(m, keys, where)
     d = Material.opengl() if gl else Material()
     flags = {}

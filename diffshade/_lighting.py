@@ -114,11 +114,12 @@ def _incident(kind: str, li, P, lt: Lighting):
     return l, att, _rgb(li.color), _rgb(li.ambient), spec
 
 
-def light_kinds(scene: Scene, lt: Lighting):
-    """``(kind, lights)`` for every light kind the scene has (area lights as their emitters)."""
+def light_kinds(scene: Scene, area_grid: tuple[int, int]):
+    """``(kind, lights)`` for every light kind the scene has (area lights as their ``area_grid``
+    emitters): what the lighting sums over and what shadow rays are traced to."""
     kinds = [(k, getattr(scene, k)) for k in ("directional", "point", "spot", "multi_lobe")]
     if scene.area.count:
-        kinds.append(("area", area_emitters(scene.area, lt.area_grid)))
+        kinds.append(("area", area_emitters(scene.area, area_grid)))
     return [(k, lights) for k, lights in kinds if lights.count]
 
 
@@ -144,7 +145,7 @@ def _light_sum(
     ``post``'s points. A kind with more than :data:`LIGHTS_UNROLLED` lights is summed by a scan
     over its light axis."""
     direct, ambient = [], []
-    for kind, lights in light_kinds(scene, lt):
+    for kind, lights in light_kinds(scene, lt.area_grid):
         vis = shadow.kinds.get(kind) if shadow is not None else None
 
         def one(li, s_i, kind=kind):

@@ -39,7 +39,6 @@ from ._materials import _material_at
 from ._options import RenderOptions, ShadowRays
 from ._rays import first_hits, intersect
 from ._scene import Scene
-from ._shadow import SHADOW_KINDS
 from ._surface import Components, Surface, needs
 
 # Secondary rays start this far (relative to the scene's size) along themselves, and skip the
@@ -63,7 +62,7 @@ def _light_rays(kind, li, Pa):
 
 def shadow_ray_visibility(scene: Scene, rays: ShadowRays, P, tri, area_grid=(4, 4), backend: str = "auto"):
     r"""Visibility of every light at points ``P`` (component tuples) on triangles ``tri``, by a
-    straight ray to the light: per kind (those of :data:`diffshade._shadow.SHADOW_KINDS` and the
+    straight ray to the light: per kind (:func:`diffshade._lighting.light_kinds`: the point kinds and the
     area lights' emitters), ``[N, ...]`` in {0, 1} (``shadow_ray_crossings = 0``: every surface
     blocks; no gradient) or ``[N, ..., 3]``, the light's RGB transmittance through up to
     ``rays.crossings`` transparent surfaces (``refraction > 0``): :math:`k_{rt}` per surface
@@ -126,12 +125,7 @@ def shadow_ray_visibility(scene: Scene, rays: ShadowRays, P, tri, area_grid=(4, 
 
     one_kind = coloured if K > 0 else opaque
     out = {}
-    kinds = [(k, getattr(scene, k)) for k in SHADOW_KINDS]
-    if scene.area.count:
-        kinds.append(("area", Lg.area_emitters(scene.area, area_grid)))
-    for kind, lights in kinds:
-        if not lights.count:
-            continue
+    for kind, lights in Lg.light_kinds(scene, area_grid):
         one = lambda li, kind=kind: one_kind("point" if kind == "area" else kind, li)  # noqa: E731
         # past a few lights of a kind, one copy in the program (as for shadow maps and lighting)
         if lights.count > Lg.LIGHTS_UNROLLED:
