@@ -484,12 +484,29 @@ class Problem:
         return jnp.concatenate([self.image(vd, theta).reshape(-1) for vd in data])
 
     def map_views(self, fn, data: ViewData, *args):
-        """``fn(view, *args)`` for every stacked view, stacked: the views taken one by one, each
-        its own piece of the program. (Not ``lax.map`` or ``vmap``: design notes: docs/fit-design-notes.md, "Stacked views".) Over several devices
-        this runs inside ``shard_map``: each device takes its own views."""
+        """``fn(view, *args)`` for every stacked view, stacked: one loop over the views (XLA's, so
+        the program holds one copy of the view's computation and its compile does not grow with
+        the view count). Over several devices this runs inside ``shard_map``: each device loops
+        over its own views.
+
+        Each view's output also feeds a reduction carried through the loop (an exact zero added
+        back): without a second use XLA fuses the whole shading into the in-place update of the
+        stacked output, and XLA's CPU backend runs such a fusion on one thread. (Unrolled, the
+        compile grew with the views; under ``vmap``, batched gathers of per-view tangents made
+        one fusion recompute its inputs per element, 60× slower: design notes,
+        docs/fit-design-notes.md, "Stacked views".)"""
 
         def body(d, *a):
-            return jnp.stack([fn(jax.tree.map(lambda x: x[i], d), *a) for i in range(d.target.shape[0])])
+            view0 = jax.tree.map(lambda x: x[0], d)
+            dt = jax.eval_shape(lambda v: fn(v, *a), view0).dtype
+
+            def step(c, v):
+                out = fn(v, *a)
+                head = out.reshape(-1)[:1]
+                return c + jnp.sum(jnp.where(jnp.isfinite(head), head, 0) * 0), out
+
+            zero, out = jax.lax.scan(step, jnp.zeros((), dt), d)
+            return out + zero
 
         if len(self.devices) > 1:
             from jax.sharding import Mesh, PartitionSpec
