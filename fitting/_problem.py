@@ -505,7 +505,8 @@ class Problem:
                 head = out.reshape(-1)[:1]
                 return c + jnp.sum(jnp.where(jnp.isfinite(head), head, 0) * 0), out
 
-            zero, out = jax.lax.scan(step, jnp.zeros((), dt), d)
+            init = jnp.sum(d.target[:0]).astype(dt)  # 0, of the data's kind (varying over shard_map's views)
+            zero, out = jax.lax.scan(step, init, d)
             return out + zero
 
         if len(self.devices) > 1:
