@@ -15,11 +15,19 @@ Scaling (``--scaling``): strong (``--views`` views, default 32, on 1, 2 and 4 de
 machine they share its cores, so the figure shows what sharding costs or saves there, not what
 separate machines would give (``jax.distributed`` spreads the same program over hosts).
 
+View-count sweep (``--sweep``): a photometric-stereo capture, a sphere under one directional
+light per view (directions drawn with ``--seed``), ``--size`` (96 by default), Blinn–Phong, k_d
+(RGB), k_s and m free, float targets rendered at the truth, the fit from a start far off (k_d 0.3,
+k_s 0.2, m 10): for 1, 8, 48 and 96 views (``--counts``), each in its own process (nothing cached),
+the fit's compile and solve seconds, its steps, the covered pixels, solve µs per pixel and step,
+and the largest relative error of the recovered parameters.
+
 Memory (``--memory``): the process's peak resident memory for ``n`` views of ``--size`` on one
 device; the slope over ``n`` is the memory per view, and from it the number of views one process
 holds in ``--budget-gib`` (24 GiB by default).
 
     python benchmarks/bench_views.py --scaling [--size 256] [--views 32] [--per-device 8]
+    python benchmarks/bench_views.py --sweep [--size 96] [--counts 1 8 48 96] [--seed 0]
     python benchmarks/bench_views.py --memory [--size 512] [--counts 1 2 4 8]
 """
 
@@ -114,34 +122,126 @@ def child(size: int, n: int, devices: int, repeats: int) -> dict:
     )
 
 
+PS_TRUTH = {"diffuse": [0.6, 0.4, 0.3], "specular": 0.4, "shininess": 25.0}
+PS_FREE = ["material.diffuse", "material.specular", "material.shininess"]
+
+
+def ps_scenes(n: int, size: int, seed: int):
+    """The photometric-stereo capture: ``(truth, opts, views)``, a sphere under one directional
+    light per view."""
+    import numpy as np
+
+    import diffshade as ds
+
+    rng = np.random.default_rng(seed)
+    d = {
+        "mesh": {"icosphere": 4},
+        "camera": {
+            "eye": [0, 0, 3.0],
+            "target": [0, 0, 0],
+            "up": [0, 1, 0],
+            "fov_y": 40.0,
+            "near": 0.5,
+            "far": 10.0,
+            "width": size,
+            "height": size,
+        },
+        "render": {"shading": "phong", "specular": "blinn", "fog": "none"},
+        "material": dict(PS_TRUTH, ambient=[0.0, 0.0, 0.0]),
+        "light": [{"type": "directional", "color": [1, 1, 1], "direction": [0, 0, -1.0]}],
+    }
+    scene, opts = ds.scene_from_dict(d)
+    views = []
+    for _ in range(n):
+        tilt, azim = rng.uniform(0, 0.9), rng.uniform(0, 2 * np.pi)
+        to = [np.sin(tilt) * np.cos(azim), np.sin(tilt) * np.sin(azim), np.cos(tilt)]
+        light = {"type": "directional", "color": [1, 1, 1], "direction": [-c for c in to]}
+        views.append(ds.scene_from_dict(dict(d, light=[light]))[0])
+    return scene, opts, views
+
+
+def sweep_child(size: int, n: int, seed: int) -> dict:
+    import equinox as eqx
+    import jax.numpy as jnp
+    import numpy as np
+
+    sys.path.insert(0, os.path.join(HERE, ".."))
+    import diffshade as ds
+    import fitting
+
+    truth, opts, views = ps_scenes(n, size, seed)
+    targets = [np.asarray(ds.render(v, opts)) for v in views]
+    start = eqx.tree_at(
+        lambda s: (s.material.diffuse, s.material.specular, s.material.shininess),
+        truth,
+        (jnp.asarray([0.3, 0.3, 0.3]), jnp.asarray(0.2), jnp.asarray(10.0)),
+    )
+    obs = fitting.Observations(targets, views=views)
+    r = fitting.fit(start, opts, obs, PS_FREE, shared=["material.specular"], intervals=False)
+    want = np.array([*PS_TRUTH["diffuse"], PS_TRUTH["specular"], PS_TRUTH["shininess"]])
+    err = float(np.max(np.abs(np.asarray(r.values) - want) / want))
+    pixels = int(sum((np.asarray(ds.scene_visibility(v, opts))[0] >= 0).sum() for v in views))
+    return dict(
+        n=n, compile_s=r.compile_s, solve_s=r.solve_s, steps=r.steps, err=err, ok=bool(r.successful), pixels=pixels
+    )
+
+
 def run_child(size, n, devices, repeats):
     env = dict(os.environ)
-    if devices > 1:
+    if devices and devices > 1:
         env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={devices}").strip()
-    out = subprocess.run(
-        [sys.executable, __file__, "--child", f"{size},{n},{devices},{repeats}"],
-        capture_output=True,
-        text=True,
-        env=env,
-    )
+    args = ["--child", f"{size},{n},{devices},{repeats}"] if devices else ["--sweep-child", f"{size},{n},{repeats}"]
+    out = subprocess.run([sys.executable, __file__, *args], capture_output=True, text=True, env=env)
     if out.returncode:
         raise SystemExit(out.stderr[-3000:])
     return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def sweep(size: int, counts: list, seed: int) -> None:
+    print(
+        f"view-count sweep: a sphere under one directional light per view, {size}², Blinn–Phong, "
+        f"k_d k_s m free (seed {seed})"
+    )
+    print(
+        f"{'views':>5s} {'covered px':>10s} {'compile s':>9s} {'× 1 view':>8s} {'solve s':>8s} {'steps':>5s} "
+        f"{'µs/px/step':>10s} {'max rel err':>11s} ok"
+    )
+    base = None
+    for n in counts:
+        r = run_child(size, n, 0, seed)
+        base = base or r["compile_s"]
+        per = 1e6 * r["solve_s"] / max(r["steps"], 1) / r["pixels"]
+        print(
+            f"{n:5d} {r['pixels']:10d} {r['compile_s']:9.2f} {r['compile_s'] / base:8.2f} {r['solve_s']:8.3f} "
+            f"{r['steps']:5d} {per:10.3f} {r['err']:11.1e} {r['ok']}"
+        )
 
 
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--scaling", action="store_true")
     ap.add_argument("--memory", action="store_true")
+    ap.add_argument("--sweep", action="store_true")
+    ap.add_argument("--seed", type=int, default=0, help="the light directions of --sweep")
     ap.add_argument("--size", type=int, default=None, help="image side (256 for --scaling, 512 for --memory)")
     ap.add_argument("--views", type=int, default=32, help="views of the strong-scaling runs")
     ap.add_argument("--per-device", type=int, default=8, help="views per device of the weak-scaling runs")
     ap.add_argument("--devices", type=int, nargs="+", default=[1, 2, 4])
-    ap.add_argument("--counts", type=int, nargs="+", default=[1, 2, 4, 8], help="view counts of --memory")
+    ap.add_argument(
+        "--counts", type=int, nargs="+", default=None, help="view counts of --memory (1 2 4 8), --sweep (1 8 48 96)"
+    )
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--budget-gib", type=float, default=24.0)
     ap.add_argument("--child", default="", help=argparse.SUPPRESS)
+    ap.add_argument("--sweep-child", default="", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.sweep_child:
+        size, n, seed = (int(x) for x in args.sweep_child.split(","))
+        print(json.dumps(sweep_child(size, n, seed)))
+        return
+    if args.sweep:
+        sweep(args.size or 96, args.counts or [1, 8, 48, 96], args.seed)
+        return
     if args.child:
         size, n, devices, repeats = (int(x) for x in args.child.split(","))
         print(json.dumps(child(size, n, devices, repeats)))
@@ -178,7 +278,7 @@ def main():
         import numpy as np
 
         size = args.size or 512
-        rows = [run_child(size, n, 1, 1) for n in args.counts]
+        rows = [run_child(size, n, 1, 1) for n in args.counts or [1, 2, 4, 8]]
         print(f"\nmemory: {size}² views on one device")
         print(f"{'views':>5s} {'covered px':>10s} {'ms/step':>8s} {'peak MiB':>9s}")
         for r in rows:
