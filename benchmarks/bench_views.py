@@ -22,12 +22,17 @@ k_s 0.2, m 10): for 1, 8, 48 and 96 views (``--counts``), each in its own proces
 the fit's compile and solve seconds, its steps, the covered pixels, solve µs per pixel and step,
 and the largest relative error of the recovered parameters.
 
+Exposures (``--exposures``): ms per LM step of ``--views`` views (32) of ``--size`` (256) with
+the demo's parameters, without and with ``view[*].camera.exposure`` free (a gain per view but the
+reference): the per-view scalars share one tangent, so the ratio stays near 1.
+
 Memory (``--memory``): the process's peak resident memory for ``n`` views of ``--size`` on one
 device; the slope over ``n`` is the memory per view, and from it the number of views one process
 holds in ``--budget-gib`` (24 GiB by default).
 
     python benchmarks/bench_views.py --scaling [--size 256] [--views 32] [--per-device 8]
     python benchmarks/bench_views.py --sweep [--size 96] [--counts 1 8 48 96] [--seed 0]
+    python benchmarks/bench_views.py --exposures [--views 32] [--size 256]
     python benchmarks/bench_views.py --memory [--size 512] [--counts 1 2 4 8]
 """
 
@@ -44,7 +49,7 @@ import time
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
-def child(size: int, n: int, devices: int, repeats: int) -> dict:
+def child(size: int, n: int, devices: int, repeats: int, exposure: int = 0) -> dict:
     import resource
 
     import equinox as eqx
@@ -82,7 +87,7 @@ def child(size: int, n: int, devices: int, repeats: int) -> dict:
         views.append(eqx.tree_at(lambda s: s.camera, scene, cam))
     targets = [np.asarray(ds.render(v, opts)) for v in views]
     base_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    free = list(DEMO_FREE)
+    free = list(DEMO_FREE) + (["view[*].camera.exposure"] if exposure else [])
     devs = jax.devices()[:devices]
     prob = Problem.build(scene, opts, Observations(targets, views=views), free, devices=devs)
     red = Reduced(prob)
@@ -186,11 +191,15 @@ def sweep_child(size: int, n: int, seed: int) -> dict:
     )
 
 
-def run_child(size, n, devices, repeats):
+def run_child(size, n, devices, repeats, exposure=0):
     env = dict(os.environ)
     if devices and devices > 1:
         env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={devices}").strip()
-    args = ["--child", f"{size},{n},{devices},{repeats}"] if devices else ["--sweep-child", f"{size},{n},{repeats}"]
+    args = (
+        ["--child", f"{size},{n},{devices},{repeats},{exposure}"]
+        if devices
+        else ["--sweep-child", f"{size},{n},{repeats}"]
+    )
     out = subprocess.run([sys.executable, __file__, *args], capture_output=True, text=True, env=env)
     if out.returncode:
         raise SystemExit(out.stderr[-3000:])
@@ -222,6 +231,9 @@ def main():
     ap.add_argument("--scaling", action="store_true")
     ap.add_argument("--memory", action="store_true")
     ap.add_argument("--sweep", action="store_true")
+    ap.add_argument(
+        "--exposures", action="store_true", help="ms per step of --views views with and without an exposure each"
+    )
     ap.add_argument("--seed", type=int, default=0, help="the light directions of --sweep")
     ap.add_argument("--size", type=int, default=None, help="image side (256 for --scaling, 512 for --memory)")
     ap.add_argument("--views", type=int, default=32, help="views of the strong-scaling runs")
@@ -242,9 +254,18 @@ def main():
     if args.sweep:
         sweep(args.size or 96, args.counts or [1, 8, 48, 96], args.seed)
         return
+    if args.exposures:
+        size = args.size or 256
+        print(f"{args.views} views of {size}², the demo's 13 parameters, with and without a free exposure per view")
+        rows = [run_child(size, args.views, 1, args.repeats, e) for e in (0, 1)]
+        for e, r in zip((0, 1), rows):
+            print(
+                f"{'with' if e else 'without':>8s} exposures: {r['ms']:8.1f} ms per LM step, compile {r['compile_s']:.1f} s"
+            )
+        print(f"ratio: {rows[1]['ms'] / rows[0]['ms']:.2f}")
+        return
     if args.child:
-        size, n, devices, repeats = (int(x) for x in args.child.split(","))
-        print(json.dumps(child(size, n, devices, repeats)))
+        print(json.dumps(child(*(int(x) for x in args.child.split(",")))))
         return
     if not (args.scaling or args.memory):
         args.scaling = True

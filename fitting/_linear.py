@@ -209,24 +209,35 @@ class Reduced:
             self.why.update({pset.params[i].name: "method = 'full' asked for" for i in self.linear_params})
             self.linear_params = []
         lin = set(self.linear_params)
-        idx_l, idx_n, group, chan, lo, hi = [], [], [], [], [], []
+        # the per-view parameters of one name (``view[1].camera.exposure``, ``view[2]...``) share a
+        # tangent: each view's rows show its own scalar, so one pass of the render gives every
+        # view's column (block-sparse: the others' rows are 0), not a pass per view
+        base = lambda p: p.name.split(".", 1)[1] if p.view is not None else p.name  # noqa: E731
+        groups, slots = {}, {}
+        idx_l, idx_n, group, chan, lo, hi, view_l, slot, view_n = ([] for _ in range(9))
         for i, (p, off) in enumerate(zip(pset.params, pset.offsets[:-1])):
             sc = list(range(off, off + p.size))
+            view = -1 if p.view is None else p.view
             if i in lin:
-                g = self.linear_params.index(i)
+                g = groups.setdefault(base(p), len(groups))
                 for c, j in enumerate(sc):
                     idx_l.append(j)
                     group.append(g)
+                    view_l.append(view)
                     chan.append(np.eye(3)[c] if p.size == 3 else np.ones(3))
                     lo.append(p.box[0])
                     hi.append(p.box[1])
             else:
-                idx_n.extend(sc)
+                for c, j in enumerate(sc):
+                    idx_n.append(j)
+                    slot.append(slots.setdefault((base(p), c), len(slots)))
+                    view_n.append(view)
         self.idx_l, self.idx_n = np.asarray(idx_l, int), np.asarray(idx_n, int)
-        self.group = np.asarray(group, int)
+        self.group, self.slot = np.asarray(group, int), np.asarray(slot, int)
+        self.view_l, self.view_n = np.asarray(view_l, int), np.asarray(view_n, int)
         self.chan = np.asarray(chan).reshape(-1, 3)
         self.lo, self.hi = np.asarray(lo), np.asarray(hi)
-        self.n_groups = len(self.linear_params)
+        self.n_groups, self.n_slots = len(groups), len(slots)
         self.param_of = np.repeat(np.arange(len(pset.params)), pset.sizes)
 
     @property
@@ -263,7 +274,8 @@ class Reduced:
         b, T = jax.vmap(lambda e: jax.jvp(f, (z,), (e,)), out_axes=(None, 0))(jnp.asarray(E, theta.dtype))
         T, b = keep(T, b)  # materialised: XLA would otherwise recompute the render inside the gather below
         w = vd.weight * ~(vd.hi | vd.lo)
-        cols = T[self.group] * jnp.asarray(self.chan, T.dtype)[:, None, :] * w  # [n_lin, N, 3]
+        mine = jnp.asarray((self.view_l < 0), T.dtype) + (jnp.asarray(self.view_l) == vd.index)  # this view's scalars
+        cols = T[self.group] * (jnp.asarray(self.chan, T.dtype) * mine[:, None])[:, None, :] * w  # [n_lin, N, 3]
         return cols.reshape(len(self.idx_l), -1).T, b
 
     def solve_linear(self, theta, data):

@@ -43,12 +43,27 @@ from ._starts import candidates
 
 def _tangents(red: Reduced):
     """``(E, E_lin)``: one tangent per linear field (ones over its scalars) and one per nonlinear
-    scalar, over ``z = (x, u)``; ``E_lin`` the linear ones alone."""
+    scalar, over ``z = (x, u)`` (a per-view parameter's scalars of every view share one:
+    :class:`fitting._linear.Reduced`); ``E_lin`` the linear ones alone."""
     n_l, n_n, G = len(red.idx_l), len(red.idx_n), red.n_groups
-    E = np.zeros((G + n_n, n_l + n_n))
+    E = np.zeros((G + red.n_slots, n_l + n_n))
     E[red.group, np.arange(n_l)] = 1.0
-    E[G + np.arange(n_n), n_l + np.arange(n_n)] = 1.0
+    E[G + red.slot, n_l + np.arange(n_n)] = 1.0
     return E, E[:G]
+
+
+def row_views(data):
+    """``[M]`` int32: the view of each flat residual row (as :func:`flat_data` orders them)."""
+    if isinstance(data, ViewData):
+        return jnp.broadcast_to(data.index.reshape(-1, *(1,) * (data.target.ndim - 1)), data.target.shape).reshape(-1)
+    return jnp.concatenate([jnp.broadcast_to(vd.index, vd.target.shape).reshape(-1) for vd in data])
+
+
+def in_view(views, rows, dt):
+    """``[n, M]``: 1 where scalar ``i``'s column may be non-zero (a shared scalar's everywhere, a
+    per-view one's on its view's rows), 0 elsewhere."""
+    views = jnp.asarray(views)[:, None]
+    return ((views < 0) | (views == rows[None, :])).astype(dt)
 
 
 def flat_data(data):
@@ -68,14 +83,23 @@ def flat_data(data):
     return t, w, hi, lo
 
 
-def columns(red: Reduced, T, M, dt):
+def columns(red: Reduced, T, M, dt, rows):
     """``A`` ``[n_l, M]`` (unweighted) from the tangents (the first ``G`` rows: one per linear
-    field; an RGB field's scalar ``c`` shows in channel ``c`` only)."""
+    field; an RGB field's scalar ``c`` shows in channel ``c`` only, a per-view one's in its view's
+    ``rows`` only)."""
     if not len(red.idx_l):
         return jnp.zeros((0, M), dt)
     rowchan = jnp.arange(M) % 3
     colmask = jnp.asarray(red.chan, dt)[:, rowchan]
+    if (red.view_l >= 0).any():
+        colmask = colmask * in_view(red.view_l, rows, dt)
     return T[: red.n_groups][red.group] * colmask
+
+
+def nonlinear_columns(red: Reduced, T, rows, dt):
+    """``J_u`` ``[n_n, M]`` (unweighted) from the tangents after the linear fields'."""
+    J = T[red.n_groups :][red.slot]
+    return J * in_view(red.view_n, rows, dt) if (red.view_n >= 0).any() else J
 
 
 def _damped_steps(H, g, lam, rcond):
@@ -164,8 +188,8 @@ class _Program:
         Kaufman's Jacobian; and the raw image and tangents."""
         n_l, red, dt = self.n_l, self.red, c.dt
         img, T = self.images(z, c)
-        A = columns(red, T, c.M, dt)
-        Juw = T[red.n_groups :] * c.wu
+        A = columns(red, T, c.M, dt, c.rows)
+        Juw = nonlinear_columns(red, T, c.rows, dt) * c.wu
         d = (img - c.t) * c.wu
         if n_l:
 
@@ -295,6 +319,7 @@ class _Call(NamedTuple):
     hi_x: jax.Array
     t: jax.Array
     wu: jax.Array
+    rows: jax.Array  # [M] the view of each row
     M: int
     float_var: jax.Array  # rounding of one residual entry, squared
     natural: jax.Array  # mode 1
@@ -321,6 +346,7 @@ class _Call(NamedTuple):
             hi_x=jnp.asarray(red.hi, dt),
             t=t,
             wu=w * ~(hi | lo),
+            rows=row_views(data),
             M=t.shape[0],
             float_var=(eps * jnp.max(jnp.abs(t) * (w > 0))) ** 2,
             natural=mode == 1,
@@ -423,7 +449,11 @@ class Evaluator:
         self.program, self.red, self.prob = program, program.red, program.prob
         self.refresh()
         M = len(self.t)
-        self.lin_cols = (self.red.chan[:, np.arange(M) % 3] > 0) if len(self.red.idx_l) else None
+        rows = np.asarray(to_host(row_views(self.prob.data)))
+        red = self.red
+        mine = lambda views: (views[:, None] < 0) | (views[:, None] == rows[None, :])  # noqa: E731
+        self.lin_cols = (red.chan[:, np.arange(M) % 3] > 0) & mine(red.view_l) if len(red.idx_l) else None
+        self.nl_cols = mine(red.view_n) if (red.view_n >= 0).any() else True
 
     def refresh(self):
         """Take the problem's targets and weights again (after :meth:`Problem.relinearise`)."""
@@ -443,7 +473,7 @@ class Evaluator:
         JT = np.empty((len(theta), len(d)))  # rows contiguous: the Jacobian's transpose
         if len(red.idx_l):
             JT[red.idx_l] = T[red.group] * self.lin_cols
-        JT[red.idx_n] = T[red.n_groups :]
+        JT[red.idx_n] = T[red.n_groups :][red.slot] * self.nl_cols
         JT *= self.w * act
         return r, JT.T, img
 

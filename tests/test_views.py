@@ -301,3 +301,33 @@ def test_relinearised_residuals_are_the_code_value_residuals(views):
     first = code_residual().max()
     prob.relinearise(flat)
     assert code_residual().max() < 1e-12 < 1e-4 < first
+
+
+def test_per_view_parameters_share_a_tangent_and_give_the_jacobian(views):
+    """Each per-view parameter is one tangent of the render for every view (its columns are
+    block-sparse: view i's scalar shows in view i's rows only), not one per view; the program's
+    Jacobian is still the residual's, column for column (against ``jax.jacfwd``)."""
+    from fitting._linear import Reduced
+    from fitting._problem import Problem
+    from fitting._varpro import _tangents, evaluator
+
+    vs, opts, targets = views
+    free = ["material.diffuse", "material.shininess", "view[*].camera.white_balance"]
+    prob = Problem.build(vs[0], opts, Observations(targets, views=vs), free)
+    red = Reduced(prob)
+    E, _ = _tangents(red)
+    # k_d one field (linear), m one scalar, two views' white balance (6 scalars): 1 + 1 + 3 tangents
+    assert len(red.idx_l) + len(red.idx_n) == 3 + 1 + 6
+    assert E.shape[0] == 1 + 1 + 3
+    theta = np.asarray(prob.pset.theta_of(vs[0], vs), np.float64) * 0.9
+    ev, _ = evaluator(prob, red, jnp.asarray(theta, prob.dtype))
+    _, J, _ = ev(theta)
+    J_ref = np.asarray(jax.jacfwd(lambda t: prob.residual(t, prob.data))(jnp.asarray(theta, prob.dtype)), np.float64)
+    scale = np.abs(J_ref).max(axis=0)
+    assert (scale > 0).all()
+    np.testing.assert_allclose(J / scale, J_ref / scale, atol=2e-5)
+    # view 1's gains show in view 1's rows alone
+    n0 = prob.data[0].target.size
+    n1 = prob.data[1].target.size
+    col = red.idx_n[red.view_n == 2][0]
+    assert not J[: n0 + n1, col].any() and J[n0 + n1 :, col].any()
