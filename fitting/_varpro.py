@@ -59,6 +59,13 @@ def row_views(data):
     return jnp.concatenate([jnp.broadcast_to(vd.index, vd.target.shape).reshape(-1) for vd in data])
 
 
+def view_sizes(data) -> tuple:
+    """The views' flat row counts, in order."""
+    if isinstance(data, ViewData):
+        return (int(np.prod(data.target.shape[1:])),) * data.target.shape[0]
+    return tuple(int(vd.target.size) for vd in data)
+
+
 def in_view(views, rows, dt):
     """``[n, M]``: 1 where scalar ``i``'s column may be non-zero (a shared scalar's everywhere, a
     per-view one's on its view's rows), 0 elsewhere."""
@@ -94,6 +101,16 @@ def columns(red: Reduced, T, M, dt, rows):
     if (red.view_l >= 0).any():
         colmask = colmask * in_view(red.view_l, rows, dt)
     return T[: red.n_groups][red.group] * colmask
+
+
+def per_view_gram(X, Y, sizes):
+    """``[views, nx, ny]``: ``X Yᵀ`` over each view's rows (``sizes``: the views' row counts, in
+    the order of the flat rows)."""
+    if len(set(sizes)) == 1:
+        B, n = len(sizes), sizes[0]
+        return jnp.einsum("ibm,jbm->bij", X.reshape(X.shape[0], B, n), Y.reshape(Y.shape[0], B, n))
+    offs = np.cumsum([0, *sizes])
+    return jnp.stack([X[:, a:b] @ Y[:, a:b].T for a, b in zip(offs[:-1], offs[1:])])
 
 
 def nonlinear_columns(red: Reduced, T, rows, dt):
@@ -189,8 +206,10 @@ class _Program:
         n_l, red, dt = self.n_l, self.red, c.dt
         img, T = self.images(z, c)
         A = columns(red, T, c.M, dt, c.rows)
-        Juw = nonlinear_columns(red, T, c.rows, dt) * c.wu
         d = (img - c.t) * c.wu
+        if (red.view_n >= 0).any():  # per-view nonlinear scalars: their columns stay block-sparse
+            return self._evaluate_per_view(z, c, img, T, A, d)
+        Juw = nonlinear_columns(red, T, c.rows, dt) * c.wu
         if n_l:
 
             def project(_):
@@ -208,6 +227,46 @@ class _Program:
             x_new, r_red, Jred = z[:0], d, Juw
         z_new = jnp.concatenate([x_new, z[n_l:]])
         return z_new, r_red @ r_red, Jred @ Jred.T, Jred @ r_red, img, T
+
+    def _evaluate_per_view(self, z, c, img, T, A, d):
+        r""":meth:`evaluate` with per-view nonlinear scalars: Kaufman's :math:`J^TJ` and
+        :math:`J^Tr` from per-view products of the shared tangents (one per name,
+        :func:`nonlinear_columns`), never the dense ``[n_n, M]`` Jacobian, whose per-view
+        columns are zero outside their view: with :math:`P = A_f^T` the free linear columns,
+        :math:`C = (P^TP)^+ P^T J_u` and :math:`J = J_u - PC`:
+        :math:`J^TJ = J_u^TJ_u - (P^TJ_u)^T C - C^T P^TJ_u + C^T P^TP\,C`,
+        :math:`J^Tr = J_u^Tr - C^T P^T r`."""
+        n_l, red, dt = self.n_l, self.red, c.dt
+        S = T[red.n_groups :] * c.wu  # [slots, M]
+        ind = in_view(red.view_n, jnp.arange(len(c.sizes)), dt)  # [n_n, views]: scalar j shows in view b
+        slot = jnp.asarray(red.slot)
+
+        def spread(P):  # [views, a, slots] -> [a, n_n]: each scalar's slot, summed over its views
+            return jnp.einsum("baj,jb->aj", P[:, :, slot], ind)
+
+        if n_l:
+
+            def project(_):
+                Aw = A * c.wu
+                r0 = d - Aw.T @ z[:n_l]
+                x_new, free = bounded_lsq(Aw.T, r0, c.lo_x, c.hi_x, z[:n_l])
+                return x_new, r0 + Aw.T @ x_new, Aw * free[:, None].astype(dt), free
+
+            none = (z[:n_l], d, jnp.zeros_like(A), jnp.zeros(n_l, bool))
+            x_new, r_red, Af, free = jax.lax.cond(c.natural, lambda _: none, project, None)
+        else:
+            x_new, r_red, Af, free = z[:0], d, A, jnp.zeros(0, bool)
+        SS = per_view_gram(S, S, c.sizes)  # [views, slots, slots]
+        JJ = jnp.einsum("bjk,jb,kb->jk", SS[:, slot][:, :, slot], ind, ind)
+        Jr = spread(per_view_gram(r_red[None], S, c.sizes))[0]
+        if n_l:
+            PJ = spread(per_view_gram(Af, S, c.sizes))  # [n_l, n_n]
+            G = Af @ Af.T
+            C = _masked_solve(G, PJ, free, c.rcond)
+            JJ = JJ - PJ.T @ C - C.T @ PJ + C.T @ G @ C
+            Jr = Jr - C.T @ (Af @ r_red)
+        z_new = jnp.concatenate([x_new, z[n_l:]])
+        return z_new, r_red @ r_red, JJ, Jr, img, T
 
     def start(self, k, c):
         """Mode 2's k-th trial point: the given linear values with the k-th start's ``u``."""
@@ -320,6 +379,7 @@ class _Call(NamedTuple):
     t: jax.Array
     wu: jax.Array
     rows: jax.Array  # [M] the view of each row
+    sizes: tuple  # the views' row counts (static)
     M: int
     float_var: jax.Array  # rounding of one residual entry, squared
     natural: jax.Array  # mode 1
@@ -347,6 +407,7 @@ class _Call(NamedTuple):
             t=t,
             wu=w * ~(hi | lo),
             rows=row_views(data),
+            sizes=view_sizes(data),
             M=t.shape[0],
             float_var=(eps * jnp.max(jnp.abs(t) * (w > 0))) ** 2,
             natural=mode == 1,

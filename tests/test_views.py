@@ -331,3 +331,46 @@ def test_per_view_parameters_share_a_tangent_and_give_the_jacobian(views):
     n1 = prob.data[1].target.size
     col = red.idx_n[red.view_n == 2][0]
     assert not J[: n0 + n1, col].any() and J[n0 + n1 :, col].any()
+
+
+def test_per_view_normal_equations_equal_the_dense_ones(views):
+    """The program's ``JᵀJ`` and ``Jᵀr`` with per-view scalars, taken from per-view products of
+    the shared tangents, equal those of the dense Kaufman Jacobian."""
+    from fitting._linear import Reduced
+    from fitting._problem import Problem
+    from fitting._starts import candidates
+    from fitting._varpro import _Call, in_view, limits, make_program, nonlinear_columns
+
+    vs, opts, targets = views
+    free = ["material.diffuse", "material.shininess", "view[*].camera.white_balance"]
+    prob = Problem.build(vs[0], opts, Observations(targets, views=vs), free)
+    red = Reduced(prob)
+    program = make_program(red)
+    theta = jnp.asarray(np.asarray(prob.pset.theta_of(vs[0], vs), np.float64) * 0.9, prob.dtype)
+    z = jnp.concatenate([theta[red.idx_l], prob.pset.u_from_theta(theta)[red.idx_n]])
+    U = candidates(red, np.asarray(theta, np.float64), 1)
+    args = (z, prob.device_data(), theta, jnp.asarray(1.0, prob.dtype), jnp.asarray(0), *limits(0, 0.0, prob.dtype))
+
+    def both(z, data, theta_ref, n_res, mode, max_steps, rtol, U):
+        c = _Call.of(red, z, data, theta_ref, n_res, mode, max_steps, rtol, U)
+        _, cost, H, g, img, T = program.evaluate(z, c)
+        # the dense Jacobian, projected as the program does without per-view scalars
+        from fitting._linear import _masked_solve, bounded_lsq
+        from fitting._varpro import columns
+
+        A = columns(red, T, c.M, c.dt, c.rows) * c.wu
+        J = nonlinear_columns(red, T, c.rows, c.dt) * c.wu
+        d = (img - c.t) * c.wu
+        r0 = d - A.T @ z[: len(red.idx_l)]
+        x, free_ = bounded_lsq(A.T, r0, c.lo_x, c.hi_x, z[: len(red.idx_l)])
+        r = r0 + A.T @ x
+        Af = A * free_[:, None]
+        coef = _masked_solve(Af @ Af.T, Af @ J.T, free_, c.rcond)
+        Jr = J - coef.T @ Af
+        assert in_view(red.view_n, c.rows, c.dt).shape == J.shape
+        return H, g, Jr @ Jr.T, Jr @ r, cost, r @ r
+
+    H, g, H_ref, g_ref, cost, cost_ref = jax.jit(both)(*args, jnp.asarray(U, prob.dtype))
+    np.testing.assert_allclose(cost, cost_ref, rtol=1e-5)
+    np.testing.assert_allclose(H, H_ref, rtol=1e-4, atol=1e-5 * np.abs(H_ref).max())
+    np.testing.assert_allclose(g, g_ref, rtol=1e-4, atol=1e-5 * np.abs(g_ref).max())
