@@ -1,4 +1,5 @@
-"""Many views: time per Levenberg–Marquardt step over 1, 2, 4 devices, and memory per view.
+"""Many views: compile and solve against the view count, time per Levenberg–Marquardt step over 1,
+2, 4 devices and with per-view exposures, and memory per view.
 
 For ``n`` views of the default scene (cameras around it, the demo's 13 free parameters, shared),
 the fit's compiled variable-projection program is timed in its own
