@@ -497,17 +497,17 @@ class Problem:
         docs/fit-design-notes.md, "Stacked views".)"""
 
         def body(d, *a):
-            view0 = jax.tree.map(lambda x: x[0], d)
-            dt = jax.eval_shape(lambda v: fn(v, *a), view0).dtype
+            if d.target.shape[0] == 1:  # one view: no loop (its transformations cost tracing time)
+                return fn(jax.tree.map(lambda x: x[0], d), *a)[None]
 
             def step(c, v):
                 out = fn(v, *a)
                 head = out.reshape(-1)[:1]
-                return c + jnp.sum(jnp.where(jnp.isfinite(head), head, 0) * 0), out
+                return c + jnp.sum(jnp.where(jnp.isfinite(head), head, 0) * 0).astype(c.dtype), out
 
-            init = jnp.sum(d.target[:0]).astype(dt)  # 0, of the data's kind (varying over shard_map's views)
+            init = jnp.sum(d.target[:0])  # 0, of the data's kind (varying over shard_map's views)
             zero, out = jax.lax.scan(step, init, d)
-            return out + zero
+            return out + zero.astype(out.dtype)
 
         if len(self.devices) > 1:
             from jax.sharding import Mesh, PartitionSpec
