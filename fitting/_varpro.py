@@ -115,8 +115,9 @@ def per_view_gram(X, Y, sizes):
 
 def nonlinear_columns(red: Reduced, T, rows, dt):
     """``J_u`` ``[n_n, M]`` (unweighted) from the tangents after the linear fields'."""
-    J = T[red.n_groups :][red.slot]
-    return J * in_view(red.view_n, rows, dt) if (red.view_n >= 0).any() else J
+    if not (red.view_n >= 0).any():  # a tangent per scalar, in order
+        return T[red.n_groups :]
+    return T[red.n_groups :][red.slot] * in_view(red.view_n, rows, dt)
 
 
 def _damped_steps(H, g, lam, rcond):
