@@ -140,22 +140,13 @@ def ps_scenes(n: int, size: int, seed: int):
     import diffshade as ds
 
     rng = np.random.default_rng(seed)
-    d = {
-        "mesh": {"icosphere": 4},
-        "camera": {
-            "eye": [0, 0, 3.0],
-            "target": [0, 0, 0],
-            "up": [0, 1, 0],
-            "fov_y": 40.0,
-            "near": 0.5,
-            "far": 10.0,
-            "width": size,
-            "height": size,
-        },
-        "render": {"shading": "phong", "specular": "blinn", "fog": "none"},
-        "material": dict(PS_TRUTH, ambient=[0.0, 0.0, 0.0]),
-        "light": [{"type": "directional", "color": [1, 1, 1], "direction": [0, 0, -1.0]}],
-    }
+    d = dict(
+        {k: v for k, v in ds.DEFAULT_SCENE.items() if k != "fog"},
+        camera=dict(ds.DEFAULT_SCENE["camera"], fov_y=40.0, width=size, height=size),
+        render={"shading": "phong", "specular": "blinn", "fog": "none"},
+        material=dict(PS_TRUTH, ambient=[0.0, 0.0, 0.0]),
+        light=[{"type": "directional", "color": [1, 1, 1], "direction": [0, 0, -1.0]}],
+    )
     scene, opts = ds.scene_from_dict(d)
     views = []
     for _ in range(n):
@@ -186,25 +177,26 @@ def sweep_child(size: int, n: int, seed: int) -> dict:
     r = fitting.fit(start, opts, obs, PS_FREE, shared=["material.specular"], intervals=False)
     want = np.array([*PS_TRUTH["diffuse"], PS_TRUTH["specular"], PS_TRUTH["shininess"]])
     err = float(np.max(np.abs(np.asarray(r.values) - want) / want))
-    pixels = int(sum((np.asarray(ds.scene_visibility(v, opts))[0] >= 0).sum() for v in views))
+    pixels = r.residual.n // 3  # the covered pixels' residual entries (float targets: none censored)
     return dict(
         n=n, compile_s=r.compile_s, solve_s=r.solve_s, steps=r.steps, err=err, ok=bool(r.successful), pixels=pixels
     )
 
 
-def run_child(size, n, devices, repeats, exposure=0):
+def spawn(args: list, devices: int = 1) -> dict:
+    """This script run with ``args`` in a fresh process over ``devices`` host devices; its last
+    line of output, as JSON."""
     env = dict(os.environ)
-    if devices and devices > 1:
+    if devices > 1:
         env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={devices}").strip()
-    args = (
-        ["--child", f"{size},{n},{devices},{repeats},{exposure}"]
-        if devices
-        else ["--sweep-child", f"{size},{n},{repeats}"]
-    )
     out = subprocess.run([sys.executable, __file__, *args], capture_output=True, text=True, env=env)
     if out.returncode:
         raise SystemExit(out.stderr[-3000:])
     return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def run_child(size, n, devices, repeats, exposure=0):
+    return spawn(["--child", f"{size},{n},{devices},{repeats},{exposure}"], devices)
 
 
 def sweep(size: int, counts: list, seed: int) -> None:
@@ -218,7 +210,7 @@ def sweep(size: int, counts: list, seed: int) -> None:
     )
     base = None
     for n in counts:
-        r = run_child(size, n, 0, seed)
+        r = spawn(["--sweep-child", f"{size},{n},{seed}"])
         base = base or r["compile_s"]
         per = 1e6 * r["solve_s"] / max(r["steps"], 1) / r["pixels"]
         print(

@@ -197,6 +197,13 @@ def bounded_lsq(A, r0, lo, hi, x0, iters: int | None = None):
 # --------------------------------------------------------------------------------------------
 
 
+def in_view(views, rows, dt):
+    """``[n, M]``: 1 where scalar ``i``'s column may be non-zero (a shared scalar's, view -1,
+    everywhere; a per-view one's on its view's ``rows``), 0 elsewhere."""
+    views = jnp.asarray(views)[:, None]
+    return ((views < 0) | (views == rows[None, :])).astype(dt)
+
+
 class Reduced:
     """The variable-projection view of a :class:`Problem`: static index sets and the reduced
     residual of the nonlinear parameters (in the solver's unconstrained ``u``)."""
@@ -238,6 +245,7 @@ class Reduced:
         self.chan = np.asarray(chan).reshape(-1, 3)
         self.lo, self.hi = np.asarray(lo), np.asarray(hi)
         self.n_groups, self.n_slots = len(groups), len(slots)
+        self.per_view_l, self.per_view_n = bool((self.view_l >= 0).any()), bool((self.view_n >= 0).any())
         self.param_of = np.repeat(np.arange(len(pset.params)), pset.sizes)
 
     @property
@@ -274,8 +282,8 @@ class Reduced:
         b, T = jax.vmap(lambda e: jax.jvp(f, (z,), (e,)), out_axes=(None, 0))(jnp.asarray(E, theta.dtype))
         T, b = keep(T, b)  # materialised: XLA would otherwise recompute the render inside the gather below
         w = vd.weight * ~(vd.hi | vd.lo)
-        mine = jnp.asarray((self.view_l < 0), T.dtype) + (jnp.asarray(self.view_l) == vd.index)  # this view's scalars
-        cols = T[self.group] * (jnp.asarray(self.chan, T.dtype) * mine[:, None])[:, None, :] * w  # [n_lin, N, 3]
+        mine = in_view(self.view_l, jnp.reshape(vd.index, (1,)), T.dtype)  # [n_lin, 1]: this view's scalars
+        cols = T[self.group] * (jnp.asarray(self.chan, T.dtype) * mine)[:, None, :] * w  # [n_lin, N, 3]
         return cols.reshape(len(self.idx_l), -1).T, b
 
     def solve_linear(self, theta, data):

@@ -36,7 +36,7 @@ import numpy as np
 from diffshade import keep
 
 from ._cache import compiled
-from ._linear import Reduced, _masked_solve, bounded_lsq
+from ._linear import Reduced, _masked_solve, bounded_lsq, in_view
 from ._problem import ViewData, to_host
 from ._starts import candidates
 
@@ -66,13 +66,6 @@ def view_sizes(data) -> tuple:
     return tuple(int(vd.target.size) for vd in data)
 
 
-def in_view(views, rows, dt):
-    """``[n, M]``: 1 where scalar ``i``'s column may be non-zero (a shared scalar's everywhere, a
-    per-view one's on its view's rows), 0 elsewhere."""
-    views = jnp.asarray(views)[:, None]
-    return ((views < 0) | (views == rows[None, :])).astype(dt)
-
-
 def flat_data(data):
     """Target, weight and censoring masks of every view's compacted pixels, flat ``[M]`` (``data``
     a list of views or the views stacked: :meth:`fitting._problem.Problem.device_data`)."""
@@ -98,7 +91,7 @@ def columns(red: Reduced, T, M, dt, rows):
         return jnp.zeros((0, M), dt)
     rowchan = jnp.arange(M) % 3
     colmask = jnp.asarray(red.chan, dt)[:, rowchan]
-    if (red.view_l >= 0).any():
+    if red.per_view_l:
         colmask = colmask * in_view(red.view_l, rows, dt)
     return T[: red.n_groups][red.group] * colmask
 
@@ -115,7 +108,7 @@ def per_view_gram(X, Y, sizes):
 
 def nonlinear_columns(red: Reduced, T, rows, dt):
     """``J_u`` ``[n_n, M]`` (unweighted) from the tangents after the linear fields'."""
-    if not (red.view_n >= 0).any():  # a tangent per scalar, in order
+    if not red.per_view_n:  # a tangent per scalar, in order
         return T[red.n_groups :]
     return T[red.n_groups :][red.slot] * in_view(red.view_n, rows, dt)
 
@@ -201,6 +194,16 @@ class _Program:
         img, T = jax.vmap(lambda e: jax.jvp(f, (z,), (e,)), out_axes=(None, 0))(jnp.asarray(self.E_all, c.dt))
         return keep(img, T)
 
+    def linear_block(self, z, c, A, d):
+        """``(x*, r, A_f, free)``: the linear block solved under its bounds at ``z``'s ``u`` (``A``
+        the linear columns, ``d`` the weighted residual), the reduced residual, the weighted
+        columns of the free linear scalars and which are free."""
+        n_l = self.n_l
+        Aw = A * c.wu
+        r0 = d - Aw.T @ z[:n_l]
+        x_new, free = bounded_lsq(Aw.T, r0, c.lo_x, c.hi_x, z[:n_l])
+        return x_new, r0 + Aw.T @ x_new, Aw * free[:, None].astype(c.dt), free
+
     def evaluate(self, z, c):
         """The linear block solved at ``z``'s ``u``; the reduced cost, ``J^T J`` and ``J^T r`` of
         Kaufman's Jacobian; and the raw image and tangents."""
@@ -208,17 +211,13 @@ class _Program:
         img, T = self.images(z, c)
         A = columns(red, T, c.M, dt, c.rows)
         d = (img - c.t) * c.wu
-        if (red.view_n >= 0).any():  # per-view nonlinear scalars: their columns stay block-sparse
+        if red.per_view_n:  # per-view nonlinear scalars: their columns stay block-sparse
             return self._evaluate_per_view(z, c, img, T, A, d)
         Juw = nonlinear_columns(red, T, c.rows, dt) * c.wu
         if n_l:
 
             def project(_):
-                Aw = A * c.wu
-                r0 = d - Aw.T @ z[:n_l]
-                x_new, free = bounded_lsq(Aw.T, r0, c.lo_x, c.hi_x, z[:n_l])
-                r_red = r0 + Aw.T @ x_new
-                Af = Aw * free[:, None].astype(dt)
+                x_new, r_red, Af, free = self.linear_block(z, c, A, d)
                 coef = _masked_solve(Af @ Af.T, Af @ Juw.T, free, c.rcond)  # [n_l, n_n]
                 return x_new, r_red, Juw - coef.T @ Af
 
@@ -246,15 +245,10 @@ class _Program:
             return jnp.einsum("baj,jb->aj", P[:, :, slot], ind)
 
         if n_l:
-
-            def project(_):
-                Aw = A * c.wu
-                r0 = d - Aw.T @ z[:n_l]
-                x_new, free = bounded_lsq(Aw.T, r0, c.lo_x, c.hi_x, z[:n_l])
-                return x_new, r0 + Aw.T @ x_new, Aw * free[:, None].astype(dt), free
-
             none = (z[:n_l], d, jnp.zeros_like(A), jnp.zeros(n_l, bool))
-            x_new, r_red, Af, free = jax.lax.cond(c.natural, lambda _: none, project, None)
+            x_new, r_red, Af, free = jax.lax.cond(
+                c.natural, lambda _: none, lambda _: self.linear_block(z, c, A, d), None
+            )
         else:
             x_new, r_red, Af, free = z[:0], d, A, jnp.zeros(0, bool)
         SS = per_view_gram(S, S, c.sizes)  # [views, slots, slots]
@@ -511,11 +505,10 @@ class Evaluator:
         self.program, self.red, self.prob = program, program.red, program.prob
         self.refresh()
         M = len(self.t)
-        rows = np.asarray(to_host(row_views(self.prob.data)))
-        red = self.red
-        mine = lambda views: (views[:, None] < 0) | (views[:, None] == rows[None, :])  # noqa: E731
+        rows, red = row_views(self.prob.data), self.red
+        mine = lambda views: np.asarray(in_view(views, rows, bool))  # noqa: E731
         self.lin_cols = (red.chan[:, np.arange(M) % 3] > 0) & mine(red.view_l) if len(red.idx_l) else None
-        self.nl_cols = mine(red.view_n) if (red.view_n >= 0).any() else True
+        self.nl_cols = mine(red.view_n) if red.per_view_n else True
 
     def refresh(self):
         """Take the problem's targets and weights again (after :meth:`Problem.relinearise`)."""
