@@ -16,6 +16,7 @@ from . import color
 from ._antialias import antialias, face_adjacency, pixel_neighbours, silhouette_edges
 from ._camera import Camera, OpenCVCamera, rodrigues, undistort
 from ._composite import composite
+from ._domains import Domain, check_scene
 from ._io import DEFAULT_SCENE, SceneError, default_scene, load_camera, load_scene, scene_from_dict
 from ._lighting import LightVisibility, illuminate
 from ._mesh import Mesh, MeshError, box, combine, icosphere, load_mesh, mesh_from_arrays, quad
@@ -62,6 +63,8 @@ __all__ = [
     "RenderOptions",
     "Scene",
     "SceneError",
+    "Domain",
+    "check_scene",
     "SpotLights",
     "blinn_to_phong",
     "default_scene",

@@ -69,6 +69,7 @@ from typing import Any
 import numpy as np
 
 from ._camera import Camera, OpenCVCamera
+from ._domains import SceneError
 from ._materials import _MATERIAL_FIELDS
 from ._mesh import COLOR_MODES, VERTEX_MODES, Mesh, MeshError, box, combine, icosphere, load_mesh, quad
 from ._options import RenderOptions, ShadowMaps, ShadowRays
@@ -87,10 +88,6 @@ from ._scene import (
     no_point,
     no_spot,
 )
-
-
-class SceneError(ValueError):
-    """A scene file or dictionary that is malformed; the message names the field."""
 
 
 class _V:
@@ -392,7 +389,7 @@ def _spot_lobe(v: "_V", b: dict, w: str, lobe: bool = False):
     color = v.vec(b, "color", w, default=[1.0, 1.0, 1.0], lo=0.0, scalar_ok=True)
     amb = v.vec(b, "ambient", w, default=[0.0, 0.0, 0.0], lo=0.0, scalar_ok=True)
     axis = v.vec(b, "axis", w, nonzero=True)
-    cutoff = v.num(b, "cutoff", w, lo=0.0, hi=90.0, lo_open=True)
+    cutoff = v.num(b, "cutoff", w, lo=0.0, hi=90.0)  # 0: a closed cone, dark
     exponent = v.num(b, "exponent", w, default=0.0, lo=0.0)
     edge = v.num(b, "edge", w, default=0.0, lo=0.0, hi=cutoff)
     return color, amb, axis, cutoff, exponent, edge

@@ -21,6 +21,7 @@ from jaxtyping import Array, Float, Int
 from . import _lighting as Lg
 from . import _shade as S
 from ._composite import composite
+from ._domains import check_scene, is_concrete
 from ._lighting import LightVisibility, illuminate
 from ._options import RenderOptions, ShadowMaps, ShadowRays
 from ._raster import fragments, visibility
@@ -87,8 +88,13 @@ def render(
     ``ids`` may be a precomputed :func:`diffshade.visibility` result for fixed geometry and camera
     (material fits reuse it). Jit with ``jax.jit(render, static_argnames="opts")``. With
     ``pixels`` (NDC centres shaped as ``ids[0]``) only those pixels are shaded: ``ids`` must be
-    given, gathered at the same pixels.
+    given, gathered at the same pixels. Called on concrete values (outside ``jit``), every number of
+    ``scene`` is first held to its domain (:class:`diffshade.SceneError` names one outside it).
     """
+    if not isinstance(opts, RenderOptions):
+        raise TypeError(f"render: opts must be a diffshade.RenderOptions, got {type(opts).__name__}")
+    if is_concrete(scene):
+        check_scene(scene)
     if ids is None:
         if pixels is not None:
             raise ValueError("render: pixels needs the ids gathered at those pixels")

@@ -16,6 +16,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._camera import Camera
+from ._domains import check_scene, is_concrete
 from ._mesh import Mesh
 from ._util import as_float_array
 from ._util import rgb_array as _rgb
@@ -276,6 +277,11 @@ class Scene(eqx.Module):
     shadow_slope_bias: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.5)
     area: AreaLights = field(default_factory=no_area)
     multi_lobe: MultiLobeLights = field(default_factory=no_multi_lobe)
+
+    def __check_init__(self):
+        # every number in its domain (diffshade._domains.SCENE), where the values are concrete
+        if is_concrete(self):
+            check_scene(self)
 
     def all_materials(self) -> tuple[Material, ...]:
         """Materials by id: ``material`` is id 0, ``materials[i]`` is id ``i + 1``; each face's id

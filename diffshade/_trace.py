@@ -56,8 +56,11 @@ def _light_rays(kind, li, Pa):
     if kind == "directional":
         return jnp.broadcast_to(-li.direction / jnp.linalg.norm(li.direction), Pa.shape), jnp.inf
     L = li.position - Pa
-    far = jnp.linalg.norm(L, axis=-1)
-    return L / jnp.maximum(far, 1e-30)[..., None], far
+    # a light exactly on the point: no direction, distance 0, finite gradients (double where)
+    sq = jnp.sum(L * L, axis=-1)
+    ok = sq > 0
+    far = jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
+    return L / jnp.where(ok, far, 1.0)[..., None], far
 
 
 def shadow_ray_visibility(scene: Scene, rays: ShadowRays, P, tri, area_grid=(4, 4), backend: str = "auto"):

@@ -27,8 +27,9 @@ import numpy as np
 
 import diffshade as ds
 
+from ._domains import check_fit
 from ._linear import Reduced
-from ._observations import Observations, Strategy, VarPro
+from ._observations import FitError, Observations, Strategy, VarPro
 from ._params import ParamSet
 from ._problem import Problem
 from ._report import FitResult
@@ -78,10 +79,7 @@ def fit(
     (:mod:`fitting._basins`) whose solutions within Δχ² = 9 the intervals cover. ``history``: keep
     the loss and parameters of every accepted step in ``FitResult.history``.
     """
-    if not isinstance(observations, Observations):
-        raise TypeError(f"observations: expected fitting.Observations, got {type(observations).__name__}")
-    if not isinstance(strategy, Strategy):
-        raise TypeError(f"strategy: expected fitting.VarPro or fitting.Optimistix, got {type(strategy).__name__}")
+    _check_inputs(scene, opts, observations, free, shared, strategy, albedo_smoothness)
     kw = dict(
         shared=shared,
         strategy=strategy,
@@ -93,6 +91,30 @@ def fit(
     if strategy.visibility_passes > 1 and _pose_mask(scene, observations, free, shared).any():
         return _fit_pose(scene, opts, observations, free, **kw)
     return _fit_once(scene, opts, observations, free, **kw)
+
+
+def _check_inputs(scene, opts, observations, free, shared, strategy, albedo_smoothness) -> None:
+    """Every argument of :func:`fit` of the right type and in its domain (fitting._domains), the
+    start scene's and the views' numbers too (diffshade._domains): before anything compiles."""
+    if not isinstance(scene, ds.Scene):
+        raise TypeError(f"scene: expected a diffshade.Scene, got {type(scene).__name__}")
+    if not isinstance(opts, ds.RenderOptions):
+        raise TypeError(f"opts: expected a diffshade.RenderOptions, got {type(opts).__name__}")
+    if not isinstance(observations, Observations):
+        raise TypeError(f"observations: expected fitting.Observations, got {type(observations).__name__}")
+    if not isinstance(strategy, Strategy):
+        raise TypeError(f"strategy: expected fitting.VarPro or fitting.Optimistix, got {type(strategy).__name__}")
+    for name, names in (("free", free), ("shared", shared)):
+        if isinstance(names, str) or not all(isinstance(n, str) for n in names):
+            raise FitError(f"{name} must be a sequence of parameter names (strings), got {names!r}")
+    if not free:
+        raise FitError("free: no parameter to fit")
+    check_fit("", "albedo_smoothness", albedo_smoothness, FitError)
+    for i, view in enumerate(observations.views_of(scene)):
+        try:
+            ds.check_scene(view)
+        except ds.SceneError as exc:
+            raise FitError(f"{'the start scene' if view is scene else f'view {i}'}: {exc}") from None
 
 
 def _pose_mask(scene, observations, free, shared) -> np.ndarray:

@@ -16,6 +16,8 @@ from jaxtyping import ArrayLike, Float
 
 import diffshade as ds
 
+from ._domains import check_fit
+
 SOLVERS = ("lm", "dogleg", "gauss-newton")  # optimistix's least-squares solvers (fitting._optimistix)
 
 
@@ -26,11 +28,6 @@ class FitError(ValueError):
 def as_list(targets) -> list:
     """One image or a list of images, as a list."""
     return [targets] if hasattr(targets, "shape") else list(targets)
-
-
-def _positive(name: str, value) -> None:
-    if value is not None and not (np.isfinite(value) and value > 0):
-        raise FitError(f"{name} must be a finite number > 0 or None, got {value!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -78,10 +75,8 @@ class Observations:
                 raise FitError(f"{n} targets but {len(self.masks)} masks")
         if len(self.encodings) != n:
             raise FitError(f"{n} targets but {len(self.encodings)} encodings")
-        if int(self.margin) != self.margin or self.margin < 0:
-            raise FitError(f"margin must be a whole number of pixels >= 0, got {self.margin!r}")
-        for name in ("saturation", "quantum", "noise"):
-            _positive(name, getattr(self, name))
+        for name in ("margin", "saturation", "quantum", "noise"):
+            check_fit("Observations", name, getattr(self, name), FitError)
 
     @property
     def encodings(self) -> list:
@@ -126,17 +121,10 @@ class Strategy:
     def __post_init__(self):
         if self.method not in ("auto", "full"):
             raise FitError(f"unknown method {self.method!r}; 'auto' or 'full'")
-        for name, least in (
-            ("starts", 1),
-            ("restarts", 0),
-            ("max_steps", 0),
-            ("polish_steps", 0),
-            ("visibility_passes", 1),
-        ):
-            v = getattr(self, name)
-            if int(v) != v or v < least:
-                raise FitError(f"{type(self).__name__}.{name} must be a whole number >= {least}, got {v!r}")
-        _positive(f"{type(self).__name__}.rtol", self.rtol)
+        for name in ("starts", "restarts", "max_steps", "polish_steps", "visibility_passes", "rtol"):
+            check_fit(type(self).__name__, name, getattr(self, name), FitError)
+        if not isinstance(self.verbose, bool):
+            raise FitError(f"{type(self).__name__}.verbose must be True or False, got {self.verbose!r}")
 
     def tolerance(self, dtype) -> float:
         """The default tolerance of the float type: 1e-6 in float32, 1e-10 in float64."""
@@ -167,4 +155,4 @@ class Optimistix(Strategy):
         super().__post_init__()
         if self.solver not in SOLVERS:
             raise FitError(f"unknown solver {self.solver!r}; one of {sorted(SOLVERS)}")
-        _positive("Optimistix.atol", self.atol)
+        check_fit("Optimistix", "atol", self.atol, FitError)

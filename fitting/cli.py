@@ -609,8 +609,6 @@ def cmd_fit(args) -> int:
         f"fitting {', '.join(args.free)} to {len(tg.images)} image(s) of {views[0].camera.width}x"
         f"{views[0].camera.height} with {args.solver}" + (" (clipped pixels censored)" if tg.saturation else "")
     )
-    if args.margin < 0:
-        raise InputError(f"--margin {args.margin}: a number of pixels, 0 or more")
     obs = Observations(
         tg.images,
         views=views,
@@ -670,7 +668,8 @@ def _add_render(sub) -> None:
 
 
 def _add_fit(sub) -> None:
-    """The ``fit`` command's arguments."""
+    """The ``fit`` command's arguments (numeric ones parsed as text: :func:`fitting._domains.check_args`
+    reads and checks them, so a bad number is an input error, exit 3, naming the option)."""
     p = sub.add_parser(
         "fit",
         help="fit named scene parameters to target image(s)",
@@ -705,7 +704,7 @@ def _add_fit(sub) -> None:
     )
     p.add_argument(
         "--albedo-smoothness",
-        type=float,
+        type=str,
         default=0.0,
         metavar="LAMBDA",
         help="with mesh.colors free (per-vertex albedo): weight of a prior on the albedo differences "
@@ -713,7 +712,7 @@ def _add_fit(sub) -> None:
     )
     p.add_argument(
         "--margin",
-        type=int,
+        type=str,
         default=0,
         metavar="PX",
         help="leave out pixels within PX of the model's silhouette, of an occlusion edge inside it, or of "
@@ -735,14 +734,14 @@ def _add_fit_solve(p) -> None:
     )
     p.add_argument(
         "--noise",
-        type=float,
+        type=str,
         default=None,
         metavar="SIGMA",
         help="the targets' noise level (in code values of an encoded target, else linear), for the "
         "chi-square verdict; default: "
         "estimated from the residual (its pixel-to-pixel white part) and the quantisation",
     )
-    p.add_argument("--max-steps", type=int, default=100)
+    p.add_argument("--max-steps", type=str, default=100, metavar="N", help="the solver's step limit (default 100)")
     p.add_argument(
         "--compare",
         action="store_true",
@@ -769,8 +768,8 @@ def _add_demo(sub) -> None:
         "demo", help="fit the built-in default scene's material, attenuation and fog back from its image"
     )
     p.add_argument("-o", "--output", default="out/demo.png", help="output PNG (default: out/demo.png)")
-    p.add_argument("--size", type=int, default=256, help="image side in pixels (default 256)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the perturbed start (default 0)")
+    p.add_argument("--size", type=str, default=256, help="image side in pixels (default 256)")
+    p.add_argument("--seed", type=str, default=0, help="seed of the perturbed start (default 0)")
     p.set_defaults(func=cmd_demo)
 
 
@@ -785,6 +784,13 @@ def main(argv=None) -> int:
     for add in (_add_render, _add_fit, _add_demo):
         add(sub)
     args = parser.parse_args(argv)
+    from ._domains import check_args
+
+    try:
+        check_args(args, InputError)  # every number in its domain before a file is read or written
+    except InputError as exc:
+        print(f"diffshade: error: {exc}", file=sys.stderr)
+        return EXIT_INPUT
     if not args.no_cache:
         from ._cache import enable_compilation_cache
 

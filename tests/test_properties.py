@@ -1,0 +1,272 @@
+"""Property-based tests of every boundary (hypothesis): whatever a user passes, the answer is a
+result or the boundary's own error naming the problem — never another exception, a traceback
+or a file written. Scene files (valid ones load and render finite), fit options (accepted exactly
+when their domain admits them), command-line numbers, meshes and images.
+
+The example counts are kept small for the 2-core suite; ``HYPOTHESIS_PROFILE=soak`` runs 20x more."""
+
+from __future__ import annotations
+
+import copy
+import functools
+import io
+import math
+import os
+import tempfile
+from contextlib import redirect_stderr, redirect_stdout
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+hypothesis = pytest.importorskip("hypothesis")
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+import diffshade as ds  # noqa: E402
+from fitting import FitError, Observations, Optimistix, VarPro  # noqa: E402
+from fitting._domains import CLI, FIT  # noqa: E402
+
+settings.register_profile(
+    "suite", max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True
+)
+settings.register_profile("soak", max_examples=800, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "suite"))
+
+BASE = {
+    "mesh": {"icosphere": 1},
+    "camera": {"eye": [0, 0.5, 3], "width": 12, "height": 12, "near": 0.1, "far": 20},
+    "render": {"shading": "phong", "specular": "blinn", "fog": "linear"},
+    "material": {"ambient": 0.1, "diffuse": [0.7, 0.3, 0.2], "specular": 0.4, "shininess": 30},
+    "light": [
+        {"type": "point", "position": [2, 2, 3], "attenuation": [1, 0.1, 0.01]},
+        {"type": "spot", "position": [0, 2, 2], "axis": [0, -1, -1], "cutoff": 30, "exponent": 4},
+        {"type": "directional", "direction": [0, -1, -1]},
+    ],
+    "fog": {"color": [0.5, 0.5, 0.6], "start": 1, "end": 6},
+}
+
+
+def _paths(d, prefix=()):
+    """Every (path, value) of a nested scene dictionary (lists of tables by index)."""
+    for k, v in d.items() if isinstance(d, dict) else enumerate(d):
+        p = (*prefix, k)
+        yield p, v
+        if isinstance(v, dict) or (isinstance(v, list) and v and isinstance(v[0], dict)):
+            yield from _paths(v, p)
+
+
+PATHS = [p for p, _ in _paths(BASE)]
+NUMBERS = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.sampled_from([0.0, -0.0, 1e-300, -1e-300, 1e300, -1.0, 0.5, 2.0, 90.0, 180.0]),
+    st.integers(-(2**40), 2**40),
+)
+BAD_VALUES = st.one_of(
+    NUMBERS, st.text(max_size=5), st.booleans(), st.lists(NUMBERS, max_size=4), st.just({}), st.just([[1, 2, 3]])
+)
+
+
+@st.composite
+def scene_dicts(draw):
+    """The base scene with one to three fields deleted, replaced or added."""
+    d = copy.deepcopy(BASE)
+    for _ in range(draw(st.integers(1, 3))):
+        path = draw(st.sampled_from(PATHS))
+        parent = d
+        try:
+            for k in path[:-1]:
+                parent = parent[k]
+            op = draw(st.sampled_from(["delete", "replace", "replace", "unknown"]))
+            if op == "delete":
+                del parent[path[-1]]
+            elif op == "replace":
+                parent[path[-1]] = draw(BAD_VALUES)
+            elif isinstance(parent, dict):
+                parent["bogus_" + str(path[-1])] = draw(BAD_VALUES)
+        except (KeyError, IndexError, TypeError):
+            pass  # an earlier change removed or replaced the parent
+    return d
+
+
+@functools.cache
+def _render(opts):
+    return jax.jit(lambda s: ds.render(s, opts))
+
+
+@given(scene_dicts())
+def test_scene_dictionaries_load_or_name_the_field(d):
+    try:
+        scene, opts = ds.scene_from_dict(d)
+    except ds.SceneError as exc:
+        assert str(exc).strip() and "Traceback" not in str(exc)
+        return
+    img = _render(opts)(scene)
+    assert bool(np.isfinite(np.asarray(img)).all()), d
+
+
+@given(st.integers(0, 400), st.sampled_from(["", "\x00", "[", "= 1", "]]"]))
+def test_truncated_scene_files_are_scene_errors(cut, tail):
+    text = "\n".join(
+        [
+            "[mesh]",
+            "icosphere = 1",
+            "[camera]",
+            "eye = [0, 0, 3]",
+            "width = 8",
+            "height = 8",
+            "[material]",
+            "diffuse = [0.5, 0.5, 0.5]",
+            "[[light]]",
+            'type = "point"',
+            "position = [1, 1, 2]",
+        ]
+    )
+    with tempfile.TemporaryDirectory() as tmp:
+        p = Path(tmp) / "s.toml"
+        p.write_text(text[:cut] + tail)
+        try:
+            ds.load_scene(p)
+        except ds.SceneError as exc:
+            assert str(p) in str(exc)
+
+
+OPTION_VALUES = st.one_of(
+    st.none(),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.integers(-5, 10**6),
+    st.sampled_from([True, "3", 1.5, 0, -0.0, 1e-320]),
+)
+
+
+def _admitted(dom, value):
+    return dom.admits(value)
+
+
+@given(st.sampled_from(["noise", "saturation", "quantum", "margin"]), OPTION_VALUES)
+def test_observation_options_are_accepted_exactly_in_their_domain(name, value):
+    img = np.zeros((4, 4, 3))
+    try:
+        Observations(img, **{name: value})
+        ok = True
+    except FitError as exc:
+        ok = False
+        assert name in str(exc)
+    assert ok == _admitted(FIT[name], value), (name, value)
+
+
+@given(
+    st.sampled_from(["starts", "restarts", "max_steps", "polish_steps", "visibility_passes", "rtol", "atol"]),
+    OPTION_VALUES,
+    st.sampled_from([VarPro, Optimistix]),
+)
+def test_strategy_options_are_accepted_exactly_in_their_domain(name, value, kind):
+    if name == "atol" and kind is VarPro:
+        kind = Optimistix
+    try:
+        kind(**{name: value})
+        ok = True
+    except FitError as exc:
+        ok = False
+        assert f"{kind.__name__}.{name}" in str(exc)
+    assert ok == _admitted(FIT[name], value), (name, value)
+
+
+@given(
+    st.sampled_from([o for o in CLI if o not in ("--size", "--seed")]),
+    st.one_of(st.text(max_size=8), st.floats().map(repr), st.integers(-(10**6), 10**6).map(str)),
+)
+@settings(suppress_health_check=[HealthCheck.function_scoped_fixture])
+def test_command_line_numbers_are_checked_before_anything_is_read_or_written(option, text):
+    from fitting.cli import EXIT_INPUT, main
+
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "out"
+        err = io.StringIO()
+        argv = ["--no-cache", "fit", str(Path(tmp) / "missing.toml"), "t.png", "-p", "material.diffuse"]
+        with redirect_stderr(err), redirect_stdout(io.StringIO()):
+            rc = main([*argv, f"{option}={text}", "-o", str(out)])  # "=": argparse takes "-1e3" as the value
+        assert rc == EXIT_INPUT and not out.exists()
+        msg = err.getvalue()
+        attr, dom = CLI[option]
+        valid = _parses(text, int if dom.kind == "int" else float) and dom.admits(
+            (int if dom.kind == "int" else float)(text)
+        )
+        # a valid number gets as far as the missing scene file; any other names the option
+        assert ("scene file not found" in msg) if valid else (option in msg), (option, text, msg)
+        assert "Traceback" not in msg
+
+
+def _parses(text, kind):
+    try:
+        kind(text)
+        return True
+    except ValueError:
+        return False
+
+
+FACES = st.lists(st.tuples(*[st.integers(-2, 9)] * 3), min_size=0, max_size=12)
+COORDS = st.one_of(st.floats(-1e3, 1e3), st.sampled_from([math.nan, math.inf, 0.0, 1e38]))
+
+
+@given(st.lists(st.tuples(COORDS, COORDS, COORDS), min_size=0, max_size=10), FACES, st.booleans())
+def test_random_meshes_load_or_raise_a_mesh_error(verts, faces, as_arrays):
+    v = np.asarray(verts, np.float64).reshape(-1, 3)
+    f = np.asarray(faces, np.int64).reshape(-1, 3)
+    if as_arrays:
+        try:
+            mesh = ds.mesh_from_arrays(v, f)
+        except ds.MeshError:
+            return
+    else:
+        lines = [f"v {a!r} {b!r} {c!r}" for a, b, c in v] + [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in f]
+        with tempfile.TemporaryDirectory() as tmp:
+            p = Path(tmp) / "m.obj"
+            p.write_text("\n".join(lines) + "\n")
+            try:
+                mesh = ds.load_mesh(p)
+            except ds.MeshError as exc:
+                assert str(p) in str(exc)
+                return
+    # what loads is a renderable mesh: finite vertices, faces in range
+    assert np.isfinite(np.asarray(mesh.vertices)).all() and len(mesh.faces)
+    assert 0 <= int(mesh.faces.min()) and int(mesh.faces.max()) < len(mesh.vertices)
+
+
+@given(
+    st.integers(1, 20),
+    st.integers(1, 20),
+    st.sampled_from([None, 1, 2, 3, 4, 5]),
+    st.sampled_from([np.uint8, np.uint16, np.float32, np.int32]),
+    st.sampled_from(["png", "npy", "truncated", "garbage"]),
+)
+def test_random_images_load_or_raise_an_input_error(h, w, ch, dtype, kind):
+    import skimage.io
+
+    from fitting.cli import InputError, load_target
+
+    rng = np.random.default_rng(h * 100 + w)
+    shape = (h, w) if ch is None else (h, w, ch)
+    a = (rng.uniform(0, 1, shape) * (255 if dtype == np.uint8 else 65535 if dtype == np.uint16 else 1)).astype(dtype)
+    with tempfile.TemporaryDirectory() as tmp:
+        p = Path(tmp) / f"t.{'npy' if kind == 'npy' else 'png'}"
+        if kind == "npy":
+            np.save(p, a)
+        elif kind == "garbage":
+            p.write_bytes(rng.bytes(64))
+        else:
+            if dtype not in (np.uint8, np.uint16):
+                return  # no PNG holds it
+            try:
+                skimage.io.imsave(p, a, check_contrast=False)
+            except (ValueError, TypeError, OSError):
+                return  # a pixel type or channel count the PNG writer refuses: nothing to read
+            if kind == "truncated":
+                p.write_bytes(p.read_bytes()[: len(p.read_bytes()) // 2])
+        try:
+            img, sat = load_target(p, (8, 8))
+        except InputError as exc:
+            assert str(p) in str(exc)
+            return
+        assert img.shape == (8, 8, 3) and np.isfinite(img).all()
