@@ -65,16 +65,12 @@ CASES = {
         shadow_rays=True,
         shadow_ray_crossings=2,
     ),
-    # the area light's centre on the wall, its rectangle at right angles to it: seen edge-on
-    "area-light-touching-surface-edge-on": lambda: _scene(
-        [WALL],
-        [{"type": "area", "position": [0, 0, 0], "normal": [1, 0, 0], "up": [0, 1, 0], "size": [0.5, 0.5]}],
-        shadow_rays=True,
-        area_grid=[3, 3],
-    ),
-    "multi-lobe-zero-cutoff-and-hard-edge": lambda: _scene(
+    # the area light's centre on the wall, its rectangle at right angles to it (seen edge-on), and
+    # a multi-lobe light with a lobe of zero cutoff (a closed cone) and one of a hard 90° edge
+    "area-light-touching-edge-on-and-multi-lobe-zero-cutoff": lambda: _scene(
         [WALL],
         [
+            {"type": "area", "position": [0, 0, 0], "normal": [1, 0, 0], "up": [0, 1, 0], "size": [0.5, 0.5]},
             {
                 "type": "multi_lobe",
                 "position": [0, 0, 1],
@@ -83,8 +79,10 @@ CASES = {
                     {"axis": [0, 0, -1], "cutoff": 0, "exponent": 0, "color": [1, 0.5, 0.2]},
                     {"axis": [0, 0, -1], "cutoff": 90, "edge": 90, "exponent": 1e3, "color": [0.2, 0.5, 1]},
                 ],
-            }
+            },
         ],
+        shadow_rays=True,
+        area_grid=[3, 3],
     ),
 }
 

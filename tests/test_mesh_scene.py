@@ -214,7 +214,7 @@ def scene_dict(**over):
         ),
         (
             {"light": [{"type": "spot", "position": [0, 0, 1], "axis": [0, 0, -1], "cutoff": 120}]},
-            r"light\[0\].cutoff: must lie in \(0.0, 90.0\]",
+            r"light\[0\].cutoff: must lie in \[0.0, 90.0\]",
         ),
         ({"light": [{"type": "laser"}]}, r"light\[0\].type: must be one of"),
         ({"camera": {"eye": [0, 0, 3.0], "width": 0}}, r"camera.width: must be an integer in \[1, 8192\]"),

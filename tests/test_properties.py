@@ -29,7 +29,7 @@ from fitting import FitError, Observations, Optimistix, VarPro  # noqa: E402
 from fitting._domains import CLI, FIT  # noqa: E402
 
 settings.register_profile(
-    "suite", max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True
+    "suite", max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True
 )
 settings.register_profile("soak", max_examples=800, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "suite"))
