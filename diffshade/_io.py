@@ -244,12 +244,14 @@ def _lights(v: _V, lights: list):
     groups: dict[str, list] = {k: [] for k in _LIGHT_KINDS}
     # separate specular colours (OpenGL's GL_SPECULAR) by kind and row; ``color`` sets both otherwise
     specular: dict[str, dict[int, np.ndarray]] = {"directional": {}, "point": {}, "spot": {}}
+    if not isinstance(lights, list):
+        v.fail("light", f"must be an array of tables ([[light]]), got {type(lights).__name__}")
     for i, l in enumerate(lights):
         w = f"light[{i}]"
         if not isinstance(l, dict):
             v.fail(w, "must be a table")
         kind = l.get("type")
-        if kind not in groups:
+        if not isinstance(kind, str) or kind not in groups:
             v.fail(f"{w}.type", f"must be one of {', '.join(repr(k) for k in _LIGHT_KINDS)}, got {kind!r}")
         if "specular" in l and kind in specular:
             specular[kind][len(groups[kind])] = v.vec(l, "specular", w, lo=0.0, scalar_ok=True)
