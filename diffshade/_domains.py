@@ -17,6 +17,7 @@ import math
 import numbers
 from dataclasses import dataclass
 
+import jax
 import numpy as np
 
 
@@ -137,8 +138,6 @@ _NONZERO = {"direction", "axis", "normal", "up"}  # directions: not the zero vec
 
 def is_concrete(tree) -> bool:
     """Whether every array of ``tree`` holds values (no JAX tracer: outside ``jit``, ``grad``, ...)."""
-    import jax
-
     return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
 
 

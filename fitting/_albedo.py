@@ -39,7 +39,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _options
-from ._domains import check_fit
 from ._polish import RELINEARISE_PASSES
 from ._problem import FitError, Problem
 from ._report import Diagnostics, FitResult, ResidualStats, Run, image_quality, noise_level, uncertainty, verdict
@@ -102,7 +101,7 @@ class AlbedoProblem:
         self.faces = np.asarray(mesh.faces)
         self.colour = vertex_colouring(self.faces, self.nv)
         self.n_col = int(self.colour.max()) + 1
-        self.smoothness = float(check_fit("", "albedo_smoothness", smoothness, FitError))
+        self.smoothness = float(smoothness)  # in its domain: fit() checks it (fitting._domains)
         E = np.zeros((self.n_col + len(self.other), int(pset.offsets[-1])))
         for c in range(self.n_col):
             E[c, a:b] = np.repeat(self.colour == c, 3).astype(float)

@@ -61,10 +61,9 @@ def check_args(args, error: type[Exception]) -> None:
         raw = getattr(args, attr, None)
         if raw is None:
             continue
+        dom = dataclasses.replace(dom, optional=False)  # given: a number
         try:
             value = (int if dom.kind == "int" else float)(raw)
         except ValueError:
-            raise error(
-                f"{option} must be {dataclasses.replace(dom, optional=False).describe()}, got {raw!r}"
-            ) from None
-        setattr(args, attr, check(option, value, dataclasses.replace(dom, optional=False), error))
+            raise error(f"{option} must be {dom.describe()}, got {raw!r}") from None
+        setattr(args, attr, check(option, value, dom, error))

@@ -784,22 +784,16 @@ def main(argv=None) -> int:
     for add in (_add_render, _add_fit, _add_demo):
         add(sub)
     args = parser.parse_args(argv)
+    import diffshade as ds
+
+    from . import FitError, ParamError
+    from ._cache import enable_compilation_cache
     from ._domains import check_args
 
     try:
         check_args(args, InputError)  # every number in its domain before a file is read or written
-    except InputError as exc:
-        print(f"diffshade: error: {exc}", file=sys.stderr)
-        return EXIT_INPUT
-    if not args.no_cache:
-        from ._cache import enable_compilation_cache
-
-        enable_compilation_cache()
-    import diffshade as ds
-
-    from . import FitError, ParamError
-
-    try:
+        if not args.no_cache:
+            enable_compilation_cache()
         return args.func(args)
     except (ds.SceneError, ds.MeshError, FileExistsError, FileNotFoundError, InputError, ParamError, FitError) as exc:
         print(f"diffshade: error: {exc}", file=sys.stderr)

@@ -140,10 +140,6 @@ OPTION_VALUES = st.one_of(
 )
 
 
-def _admitted(dom, value):
-    return dom.admits(value)
-
-
 @given(st.sampled_from(["noise", "saturation", "quantum", "margin"]), OPTION_VALUES)
 def test_observation_options_are_accepted_exactly_in_their_domain(name, value):
     img = np.zeros((4, 4, 3))
@@ -153,7 +149,7 @@ def test_observation_options_are_accepted_exactly_in_their_domain(name, value):
     except FitError as exc:
         ok = False
         assert name in str(exc)
-    assert ok == _admitted(FIT[name], value), (name, value)
+    assert ok == FIT[name].admits(value), (name, value)
 
 
 @given(
@@ -170,7 +166,7 @@ def test_strategy_options_are_accepted_exactly_in_their_domain(name, value, kind
     except FitError as exc:
         ok = False
         assert f"{kind.__name__}.{name}" in str(exc)
-    assert ok == _admitted(FIT[name], value), (name, value)
+    assert ok == FIT[name].admits(value), (name, value)
 
 
 @given(
