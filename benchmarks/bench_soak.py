@@ -52,13 +52,14 @@ def sample(rows, phase, done, t0, **extra):
 
 
 def soak_fits(n, size, every, rows, t0):
-    render = jax.jit(ds.render, static_argnames="opts")
     ok = 0
     for i in range(n):
         scene, opts, free, name, rng = make_case(i, size, None)
         pset = ParamSet(free, scene)
         true = np.asarray(pset.theta_of(scene), np.float64)
-        clean = np.asarray(render(scene, opts))
+        # the target through a jit of its own, dropped after (``jax.jit(ds.render)`` would keep
+        # every structure's program in JAX's cache of module-level functions: not the fits')
+        clean = np.asarray(jax.jit(lambda s: ds.render(s, opts))(scene))  # noqa: B023
         target = np.round(np.clip(clean + rng.normal(0, 2 / 255, clean.shape), 0, 1) * 255) / 255
         start = pset.apply(scene, jnp.asarray(random_start(pset, true, rng), scene.mesh.vertices.dtype))
         r = fit(start, opts, Observations(target, saturation=1.0, quantum=1 / 255), free, strategy=VarPro())

@@ -107,6 +107,8 @@ def validate_arrays(vertices, faces, source: str = "mesh") -> tuple[np.ndarray, 
         raise MeshError(f"{source}: faces must be integer vertex indices, got dtype {f.dtype}")
     if len(f) == 0:
         raise MeshError(f"{source}: the mesh has no triangles: nothing to render")
+    if len(v) == 0:
+        raise MeshError(f"{source}: the mesh has faces but no vertices")
     bad = ~np.isfinite(v).all(axis=1)
     if bad.any():
         raise MeshError(

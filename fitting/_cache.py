@@ -27,26 +27,30 @@ def cache_info() -> dict:
     return dict(_STATS, size=len(_CACHE), capacity=CACHE_SIZE)
 
 
-def _key(prob: Problem, what, *extra, args=()):
+def _shapes(args) -> tuple:
     leaves, treedef = jax.tree.flatten(args)
-    pset = prob.pset
-    return (
-        what,
-        tuple(pset.labels),
-        tuple(p.path for p in pset.params),
-        tuple(pset.sizes),
-        prob.opts,
-        treedef,
-        tuple((x.shape, x.dtype, getattr(x, "sharding", None)) for x in leaves),
-        *extra,
-    )
+    return treedef, tuple((x.shape, x.dtype, getattr(x, "sharding", None)) for x in leaves)
 
 
 def compiled(prob: Problem, what: str, fn, *args, extra=()):
     """``jax.jit(fn).lower(*args).compile()``, cached on the problem's structure (the
     :data:`CACHE_SIZE` most recently used); returns ``(compiled, compile_seconds)`` (0 when
     cached)."""
-    key = _key(prob, what, *extra, args=args)
+    pset = prob.pset
+    structure = (tuple(pset.labels), tuple(p.path for p in pset.params), tuple(pset.sizes), prob.opts, *extra)
+    return program((what, *structure), fn, *args)
+
+
+def program(key: tuple, fn, *args):
+    """``jax.jit(fn).lower(*args).compile()`` for ``fn`` (a function of arrays only, its static
+    configuration closed over and named in ``key``), cached on ``key`` and the arguments'
+    shapes in the one bounded cache; returns ``(compiled, compile_seconds)``.
+
+    Every per-structure program a fit runs goes through here, not through ``jax.jit`` of a
+    module-level function: JAX's own cache of those keeps up to 8,192 executables alive for
+    the life of the process (with their mapped machine code), so a session fitting many
+    structures would grow without bound."""
+    key = (*key, *_shapes(args))
     if key in _CACHE:
         _STATS["hits"] += 1
         _CACHE.move_to_end(key)
@@ -59,8 +63,13 @@ def compiled(prob: Problem, what: str, fn, *args, extra=()):
     while len(_CACHE) > CACHE_SIZE:
         _CACHE.popitem(last=False)
     if _VERBOSE_COMPILE:
-        print(f"compiled {what} in {dt:.2f} s")
+        print(f"compiled {key[0]} in {dt:.2f} s")
     return exe, dt
+
+
+def run(key: tuple, fn, *args):
+    """``fn(*args)`` through :func:`program`'s cache."""
+    return program(key, fn, *args)[0](*args)
 
 
 _VERBOSE_COMPILE = False

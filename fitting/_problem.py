@@ -25,6 +25,7 @@ import diffshade as ds
 from diffshade import color, pixel_neighbours
 
 from . import _options
+from ._cache import run
 from ._observations import FitError, Observations
 from ._params import ParamSet
 
@@ -119,7 +120,6 @@ def near_edges(depth: np.ndarray, margin: int, ratio: float = 4.0) -> np.ndarray
     return edge & cov
 
 
-@jax.jit
 def _edges_at(scene, ids, px, py, right, down):
     """The antialiasing's silhouette edges of a view's compacted pixels at its scene's values
     (:func:`diffshade.silhouette_edges`): held fixed through a fit's pass, as the
@@ -322,7 +322,18 @@ def _compact(k, c: _Cover, codes, n, dtype, opts):
     px_c, py_c = jnp.asarray(padn(xs[c_idx], 0.0)[None], dtype), jnp.asarray(padn(ys[r_idx], 0.0)[None], dtype)
     right_c, down_c = padn(right, -1)[None], padn(down, -1)[None]
     edges = (
-        np.asarray(_edges_at(v, jnp.asarray(kids), px_c, py_c, jnp.asarray(right_c), jnp.asarray(down_c)))
+        np.asarray(
+            run(
+                ("silhouette edges",),
+                _edges_at,
+                v,
+                jnp.asarray(kids),
+                px_c,
+                py_c,
+                jnp.asarray(right_c),
+                jnp.asarray(down_c),
+            )
+        )
         if _options.antialias(opts)
         else np.full((2, 2, n), -1, np.int32)
     )
@@ -400,7 +411,10 @@ class Problem:
         dtype = scene.mesh.vertices.dtype
         pset = ParamSet(list(free), scene, shared, n_views=len(obs.targets))
         lower = (obs.saturation is not None) if lower_censor is None else lower_censor
-        vis = jax.jit(ds.scene_visibility, static_argnums=1)
+
+        def vis(v, opts):
+            return run(("visibility", opts), lambda s: ds.scene_visibility(s, opts), v)
+
         covers = [
             _cover(k, t, v, m, enc, obs, lower, opts, vis)
             for k, (t, v, m, enc) in enumerate(zip(obs.targets, views, masks, obs.encodings))

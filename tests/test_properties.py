@@ -17,6 +17,7 @@ from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -202,12 +203,30 @@ def _parses(text, kind):
         return False
 
 
-FACES = st.lists(st.tuples(*[st.integers(-2, 9)] * 3), min_size=0, max_size=12)
-COORDS = st.one_of(st.floats(-1e3, 1e3), st.sampled_from([math.nan, math.inf, 0.0, 1e38]))
+FINITE = st.floats(-1e3, 1e3)
+COORDS = st.one_of(FINITE, FINITE, FINITE, st.sampled_from([0.0, 1e38, 1e-38]))
 
 
-@given(st.lists(st.tuples(COORDS, COORDS, COORDS), min_size=0, max_size=10), FACES, st.booleans())
-def test_random_meshes_load_or_raise_a_mesh_error(verts, faces, as_arrays):
+@st.composite
+def meshes(draw):
+    """Up to 10 vertices (huge, tiny, coincident; now and then one NaN or infinite) and up to 12 faces whose
+    indices are mostly in range (repeats make degenerate, duplicate and non-manifold triangles)."""
+    least = draw(st.sampled_from([0, 1, 1, 1]))  # now and then no vertices or no faces
+    verts = draw(st.lists(st.tuples(COORDS, COORDS, COORDS), min_size=3 * least, max_size=10))
+    n = len(verts)
+    if n and draw(st.sampled_from([False, False, False, True])):  # one position NaN or infinite
+        i, axis = draw(st.integers(0, n - 1)), draw(st.integers(0, 2))
+        verts[i] = tuple(
+            draw(st.sampled_from([math.nan, math.inf, -math.inf])) if a == axis else x for a, x in enumerate(verts[i])
+        )
+    index = st.one_of(*[st.integers(0, max(n - 1, 0))] * 4, st.integers(-1, n))
+    faces = draw(st.lists(st.tuples(index, index, index), min_size=least, max_size=12))
+    return verts, faces
+
+
+@given(meshes(), st.booleans())
+def test_random_meshes_load_or_raise_a_mesh_error(mesh, as_arrays):
+    verts, faces = mesh
     v = np.asarray(verts, np.float64).reshape(-1, 3)
     f = np.asarray(faces, np.int64).reshape(-1, 3)
     if as_arrays:
@@ -225,9 +244,42 @@ def test_random_meshes_load_or_raise_a_mesh_error(verts, faces, as_arrays):
             except ds.MeshError as exc:
                 assert str(p) in str(exc)
                 return
-    # what loads is a renderable mesh: finite vertices, faces in range
+    # what loads is a renderable mesh: finite vertices, faces in range; rendered (degenerate,
+    # duplicate, zero-area and non-manifold triangles included) its image and gradient are finite
     assert np.isfinite(np.asarray(mesh.vertices)).all() and len(mesh.faces)
     assert 0 <= int(mesh.faces.min()) and int(mesh.faces.max()) < len(mesh.vertices)
+    image, grads = _mesh_program()(*_padded(mesh))
+    assert np.isfinite(np.asarray(image)).all() and all(np.isfinite(np.asarray(g)).all() for g in grads)
+
+
+def _padded(mesh, nv=16, nf=16):
+    """The mesh scaled into the view (its shape kept) and padded to one program's sizes: unused
+    copies of vertex 0 and degenerate faces (0, 0, 0), themselves hard cases."""
+    v, f = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces)
+    v = v / max(1e-30, float(np.abs(v).max()))
+    v = np.concatenate([v, np.repeat(v[:1], nv - len(v), 0)])
+    return v, np.concatenate([f, np.zeros((nf - len(f), 3), f.dtype)])
+
+
+@functools.cache
+def _mesh_program():
+    """One program for every random mesh: the image and the gradients of a weighted sum with
+    respect to the vertices and the material."""
+    import equinox as eqx
+
+    base, opts = ds.scene_from_dict({**BASE, "mesh": {"icosphere": 0}}, "random meshes")
+
+    def run(v, f):
+        scene = eqx.tree_at(lambda s: s.mesh, base, ds.Mesh(v, f))
+
+        def loss(v, mat):
+            img = ds.render(eqx.tree_at(lambda s: (s.mesh.vertices, s.material), scene, (v, mat)), opts)
+            return (img * jnp.linspace(0.5, 1.5, img.size).reshape(img.shape)).sum(), img
+
+        (_, img), grads = jax.value_and_grad(loss, argnums=(0, 1), has_aux=True)(scene.mesh.vertices, scene.material)
+        return img, jax.tree.leaves(grads)
+
+    return jax.jit(run)
 
 
 @given(
@@ -266,3 +318,29 @@ def test_random_images_load_or_raise_an_input_error(h, w, ch, dtype, kind):
             assert str(p) in str(exc)
             return
         assert img.shape == (8, 8, 3) and np.isfinite(img).all()
+
+
+@pytest.mark.slow
+def test_a_million_face_mesh_loads_renders_and_differentiates(tmp_path):
+    # 1,310,720 faces (every 1,000th degenerate) and 1,000 unused duplicate vertices, from an
+    # OBJ of 53 MB: loads, renders and differentiates finite; one NaN vertex among them is named
+    import equinox as eqx
+    import trimesh
+
+    tm = trimesh.creation.icosphere(subdivisions=8)
+    v, f = np.asarray(tm.vertices), np.asarray(tm.faces).copy()
+    f[::1000, 2] = f[::1000, 1]
+    path = tmp_path / "big.obj"
+    trimesh.Trimesh(np.concatenate([v, v[:1000]]), f, process=False).export(path)
+    mesh = ds.load_mesh(path)
+    assert mesh.faces.shape == (1_310_720, 3)
+    scene, opts = ds.scene_from_dict({**BASE, "camera": {**BASE["camera"], "width": 64, "height": 64}}, "big")
+    scene = eqx.tree_at(lambda s: s.mesh, scene, mesh)
+    loss = lambda s: ds.render(s, opts).sum()  # noqa: E731
+    value, grads = eqx.filter_jit(eqx.filter_value_and_grad(loss))(scene)
+    assert np.isfinite(float(value)) and float(value) > 0
+    assert all(np.isfinite(np.asarray(g)).all() for g in jax.tree.leaves(eqx.filter(grads, eqx.is_inexact_array)))
+    v[12_345] = np.nan
+    trimesh.Trimesh(v, f, process=False).export(path)
+    with pytest.raises(ds.MeshError, match=r"big\.obj.*NaN.*vertex 12345"):
+        ds.load_mesh(path)
