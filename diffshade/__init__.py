@@ -12,7 +12,7 @@ The render is a chain of stages, each a public function (what :func:`shade` call
     image = composite(scene, surface, color, opts.fog, opts.transparency, opts.output)
 """
 
-from . import color
+from . import color, images
 from ._antialias import antialias, face_adjacency, pixel_neighbours, silhouette_edges
 from ._camera import Camera, OpenCVCamera, rodrigues, undistort
 from ._composite import composite
@@ -42,6 +42,7 @@ from ._shade import blinn_to_phong, phong_to_blinn
 from ._surface import Needs, Sites, Surface, needs, surface_points
 from ._trace import secondary_rays
 from ._util import keep
+from .images import Image, ImageError, read_image, write_image
 
 __all__ = [
     "AreaLights",
@@ -96,6 +97,11 @@ __all__ = [
     "truncated_pixels",
     "ray_counts",
     "color",
+    "images",
+    "Image",
+    "ImageError",
+    "read_image",
+    "write_image",
     "keep",
     "pixel_neighbours",
     "silhouette_edges",

@@ -12,7 +12,7 @@ The renderer works in **linear** values, proportional to the light. Image files 
 Both ends are fixed points (0 → 0, 1 → 1) and every map is increasing, so a pixel clipped at the
 top or bottom code is clipped in either domain. In a PNG the encoding is declared by its ``sRGB``
 chunk, an ``iCCP`` profile, or a ``gAMA`` chunk (the file gamma ``1/G``): :func:`png_encoding`
-reads them, :func:`png_info` writes them.
+reads them, :func:`png_info` writes them. Files are read and written by :mod:`diffshade.images`.
 """
 
 from __future__ import annotations
@@ -115,7 +115,7 @@ def png_encoding(path) -> tuple[str | None, str]:
     if "srgb" in info:
         return "srgb", "its sRGB chunk"
     if info.get("icc_profile"):
-        desc = _icc_description(info["icc_profile"])
+        desc = icc_description(info["icc_profile"])
         if "srgb" in desc.lower().replace(" ", ""):
             return "srgb", f"its ICC profile ({desc})"
         raise EncodingError(
@@ -131,7 +131,8 @@ def png_encoding(path) -> tuple[str | None, str]:
     return None, "no sRGB, iCCP or gAMA chunk"
 
 
-def _icc_description(icc: bytes) -> str:
+def icc_description(icc: bytes) -> str:
+    """An ICC profile's description (``"sRGB IEC61966-2.1"``, ``"sRGB built-in"``, ...)."""
     try:
         import io
 
@@ -168,103 +169,8 @@ def quantise(image, encoding: str = "linear", bits: int = 8) -> np.ndarray:
     return np.round(np.clip(v, 0.0, 1.0) * top).astype(np.uint8 if bits == 8 else np.uint16)
 
 
-def write_png(path, image, encoding: str = "linear", bits: int = 8) -> None:
-    """``image`` (linear, ``[H, W, 3]``) to a PNG encoded as ``encoding``, its chunks declaring it."""
-    from PIL import Image
+def srgb_profile() -> bytes:
+    """An sRGB ICC profile (LittleCMS's, through Pillow), for files that declare sRGB by one."""
+    from PIL import ImageCms
 
-    codes = quantise(image, encoding, bits)
-    if bits == 8:
-        Image.fromarray(codes, "RGB").save(path, format="PNG", pnginfo=png_info(encoding))
-    else:  # PIL has no 16-bit RGB mode: the few chunks of a PNG written here
-        _write_png16(path, codes, png_info(encoding))
-
-
-def _write_png16(path, codes: np.ndarray, info) -> None:
-    """A 16-bit RGB PNG (colour type 2, no interlace, filter 0 on every row) with ``info``'s chunks."""
-    import zlib
-
-    h, w, _ = codes.shape
-
-    def chunk(cid: bytes, payload: bytes) -> bytes:
-        return len(payload).to_bytes(4, "big") + cid + payload + zlib.crc32(cid + payload).to_bytes(4, "big")
-
-    rows = np.ascontiguousarray(codes.astype(">u2")).view(np.uint8).reshape(h, w * 6)
-    raw = np.concatenate([np.zeros((h, 1), np.uint8), rows], axis=1).tobytes()
-    ihdr = w.to_bytes(4, "big") + h.to_bytes(4, "big") + bytes([16, 2, 0, 0, 0])
-    out = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr)
-    out += b"".join(chunk(cid, payload) for cid, payload, *_ in info.chunks)
-    out += chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b"")
-    with open(path, "wb") as f:
-        f.write(out)
-
-
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-
-
-def read_png16(path) -> np.ndarray | None:
-    """A 16-bit PNG's codes as ``uint16`` ``[H, W, C]`` (grey, grey + alpha, RGB, RGBA), or None
-    for any other PNG (8-bit, palette, interlaced: PIL reads those). PIL reads 16-bit colour PNGs
-    as 8-bit, silently dropping the low byte; this reads them whole (all five row filters)."""
-    import zlib
-
-    with open(path, "rb") as f:
-        data = f.read()
-    if data[:8] != _PNG_SIGNATURE:
-        return None
-    pos, idat, hdr = 8, [], None
-    while pos + 8 <= len(data):
-        n = int.from_bytes(data[pos : pos + 4], "big")
-        cid, payload = data[pos + 4 : pos + 8], data[pos + 8 : pos + 8 + n]
-        pos += 12 + n
-        if cid == b"IHDR":
-            hdr = (
-                int.from_bytes(payload[0:4], "big"),
-                int.from_bytes(payload[4:8], "big"),
-                payload[8],
-                payload[9],
-                payload[12],
-            )
-        elif cid == b"IDAT":
-            idat.append(payload)
-        elif cid == b"IEND":
-            break
-    if hdr is None:
-        raise EncodingError(f"{path}: a PNG without an IHDR chunk")
-    w, h, depth, ctype, interlace = hdr
-    channels = {0: 1, 2: 3, 4: 2, 6: 4}.get(ctype)
-    if depth != 16 or interlace or channels is None:
-        return None
-    bpp = 2 * channels
-    try:
-        raw = np.frombuffer(zlib.decompress(b"".join(idat)), np.uint8)
-        raw = raw[: h * (1 + w * bpp)].reshape(h, 1 + w * bpp)
-    except (zlib.error, ValueError) as exc:
-        raise EncodingError(f"{path}: corrupt or truncated PNG image data ({exc})") from exc
-    out = np.zeros((h, w * bpp), np.int64)
-    prev = np.zeros(w * bpp, np.int64)
-    for y in range(h):
-        kind, line = raw[y, 0], raw[y, 1:].astype(np.int64)
-        if kind == 0:
-            cur = line
-        elif kind == 1:  # Sub: a running sum along each byte lane
-            cur = np.cumsum(line.reshape(w, bpp), axis=0).reshape(-1) & 255
-        elif kind == 2:  # Up
-            cur = (line + prev) & 255
-        elif kind in (3, 4):  # Average, Paeth: pixel by pixel
-            cur = np.zeros_like(line)
-            left, upleft = np.zeros(bpp, np.int64), np.zeros(bpp, np.int64)
-            for x in range(w):
-                sl = slice(x * bpp, (x + 1) * bpp)
-                up = prev[sl]
-                if kind == 3:
-                    pred = (left + up) >> 1
-                else:
-                    p = left + up - upleft
-                    pa, pb, pc = np.abs(p - left), np.abs(p - up), np.abs(p - upleft)
-                    pred = np.where((pa <= pb) & (pa <= pc), left, np.where(pb <= pc, up, upleft))
-                cur[sl] = (line[sl] + pred) & 255
-                left, upleft = cur[sl], up
-        else:
-            raise EncodingError(f"{path}: row {y} has an unknown PNG filter type {kind}")
-        out[y], prev = cur, cur
-    return out.astype(np.uint8).reshape(h, w * channels, 2).view(">u2").reshape(h, w, channels).astype(np.uint16)
+    return ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB")).tobytes()

@@ -37,12 +37,12 @@ def load_target(
     with_alpha: bool = False,
 ):
     """A target image as linear float64 ``[H, W, 3]`` and its saturation level (1.0 for integer
-    files, whose brightest code is a clipped value; None for ``.npy`` floats, which are not
-    clipped); ``with_quantum``: also the code step (1/255, 1/65535; None for floats);
-    ``with_encoding``: also ``(encoding, why)``.
+    files, whose brightest code is a clipped value; None for float files, OpenEXR, float TIFF and
+    ``.npy``, which are not clipped); ``with_quantum``: also the code step (1/255, 1/65535; None
+    for floats); ``with_encoding``: also ``(encoding, why)``. Read by :func:`diffshade.read_image`.
 
-    ``encoding``: ``"auto"`` (a PNG's sRGB/iCCP/gAMA chunks; a file without them is read as
-    linear, and ``why`` says so), or ``"linear"``, ``"srgb"``, ``"gamma:G"`` to override. Integer
+    ``encoding``: ``"auto"`` (a PNG's sRGB/iCCP/gAMA chunks, a TIFF's ICC profile; a file without
+    them is read as linear, and ``why`` says so; float files are linear), or ``"linear"``, ``"srgb"``, ``"gamma:G"`` to override. Integer
     codes are decoded to linear values; the ends are fixed points of every encoding, so a clipped
     code (0 or the top one) is decided on the encoded value and stays clipped. ``.npy`` floats
     are linear unless an encoding is given. ``decoded`` False: the code values themselves (in
@@ -50,50 +50,25 @@ def load_target(
     and its alpha channel (in [0, 1], never decoded) returned last, None for RGB."""
     import numpy as np
 
+    import diffshade as ds
     from diffshade import color
 
-    if not path.exists():
-        raise InputError(f"{path}: target image not found")
     if encoding != "auto":
         try:
             color.parse_encoding(encoding)
         except color.EncodingError as exc:
             raise InputError(str(exc)) from exc
-    if path.suffix.lower() == ".npy":
-        try:
-            img = np.load(path, allow_pickle=False)
-        except (ValueError, OSError) as exc:
-            raise InputError(f"{path}: not a readable .npy array: {exc}") from exc
-        sat, q = None, None
-        if not np.issubdtype(img.dtype, np.floating):
-            raise InputError(f"{path}: a .npy target must hold floats (linear radiance), got {img.dtype}")
-        enc, why = ("linear", "a .npy array (floats are linear)") if encoding == "auto" else (encoding, "--encoding")
+    try:
+        image = ds.read_image(path)
+    except ds.ImageError as exc:
+        raise InputError(str(exc).replace("image file not found", "target image not found")) from exc
+    img, sat, q = image.values(), (None if image.bits is None else 1.0), image.quantum
+    if encoding != "auto":
+        enc, why = encoding, "--encoding"
+    elif image.encoding is None:
+        enc, why = "linear", f"{image.why}: read as linear (pass --encoding srgb for a photograph)"
     else:
-        import skimage.io
-
-        try:
-            declared, why = color.png_encoding(path)
-            img = color.read_png16(path) if path.suffix.lower() == ".png" else None
-            if img is None:
-                img = skimage.io.imread(path)
-        except color.EncodingError as exc:
-            raise InputError(str(exc)) from exc
-        except Exception as exc:  # noqa: BLE001 - imageio raises many types; name the file
-            raise InputError(f"{path}: cannot read as an image: {exc}") from exc
-        if encoding != "auto":
-            enc, why = encoding, "--encoding"
-        elif declared is None:
-            enc, why = "linear", f"{why}: read as linear (pass --encoding srgb for a photograph)"
-        else:
-            enc = declared
-        if img.dtype == np.uint8:
-            img, sat, q = img / 255.0, 1.0, 1 / 255
-        elif img.dtype == np.uint16:
-            img, sat, q = img / 65535.0, 1.0, 1 / 65535
-        elif np.issubdtype(img.dtype, np.floating):
-            sat, q = None, None
-        else:
-            raise InputError(f"{path}: unsupported pixel type {img.dtype} (8- or 16-bit or float images)")
+        enc, why = image.encoding, image.why
     img = np.asarray(img, np.float64)
     h, w = resolution
     alpha = None
@@ -170,17 +145,26 @@ def _write_text(text: str, out: Path) -> None:
     tmp.replace(out)
 
 
-def _write_png(image, out: Path, overwrite: bool, encoding: str = "linear") -> None:
-    """``image`` (linear) as an 8-bit PNG encoded as ``encoding``, its chunks declaring it
-    (``gAMA`` 1.0 for linear, ``sRGB`` for sRGB), written through a temporary file."""
-    from diffshade import color
+def _write_image(image, out: Path, overwrite: bool, encoding: str = "linear") -> None:
+    """``image`` (linear) to ``out`` by :func:`diffshade.write_image`: a PNG of 8-bit codes
+    encoded as ``encoding``, its chunks declaring it; a 16-bit TIFF; OpenEXR floats."""
+    import diffshade as ds
+
+    _check_output(out, overwrite)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    ds.write_image(out, image, encoding)
+
+
+def _check_output(out: Path, overwrite: bool) -> None:
+    """Before any work: an output image the user may replace, of a format :func:`diffshade.write_image` writes."""
+    import diffshade as ds
 
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out}: exists; pass --overwrite to replace it")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".tmp.png")
-    color.write_png(tmp, image, encoding)
-    tmp.replace(out)
+    if out.suffix.lower() not in ds.images.WRITABLE:
+        raise InputError(
+            f"{out}: cannot write a {out.suffix or 'suffix-less'} image; one of {' '.join(ds.images.WRITABLE)}"
+        )
 
 
 def _render(scene, opts, out: Path, overwrite: bool, encoding: str = "linear") -> None:
@@ -197,7 +181,7 @@ def _render(scene, opts, out: Path, overwrite: bool, encoding: str = "linear") -
     t1 = time.perf_counter()
     img = fn(scene, opts).block_until_ready()
     t2 = time.perf_counter()
-    _write_png(img, out, overwrite, encoding)
+    _write_image(img, out, overwrite, encoding)
     h, w = scene.camera.resolution
     print(
         f"rendered {w}x{h}, {scene.mesh.faces.shape[0]} faces, shading={o['shading']}, "
@@ -223,12 +207,15 @@ def _render(scene, opts, out: Path, overwrite: bool, encoding: str = "linear") -
                 "is not composited (raise render.layers to include it)"
             )
     print(f"first call (compile + run) {t1 - t0:.2f} s, steady state {1e3 * (t2 - t1):.1f} ms")
-    print(f"wrote {out} ({encoding} encoding, declared in the file)")
+    floats = out.suffix.lower() in (".exr", ".npy")
+    said = "linear floats" if floats else f"{encoding} encoding, declared in the file"
+    print(f"wrote {out} ({said})")
 
 
 def cmd_render(args) -> int:
     import diffshade as ds
 
+    _check_output(Path(args.output), args.overwrite)
     scene, opts = ds.load_scene(args.scene)
     _render(scene, opts, Path(args.output), args.overwrite, _check_encoding(args.encoding))
     return EXIT_OK
@@ -309,7 +296,7 @@ def cmd_demo(args) -> int:
     start_img = render(s0, opts)
     resid = jnp.clip(0.5 + 10.0 * (fitted - target), 0.0, 1.0)
     panel = jnp.concatenate([target, start_img, fitted, resid], axis=1)
-    _write_png(panel, Path(args.output), True)
+    _write_image(panel, Path(args.output), True)
     print(f"wrote {args.output} (target | start | fit | 10x residual)")
     return EXIT_OK if r.successful else EXIT_FIT
 
@@ -433,17 +420,20 @@ def _load_masks(args, tg: _Targets, views):
     """The weight images (``--mask``), else the targets' alpha channels; and the paths read."""
     import numpy as np
 
+    import diffshade as ds
+
     mask_paths = [Path(m) for m in args.mask] if args.mask else []
     if mask_paths:
         if len(mask_paths) != len(tg.images):
             raise InputError(f"{len(tg.images)} target(s) but {len(mask_paths)} mask(s); give one per target")
-        import skimage.io
-
         masks = []
         for mp, v in zip(mask_paths, views):
             if not mp.exists():
                 raise InputError(f"{mp}: mask image not found")
-            m = np.asarray(skimage.io.imread(mp), np.float64)
+            try:
+                m = ds.read_image(mp).values()
+            except ds.ImageError as exc:
+                raise InputError(str(exc)) from exc
             m = m[..., 0] if m.ndim == 3 else m
             if m.shape != v.camera.resolution:
                 raise InputError(
@@ -588,7 +578,7 @@ def _write_outputs(args, meta, r, report, comparison, outputs, fitted, rows, enc
         outputs[1],
         f"{report[0]}\nfree: {' '.join(args.free)}; result: {r.result or 'successful'}; standard errors in fit.json",
     )
-    _write_png(np.concatenate(rows, axis=0), outputs[2], True, encoding)
+    _write_image(np.concatenate(rows, axis=0), outputs[2], True, encoding)
     _write_text("\n".join(report) + "\n", outputs[3])
 
 
@@ -656,7 +646,12 @@ def _add_render(sub) -> None:
     """The ``render`` command's arguments."""
     p = sub.add_parser("render", help="render a TOML scene file to a PNG")
     p.add_argument("scene", help="scene file (.toml)")
-    p.add_argument("-o", "--output", default="render.png", help="output PNG (default: render.png)")
+    p.add_argument(
+        "-o",
+        "--output",
+        default="render.png",
+        help="output image (default: render.png): .png (8-bit codes in --encoding), .tif (16-bit), .exr (linear floats)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     p.add_argument(
         "--encoding",
@@ -795,7 +790,17 @@ def main(argv=None) -> int:
         if not args.no_cache:
             enable_compilation_cache()
         return args.func(args)
-    except (ds.SceneError, ds.MeshError, FileExistsError, FileNotFoundError, InputError, ParamError, FitError) as exc:
+    except (
+        ds.SceneError,
+        ds.MeshError,
+        ds.ImageError,
+        ds.color.EncodingError,
+        FileExistsError,
+        FileNotFoundError,
+        InputError,
+        ParamError,
+        FitError,
+    ) as exc:
         print(f"diffshade: error: {exc}", file=sys.stderr)
         return EXIT_INPUT
 

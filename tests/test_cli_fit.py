@@ -203,7 +203,7 @@ def test_targets_are_decoded_as_their_files_declare(files, tmp_path, capsys):
     img_lin, *_, (enc2, why2) = load_target(out, (32, 32), encoding="linear", with_encoding=True)
     assert enc2 == "linear" and why2 == "--encoding" and np.array_equal(img_lin, codes)
     deep = tmp_path / "deep.png"
-    _color.write_png(deep, linear, "gamma:2.2", bits=16)
+    ds.write_image(deep, linear, "gamma:2.2", bits=16)
     img16, sat16, q16, (enc16, _) = load_target(deep, (32, 32), with_quantum=True, with_encoding=True)
     assert enc16 == "gamma:2.2" and q16 == 1 / 65535
     assert np.abs(img16 - np.clip(linear, 0, 1)).max() < 1e-4  # 16 bits, not 8

@@ -1,9 +1,5 @@
-"""Colour encodings (issue 16, first part): the sRGB and gamma transfer functions, PNG chunks that
-declare them, and 16-bit PNGs read whole."""
-
-import os
-import struct
-import zlib
+"""Colour encodings (issue 16, first part): the sRGB and gamma transfer functions and a fit through
+them (files that declare them: test_images.py)."""
 
 import jax
 import jax.numpy as jnp
@@ -47,99 +43,6 @@ def test_gamma_and_linear_and_bad_names():
     ):
         with pytest.raises(C.EncodingError, match=words):
             C.parse_encoding(bad)
-
-
-@pytest.mark.parametrize("bits", [8, 16])
-@pytest.mark.parametrize("encoding,declared", [("srgb", "srgb"), ("linear", "linear"), ("gamma:2.2", "gamma:2.2")])
-def test_png_files_declare_their_encoding(tmp_path, bits, encoding, declared):
-    img = np.random.default_rng(bits).uniform(size=(9, 11, 3))
-    path = tmp_path / "x.png"
-    C.write_png(path, img, encoding, bits)
-    enc, why = C.png_encoding(path)
-    assert enc == declared, why
-    top = 255 if bits == 8 else 65535
-    if bits == 16:
-        codes = C.read_png16(path)
-        assert codes.dtype == np.uint16 and np.array_equal(codes, C.quantise(img, encoding, 16))
-    else:
-        import skimage.io
-
-        codes = skimage.io.imread(path)
-        assert np.array_equal(codes, C.quantise(img, encoding, 8))
-    # decoded, the image is the linear one to within half a code step's worth of slope
-    back = C.decode(codes / top, encoding)
-    assert np.abs(back - img).max() < (3.0 if encoding != "linear" else 1.0) / top
-
-
-def test_icc_profiles_and_undeclared_files(tmp_path):
-    from PIL import Image, ImageCms
-
-    codes = C.quantise(np.random.default_rng(0).uniform(size=(6, 7, 3)), "srgb")
-    srgb = ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB")).tobytes()
-    Image.fromarray(codes).save(tmp_path / "icc.png", icc_profile=srgb)
-    enc, why = C.png_encoding(tmp_path / "icc.png")
-    assert enc == "srgb" and "ICC profile" in why
-    lab = ImageCms.ImageCmsProfile(ImageCms.createProfile("LAB")).tobytes()
-    Image.fromarray(codes).save(tmp_path / "lab.png", icc_profile=lab)
-    with pytest.raises(C.EncodingError, match=r"lab.png: its ICC profile is .*not sRGB"):
-        C.png_encoding(tmp_path / "lab.png")
-    Image.fromarray(codes).save(tmp_path / "plain.png")
-    assert C.png_encoding(tmp_path / "plain.png")[0] is None
-    Image.fromarray(codes).save(tmp_path / "plain.jpg")
-    assert C.png_encoding(tmp_path / "plain.jpg")[0] is None
-    assert C.read_png16(tmp_path / "plain.png") is None  # 8-bit: PIL's
-
-
-def _png16_with_filters(codes, kinds):
-    """A 16-bit PNG whose rows use the given filter types (what libpng's adaptive filtering writes)."""
-    h, w, c = codes.shape
-    bpp = 2 * c
-    rows = codes.astype(">u2").view(np.uint8).reshape(h, w * bpp).astype(np.int64)
-    out, prev = [], np.zeros(w * bpp, np.int64)
-    for y in range(h):
-        cur, kind = rows[y], kinds[y % len(kinds)]
-        left = np.concatenate([np.zeros(bpp, np.int64), cur[:-bpp]])
-        upleft = np.concatenate([np.zeros(bpp, np.int64), prev[:-bpp]])
-        if kind == 0:
-            f = cur
-        elif kind == 1:
-            f = cur - left
-        elif kind == 2:
-            f = cur - prev
-        elif kind == 3:
-            f = cur - ((left + prev) >> 1)
-        else:
-            p = left + prev - upleft
-            pa, pb, pc = np.abs(p - left), np.abs(p - prev), np.abs(p - upleft)
-            f = cur - np.where((pa <= pb) & (pa <= pc), left, np.where(pb <= pc, prev, upleft))
-        out.append(bytes([kind]) + (f & 255).astype(np.uint8).tobytes())
-        prev = cur
-
-    def chunk(cid, payload):
-        return struct.pack(">I", len(payload)) + cid + payload + struct.pack(">I", zlib.crc32(cid + payload))
-
-    ctype = {1: 0, 2: 4, 3: 2, 4: 6}[c]
-    return (
-        b"\x89PNG\r\n\x1a\n"
-        + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 16, ctype, 0, 0, 0))
-        + chunk(b"IDAT", zlib.compress(b"".join(out)))
-        + chunk(b"IEND", b"")
-    )
-
-
-@pytest.mark.parametrize("channels", [1, 3, 4])
-def test_16_bit_pngs_are_read_whole_with_every_row_filter(tmp_path, channels):
-    rng = np.random.default_rng(channels)
-    codes = rng.integers(0, 65536, size=(10, 13, channels)).astype(np.uint16)
-    codes[3] = codes[2]  # repeated rows and smooth runs, as real images have
-    path = tmp_path / "f.png"
-    path.write_bytes(_png16_with_filters(codes, [0, 1, 2, 3, 4]))
-    got = C.read_png16(path)
-    assert got.dtype == np.uint16 and np.array_equal(got, codes)
-    path.write_bytes(_png16_with_filters(codes, [0])[:60])
-    with pytest.raises(C.EncodingError, match="corrupt or truncated"):
-        C.read_png16(path)
-    assert not os.path.exists(tmp_path / "f.png.tmp")
 
 
 def test_a_fit_to_an_srgb_photograph_declared_as_such_and_declared_wrongly():

@@ -193,7 +193,7 @@ def test_cli_fits_through_a_calibrated_distorting_camera(tmp_path, capsys):
     noisy = _color.decode(
         np.clip(_color.encode(photo, "srgb") + np.random.default_rng(3).normal(0, 2 / 255, photo.shape), 0, 1), "srgb"
     )
-    _color.write_png(tmp_path / "photo.png", noisy, "srgb", bits=8)
+    ds.write_image(tmp_path / "photo.png", noisy, "srgb", bits=8)
     (tmp_path / "cam.json").write_text(json.dumps({**cam, "distortion": DIST}))
     (tmp_path / "cam_nodist.json").write_text(json.dumps(cam))
     # the lens moves the photo: read as a pinhole image it disagrees with the truth's render

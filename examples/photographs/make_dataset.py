@@ -125,7 +125,7 @@ def main(out: Path) -> None:
         # the sensor's noise first, then the clip to the file's range: a highlight above 1 stays
         # clipped (censored in the fit) unless the noise takes it below the top code
         coded = np.asarray(_color.encode(img, "srgb")) + rng.normal(0, NOISE, img.shape)
-        _color.write_png(out / f"view{i}.png", _color.decode(np.clip(coded, 0, 1), "srgb"), "srgb", bits=8)
+        ds.write_image(out / f"view{i}.png", _color.decode(np.clip(coded, 0, 1), "srgb"), "srgb", bits=8)
         (out / f"view{i}.json").write_text(
             json.dumps(
                 {
