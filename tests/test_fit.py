@@ -213,6 +213,21 @@ def test_a_model_that_cannot_explain_the_image_is_not_called_a_success():
     assert r.converged and not r.successful
     # (at 32² a missed highlight varies from pixel to pixel, so part of it counts as "white")
     assert "× the noise" in r.result and r.residual.noise_ratio > 2
+    # with noise (8-bit, 2 codes): the verdict's σ is the targets' own, which the misfit does not
+    # inflate (the residual's white part, which it does, is larger), within 10 % of the truth
+    rng = np.random.default_rng(3)
+    clean = np.asarray(target, np.float64)
+    noisy = np.round(np.clip(clean + rng.normal(0, 2 / 255, clean.shape), 0, 1) * 255) / 255
+    r = fit(
+        scene,
+        opts.with_keys(specular="none"),
+        Observations(noisy, saturation=1.0, quantum=1 / 255),
+        ["material.ambient", "material.diffuse", "point[0].a1"],
+    )
+    cov = (np.asarray(ds.scene_visibility(scene, opts))[0] >= 0)[..., None] & (noisy > 0) & (noisy < 1)
+    true = float(np.sqrt(np.mean((noisy - clean)[cov] ** 2)))
+    assert not r.successful and "targets' own noise" in r.residual.noise_source, r.residual.noise_source
+    assert abs(r.residual.noise / true - 1) < 0.1, (r.residual.noise, true)
 
 
 def test_noisy_target_verdict_and_given_noise():

@@ -1,0 +1,74 @@
+"""The targets' own noise (fitting._noise): second differences of the image, a robust spread, and
+a variance that grows with the signal, against images with known noise."""
+
+import numpy as np
+import pytest
+
+from fitting._noise import details, robust_variance, variance_model
+
+H, W = 120, 160
+yy, xx = np.mgrid[0:H, 0:W] / np.array([H, W])[:, None, None]
+# a smooth shaded surface: a gradient, a curved falloff and a soft highlight
+SMOOTH = np.clip(
+    0.15 + 0.5 * xx + 0.2 * np.cos(3 * yy) + 0.3 * np.exp(-((xx - 0.6) ** 2 + (yy - 0.4) ** 2) / 0.02), 0, 1
+)
+SMOOTH = SMOOTH[..., None] * np.array([1.0, 0.8, 0.6])
+USED = np.ones((H, W, 3), bool)
+
+
+def _estimate(img, used=USED, floor=0.0):
+    d, m = details(img, used)
+    out = []
+    for c in range(3):
+        a, b = variance_model(d[c], m[c], floor)
+        t = img[..., c][used[..., c]]
+        out.append(np.mean(a + b * t))
+    return float(np.sqrt(np.mean(out)))
+
+
+@pytest.mark.parametrize("sigma", [0.001, 0.004, 0.02])
+@pytest.mark.parametrize("bits", [8, 16, None])
+def test_gaussian_noise_is_measured_within_ten_percent(sigma, bits):
+    rng = np.random.default_rng(int(sigma * 1e4) + (bits or 0))
+    noisy = SMOOTH + rng.normal(0, sigma, SMOOTH.shape)
+    q = 0.0 if bits is None else 1 / (2**bits - 1)
+    target = noisy if bits is None else np.round(noisy / q) * q
+    true = float(np.sqrt(np.mean((target - SMOOTH) ** 2)))  # quantisation included: the residual has it too
+    assert abs(_estimate(target, floor=2 * q) / true - 1) < 0.1
+
+
+@pytest.mark.parametrize("gain", [0.0005, 0.004])
+def test_photon_noise_that_grows_with_the_signal_is_measured_on_average(gain):
+    # variance = read² + gain·signal: the mean over the pixels is what RSS/n is at the truth
+    rng = np.random.default_rng(11)
+    var = 0.001**2 + gain * SMOOTH
+    target = SMOOTH + rng.normal(0, 1, SMOOTH.shape) * np.sqrt(var)
+    true = float(np.sqrt(np.mean((target - SMOOTH) ** 2)))
+    assert abs(_estimate(target) / true - 1) < 0.1
+    d, m = details(target, USED)
+    a, b = variance_model(d[0], m[0], 0.0)
+    assert abs(b / gain - 1) < 0.2 and a < 0.5 * gain * float(SMOOTH[..., 0].mean())
+
+
+def test_edges_and_a_few_jumps_do_not_count_as_noise():
+    rng = np.random.default_rng(5)
+    sigma = 0.004
+    target = SMOOTH + rng.normal(0, sigma, SMOOTH.shape)
+    target[:, W // 2 :] += 0.3  # an albedo edge
+    hit = rng.uniform(size=(H, W)) < 0.01  # hot pixels
+    target[hit] += 0.5
+    assert abs(_estimate(target) / sigma - 1) < 0.1
+    # unused pixels (the background, a hole in the mask) are left out, whatever they hold
+    used = USED.copy()
+    used[:, :20] = False
+    target[:, :20] = rng.uniform(size=(H, 20, 3))
+    assert abs(_estimate(target, used) / sigma - 1) < 0.1
+
+
+def test_robust_variance_edge_cases():
+    assert robust_variance(np.zeros(0)) == 0.0
+    assert robust_variance(np.zeros(100)) == 0.0  # noise-free: no spread, no floor
+    q = 1 / 255  # noise far below a code step: mostly zeros; the floor keeps the few steps
+    d = np.where(np.random.default_rng(0).uniform(size=1000) < 0.05, q / 2, 0.0)
+    assert 0 < robust_variance(d, 2 * q) < q**2
+    assert details(np.zeros((2, 5, 3)), np.ones((2, 5, 3), bool))[0][0].size == 0  # too small for a window
