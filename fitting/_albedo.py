@@ -403,7 +403,8 @@ def _albedo_result(ap, solver, red: _Reduced, theta0, converged, max_steps, nois
     labels = prob.pset.labels
     n2 = run.n_residuals
     sigma, source = noise_level(prob, prob.residual_images(r), noise)
-    s2 = float(r @ r) / max(n2 - (int(red.free.sum()) + len(ap.other)), 1)
+    r2 = np.asarray(r)[prob.two_sided()]  # the verdict's χ²: two-sided entries (fitting._report.candidate)
+    s2 = float(r2 @ r2) / max(n2 - (int(red.free.sum()) + len(ap.other)), 1)
     ratio = float(np.sqrt(s2) / max(sigma, 1e-300))
     successful, msg = verdict(
         converged, "" if converged else f"no convergence in {max_steps} steps", ratio, sigma, source, n2
@@ -411,7 +412,7 @@ def _albedo_result(ap, solver, red: _Reduced, theta0, converged, max_steps, nois
     stderr = np.full(len(red.th), np.inf)
     gauges, undetermined = [], []
     if len(ap.other):
-        se_o, undetermined, gauges, _ = uncertainty(red.Jr, r, n2, [labels[i] for i in ap.other], sigma)
+        se_o, undetermined, gauges, _ = uncertainty(red.Jr, float(r2 @ r2), n2, [labels[i] for i in ap.other], sigma)
         stderr[ap.other] = se_o
     stderr[ap.sl] = _albedo_stderr(ap, solver, red, max(s2, sigma**2))
     unseen, notes = _unseen_notes(ap, red, solver.Lp is not None, run.steps)

@@ -30,7 +30,7 @@ MAX_BINS = 8
 CLIP = 3.5  # the truncation of the robust variance, in robust spreads
 
 
-def measured_images(prob) -> tuple[list[np.ndarray], list[np.ndarray]]:
+def measured_images(prob, used=None) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Per view, ``[H, W, 3]``: the target in the residual's units (code values × √mask for an
     encoded target; target × weight otherwise) and the used entries (two-sided, weighted)."""
     images = []
@@ -43,7 +43,7 @@ def measured_images(prob) -> tuple[list[np.ndarray], list[np.ndarray]]:
         img = np.zeros((b.shape[0] * b.shape[1], 3))
         img[b.rows] = vals
         images.append(img.reshape(*b.shape, 3))
-    return images, prob.used_masks()
+    return images, (prob.used_masks() if used is None else used)
 
 
 def details(img: np.ndarray, used: np.ndarray):
@@ -99,11 +99,12 @@ def variance_model(d: np.ndarray, m: np.ndarray, floor: float) -> tuple[float, f
     return float(a), float(b)
 
 
-def target_noise(prob) -> tuple[float, int] | None:
+def target_noise(prob, used=None) -> tuple[float, int] | None:
     """``(σ, windows)``: the targets' own noise level in the residual's units (the root of the
     expected :math:`\\mathrm{RSS}/n` at the truth), from the 3×3 windows of used pixels; None
-    when a channel has fewer than :data:`MIN_WINDOWS` of them."""
-    images, used = measured_images(prob)
+    when a channel has fewer than :data:`MIN_WINDOWS` of them. ``used``: per view ``[H, W, 3]``
+    masks of the entries to use (default: :meth:`fitting._problem.Problem.used_masks`)."""
+    images, used = measured_images(prob, used)
     per = [details(img, u) for img, u in zip(images, used)]
     floor = 2.0 * (prob.quantum or 0.0)  # a code step or two: where discrete codes make the median 0
     total, n, windows = 0.0, 0, 0

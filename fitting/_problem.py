@@ -385,6 +385,7 @@ class Problem:
     quantum: float | None  # the target's code step (1/255, 1/65535) if it was an integer image
     targets: list  # the full target images (host, float64), for reports
     devices: tuple = ()  # the devices the views are sharded over (() or one: no sharding)
+    lower: bool = False  # entries at 0 of an integer target are censored from below
     _placed: dict = field(default_factory=dict, repr=False)  # device copies of the data, by what
 
     @classmethod
@@ -432,6 +433,7 @@ class Problem:
             obs.quantum,
             [c.t for c in covers],
             devices=view_devices(devices, len(data)),
+            lower=bool(lower),
         )
 
     @property
@@ -580,6 +582,51 @@ class Problem:
             n += int((w & ~cens).sum())
             c += int((w & cens).sum())
         return n, c
+
+    def two_sided(self) -> np.ndarray:
+        """Flat, in :meth:`residual`'s order: the entries with non-zero weight whose target is not
+        censored (those the verdict's χ² counts)."""
+        out = []
+        for vd in self.data:
+            w = np.broadcast_to(np.asarray(vd.weight) > 0, vd.hi.shape)
+            out.append((w & ~np.asarray(vd.hi | vd.lo)).reshape(-1))
+        return np.concatenate(out)
+
+    def inside_range(self, img_flat, margin: float) -> np.ndarray | None:
+        """Flat, in :meth:`residual`'s order: the entries whose model ``img_flat`` lies more than
+        ``margin`` (code values) inside the range the target can read (above 0 where it is
+        censored from below, below the saturation level where from above); None where nothing
+        is censored. Near a clip level the noise of what is read is truncated (the draws beyond
+        it are censored), so these entries are left out of the verdict's statistics. The model,
+        not the target, decides: selecting on the target would select on its noise."""
+        if self.saturation is None and not self.lower:
+            return None
+        out, off = [], 0
+        for vd, b in zip(self.data, self.views):
+            n = vd.target.shape[0]
+            m = np.asarray(img_flat[off * 3 : (off + n) * 3], np.float64).reshape(n, 3)
+            off += n
+            code = m if b.encoding is None else np.asarray(color.encode(np.clip(m, 0.0, None), b.encoding))
+            ok = np.ones(m.shape, bool)
+            if self.lower:
+                ok &= code > margin
+            if self.saturation is not None:
+                ok &= code < self.saturation - margin
+            out.append(ok.reshape(-1))
+        return np.concatenate(out)
+
+    def images_of(self, flat) -> list[np.ndarray]:
+        """A flat per-entry array (:meth:`residual`'s order) placed into ``[H, W, 3]`` images
+        (zero / False on the pixels that are not compacted)."""
+        out, off = [], 0
+        for vd, b in zip(self.data, self.views):
+            n = vd.target.shape[0]
+            v = np.asarray(flat[off * 3 : (off + n) * 3]).reshape(n, 3)[: len(b.rows)]
+            off += n
+            img = np.zeros((b.shape[0] * b.shape[1], 3), v.dtype)
+            img[b.rows] = v
+            out.append(img.reshape(*b.shape, 3))
+        return out
 
     def residual_images(self, r_flat) -> list[np.ndarray]:
         """The flat compacted residual scattered back into ``[H, W, 3]`` images (with the constant

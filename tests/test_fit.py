@@ -643,8 +643,9 @@ def test_intervals_cover_a_second_solution_the_images_cannot_tell_apart():
     interval = np.array([[0.0, 0.02], [0.1, 0.6], [0.05, 0.15]])
     rng = np.random.default_rng(0)
     J = rng.normal(size=(200, 3))
-    alternative = dict(theta=np.array([0.2, 87.0, 0.1]), J=J, r=rng.normal(0, 0.01, 200), sigma=0.01)
-    se2 = uncertainty(alternative["J"], alternative["r"], 200, labels, alternative["sigma"])[0]
+    r = rng.normal(0, 0.01, 200)
+    alternative = dict(theta=np.array([0.2, 87.0, 0.1]), J=J, rss2=float(r @ r), sigma=0.01)
+    se2 = uncertainty(alternative["J"], alternative["rss2"], 200, labels, alternative["sigma"])[0]
     out, ambiguous = cover_alternative(
         interval, alternative["theta"], se2, np.zeros(3), np.array([1.0, np.inf, np.inf])
     )

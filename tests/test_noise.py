@@ -72,3 +72,35 @@ def test_robust_variance_edge_cases():
     d = np.where(np.random.default_rng(0).uniform(size=1000) < 0.05, q / 2, 0.0)
     assert 0 < robust_variance(d, 2 * q) < q**2
     assert details(np.zeros((2, 5, 3)), np.ones((2, 5, 3), bool))[0][0].size == 0  # too small for a window
+
+
+def test_the_verdict_counts_two_sided_entries_inside_the_range():
+    # a dark 8-bit target at the truth: entries at code 0 are censored (their one-sided residual
+    # is not a draw of the noise) and entries whose model lies within 3σ of 0 read truncated
+    # noise; the χ² leaves both out, so a residual of pure noise elsewhere is 1× the noise
+    import jax
+    from conftest import small_default_scene
+
+    import diffshade as ds
+    from fitting import Observations
+    from fitting._problem import Problem
+    from fitting._report import candidate, noise_ratio_limit
+
+    scene, opts = small_default_scene(48, 48)
+    clean = np.asarray(jax.jit(lambda s: ds.render(s, opts))(scene), np.float64) * 0.04
+    sigma = 2 / 255
+    rng = np.random.default_rng(2)
+    target = np.round(np.clip(clean + rng.normal(0, sigma, clean.shape), 0, 1) * 255) / 255
+    prob = Problem.build(scene, opts, Observations(target, saturation=1.0, quantum=1 / 255), ["material.diffuse"])
+    n = sum(vd.target.shape[0] for vd in prob.data)
+    model = np.zeros(3 * n)
+    b = prob.views[0]  # one view: the model at its compacted pixels
+    model.reshape(-1, 3)[: len(b.rows)] = clean.reshape(-1, 3)[b.rows]
+    r = np.where(prob.two_sided(), rng.normal(0, sigma, 3 * n), 0.0)
+    r = np.where(np.concatenate([np.asarray(vd.lo).reshape(-1) for vd in prob.data]), 3 * sigma, r)  # one-sided
+    keep = prob.inside_range(model, 3 * sigma) & prob.two_sided()
+    n2 = int(prob.two_sided().sum())
+    cand = candidate(prob, (np.ones(3), r, np.zeros((3 * n, 3)), model, np.zeros(3, bool), 0, True), "", n2, sigma)
+    assert cand.n_chi2 == int(keep.sum()) < n2 and cand.rss2 == float(r[keep] @ r[keep])
+    assert abs(cand.ratio - 1) < noise_ratio_limit(cand.n_chi2) - 1
+    assert np.sqrt(float(r @ r) / (n2 - 3)) / sigma > noise_ratio_limit(n2)  # the censored in: rejected
