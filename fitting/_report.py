@@ -264,11 +264,22 @@ def verdict(converged: bool, solver_msg: str, ratio: float, sigma: float, source
     return True, ""
 
 
-def uncertainty(J, rss2: float, n_two_sided, labels, sigma: float = 0.0):
+GAUGE_CONDITION = 1e6  # singular values this far below the largest: directions the images do not see
+
+
+def uncertainty(J, rss2: float, n_two_sided, labels, sigma: float = 0.0, theta=None):
     r"""Standard errors, undetermined labels and gauge descriptions from the Jacobian ``J`` (natural
-    parameters) and the two-sided entries' residual sum of squares ``rss2`` at the solution. Scalars fitted on a bound are kept in the
-    covariance, and the variance is no less than ``sigma``², the noise level the verdict used
-    (:math:`s^2 = \max(\mathrm{RSS}/(n - p), \sigma^2)`; design notes: docs/fit-design-notes.md, "Standard errors: bounds and the float floor")."""
+    parameters ``theta``) and the two-sided entries' residual sum of squares ``rss2`` at the
+    solution. Scalars fitted on a bound are kept in the covariance, and the variance is no less
+    than ``sigma``², the noise level the verdict used (:math:`s^2 = \max(\mathrm{RSS}/(n - p),
+    \sigma^2)`; design notes: docs/fit-design-notes.md, "Standard errors: bounds and the float
+    floor").
+
+    A direction of the scaled Jacobian whose singular value is :data:`GAUGE_CONDITION` times
+    below the largest is a gauge: every scalar that moves along it gets an infinite standard
+    error (the pseudo-inverse's would be conditional on the gauge, and tiny), and the gauge is
+    described by what the images do determine — a product or ratio of the scalars when it
+    rescales them (a light's colour against the k's it multiplies), with its error."""
     n, p = J.shape
     s2 = max(float(rss2) / max(n_two_sided - p, 1), float(sigma) ** 2)
     col = np.linalg.norm(J, axis=0)
@@ -279,17 +290,72 @@ def uncertainty(J, rss2: float, n_two_sided, labels, sigma: float = 0.0):
     if keep.any():
         Js = J[:, keep] / col[keep]
         _, sv, vt = np.linalg.svd(Js, full_matrices=False)
-        cond = sv[0] / max(sv[-1], 1e-300)
-        if cond > 1e6:
-            v = vt[-1]
-            lab = [labels[i] for i in np.flatnonzero(keep)]
-            big = np.argsort(-np.abs(v))[:4]
-            weakest = " ".join(f"{v[i]:+.2f}·{lab[i]}" for i in big if abs(v[i]) > 0.1)
-            gauges.append(f"condition number {cond:.1e}; weakest combination: {weakest}")
         cov = np.linalg.pinv(Js.T @ Js) * s2
         stderr[keep] = np.sqrt(np.clip(np.diag(cov), 0, None)) / col[keep]
+        null = vt[sv < sv[0] / GAUGE_CONDITION]
+        if len(null):
+            idx = np.flatnonzero(keep)
+            th = None if theta is None else np.asarray(theta, np.float64)[idx]
+            cov_nat = cov / np.outer(col[keep], col[keep])
+            moved, described = _gauges(null, col[keep], cov_nat, th, [labels[i] for i in idx], sv[0] / sv[-1])
+            stderr[idx[moved]] = np.inf
+            gauges += described
     undetermined = [labels[i] for i in np.flatnonzero(undetermined_mask)]
     return stderr, undetermined, gauges, s2
+
+
+def _gauges(null, col, cov, theta, labels, cond) -> tuple[np.ndarray, list[str]]:
+    """The scalars the null directions ``null`` (orthonormal rows, coordinates scaled by the
+    Jacobian's column norms ``col``) move, and a description of each gauge: the null space
+    brought to reduced row-echelon form (one gauge per pivot scalar, over the fewest scalars);
+    where a direction rescales its scalars by equal factors, the products or ratios it leaves
+    unchanged, each with its standard error from ``cov`` (natural coordinates; conditional on the
+    gauge, which those combinations are blind to)."""
+    k = null.shape[0]
+    R = null.copy()
+    pivots = []
+    for r in range(k):  # reduced row-echelon form, pivoting on the largest entry left
+        rest = [c for c in range(R.shape[1]) if c not in pivots]
+        c = max(rest, key=lambda c: np.max(np.abs(R[r:, c])))
+        i = r + int(np.argmax(np.abs(R[r:, c])))
+        R[[r, i]] = R[[i, r]]
+        R[r] /= R[r, c]
+        for j in range(k):
+            if j != r:
+                R[j] -= R[j, c] * R[r]
+        pivots.append(c)
+    moved = np.zeros(R.shape[1], bool)
+    out = []
+    for r, c in enumerate(pivots):
+        members = list(np.flatnonzero(np.abs(R[r]) > 1e-3))  # beyond the rounding of an exact gauge
+        moved[members] = True
+        text = _combination(R[r] / col, c, members, cov, theta, labels)
+        out.append(f"condition number {cond:.1e}; {text}")
+    return moved, out
+
+
+def _combination(v, pivot, members, cov, theta, labels) -> str:
+    """What one gauge direction ``v`` (natural coordinates) leaves determined."""
+    names = [labels[i] for i in members]
+    if theta is not None and all(theta[i] != 0 for i in members):
+        # the direction in log coordinates, δθ_i/θ_i: equal in size, it rescales the scalars
+        u = np.array([v[i] / theta[i] for i in members])
+        if np.all(np.abs(np.abs(u) / np.abs(u).max() - 1) < 0.05):
+            parts = []
+            for j, i in enumerate(members):
+                if i == pivot:
+                    continue
+                jp = members.index(pivot)
+                sign = -1.0 if u[j] * u[jp] < 0 else 1.0  # opposite scalings: their product is seen
+                q = theta[pivot] * theta[i] ** (-sign)
+                g = np.zeros(len(theta))
+                g[pivot], g[i] = 1.0 / theta[pivot], -sign / theta[i]
+                se = abs(q) * float(np.sqrt(max(g @ cov @ g, 0.0)))
+                op = "×" if sign < 0 else "/"
+                parts.append(f"{labels[pivot]} {op} {labels[i]} = {q:.6g} ± {se:.2g}")
+            return "only in combination: " + "; ".join(parts) + " (each scalar alone: not determined)"
+    weights = " ".join(f"{v[i]:+.2f}·{labels[i]}" for i in members)
+    return f"not determined alone: {', '.join(names)} (the images do not see {weights})"
 
 
 def image_quality(fitted, target) -> tuple[float, float]:
@@ -454,7 +520,7 @@ def _intervals(ev, red, best: Candidate, s2, stderr, labels, basins: Basins, n2,
     ]
     alt = basins.alternative
     if alt is not None:
-        se2 = uncertainty(alt.cand.J, alt.cand.rss2, n2, labels, alt.cand.sigma)[0]
+        se2 = uncertainty(alt.cand.J, alt.cand.rss2, n2, labels, alt.cand.sigma, alt.cand.theta)[0]
         interval, ambiguous = cover_alternative(interval, alt.cand.theta, se2, floor, hi)
         alt_theta = alt.cand.theta if ambiguous else None
         notes.append(
@@ -495,7 +561,7 @@ def build_result(
     ``intervals`` the profile-likelihood intervals (:mod:`fitting._intervals`) widened to what
     the scan for other ``basins`` found (:mod:`fitting._basins`)."""
     labels, theta, n2 = prob.pset.labels, best.theta, run.n_residuals
-    stderr, undetermined, gauges, s2 = uncertainty(best.J, best.rss2, n2, labels, best.sigma)
+    stderr, undetermined, gauges, s2 = uncertainty(best.J, best.rss2, n2, labels, best.sigma, best.theta)
     successful, msg = verdict(best.converged, run.message, best.ratio, best.sigma, best.source, best.n_chi2 or n2)
     _, floor, hi, _ = prob.bounds(theta)
     on_bound = [

@@ -314,12 +314,17 @@ def _report_table(r) -> list[str]:
     ]
     albedo = [i for i, n in enumerate(r.names) if n.startswith("mesh.colors[")]
     skip = set(albedo)
+    undetermined = set(r.diagnostics.undetermined)
     for i, (n, s_, v, se) in enumerate(zip(r.names, r.start, r.values, r.stderr)):
         if i in skip:
             continue
         rel = se / abs(v) if v != 0 else float("inf")
+        if np.isfinite(se):
+            se_text = f"{se:11.3g} {rel:10.2e}"
+        else:  # not determined at all, or only in combination with others (a gauge, named below)
+            se_text = f"{'none' if n in undetermined else 'combined':>11s} {'-':>10s}"
         lines.append(
-            f"{n:26s} {s_:11.5g} {v:11.5g} {se:11.3g} {rel:10.2e}"
+            f"{n:26s} {s_:11.5g} {v:11.5g} {se_text}"
             + (f"  [{r.intervals.bounds[i, 0]:11.5g}, {r.intervals.bounds[i, 1]:11.5g}]" if iv else "")
         )
     if albedo:  # thousands of scalars: a summary here, every value in fit.json
@@ -353,7 +358,7 @@ def _report_table(r) -> list[str]:
             + ", ".join(und + ([f"the albedo of {n_v} vertices (seen by no view, or unlit where seen)"] if n_v else []))
         )
     for g in diag.gauges:
-        lines.append("near-gauge (the images barely constrain this combination): " + g)
+        lines.append("gauge (the images see these scalars only in combination): " + g)
     if r.intervals is not None and r.intervals.ambiguous:
         alt = dict(zip(r.names, r.intervals.alternative))
         lines.append(

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import equinox as eqx
 import jax
 import numpy as np
@@ -88,6 +90,13 @@ def test_undetermined_parameter_and_gauge_are_reported():
         and "material.ambient" in r.diagnostics.gauges[0]
         and "ambient_light" in r.diagnostics.gauges[0]
     )
+    # neither is determined alone (its error is not the pseudo-inverse's tiny conditional one);
+    # their product is, and it is the truth's
+    for name in ("material.ambient", "ambient_light"):
+        assert np.isinf(r.stderr[r.names.index(name)])
+    ka, ia = float(np.mean(scene.material.ambient)), float(np.mean(scene.ambient_light))
+    value, se = re.search(r"× \S+ = (\S+) ± (\S+)", r.diagnostics.gauges[0]).groups()
+    assert abs(float(value) - ka * ia) <= max(3 * float(se), 1e-6 * ka * ia), (r.diagnostics.gauges, ka * ia)
 
 
 def test_float32_scene_fits_in_a_float64_session():

@@ -94,6 +94,9 @@ def test_the_reference_view_gain_is_a_gauge_of_the_k(views):
     free = ["material.ambient", "material.diffuse", "material.specular", "view[0].camera.white_balance"]
     r = fit(vs[0], opts, Observations(targets[:1], views=vs[:1]), free)
     assert r.diagnostics.gauges and "view[0].camera.white_balance" in r.diagnostics.gauges[0]
+    # the gains and the k's they trade with are determined only in combination
+    wb = [i for i, n in enumerate(r.names) if n.startswith("view[0].camera.white_balance")]
+    assert wb and all(np.isinf(r.stderr[i]) for i in wb)
 
 
 def test_per_view_names_are_checked(views):
