@@ -88,8 +88,16 @@ def variance_model(d: np.ndarray, m: np.ndarray, floor: float) -> tuple[float, f
         return robust_variance(d, floor), 0.0
     edges = np.quantile(m, np.linspace(0, 1, k + 1))
     which = np.clip(np.searchsorted(edges, m, side="right") - 1, 0, k - 1)
-    rows = [(np.mean(m[which == j]), robust_variance(d[which == j], floor), np.sum(which == j)) for j in range(k)]
+    # (bins of tied means, e.g. many windows at one code, can be empty: left out)
+    rows = [
+        (np.mean(m[which == j]), robust_variance(d[which == j], floor), np.sum(which == j))
+        for j in range(k)
+        if np.sum(which == j) >= MIN_WINDOWS
+    ]
+    if len(rows) < 2 or np.ptp([row[0] for row in rows]) <= 0:
+        return robust_variance(d, floor), 0.0
     mb, vb, wb = (np.asarray(x, np.float64) for x in zip(*rows))
+    k = len(rows)
     A = np.stack([np.ones(k), mb], axis=1) * np.sqrt(wb)[:, None]
     a, b = np.linalg.lstsq(A, vb * np.sqrt(wb), rcond=None)[0]
     if b < 0:

@@ -249,7 +249,12 @@ def noise_level(prob, res_images, noise=None, used=None) -> tuple[float, str]:
     return max(cands, key=lambda c: c[0])
 
 
-def verdict(converged: bool, solver_msg: str, ratio: float, sigma: float, source: str, n: int) -> tuple[bool, str]:
+def verdict(
+    converged: bool, solver_msg: str, ratio: float, sigma: float, source: str, n: int, agreed: int = 1, terms: str = ""
+) -> tuple[bool, str]:
+    """``(successful, why not)``. ``agreed``: how many starts reached the solution (more than
+    one, and the residual above the noise: the model, not the search, is what fails);
+    ``terms``: the model's terms, named when it does."""
     limit = noise_ratio_limit(n)
     if not converged:
         msg = solver_msg or "did not converge"
@@ -257,11 +262,33 @@ def verdict(converged: bool, solver_msg: str, ratio: float, sigma: float, source
             msg += f"; the residual is {ratio:.3g}× the noise (σ = {sigma:.3g}, {source})"
         return False, msg
     if ratio > limit:
-        return False, (
-            f"converged, but the residual is {ratio:.3g}× the noise (σ = {sigma:.3g}, {source}): "
-            "a local minimum or a model that cannot explain the image"
+        why = (
+            f"{agreed} starts return to this solution: the model"
+            + (f" ({terms})" if terms else "")
+            + " cannot explain the images"
+            if agreed > 1
+            else "a local minimum or a model that cannot explain the image"
         )
+        return False, f"converged, but the residual is {ratio:.3g}× the noise (σ = {sigma:.3g}, {source}): {why}"
     return True, ""
+
+
+def model_terms(opts) -> str:
+    """The model's terms in words (what a verdict names when the model cannot explain the images)."""
+    k = opts.keys()
+    terms = [name for name in ("emission", "ambient", "diffuse", "transmission") if k.get(name)]
+    if k.get("specular", "none") != "none":
+        fresnel = f" with {k['fresnel']} Fresnel" if k.get("fresnel", "none") != "none" else ""
+        terms.append(f"{k['specular']} specular{fresnel}")
+    if k.get("vertex_color", "none") != "none":
+        terms.append("per-vertex albedo")
+    if k.get("shadows") or k.get("shadow_rays"):
+        terms.append("shadows")
+    if k.get("ray_depth", 0):
+        terms.append(f"mirrors and glass to depth {k['ray_depth']}")
+    if k.get("fog", "none") != "none":
+        terms.append(f"{k['fog']} fog")
+    return f"{k.get('shading', '?')} shading; " + ", ".join(terms)
 
 
 GAUGE_CONDITION = 1e6  # singular values this far below the largest: directions the images do not see
@@ -478,6 +505,7 @@ class Run:
     message: str  # why the solver stopped short ("" if it converged)
     n_residuals: int  # two-sided residual entries
     censored: int
+    agreed: int = 1  # how many starts reached the solution kept (more than 1: the restarts agree)
 
 
 @dataclass(frozen=True)
@@ -562,7 +590,16 @@ def build_result(
     the scan for other ``basins`` found (:mod:`fitting._basins`)."""
     labels, theta, n2 = prob.pset.labels, best.theta, run.n_residuals
     stderr, undetermined, gauges, s2 = uncertainty(best.J, best.rss2, n2, labels, best.sigma, best.theta)
-    successful, msg = verdict(best.converged, run.message, best.ratio, best.sigma, best.source, best.n_chi2 or n2)
+    successful, msg = verdict(
+        best.converged,
+        run.message,
+        best.ratio,
+        best.sigma,
+        best.source,
+        best.n_chi2 or n2,
+        run.agreed,
+        model_terms(prob.opts),
+    )
     _, floor, hi, _ = prob.bounds(theta)
     on_bound = [
         f"{labels[i]} = {theta[i]:.6g} ({'upper' if theta[i] >= hi[i] else 'lower'} bound)"

@@ -48,21 +48,36 @@ class Attempt:
 
 def _restart_loop(driver, restarts: int, n2: int):
     """The given start first, then up to ``restarts`` further starts outside the basins explored,
-    until the verdict accepts an attempt. Returns ``(best, steps, notes, history)``."""
+    until the verdict accepts an attempt, or an attempt from another start returns to the best
+    one's solution (within the noise: :func:`_same_point`), when further starts would too.
+    Returns ``(best, steps, notes, history, agreed)``, ``agreed`` the number of starts that
+    reached the best solution (1: no other start did)."""
     U = driver.U
     exclude = np.zeros(len(U), bool)
-    best, steps, notes, hist = None, 0, [], []
+    best, best_u, steps, notes, hist, agreed = None, None, 0, [], [], 1
     for k in range(restarts + 1):
         a = driver.attempt(k, exclude)
         steps, notes, hist = steps + a.steps, notes + a.notes, hist + a.history
+        same = best is not None and _same_point(a, best, best_u)
         if better(a.cand, best, n2):
-            best = a.cand
+            best, best_u = a.cand, a.u
         exclude[a.start] = True
         if U.shape[1]:
             exclude |= np.max(np.abs(U - a.u[None]), axis=1) < 0.25  # the basin just explored
+        if same:
+            agreed += 1
+            notes.append(f"attempt {k + 1} returned to the solution before it (within the noise): no further starts")
+            break
         if a.cand.accepted(n2) or exclude.all() or len(U) == 1:
             break
-    return best, steps, notes, hist
+    return best, steps, notes, hist, agreed
+
+
+def _same_point(a: Attempt, best: Candidate, best_u) -> bool:
+    """Whether attempt ``a`` reached ``best``'s solution: its χ² within one noise variance of the
+    best's, and its nonlinear scalars within 0.05 of them (in the solver's unbounded coordinates)."""
+    close = best_u is None or not len(best_u) or float(np.max(np.abs(a.u - best_u))) < 0.05
+    return close and abs(a.cand.rss - best.rss) <= max(best.sigma, a.cand.sigma) ** 2
 
 
 def solve(prob, red, theta0, strategy: Strategy, *, noise, history: bool, intervals: bool) -> FitResult:
@@ -72,7 +87,7 @@ def solve(prob, red, theta0, strategy: Strategy, *, noise, history: bool, interv
     driver = driver_cls(prob, red, theta0, strategy, rtol, noise, history)
     n2, n_cens = driver.n2, driver.n_cens
     t0 = time.perf_counter()
-    best, steps, notes, hist = _restart_loop(driver, strategy.restarts, n2)
+    best, steps, notes, hist, agreed = _restart_loop(driver, strategy.restarts, n2)
     best, k, more = relinearise(prob, driver.ev, red, best, strategy.polish_steps, rtol, n2, noise)
     steps, notes = steps + k, notes + more
     solve_s = time.perf_counter() - t0
@@ -81,7 +96,7 @@ def solve(prob, red, theta0, strategy: Strategy, *, noise, history: bool, interv
     if intervals:
         best, basins, k, more = driver.scan(best, n2)
         steps, notes = steps + k, notes + more
-    run = Run(notes, hist, steps, driver.compile_s, solve_s, driver.message(best), n2, n_cens)
+    run = Run(notes, hist, steps, driver.compile_s, solve_s, driver.message(best), n2, n_cens, agreed)
     return build_result(prob, red, best, theta0, run, driver.ev, intervals, basins)
 
 

@@ -104,3 +104,13 @@ def test_the_verdict_counts_two_sided_entries_inside_the_range():
     assert cand.n_chi2 == int(keep.sum()) < n2 and cand.rss2 == float(r[keep] @ r[keep])
     assert abs(cand.ratio - 1) < noise_ratio_limit(cand.n_chi2) - 1
     assert np.sqrt(float(r @ r) / (n2 - 3)) / sigma > noise_ratio_limit(n2)  # the censored in: rejected
+
+
+def test_tied_window_means_leave_no_empty_bin():
+    # many windows at one value (a flat, clipped or dark region) tie the quantiles: a bin that
+    # gets no window is left out, not a NaN in the fit of the variance
+    rng = np.random.default_rng(1)
+    d = rng.normal(0, 0.01, 5000)
+    m = np.where(rng.uniform(size=5000) < 0.8, 0.0, rng.uniform(0, 1, 5000))
+    a, b = variance_model(d, m, 0.0)
+    assert np.isfinite(a) and np.isfinite(b) and abs(np.sqrt(a + b * m.mean()) / 0.01 - 1) < 0.1
