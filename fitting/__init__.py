@@ -4,9 +4,11 @@
 :class:`FitResult`; :func:`compare_models` asks which terms the images support. Everything else
 lives in private modules named by what they compute (``_params``, ``_problem``, ``_linear``,
 ``_varpro``, ``_starts``, ``_restarts``, ``_polish``, ``_basins``, ``_intervals``, ``_albedo``,
-``_report``, ``_models``, ``_cache``); design notes: docs/fit-design-notes.md."""
+``_report``, ``_models``, ``_cache``, ``_noise``); :func:`downsample` area-averages a target and
+keeps what was clipped; design notes: docs/fit-design-notes.md."""
 
 from ._cache import cache_info, enable_compilation_cache
+from ._downsample import Downsampled, downsample
 from ._fit import fit
 from ._models import ModelScore, compare_models, model_variants
 from ._observations import FitError, Observations, Optimistix, Strategy, VarPro
@@ -15,6 +17,7 @@ from ._report import Diagnostics, FitResult, Intervals, ResidualStats
 
 __all__ = [
     "Diagnostics",
+    "Downsampled",
     "FitError",
     "FitResult",
     "Intervals",
@@ -31,6 +34,7 @@ __all__ = [
     "compare_models",
     "direction_frame",
     "direction_of",
+    "downsample",
     "enable_compilation_cache",
     "fit",
     "model_variants",

@@ -47,7 +47,11 @@ class Observations:
     - ``quantum``: the code step of an integer target (1/255, 1/65535), for the noise floor;
     - ``noise``: the noise level σ if known (else estimated from the residual);
     - ``margin``: pixels within this many 8-neighbour steps of the model's silhouette, of an
-      occlusion edge or of a mask's edge are left out of the fit.
+      occlusion edge or of a mask's edge are left out of the fit;
+    - ``clipped``: optional per-view ``[H, W]`` or ``[H, W, 3]`` booleans, the entries known to
+      be clipped whatever their value (a pixel averaged from sub-pixels of which one was
+      clipped: :func:`fitting.downsample`): censored from above like those at ``saturation``,
+      each a lower bound at its own value.
     """
 
     targets: Sequence[Float[ArrayLike, "H W 3"]]
@@ -58,6 +62,7 @@ class Observations:
     quantum: float | None = None
     noise: float | None = None
     margin: int = 0
+    clipped: Sequence[ArrayLike | None] | None = None
 
     def __post_init__(self):
         targets = tuple(as_list(self.targets))
@@ -73,6 +78,10 @@ class Observations:
             object.__setattr__(self, "masks", tuple(self.masks))
             if len(self.masks) != n:
                 raise FitError(f"{n} targets but {len(self.masks)} masks")
+        if self.clipped is not None:
+            object.__setattr__(self, "clipped", tuple(self.clipped))
+            if len(self.clipped) != n:
+                raise FitError(f"{n} targets but {len(self.clipped)} clipped masks")
         if len(self.encodings) != n:
             raise FitError(f"{n} targets but {len(self.encodings)} encodings")
         for name in ("margin", "saturation", "quantum", "noise"):

@@ -237,6 +237,12 @@ def _read_target(t, v, k, enc, obs: Observations, lower: bool):
     file's noise are uniform."""
     t = np.asarray(check_target(t, v, k), np.float64)
     hi = (t >= obs.saturation) if obs.saturation is not None else np.zeros(t.shape, bool)
+    if obs.clipped is not None and obs.clipped[k] is not None:
+        c = np.asarray(obs.clipped[k], bool)
+        c = c[..., None] if c.shape == t.shape[:2] else c
+        if c.shape[:2] != t.shape[:2] or c.shape[2] not in (1, 3):
+            raise FitError(f"clipped {k}: shape {np.shape(obs.clipped[k])}, expected {t.shape[:2]} or {t.shape}")
+        hi = hi | c
     lo = (t <= 0.0) if lower else np.zeros(t.shape, bool)
     chan_w = np.ones_like(t)
     if enc is not None and enc != "linear":

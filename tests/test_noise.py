@@ -114,3 +114,36 @@ def test_tied_window_means_leave_no_empty_bin():
     m = np.where(rng.uniform(size=5000) < 0.8, 0.0, rng.uniform(0, 1, 5000))
     a, b = variance_model(d, m, 0.0)
     assert np.isfinite(a) and np.isfinite(b) and abs(np.sqrt(a + b * m.mean()) / 0.01 - 1) < 0.1
+
+
+def test_downsampling_keeps_what_was_clipped():
+    # a 2x2 block with one clipped sub-pixel averages below the level: it is marked clipped, and
+    # a fit takes it as a lower bound (censored from above) where the global level would not
+    import jax
+    from conftest import small_default_scene
+
+    import diffshade as ds
+    from fitting import Observations, downsample
+    from fitting._problem import Problem
+
+    img = np.full((8, 10, 3), 0.5)
+    img[0, 0, 1] = 1.0  # one green sub-pixel at the level
+    mask = np.ones((8, 10))
+    mask[7, 9] = 0
+    d = downsample(img, 2, saturation=1.0, mask=mask)
+    assert d.image.shape == (4, 5, 3) and abs(d.image[0, 0, 1] - 0.625) < 1e-12 and d.image[0, 0, 1] < 1.0
+    assert d.clipped[0, 0].tolist() == [False, True, False] and d.clipped.sum() == 1
+    assert d.mask[3, 4] == 0 and d.mask[0, 0] == 1
+    with pytest.raises(ValueError, match="factor"):
+        downsample(img, 0)
+    scene, opts = small_default_scene(24, 24)
+    target = np.asarray(jax.jit(lambda s: ds.render(s, opts))(scene), np.float64)
+    clipped = np.zeros((24, 24), bool)
+    clipped[12, 12] = True
+    prob = Problem.build(scene, opts, Observations(target, saturation=1.0, clipped=[clipped]), ["material.diffuse"])
+    hi = prob.images_of(np.concatenate([np.asarray(vd.hi).reshape(-1) for vd in prob.data]))[0]
+    assert (target < 1).all() and hi[12, 12].all() and int(hi.sum()) == 3
+    from fitting import FitError
+
+    with pytest.raises(FitError, match="clipped 0: shape"):
+        Problem.build(scene, opts, Observations(target, clipped=[np.zeros((5, 5), bool)]), ["material.diffuse"])
