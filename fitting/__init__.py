@@ -13,9 +13,11 @@ from ._fit import fit
 from ._models import ModelScore, compare_models, model_variants
 from ._observations import FitError, Observations, Optimistix, Strategy, VarPro
 from ._params import Param, ParamError, ParamSet, direction_frame, direction_of, tilt_of
+from ._photometric import Capture, frame_check, load_photometric_stereo, sphere_from_mask
 from ._report import Diagnostics, FitResult, Intervals, ResidualStats
 
 __all__ = [
+    "Capture",
     "Diagnostics",
     "Downsampled",
     "FitError",
@@ -37,6 +39,9 @@ __all__ = [
     "downsample",
     "enable_compilation_cache",
     "fit",
+    "frame_check",
+    "load_photometric_stereo",
+    "sphere_from_mask",
     "model_variants",
     "tilt_of",
 ]

@@ -1,0 +1,66 @@
+"""A synthetic photometric-stereo capture written in the layout ``fitting.load_photometric_stereo``
+reads (filenames.txt, light_directions.txt, light_intensities.txt, K.txt, mask.png, 16-bit
+linear PNGs): a Blinn–Phong sphere (or a mesh) under ``n`` directional lights, with noise.
+Shared by tests/test_photometric.py and benchmarks/bench_photometric.py."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import diffshade as ds
+
+TRUTH = dict(diffuse=(0.6, 0.45, 0.3), specular=0.35, shininess=40.0)
+
+
+def write_capture(folder, n=12, size=64, noise=0.004, seed=0, mesh=None, flip_y=False):
+    """Write the capture; returns ``(scene, opts, directions)``: the truth's first view, its
+    options, and the light directions as written (capture frame, towards the lights)."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    f = 1.2 * size  # the sphere spans about 60 % of the image
+    K = np.array([[f, 0, (size - 1) / 2], [0, f, (size - 1) / 2], [0, 0, 1.0]])
+    if mesh is None:
+        s = ds.icosphere(5)
+        mesh = ds.Mesh(np.asarray(s.vertices) + [0.0, 0.0, 4.0], np.asarray(s.faces))
+    # directions towards the lights in the capture frame (x right, y up, z towards the viewer),
+    # within 60 degrees of the viewing direction
+    th, ph = np.arccos(rng.uniform(0.5, 1.0, n)), rng.uniform(0, 2 * np.pi, n)
+    dirs = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], axis=1)
+    ints = rng.uniform(0.8, 1.2, (n, 1)) * np.array([1.0, 0.95, 0.9])
+    from fitting._photometric import to_camera_frame
+
+    written = dirs * np.array([1.0, -1.0 if flip_y else 1.0, 1.0])  # a data set whose y points down
+    prop = to_camera_frame(dirs)
+    cam = ds.OpenCVCamera.from_opencv(K, np.eye(3), np.zeros(3), width=size, height=size, near=0.01, far=100.0)
+    scene = ds.Scene(
+        mesh=mesh,
+        camera=cam,
+        material=ds.Material(ambient=0.0, **TRUTH),
+        directional=ds.DirectionalLights(color=ints[:1], direction=prop[:1], ambient=np.zeros((1, 3))),
+        ambient_light=0.0,
+    )
+    opts = ds.RenderOptions.from_keys(shading="phong", specular="blinn", fog="none")
+    render = jax.jit(lambda s: ds.render(s, opts))
+    names = []
+    for i in range(n):
+        v = eqx.tree_at(
+            lambda s: (s.directional.color, s.directional.direction),
+            scene,
+            (jnp.asarray(ints[i : i + 1]), jnp.asarray(prop[i : i + 1])),
+        )
+        img = np.asarray(render(v), np.float64) + rng.normal(0, noise, (size, size, 3))
+        names.append(f"{i:03d}.png")
+        ds.write_image(folder / names[-1], np.clip(img, 0, 1), "linear", 16)
+    mask = np.asarray(ds.scene_visibility(scene, opts))[0] >= 0
+    ds.write_image(folder / "mask.png", mask.astype(np.float64), "linear", 8)
+    (folder / "filenames.txt").write_text("\n".join(names) + "\n")
+    np.savetxt(folder / "light_directions.txt", written)
+    np.savetxt(folder / "light_intensities.txt", ints)
+    np.savetxt(folder / "K.txt", K)
+    return scene, opts, written

@@ -1,0 +1,245 @@
+r"""A photometric-stereo capture as its benchmarks lay it out, read into views.
+
+The layout (DiLiGenT's and most photometric-stereo data sets'): one folder with
+
+- ``filenames.txt``: one image file per line (relative to the folder), one image per light;
+- ``light_directions.txt``: one row ``x y z`` per image, the unit direction from the object
+  *towards* the light;
+- ``light_intensities.txt``: one row ``r g b`` per image, the light's colour (optional: white);
+- ``mask.png``: the object's pixels (non-zero);
+- the camera: ``K.txt`` (a 3×3 matrix) or ``Calib_Results.mat`` (Bouguet's toolbox: ``fc``,
+  ``cc``); without one, pass ``K``.
+
+**Frames.** The light directions are given in the *capture frame*: :math:`x` to the right of the
+image, :math:`y` up, :math:`z` towards the viewer (the camera looks along :math:`-z`). The views'
+scenes use OpenCV's camera frame (:math:`x` right, :math:`y` down, :math:`z` forward, the camera
+at the origin), so a direction :math:`(x, y, z)` is :math:`(x, -y, -z)` there, and the light's
+propagation direction (diffshade's ``DirectionalLights.direction``) is its negative. A data set
+whose :math:`y` points down or whose :math:`z` points away from the viewer says so with
+``flip_y`` / ``flip_z``; :func:`frame_check` tells which choice the images agree with on a
+diffuse object.
+
+**Geometry.** A mesh in the camera frame (OpenCV's), or for a sphere none: the sphere is then
+placed from the mask (its centre on the ray through the mask's centroid, its angular radius
+that of the mask's area; radius 1, so the scene's unit is the sphere's radius).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+import diffshade as ds
+
+from ._downsample import downsample
+from ._observations import FitError, Observations
+
+
+@dataclass(frozen=True)
+class Capture:
+    """A capture read into views: ``views`` (one scene per image: its one directional light),
+    ``targets`` (linear ``[H, W, 3]``), ``mask`` (``[H, W]``), ``clipped`` (per view, entries
+    clipped or averaged from a clipped sub-pixel), the images' ``quantum`` (None after
+    downsampling or for float files) and ``names`` (the files)."""
+
+    views: list
+    opts: ds.RenderOptions
+    targets: list
+    mask: np.ndarray
+    clipped: list
+    quantum: float | None
+    names: list
+
+    @property
+    def scene(self) -> ds.Scene:
+        """The first view's scene (the start of a fit)."""
+        return self.views[0]
+
+    def observations(self, **kw) -> Observations:
+        """The :class:`Observations` of every image (each its own view, the mask, clipping)."""
+        return Observations(
+            self.targets,
+            views=self.views,
+            masks=[self.mask] * len(self.targets),
+            saturation=1.0 if self.quantum is not None else None,
+            quantum=self.quantum,
+            clipped=self.clipped,
+            **kw,
+        )
+
+
+def _rows(path: Path, cols: int, n: int | None = None) -> np.ndarray:
+    try:
+        a = np.loadtxt(path, ndmin=2, dtype=np.float64)
+    except (OSError, ValueError) as exc:
+        raise FitError(f"{path}: not a table of numbers ({exc})") from exc
+    if a.shape[1] != cols or (n is not None and a.shape[0] != n):
+        want = f"{n} rows of {cols} numbers" if n is not None else f"rows of {cols} numbers"
+        raise FitError(f"{path}: {want} expected, got shape {a.shape}")
+    if not np.isfinite(a).all():
+        raise FitError(f"{path}: NaN or infinite numbers")
+    return a
+
+
+def _camera_matrix(folder: Path, K) -> np.ndarray:
+    if K is not None:
+        return np.asarray(K, np.float64)
+    if (folder / "K.txt").exists():
+        return _rows(folder / "K.txt", 3, 3)
+    if (folder / "Calib_Results.mat").exists():
+        from scipy.io import loadmat
+
+        m = loadmat(folder / "Calib_Results.mat")
+        fc, cc = np.ravel(m["fc"]), np.ravel(m["cc"])
+        return np.array([[fc[0], 0.0, cc[0]], [0.0, fc[1], cc[1]], [0.0, 0.0, 1.0]])
+    raise FitError(f"{folder}: no camera (K.txt or Calib_Results.mat); pass K")
+
+
+def _read(path: Path) -> tuple[np.ndarray, float | None]:
+    try:
+        im = ds.read_image(path)
+    except ds.ImageError as exc:
+        raise FitError(str(exc)) from exc
+    v = im.linear()
+    v = np.repeat(v[..., None], 3, axis=2) if v.ndim == 2 else v[..., :3]
+    return v, im.quantum
+
+
+def sphere_from_mask(mask: np.ndarray, K: np.ndarray, subdivisions: int = 5) -> ds.Mesh:
+    """A unit sphere in the camera frame (OpenCV's) that projects onto ``mask``: its centre on the
+    ray through the mask's centroid, at the distance where its angular radius is the mask's."""
+    ys, xs = np.nonzero(mask)
+    if len(xs) < 10:
+        raise FitError("mask: fewer than 10 object pixels; cannot place a sphere")
+    cx, cy, r = xs.mean(), ys.mean(), np.sqrt(len(xs) / np.pi)
+    d = np.linalg.solve(K, [cx, cy, 1.0])
+    d /= np.linalg.norm(d)
+    alpha = np.arctan(r / np.sqrt(K[0, 0] * K[1, 1]))
+    sphere = ds.icosphere(subdivisions)
+    return ds.Mesh(np.asarray(sphere.vertices) + d / np.sin(alpha), np.asarray(sphere.faces))
+
+
+def to_camera_frame(directions: np.ndarray, flip_y: bool = False, flip_z: bool = False) -> np.ndarray:
+    """Capture-frame directions (towards the lights) as diffshade's propagation directions in the
+    OpenCV camera frame (see the module's "Frames")."""
+    d = np.asarray(directions, np.float64) * np.array([1.0, -1.0 if flip_y else 1.0, -1.0 if flip_z else 1.0])
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    return -d * np.array([1.0, -1.0, -1.0])
+
+
+def load_photometric_stereo(
+    folder,
+    mesh: ds.Mesh | None = None,
+    *,
+    K=None,
+    opts: ds.RenderOptions | None = None,
+    material: ds.Material | None = None,
+    downsample_by: int = 1,
+    flip_y: bool = False,
+    flip_z: bool = False,
+) -> Capture:
+    """The capture in ``folder`` (the layout of the module's docstring) as views with one
+    directional light each; ``mesh`` in the camera frame, or None for a sphere placed from the
+    mask; ``downsample_by``: area-average the images (and the mask, and the camera) by this
+    factor, carrying clipped sub-pixels (:func:`fitting.downsample`)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FitError(f"{folder}: not a folder")
+    if not (folder / "filenames.txt").exists():
+        raise FitError(f"{folder}: no filenames.txt (one image file per line)")
+    names = [ln.strip() for ln in (folder / "filenames.txt").read_text().splitlines() if ln.strip()]
+    if not names:
+        raise FitError(f"{folder / 'filenames.txt'}: no image listed")
+    n = len(names)
+    dirs = _rows(folder / "light_directions.txt", 3, n)
+    ints = (
+        _rows(folder / "light_intensities.txt", 3, n)
+        if (folder / "light_intensities.txt").exists()
+        else np.ones((n, 3))
+    )
+    K = _camera_matrix(folder, K)
+    mask_img, _ = _read(folder / "mask.png")
+    mask = mask_img[..., 0] > 0
+    h, w = mask.shape
+    f = int(downsample_by)
+    targets, clipped, quantum = [], [], None
+    for name in names:
+        img, q = _read(folder / name)
+        if img.shape[:2] != (h, w):
+            raise FitError(f"{folder / name}: {img.shape[1]}x{img.shape[0]}, but the mask is {w}x{h}")
+        sat = 1.0 if q is not None else None
+        quantum = q if f == 1 else None
+        if f > 1:
+            d = downsample(img, f, saturation=sat)
+            targets.append(d.image)
+            clipped.append(d.clipped)
+        else:
+            targets.append(img)
+            clipped.append(img >= 1.0 if sat else np.zeros(img.shape, bool))
+    if f > 1:
+        mask = downsample(mask_img, f, mask=mask.astype(np.float64)).mask > 0
+        K = K.copy()
+        K[0, 0] /= f
+        K[1, 1] /= f
+        K[0, 2] = (K[0, 2] + 0.5) / f - 0.5
+        K[1, 2] = (K[1, 2] + 0.5) / f - 0.5
+    hh, ww = mask.shape
+    mesh = sphere_from_mask(mask, K) if mesh is None else mesh
+    cam = ds.OpenCVCamera.from_opencv(K, np.eye(3), np.zeros(3), width=ww, height=hh, near=0.01, far=1e4)
+    prop = to_camera_frame(dirs, flip_y, flip_z)
+    base = ds.Scene(
+        mesh=mesh,
+        camera=cam,
+        material=material or ds.Material(ambient=0.0, diffuse=0.5, specular=0.3, shininess=50.0),
+        directional=ds.DirectionalLights(color=ints[:1], direction=prop[:1], ambient=np.zeros((1, 3))),
+        ambient_light=0.0,
+    )
+    views = [
+        eqx.tree_at(
+            lambda s: (s.directional.color, s.directional.direction),
+            base,
+            (
+                jnp.asarray(ints[i : i + 1], base.directional.color.dtype),
+                jnp.asarray(prop[i : i + 1], base.directional.direction.dtype),
+            ),
+        )
+        for i in range(n)
+    ]
+    opts = opts or ds.RenderOptions.from_keys(shading="phong", specular="blinn", fog="none")
+    return Capture(views, opts, targets, mask.astype(np.float64), clipped, quantum, names)
+
+
+def frame_check(capture: Capture) -> dict:
+    """How well the images agree with Lambert's :math:`n \\cdot l` under each further flip of the
+    frame the capture was loaded with (on its geometry, rendered diffuse and white):
+    ``{(flip_y, flip_z): correlation}``, averaged over the images. The data set's frame is the
+    choice nearest 1 — ``(False, False)`` when the capture was loaded right; a wrong flip mirrors
+    the shading and falls well below it."""
+    import jax
+
+    out = {}
+    opts = ds.RenderOptions.from_keys(shading="phong", specular="none", fog="none", ambient=False)
+    render = jax.jit(lambda s: ds.render(s, opts))
+    white = ds.Material(ambient=0.0, diffuse=1.0, specular=0.0, shininess=1.0)
+    m = capture.mask > 0
+    for flip_y in (False, True):
+        for flip_z in (False, True):
+            cs = []
+            for v, t in zip(capture.views, capture.targets):
+                d = np.asarray(v.directional.direction, np.float64)
+                # the view's direction back in the capture frame, then flipped the other way
+                back = -d * np.array([1.0, -1.0, -1.0])
+                alt = to_camera_frame(back * np.array([1.0, -1.0 if flip_y else 1.0, -1.0 if flip_z else 1.0]))
+                s = eqx.tree_at(
+                    lambda s: (s.material, s.directional.direction, s.directional.color),
+                    v,
+                    (white, jnp.asarray(alt, d.dtype), jnp.ones((1, 3), d.dtype)),
+                )
+                a, b = np.asarray(render(s))[m].mean(-1), np.asarray(t)[m].mean(-1)
+                cs.append(float(np.corrcoef(a, b)[0, 1]) if a.std() > 0 and b.std() > 0 else 0.0)
+            out[(flip_y, flip_z)] = float(np.mean(cs))
+    return out

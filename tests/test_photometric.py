@@ -1,0 +1,83 @@
+"""The photometric-stereo layout (fitting.load_photometric_stereo): a synthetic capture written
+in it loads into views whose renders are the images, its frame is the one the images agree
+with, a fit recovers the material and predicts held-out lights to the noise; bad folders are
+named."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from photometric_capture import TRUTH, write_capture  # noqa: E402
+
+from fitting import FitError, fit, frame_check, load_photometric_stereo  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("ps")
+    scene, opts, dirs = write_capture(folder, n=8, size=48, noise=0.004)
+    return folder, scene, opts, dirs
+
+
+def test_the_layout_loads_into_views_in_the_documented_frame(capture):
+    folder, truth, opts, dirs = capture
+    cap = load_photometric_stereo(folder)
+    assert len(cap.views) == 8 and cap.quantum == 1 / 65535 and cap.targets[0].shape == (48, 48, 3)
+    # the light of view i points where the file says, in the camera frame (y and z flipped)
+    for v, d in zip(cap.views, dirs):
+        np.testing.assert_allclose(-np.asarray(v.directional.direction)[0], d * [1, -1, -1], atol=1e-6)
+    # the sphere placed from the mask is the truth's to a fraction of a pixel's angle
+    c = np.asarray(cap.scene.mesh.vertices).mean(0)
+    np.testing.assert_allclose(c, [0, 0, 4.0], atol=0.1)
+    checks = frame_check(cap)
+    others = max(v for k, v in checks.items() if k != (False, False))
+    assert checks[(False, False)] > 0.9 and checks[(False, False)] > others + 0.2, checks
+
+
+def test_a_flipped_data_set_is_read_with_the_named_option(tmp_path):
+    _, _, dirs = write_capture(tmp_path, n=4, size=32, noise=0.004, flip_y=True)
+    wrong = load_photometric_stereo(tmp_path)
+    checks = frame_check(wrong)
+    assert checks[(True, False)] > checks[(False, False)] + 0.2  # the images say: flip y
+    right = load_photometric_stereo(tmp_path, flip_y=True)
+    assert frame_check(right)[(False, False)] > 0.9
+
+
+def test_a_fit_recovers_the_material_and_predicts_held_out_lights(capture):
+    folder, truth, opts, _ = capture
+    cap = load_photometric_stereo(folder, opts=opts)
+    obs = cap.observations(margin=1)
+    train = obs.replace(targets=obs.targets[:6], views=obs.views[:6], masks=obs.masks[:6], clipped=obs.clipped[:6])
+    r = fit(cap.scene, cap.opts, train, ["material.diffuse", "material.specular", "material.shininess"])
+    assert r.successful, r.result
+    got = dict(zip(r.names, r.values))
+    np.testing.assert_allclose([got[f"material.diffuse[{c}]"] for c in "rgb"], TRUTH["diffuse"], rtol=0.03)
+    assert abs(got["material.shininess"] / TRUTH["shininess"] - 1) < 0.15
+    # the two held-out lights: predicted to the noise (the residual's RMS over the noise ~ 1)
+    import jax
+
+    import diffshade as ds
+    from fitting import ParamSet
+
+    pset = ParamSet(["material.diffuse", "material.specular", "material.shininess"], cap.scene)
+    render = jax.jit(lambda s: ds.render(s, opts))
+    m = cap.mask > 0
+    m = m & np.roll(m, 1, 0) & np.roll(m, -1, 0) & np.roll(m, 1, 1) & np.roll(m, -1, 1)
+    for v, t in zip(cap.views[6:], cap.targets[6:]):
+        pred = np.asarray(render(pset.apply(v, r.values)), np.float64)
+        rms = float(np.sqrt(np.mean((pred - t)[m] ** 2)))
+        assert rms / 0.004 < 1.3, rms
+
+
+def test_bad_folders_are_named(tmp_path):
+    with pytest.raises(FitError, match="not a folder"):
+        load_photometric_stereo(tmp_path / "none")
+    with pytest.raises(FitError, match="filenames.txt"):
+        load_photometric_stereo(tmp_path)
+    (tmp_path / "filenames.txt").write_text("a.png\nb.png\n")
+    (tmp_path / "light_directions.txt").write_text("0 0 1\n")
+    with pytest.raises(FitError, match=r"light_directions.txt: 2 rows of 3 numbers expected"):
+        load_photometric_stereo(tmp_path)
