@@ -19,12 +19,14 @@ TRUTH = dict(diffuse=(0.6, 0.45, 0.3), specular=0.35, shininess=40.0)
 
 def write_capture(folder, n=12, size=64, noise=0.004, seed=0, mesh=None, flip_y=False):
     """Write the capture; returns ``(scene, opts, directions)``: the truth's first view, its
-    options, and the light directions as written (capture frame, towards the lights)."""
+    options, and the light directions as written (capture frame, towards the lights). ``size``:
+    the image's side, or ``(width, height)``."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
-    f = 1.2 * size  # the sphere spans about 60 % of the image
-    K = np.array([[f, 0, (size - 1) / 2], [0, f, (size - 1) / 2], [0, 0, 1.0]])
+    w, h = (size, size) if np.isscalar(size) else size
+    f = 1.2 * min(w, h)  # the sphere spans about 60 % of the image's height
+    K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
     if mesh is None:
         s = ds.icosphere(5)
         mesh = ds.Mesh(np.asarray(s.vertices) + [0.0, 0.0, 4.0], np.asarray(s.faces))
@@ -37,7 +39,7 @@ def write_capture(folder, n=12, size=64, noise=0.004, seed=0, mesh=None, flip_y=
 
     written = dirs * np.array([1.0, -1.0 if flip_y else 1.0, 1.0])  # a data set whose y points down
     prop = to_camera_frame(dirs)
-    cam = ds.OpenCVCamera.from_opencv(K, np.eye(3), np.zeros(3), width=size, height=size, near=0.01, far=100.0)
+    cam = ds.OpenCVCamera.from_opencv(K, np.eye(3), np.zeros(3), width=w, height=h, near=0.01, far=100.0)
     scene = ds.Scene(
         mesh=mesh,
         camera=cam,
@@ -54,7 +56,7 @@ def write_capture(folder, n=12, size=64, noise=0.004, seed=0, mesh=None, flip_y=
             scene,
             (jnp.asarray(ints[i : i + 1]), jnp.asarray(prop[i : i + 1])),
         )
-        img = np.asarray(render(v), np.float64) + rng.normal(0, noise, (size, size, 3))
+        img = np.asarray(render(v), np.float64) + rng.normal(0, noise, (h, w, 3))
         names.append(f"{i:03d}.png")
         ds.write_image(folder / names[-1], np.clip(img, 0, 1), "linear", 16)
     mask = np.asarray(ds.scene_visibility(scene, opts))[0] >= 0

@@ -180,6 +180,7 @@ def load_photometric_stereo(
         else:
             targets.append(img)
             clipped.append(img >= 1.0 if sat else np.zeros(img.shape, bool))
+    mesh = sphere_from_mask(mask, K) if mesh is None else mesh  # from the full mask: the eroded one is smaller
     if f > 1:
         mask = downsample(mask_img, f, mask=mask.astype(np.float64)).mask > 0
         K = K.copy()
@@ -188,7 +189,6 @@ def load_photometric_stereo(
         K[0, 2] = (K[0, 2] + 0.5) / f - 0.5
         K[1, 2] = (K[1, 2] + 0.5) / f - 0.5
     hh, ww = mask.shape
-    mesh = sphere_from_mask(mask, K) if mesh is None else mesh
     cam = ds.OpenCVCamera.from_opencv(K, np.eye(3), np.zeros(3), width=ww, height=hh, near=0.01, far=1e4)
     prop = to_camera_frame(dirs, flip_y, flip_z)
     base = ds.Scene(
