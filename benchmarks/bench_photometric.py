@@ -35,6 +35,7 @@ def main():
     ap.add_argument("--width", type=int, default=612)
     ap.add_argument("--height", type=int, default=512)
     ap.add_argument("--downsample", type=int, default=4)
+    ap.add_argument("--how", choices=["average", "sample"], default="average", help="how to downsample")
     ap.add_argument("--noise", type=float, default=0.004)
     ap.add_argument("--mesh", choices=["sphere", "bunny"], default="sphere")
     args = ap.parse_args()
@@ -54,7 +55,7 @@ def main():
             ds.read_image(f)
         t_read = time.perf_counter() - t0
         t0 = time.perf_counter()
-        cap = load_photometric_stereo(tmp, mesh, opts=opts, downsample_by=args.downsample)
+        cap = load_photometric_stereo(tmp, mesh, opts=opts, downsample_by=args.downsample, downsample_how=args.how)
         t_load = time.perf_counter() - t0
     half = args.lights // 2
     obs = cap.observations(margin=1)
@@ -80,13 +81,15 @@ def main():
     e = np.concatenate(err)
     held = float(np.sqrt(np.mean(e**2)))
     robust = float(1.4826 * np.median(np.abs(e)))
-    sigma = args.noise / args.downsample  # the noise of an area average of downsample² pixels
+    sigma = args.noise / (args.downsample if args.how == "average" else 1)  # an average of downsample² pixels
     got = dict(zip(r.names, r.values))
     print(f"capture: {args.lights} lights, {args.width}x{args.height} 16-bit, {args.mesh}; written in {t_write:.1f} s")
     print(
         f"read {args.lights} 16-bit PNGs (diffshade.read_image): {t_read:.2f} s ({1e3 * t_read / args.lights:.1f} ms each)"
     )
-    print(f"load_photometric_stereo (read, downsample by {args.downsample}, place the sphere): {t_load:.2f} s")
+    print(
+        f"load_photometric_stereo (read, downsample by {args.downsample} ({args.how}), place the sphere): {t_load:.2f} s"
+    )
     print(
         f"fit on {half} lights: {'successful' if r.successful else 'NOT successful: ' + r.result}; compile {r.compile_s:.1f} s, solve {r.solve_s:.2f} s, wall {t_fit:.1f} s"
     )

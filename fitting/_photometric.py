@@ -139,13 +139,20 @@ def load_photometric_stereo(
     opts: ds.RenderOptions | None = None,
     material: ds.Material | None = None,
     downsample_by: int = 1,
+    downsample_how: str = "sample",
     flip_y: bool = False,
     flip_z: bool = False,
 ) -> Capture:
     """The capture in ``folder`` (the layout of the module's docstring) as views with one
     directional light each; ``mesh`` in the camera frame, or None for a sphere placed from the
-    mask; ``downsample_by``: area-average the images (and the mask, and the camera) by this
-    factor, carrying clipped sub-pixels (:func:`fitting.downsample`)."""
+    mask; ``downsample_by``: reduce the images (and the mask, and the camera) by this factor,
+    ``downsample_how``: ``"average"`` (area averaging, carrying clipped sub-pixels:
+    :func:`fitting.downsample`; the noise falls by the factor, but the renderer point-samples
+    each pixel's centre, so where the shading curves across a pixel the model misses the
+    average: docs/fitting.md, "Photometric-stereo captures") or ``"sample"`` (the sub-pixel at
+    each block's centre, the camera shifted to it: exact, at the full noise)."""
+    if downsample_how not in ("average", "sample"):
+        raise FitError(f"downsample_how must be 'average' or 'sample', got {downsample_how!r}")
     folder = Path(folder)
     if not folder.is_dir():
         raise FitError(f"{folder}: not a folder")
@@ -173,21 +180,28 @@ def load_photometric_stereo(
             raise FitError(f"{folder / name}: {img.shape[1]}x{img.shape[0]}, but the mask is {w}x{h}")
         sat = 1.0 if q is not None else None
         quantum = q if f == 1 else None
-        if f > 1:
+        if f > 1 and downsample_how == "average":
             d = downsample(img, f, saturation=sat)
             targets.append(d.image)
             clipped.append(d.clipped)
+        elif f > 1:
+            quantum = q
+            sub = img[f // 2 :: f, f // 2 :: f][: h // f, : w // f]
+            targets.append(sub)
+            clipped.append(sub >= 1.0 if sat else np.zeros(sub.shape, bool))
         else:
             targets.append(img)
             clipped.append(img >= 1.0 if sat else np.zeros(img.shape, bool))
     mesh = sphere_from_mask(mask, K) if mesh is None else mesh  # from the full mask: the eroded one is smaller
     if f > 1:
-        mask = downsample(mask_img, f, mask=mask.astype(np.float64)).mask > 0
         K = K.copy()
-        K[0, 0] /= f
-        K[1, 1] /= f
-        K[0, 2] = (K[0, 2] + 0.5) / f - 0.5
-        K[1, 2] = (K[1, 2] + 0.5) / f - 0.5
+        K[:2, :2] /= f
+        if downsample_how == "average":  # pixel j covers full pixels f·j ... f·j + f - 1: centre f·j + (f-1)/2
+            mask = downsample(mask_img, f, mask=mask.astype(np.float64)).mask > 0
+            K[:2, 2] = (K[:2, 2] - (f - 1) / 2) / f
+        else:  # pixel j is full pixel f·j + f//2
+            mask = mask[f // 2 :: f, f // 2 :: f][: h // f, : w // f]
+            K[:2, 2] = (K[:2, 2] - f // 2) / f
     hh, ww = mask.shape
     cam = ds.OpenCVCamera.from_opencv(K, np.eye(3), np.zeros(3), width=ww, height=hh, near=0.01, far=1e4)
     prop = to_camera_frame(dirs, flip_y, flip_z)

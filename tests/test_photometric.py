@@ -81,3 +81,27 @@ def test_bad_folders_are_named(tmp_path):
     (tmp_path / "light_directions.txt").write_text("0 0 1\n")
     with pytest.raises(FitError, match=r"light_directions.txt: 2 rows of 3 numbers expected"):
         load_photometric_stereo(tmp_path)
+
+
+def test_downsampled_captures_keep_the_camera_on_their_pixels(capture):
+    # by sampling each block's centre sub-pixel, the camera shifted to it: the render of the
+    # truth is the image to the noise; by area averaging: the same to the (4x smaller) noise
+    # plus the point-sampled shading's miss of the average
+    import equinox as eqx
+    import jax
+
+    import diffshade as ds
+
+    folder, truth, opts, _ = capture
+    for how, limit in (("sample", 1.15), ("average", 2.0)):
+        cap = load_photometric_stereo(folder, opts=opts, downsample_by=2, downsample_how=how)
+        assert cap.targets[0].shape == (24, 24, 3) and cap.mask.shape == (24, 24)
+        view = eqx.tree_at(lambda s: (s.camera, s.directional), truth, (cap.scene.camera, cap.views[0].directional))
+        pred = np.asarray(jax.jit(lambda s: ds.render(s, opts))(view), np.float64)  # noqa: B023
+        from skimage.morphology import erosion
+
+        m = erosion(cap.mask > 0, np.ones((3, 3), bool))
+        sigma = 0.004 / (2 if how == "average" else 1)
+        assert np.sqrt(np.mean((pred - cap.targets[0])[m] ** 2)) / sigma < limit, how
+    with pytest.raises(FitError, match="downsample_how"):
+        load_photometric_stereo(folder, downsample_by=2, downsample_how="nearest")
