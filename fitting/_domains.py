@@ -45,6 +45,7 @@ CLI: dict[str, tuple[str, Domain]] = {
     "--albedo-smoothness": ("albedo_smoothness", FIT["albedo_smoothness"]),
     "--size": ("size", Domain(kind="int", lo=8, hi=4096)),  # demo: the image side
     "--seed": ("seed", WHOLE),  # demo: the perturbed start's seed
+    "--downsample": ("downsample", Domain(kind="int", lo=1, hi=64)),  # fit: a photometric capture's factor
 }
 
 

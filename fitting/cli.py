@@ -391,6 +391,51 @@ def _load_views(args, scene):
     return views, view_paths, camera_paths
 
 
+def _photometric_inputs(args, folder: Path):
+    """A photometric-stereo capture folder (:func:`fitting.load_photometric_stereo`) as the scene,
+    options, views, targets and masks of a fit; ``--scene-options`` (a scene file) gives the
+    render options and the material's start, ``--mesh`` the geometry (else a sphere from the mask)."""
+    import types
+
+    import diffshade as ds
+
+    from . import FitError, load_photometric_stereo
+
+    if args.targets:
+        raise InputError(f"{folder}: a capture folder lists its own images; give no target images")
+    mesh = ds.load_mesh(args.mesh) if args.mesh else None
+    opts = material = None
+    if args.scene_options:
+        s, opts = ds.load_scene(args.scene_options)
+        material = s.material
+    try:
+        cap = load_photometric_stereo(
+            folder,
+            mesh,
+            opts=opts,
+            material=material,
+            downsample_by=args.downsample or 1,
+            flip_y=args.flip_y,
+            flip_z=args.flip_z,
+        )
+    except FitError as exc:
+        raise InputError(str(exc)) from exc
+    print(
+        f"{folder}: {len(cap.views)} images under one directional light each"
+        + (f", downsampled by {args.downsample}" if (args.downsample or 1) > 1 else "")
+        + ("" if mesh is not None else "; a sphere placed from the mask")
+    )
+    tg = types.SimpleNamespace(
+        paths=[folder / n for n in cap.names],
+        images=cap.targets,
+        encodings=[("linear", "a photometric capture (linear)")] * len(cap.targets),
+        saturation=1.0 if cap.quantum is not None else None,
+        quantum=cap.quantum,
+        clipped=cap.clipped,
+    )
+    return cap.scene, cap.opts, cap.views, tg, [cap.mask] * len(cap.targets)
+
+
 class _Targets:
     """The targets as read: code values (the fit decodes them), clipping, code step, encodings
     and alpha channels."""
@@ -593,11 +638,17 @@ def cmd_fit(args) -> int:
     from . import Observations, Optimistix, ParamSet, VarPro, _options, fit
 
     scene_path = Path(args.scene)
-    scene, opts = ds.load_scene(scene_path)
-    views, view_paths, camera_paths = _load_views(args, scene)
-    tg = _Targets(args, views)
-    masks, mask_paths = _load_masks(args, tg, views)
-    masks = _undistort(args, tg, masks, views)
+    if scene_path.is_dir():  # a photometric-stereo capture
+        scene, opts, views, tg, masks = _photometric_inputs(args, scene_path)
+        view_paths, camera_paths, mask_paths = [], [], [scene_path / "mask.png"]
+    else:
+        if not args.targets:
+            raise InputError(f"{scene_path}: give the target image(s) after the scene file (or a capture folder)")
+        scene, opts = ds.load_scene(scene_path)
+        views, view_paths, camera_paths = _load_views(args, scene)
+        tg = _Targets(args, views)
+        masks, mask_paths = _load_masks(args, tg, views)
+        masks = _undistort(args, tg, masks, views)
     outputs = _check_outputs(args, [scene_path, *view_paths, *camera_paths, *tg.paths, *mask_paths])
     pset = ParamSet(args.free, scene, args.shared or (), n_views=len(tg.images))  # name errors before any compile
     print(
@@ -613,6 +664,7 @@ def cmd_fit(args) -> int:
         quantum=tg.quantum,
         noise=args.noise,
         margin=args.margin,
+        clipped=getattr(tg, "clipped", None),
     )
     strategy = (
         VarPro(max_steps=args.max_steps, verbose=args.verbose)
@@ -677,8 +729,19 @@ def _add_fit(sub) -> None:
         "encoding from the file or --encoding; or .npy floats, linear). Start values are the scene file's. Writes fit.json, material.mtl, "
         "fit.png and report.txt into --output-dir.",
     )
-    p.add_argument("scene", help="scene file (.toml); its values are the starting point")
-    p.add_argument("targets", nargs="+", help="target image(s), one per view, each the camera's size")
+    p.add_argument(
+        "scene",
+        help="scene file (.toml), its values the starting point; or a photometric-stereo capture folder "
+        "(filenames.txt, light_directions.txt, light_intensities.txt, mask.png, K.txt: docs/photographs.md)",
+    )
+    p.add_argument("targets", nargs="*", help="target image(s), one per view, each the camera's size")
+    p.add_argument("--mesh", metavar="FILE", help="a capture folder's geometry in the camera frame (default: a sphere)")
+    p.add_argument("--scene-options", metavar="SCENE", help="a capture folder's render options and start material")
+    p.add_argument("--downsample", type=str, metavar="N", help="a capture folder's images sampled every N pixels")
+    p.add_argument("--flip-y", action="store_true", help="a capture folder's light directions have y down")
+    p.add_argument(
+        "--flip-z", action="store_true", help="a capture folder's light directions have z away from the viewer"
+    )
     p.add_argument(
         "-p",
         "--free",

@@ -105,3 +105,19 @@ def test_downsampled_captures_keep_the_camera_on_their_pixels(capture):
         assert np.sqrt(np.mean((pred - cap.targets[0])[m] ** 2)) / sigma < limit, how
     with pytest.raises(FitError, match="downsample_how"):
         load_photometric_stereo(folder, downsample_by=2, downsample_how="nearest")
+
+
+def test_the_command_line_fits_a_capture_folder(tmp_path, capsys):
+    from fitting.cli import main
+
+    folder = tmp_path / "capture"
+    write_capture(folder, n=4, size=32, noise=0.004)
+    out = tmp_path / "out"
+    args = ["fit", str(folder), "-p", "material.diffuse", "material.specular", "material.shininess", "-o", str(out)]
+    assert main([*args, "--downsample", "0"]) == 3 and not out.exists()
+    assert "--downsample must be" in capsys.readouterr().err
+    assert main([args[0], args[1], str(folder / "000.png"), *args[2:]]) == 3  # a folder lists its own images
+    assert main([*args, "--margin", "1"]) == 0, capsys.readouterr()
+    printed = capsys.readouterr().out
+    assert "4 images under one directional light each" in printed and "successful" in printed
+    assert sorted(p.name for p in out.iterdir()) == ["fit.json", "fit.png", "material.mtl", "report.txt"]
