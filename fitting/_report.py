@@ -273,6 +273,38 @@ def verdict(
     return True, ""
 
 
+def misfit_regions(prob, cand: Candidate) -> str:
+    """Where the misfit sits: the share of the χ² in excess of the noise (over the used
+    entries) in the highlights (the target's brightest 5 % of pixels), at the silhouette (within
+    2 pixels of an unused one), in the shadows (the target's darkest 10 %) and elsewhere, beside
+    each region's share of the pixels."""
+    from skimage.morphology import erosion
+
+    excess, share = {}, {}
+    regions = ("highlights", "silhouette", "shadows", "elsewhere")
+    for k in regions:
+        excess[k], share[k] = 0.0, 0
+    for res, used, target in zip(prob.residual_images(cand.r), prob.used_masks(), prob.targets):
+        u = used.any(-1)
+        if not u.any():
+            continue
+        lum = np.asarray(target, np.float64).mean(-1)
+        hi, lo = np.quantile(lum[u], [0.95, 0.10])
+        inner = erosion(u, np.ones((5, 5), bool))
+        e = np.where(used, res * res - cand.sigma**2, 0.0).sum(-1)
+        where = {"silhouette": u & ~inner, "highlights": u & inner & (lum >= hi), "shadows": u & inner & (lum <= lo)}
+        where["elsewhere"] = u & ~(where["silhouette"] | where["highlights"] | where["shadows"])
+        for k in regions:
+            excess[k] += float(e[where[k]].sum())
+            share[k] += int(where[k].sum())
+    total_e, total_n = sum(max(v, 0.0) for v in excess.values()), max(sum(share.values()), 1)
+    parts = [
+        f"{100 * max(excess[k], 0.0) / max(total_e, 1e-300):.0f} % {k} ({100 * share[k] / total_n:.0f} % of the pixels)"
+        for k in regions
+    ]
+    return "where the misfit sits (χ² above the noise): " + ", ".join(parts)
+
+
 def model_terms(opts) -> str:
     """The model's terms in words (what a verdict names when the model cannot explain the images)."""
     k = opts.keys()
@@ -608,6 +640,8 @@ def build_result(
     psnr, ssim = image_quality(prob.full_images(best.img)[0], prob.targets[0])
     float_limited, notes = _float_limited(prob, best, stderr, successful, labels)
     notes = list(run.notes) + notes
+    if not successful and best.ratio > noise_ratio_limit(best.n_chi2 or n2):
+        notes.append(misfit_regions(prob, best))
     found = None
     if intervals and successful and ev is not None and best.source == FLOAT_FLOOR_SOURCE:
         notes.append(

@@ -237,6 +237,11 @@ def test_a_model_that_cannot_explain_the_image_is_not_called_a_success():
     true = float(np.sqrt(np.mean((noisy - clean)[cov] ** 2)))
     assert not r.successful and "targets' own noise" in r.residual.noise_source, r.residual.noise_source
     assert abs(r.residual.noise / true - 1) < 0.1, (r.residual.noise, true)
+    # every start returns to it: the model is what fails, and the missed highlight is where
+    assert "starts return to this solution: the model" in r.result and "specular" not in r.result.split("(")[-1]
+    where = next(n for n in r.notes if n.startswith("where the misfit sits"))
+    shares = {m[1]: float(m[0]) for m in re.findall(r"(\d+) % (\w+) \(", where)}
+    assert max(shares, key=shares.get) == "highlights", where
 
 
 def test_noisy_target_verdict_and_given_noise():
