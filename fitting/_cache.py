@@ -13,6 +13,7 @@ from collections import OrderedDict
 from typing import TYPE_CHECKING
 
 import jax
+import numpy as np
 
 if TYPE_CHECKING:
     from ._problem import Problem
@@ -29,7 +30,10 @@ def cache_info() -> dict:
 
 def _shapes(args) -> tuple:
     leaves, treedef = jax.tree.flatten(args)
-    return treedef, tuple((x.shape, x.dtype, getattr(x, "sharding", None)) for x in leaves)
+    # (a leaf may be a Python number: its type stands for the dtype it is traced with)
+    return treedef, tuple(
+        (np.shape(x), getattr(x, "dtype", type(x).__name__), getattr(x, "sharding", None)) for x in leaves
+    )
 
 
 def compiled(prob: Problem, what: str, fn, *args, extra=()):

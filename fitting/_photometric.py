@@ -233,11 +233,11 @@ def frame_check(capture: Capture) -> dict:
     ``{(flip_y, flip_z): correlation}``, averaged over the images. The data set's frame is the
     choice nearest 1 — ``(False, False)`` when the capture was loaded right; a wrong flip mirrors
     the shading and falls well below it."""
-    import jax
+    from ._cache import run
 
     out = {}
     opts = ds.RenderOptions.from_keys(shading="phong", specular="none", fog="none", ambient=False)
-    render = jax.jit(lambda s: ds.render(s, opts))
+    render = lambda s: run(("frame check", opts), lambda s: ds.render(s, opts), s)  # noqa: E731
     white = ds.Material(ambient=0.0, diffuse=1.0, specular=0.0, shininess=1.0)
     m = capture.mask > 0
     for flip_y in (False, True):
