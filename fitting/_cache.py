@@ -10,13 +10,9 @@ from __future__ import annotations
 import os
 import time
 from collections import OrderedDict
-from typing import TYPE_CHECKING
 
 import jax
 import numpy as np
-
-if TYPE_CHECKING:
-    from ._problem import Problem
 
 CACHE_SIZE = 16
 _CACHE: OrderedDict = OrderedDict()
@@ -36,7 +32,7 @@ def _shapes(args) -> tuple:
     )
 
 
-def compiled(prob: Problem, what: str, fn, *args, extra=()):
+def compiled(prob, what: str, fn, *args, extra=()):
     """``jax.jit(fn).lower(*args).compile()``, cached on the problem's structure (the
     :data:`CACHE_SIZE` most recently used); returns ``(compiled, compile_seconds)`` (0 when
     cached)."""

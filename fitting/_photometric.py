@@ -154,56 +154,17 @@ def load_photometric_stereo(
     if downsample_how not in ("average", "sample"):
         raise FitError(f"downsample_how must be 'average' or 'sample', got {downsample_how!r}")
     folder = Path(folder)
-    if not folder.is_dir():
-        raise FitError(f"{folder}: not a folder")
-    if not (folder / "filenames.txt").exists():
-        raise FitError(f"{folder}: no filenames.txt (one image file per line)")
-    names = [ln.strip() for ln in (folder / "filenames.txt").read_text().splitlines() if ln.strip()]
-    if not names:
-        raise FitError(f"{folder / 'filenames.txt'}: no image listed")
-    n = len(names)
-    dirs = _rows(folder / "light_directions.txt", 3, n)
-    ints = (
-        _rows(folder / "light_intensities.txt", 3, n)
-        if (folder / "light_intensities.txt").exists()
-        else np.ones((n, 3))
-    )
+    names, dirs, ints = _listing(folder)
     K = _camera_matrix(folder, K)
     mask_img, _ = _read(folder / "mask.png")
     mask = mask_img[..., 0] > 0
-    h, w = mask.shape
-    f = int(downsample_by)
-    targets, clipped, quantum = [], [], None
-    for name in names:
-        img, q = _read(folder / name)
-        if img.shape[:2] != (h, w):
-            raise FitError(f"{folder / name}: {img.shape[1]}x{img.shape[0]}, but the mask is {w}x{h}")
-        sat = 1.0 if q is not None else None
-        quantum = q if f == 1 else None
-        if f > 1 and downsample_how == "average":
-            d = downsample(img, f, saturation=sat)
-            targets.append(d.image)
-            clipped.append(d.clipped)
-        elif f > 1:
-            quantum = q
-            sub = img[f // 2 :: f, f // 2 :: f][: h // f, : w // f]
-            targets.append(sub)
-            clipped.append(sub >= 1.0 if sat else np.zeros(sub.shape, bool))
-        else:
-            targets.append(img)
-            clipped.append(img >= 1.0 if sat else np.zeros(img.shape, bool))
-    mesh = sphere_from_mask(mask, K) if mesh is None else mesh  # from the full mask: the eroded one is smaller
-    if f > 1:
-        K = K.copy()
-        K[:2, :2] /= f
-        if downsample_how == "average":  # pixel j covers full pixels f·j ... f·j + f - 1: centre f·j + (f-1)/2
-            mask = downsample(mask_img, f, mask=mask.astype(np.float64)).mask > 0
-            K[:2, 2] = (K[:2, 2] - (f - 1) / 2) / f
-        else:  # pixel j is full pixel f·j + f//2
-            mask = mask[f // 2 :: f, f // 2 :: f][: h // f, : w // f]
-            K[:2, 2] = (K[:2, 2] - f // 2) / f
-    hh, ww = mask.shape
-    cam = ds.OpenCVCamera.from_opencv(K, np.eye(3), np.zeros(3), width=ww, height=hh, near=0.01, far=1e4)
+    mesh = sphere_from_mask(mask, K) if mesh is None else mesh  # from the full mask: a reduced one is eroded
+    f, how = int(downsample_by), downsample_how
+    targets, clipped, quantum = zip(*[_reduced_image(folder / name, mask.shape, f, how) for name in names])
+    mask, K = _reduced_mask_and_camera(mask_img, mask, K, f, how)
+    cam = ds.OpenCVCamera.from_opencv(
+        K, np.eye(3), np.zeros(3), width=mask.shape[1], height=mask.shape[0], near=0.01, far=1e4
+    )
     prop = to_camera_frame(dirs, flip_y, flip_z)
     base = ds.Scene(
         mesh=mesh,
@@ -221,10 +182,57 @@ def load_photometric_stereo(
                 jnp.asarray(prop[i : i + 1], base.directional.direction.dtype),
             ),
         )
-        for i in range(n)
+        for i in range(len(names))
     ]
     opts = opts or ds.RenderOptions.from_keys(shading="phong", specular="blinn", fog="none")
-    return Capture(views, opts, targets, mask.astype(np.float64), clipped, quantum, names)
+    return Capture(views, opts, list(targets), mask.astype(np.float64), list(clipped), quantum[0], names)
+
+
+def _listing(folder: Path):
+    """``(names, directions, intensities)`` of a capture folder's listing files."""
+    if not folder.is_dir():
+        raise FitError(f"{folder}: not a folder")
+    if not (folder / "filenames.txt").exists():
+        raise FitError(f"{folder}: no filenames.txt (one image file per line)")
+    names = [ln.strip() for ln in (folder / "filenames.txt").read_text().splitlines() if ln.strip()]
+    if not names:
+        raise FitError(f"{folder / 'filenames.txt'}: no image listed")
+    n = len(names)
+    dirs = _rows(folder / "light_directions.txt", 3, n)
+    has = (folder / "light_intensities.txt").exists()
+    ints = _rows(folder / "light_intensities.txt", 3, n) if has else np.ones((n, 3))
+    return names, dirs, ints
+
+
+def _reduced_image(path: Path, shape, f: int, how: str):
+    """``(image, clipped, quantum)`` of one capture image, reduced by ``f`` as ``how`` says
+    (the quantum None for an average: its values are no longer codes)."""
+    img, q = _read(path)
+    if img.shape[:2] != shape:
+        raise FitError(f"{path}: {img.shape[1]}x{img.shape[0]}, but the mask is {shape[1]}x{shape[0]}")
+    sat = 1.0 if q is not None else None
+    if f > 1 and how == "average":
+        d = downsample(img, f, saturation=sat)
+        return d.image, d.clipped, None
+    if f > 1:
+        img = img[f // 2 :: f, f // 2 :: f][: shape[0] // f, : shape[1] // f]
+    return img, (img >= 1.0 if sat else np.zeros(img.shape, bool)), q
+
+
+def _reduced_mask_and_camera(mask_img, mask, K, f: int, how: str):
+    """The mask and ``K`` of images reduced by ``f``: averaged, pixel j covers full pixels
+    f·j ... f·j + f − 1 (its centre f·j + (f − 1)/2; the mask keeps pixels wholly inside);
+    sampled, pixel j is full pixel f·j + f//2."""
+    if f == 1:
+        return mask, K
+    K = K.copy()
+    K[:2, :2] /= f
+    if how == "average":
+        K[:2, 2] = (K[:2, 2] - (f - 1) / 2) / f
+        return downsample(mask_img, f, mask=mask.astype(np.float64)).mask > 0, K
+    K[:2, 2] = (K[:2, 2] - f // 2) / f
+    h, w = mask.shape
+    return mask[f // 2 :: f, f // 2 :: f][: h // f, : w // f], K
 
 
 def frame_check(capture: Capture) -> dict:

@@ -304,6 +304,16 @@ def cmd_demo(args) -> int:
 FIT_OUTPUTS = ("fit.json", "material.mtl", "fit.png", "report.txt")
 
 
+def _se_text(se: float, v: float, undetermined: bool) -> str:
+    """A table's standard error and relative one; inf: not determined at all, or only in
+    combination with others (a gauge, named below the table)."""
+    import numpy as np
+
+    if not np.isfinite(se):
+        return f"{'none' if undetermined else 'combined':>11s} {'-':>10s}"
+    return f"{se:11.3g} {se / abs(v) if v != 0 else float('inf'):10.2e}"
+
+
 def _report_table(r) -> list[str]:
     import numpy as np
 
@@ -318,13 +328,8 @@ def _report_table(r) -> list[str]:
     for i, (n, s_, v, se) in enumerate(zip(r.names, r.start, r.values, r.stderr)):
         if i in skip:
             continue
-        rel = se / abs(v) if v != 0 else float("inf")
-        if np.isfinite(se):
-            se_text = f"{se:11.3g} {rel:10.2e}"
-        else:  # not determined at all, or only in combination with others (a gauge, named below)
-            se_text = f"{'none' if n in undetermined else 'combined':>11s} {'-':>10s}"
         lines.append(
-            f"{n:26s} {s_:11.5g} {v:11.5g} {se_text}"
+            f"{n:26s} {s_:11.5g} {v:11.5g} {_se_text(se, v, n in undetermined)}"
             + (f"  [{r.intervals.bounds[i, 0]:11.5g}, {r.intervals.bounds[i, 1]:11.5g}]" if iv else "")
         )
     if albedo:  # thousands of scalars: a summary here, every value in fit.json
@@ -389,6 +394,25 @@ def _load_views(args, scene):
             )
         views = [eqx.tree_at(lambda s: s.camera, v, ds.load_camera(c)) for v, c in zip(views, camera_paths)]
     return views, view_paths, camera_paths
+
+
+def _fit_inputs(args, scene_path: Path):
+    """``(scene, opts, views, targets, masks, view paths, camera paths, every input path)`` of a
+    fit: from a scene file and target images, or from a photometric-stereo capture folder."""
+    import diffshade as ds
+
+    if scene_path.is_dir():
+        scene, opts, views, tg, masks = _photometric_inputs(args, scene_path)
+        return scene, opts, views, tg, masks, [], [], [scene_path, *tg.paths, scene_path / "mask.png"]
+    if not args.targets:
+        raise InputError(f"{scene_path}: give the target image(s) after the scene file (or a capture folder)")
+    scene, opts = ds.load_scene(scene_path)
+    views, view_paths, camera_paths = _load_views(args, scene)
+    tg = _Targets(args, views)
+    masks, mask_paths = _load_masks(args, tg, views)
+    masks = _undistort(args, tg, masks, views)
+    inputs = [scene_path, *view_paths, *camera_paths, *tg.paths, *mask_paths]
+    return scene, opts, views, tg, masks, view_paths, camera_paths, inputs
 
 
 def _photometric_inputs(args, folder: Path):
@@ -633,23 +657,12 @@ def _write_outputs(args, meta, r, report, comparison, outputs, fitted, rows, enc
 
 
 def cmd_fit(args) -> int:
-    import diffshade as ds
 
     from . import Observations, Optimistix, ParamSet, VarPro, _options, fit
 
     scene_path = Path(args.scene)
-    if scene_path.is_dir():  # a photometric-stereo capture
-        scene, opts, views, tg, masks = _photometric_inputs(args, scene_path)
-        view_paths, camera_paths, mask_paths = [], [], [scene_path / "mask.png"]
-    else:
-        if not args.targets:
-            raise InputError(f"{scene_path}: give the target image(s) after the scene file (or a capture folder)")
-        scene, opts = ds.load_scene(scene_path)
-        views, view_paths, camera_paths = _load_views(args, scene)
-        tg = _Targets(args, views)
-        masks, mask_paths = _load_masks(args, tg, views)
-        masks = _undistort(args, tg, masks, views)
-    outputs = _check_outputs(args, [scene_path, *view_paths, *camera_paths, *tg.paths, *mask_paths])
+    scene, opts, views, tg, masks, view_paths, camera_paths, inputs = _fit_inputs(args, scene_path)
+    outputs = _check_outputs(args, inputs)
     pset = ParamSet(args.free, scene, args.shared or (), n_views=len(tg.images))  # name errors before any compile
     print(
         f"fitting {', '.join(args.free)} to {len(tg.images)} image(s) of {views[0].camera.width}x"
@@ -735,13 +748,7 @@ def _add_fit(sub) -> None:
         "(filenames.txt, light_directions.txt, light_intensities.txt, mask.png, K.txt: docs/photographs.md)",
     )
     p.add_argument("targets", nargs="*", help="target image(s), one per view, each the camera's size")
-    p.add_argument("--mesh", metavar="FILE", help="a capture folder's geometry in the camera frame (default: a sphere)")
-    p.add_argument("--scene-options", metavar="SCENE", help="a capture folder's render options and start material")
-    p.add_argument("--downsample", type=str, metavar="N", help="a capture folder's images sampled every N pixels")
-    p.add_argument("--flip-y", action="store_true", help="a capture folder's light directions have y down")
-    p.add_argument(
-        "--flip-z", action="store_true", help="a capture folder's light directions have z away from the viewer"
-    )
+    _add_fit_capture(p)
     p.add_argument(
         "-p",
         "--free",
@@ -784,6 +791,17 @@ def _add_fit(sub) -> None:
     )
     _add_fit_solve(p)
     p.set_defaults(func=cmd_fit)
+
+
+def _add_fit_capture(p) -> None:
+    """The ``fit`` command's arguments for a photometric-stereo capture folder."""
+    p.add_argument("--mesh", metavar="FILE", help="a capture folder's geometry in the camera frame (default: a sphere)")
+    p.add_argument("--scene-options", metavar="SCENE", help="a capture folder's render options and start material")
+    p.add_argument("--downsample", type=str, metavar="N", help="a capture folder's images sampled every N pixels")
+    p.add_argument("--flip-y", action="store_true", help="a capture folder's light directions have y down")
+    p.add_argument(
+        "--flip-z", action="store_true", help="a capture folder's light directions have z away from the viewer"
+    )
 
 
 def _add_fit_solve(p) -> None:
