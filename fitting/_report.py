@@ -16,10 +16,13 @@ so this estimate is capped at twice its robust counterpart (from the median of t
 differences; at least one code step of an integer target): a residual carried by a few pixels
 with jumps — refracted rays crossing a tile edge, a misplaced silhouette — is not taken for noise
 (:func:`white_noise`). With
-:math:`s^2 = \mathrm{RSS}/(n - p)` over the two-sided residuals, the fit is rejected when
+:math:`s^2 = \mathrm{RSS}/(n - p)` over the two-sided residuals whose model lies more than 3σ
+inside the range the target can read (:func:`candidate`), the fit is rejected when
 :math:`s/\sigma > 1 + 3\sqrt{2/n} + 0.01` (:func:`noise_ratio_limit`: three standard deviations
 of the ratio of two variance estimates; "converged, but the residual is 40× the noise"); its
-standard errors are then marked as not meaningful.
+standard errors are then marked as not meaningful, the report says where the misfit sits
+(:func:`misfit_regions`), and when the restarts returned to the solution, that the model cannot
+explain the images.
 
 **Standard errors** are Gauss–Newton's, :math:`\max(s^2, \sigma^2) (J^T J)^{-1}` in the natural
 parameters with the full (censored) residual at the solution (:math:`\sigma` the verdict's noise
