@@ -8,7 +8,9 @@ Term sets (static, so each is its own compiled program):
 - ``all``: emission, ambient, per-light ambient, Lambert, Blinn–Phong with dielectric Fresnel,
   two-sided with a back material, point + directional + smooth-edged spot light, exp² fog.
 
-The 12 parameters of the jvp/vjp are k_a (RGB), k_d (RGB), k_s (RGB), m, a1, a2 of the first
+The jvp is tangent-major, ``[12, N]``, as the fit computes its Jacobian (``jax.jacfwd``'s
+``[N, 12]`` is timed beside it), with XLA's estimate of the bytes it moves per pixel. The 12
+parameters of the jvp/vjp are k_a (RGB), k_d (RGB), k_s (RGB), m, a1, a2 of the first
 point light (or of nothing for ``diffuse``, whose Jacobian is then mostly zero columns — it is
 timed on the same 12-vector for comparability). Compile time is reported apart from the median
 steady-state time. DEODR (rasterize + Gouraud, optional ``.[bench]`` extra) is measured in the
@@ -129,33 +131,44 @@ def main():
                 full = jax.jit(lambda s: ds.render(s, opts))
                 shade = jax.jit(lambda s, i: ds.render(s, opts, ids=i))
                 img_of = lambda p: ds.render(with_params(scene, p), opts, ids=ids).reshape(-1)  # noqa: E731
-                jac = jax.jit(jax.jacfwd(img_of))  # 12 jvps (vmapped): one LM Jacobian
+                # 12 jvps (vmapped): one LM Jacobian, tangent-major [12, N] as the fit computes it;
+                # jax.jacfwd's [N, 12] layout timed beside it (2.6x slower at 512²: design notes)
+                E = jnp.eye(12, dtype=p0.dtype)
+                jac = jax.jit(lambda p: jax.vmap(lambda e: jax.jvp(img_of, (p,), (e,))[1])(E))  # noqa: B023
+                jacfwd = jax.jit(jax.jacfwd(img_of))
                 ct = jnp.ones(res * res * 3, jnp.float32)
                 vjp = jax.jit(lambda p: jax.vjp(img_of, p)[1](ct)[0])
                 r = {"faces": len(f), "res": res, "terms": terms, "deodr": ref}
                 r["full_c"], r["full"] = timed(full, scene, repeats=args.repeats)
                 r["shade_c"], r["shade"] = timed(shade, scene, ids, repeats=args.repeats)
                 r["jvp_c"], r["jvp"] = timed(jac, p0, repeats=args.repeats)
+                r["jacfwd"] = timed(jacfwd, p0, repeats=args.repeats)[1]
+                cost = jac.lower(p0).compile().cost_analysis()
+                cost = cost[0] if isinstance(cost, list) else cost
+                r["jvp_bytes"] = cost.get("bytes accessed", 0.0) / (res * res)
                 r["vjp_c"], r["vjp"] = timed(vjp, p0, repeats=args.repeats)
                 hlo = full.lower(scene).compile().as_text()
                 r["hlo_lines"] = hlo.count("\n")
                 rows.append(r)
                 print(
                     f"{len(f):6d} faces {res:4d}² {terms:8s} full {r['full']:8.2f} ms (compile {r['full_c']:.2f} s)  "
-                    f"shade {r['shade']:8.2f} ms  jvp×12 {r['jvp']:8.2f} ms  vjp {r['vjp']:8.2f} ms  "
+                    f"shade {r['shade']:8.2f} ms  jvp×12 {r['jvp']:8.2f} ms ({r['jvp_bytes']:.0f} B/px; "
+                    f"jacfwd {r['jacfwd']:.2f} ms)  vjp {r['vjp']:8.2f} ms  "
                     f"program {r['hlo_lines']} HLO lines" + (f"  DEODR {ref:.2f} ms" if ref else ""),
                     flush=True,
                 )
     print(
-        "\n| faces | size | terms | full ms | compile s | shade-only ms | jvp×12 ms | vjp ms | HLO lines | DEODR ms | full/DEODR |"
+        "\n| faces | size | terms | full ms | compile s | shade-only ms | jvp×12 ms | jvp B/px | jacfwd ms | vjp ms "
+        "| HLO lines | DEODR ms | full/DEODR |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         d = r["deodr"]
         ratio = f"{r['full'] / d:.2f}" if d else "-"
         print(
             f"| {r['faces']} | {r['res']}² | {r['terms']} | {r['full']:.2f} | {r['full_c']:.2f} | {r['shade']:.2f} | "
-            f"{r['jvp']:.2f} | {r['vjp']:.2f} | {r['hlo_lines']} | {f'{d:.2f}' if d else '-'} | "
+            f"{r['jvp']:.2f} | {r['jvp_bytes']:.0f} | {r['jacfwd']:.2f} | {r['vjp']:.2f} | {r['hlo_lines']} | "
+            f"{f'{d:.2f}' if d else '-'} | "
             f"{ratio} |"
         )
 
