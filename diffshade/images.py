@@ -51,10 +51,6 @@ class Image:
         """The step between neighbouring codes on the [0, 1] scale (1/255, 1/65535); None for floats."""
         return None if self.bits is None else 1.0 / (2**self.bits - 1)
 
-    @property
-    def channels(self) -> int:
-        return 1 if self.codes.ndim == 2 else self.codes.shape[2]
-
     def values(self) -> np.ndarray:
         """The codes on the [0, 1] scale as float64 (integers over their top code; floats as stored)."""
         if self.bits is None:
@@ -78,8 +74,7 @@ def read_image(path) -> Image:
     try:
         with open(path, "rb") as f:
             head = f.read(8)
-        reader = _reader(path, head)
-        codes, encoding, why = reader(path)
+        codes, encoding, why = _reader(head)(path)
     except ImageError:
         raise
     except color.EncodingError as exc:
@@ -96,7 +91,8 @@ def read_image(path) -> Image:
     return Image(codes, encoding, why, path)
 
 
-def _reader(path: Path, head: bytes):
+def _reader(head: bytes):
+    """The reader of a file that starts with ``head``."""
     if head.startswith(b"\x89PNG\r\n\x1a\n"):
         return _read_png
     if head[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):

@@ -33,16 +33,13 @@ CLIP = 3.5  # the truncation of the robust variance, in robust spreads
 def measured_images(prob, used=None) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Per view, ``[H, W, 3]``: the target in the residual's units (code values × √mask for an
     encoded target; target × weight otherwise) and the used entries (two-sided, weighted)."""
-    images = []
-    for vd, b in zip(prob.data, prob.views):
-        n = len(b.rows)
-        if b.codes is not None:
-            vals = np.asarray(b.codes, np.float64)[:n] * np.asarray(b.sqrt_mask, np.float64)[:n]
-        else:
-            vals = np.asarray(vd.target, np.float64)[:n] * np.asarray(vd.weight, np.float64)[:n]
-        img = np.zeros((b.shape[0] * b.shape[1], 3))
-        img[b.rows] = vals
-        images.append(img.reshape(*b.shape, 3))
+    flat = [
+        np.asarray(b.codes, np.float64) * np.asarray(b.sqrt_mask, np.float64)
+        if b.codes is not None
+        else np.asarray(vd.target, np.float64) * np.asarray(vd.weight, np.float64)
+        for vd, b in zip(prob.data, prob.views)
+    ]
+    images = prob.images_of(np.concatenate([f.reshape(-1) for f in flat]))
     return images, (prob.used_masks() if used is None else used)
 
 
@@ -72,11 +69,11 @@ def robust_variance(d: np.ndarray, floor: float = 0.0) -> float:
     inside = d[np.abs(d) <= thr]
     if thr <= 0 or inside.size == 0:
         return 0.0
-    v = float(np.mean(inside * inside))
+    v = ms = float(np.mean(inside * inside))
     for _ in range(3):  # the truncated Gaussian's variance factor at c = thr/σ, to a fixed point
         c = thr / math.sqrt(max(v, 1e-300))
         kept = math.erf(c / math.sqrt(2)) - 2 * c * math.exp(-c * c / 2) / math.sqrt(2 * math.pi)
-        v = float(np.mean(inside * inside)) / max(kept / math.erf(c / math.sqrt(2)), 1e-3)
+        v = ms / max(kept / math.erf(c / math.sqrt(2)), 1e-3)
     return v
 
 
@@ -111,7 +108,17 @@ def target_noise(prob, used=None) -> tuple[float, int] | None:
     """``(σ, windows)``: the targets' own noise level in the residual's units (the root of the
     expected :math:`\\mathrm{RSS}/n` at the truth), from the 3×3 windows of used pixels; None
     when a channel has fewer than :data:`MIN_WINDOWS` of them. ``used``: per view ``[H, W, 3]``
-    masks of the entries to use (default: :meth:`fitting._problem.Problem.used_masks`)."""
+    masks of the entries to use (default: :meth:`fitting._problem.Problem.used_masks`, whose
+    estimate is kept with the problem: the targets do not change during a fit, and every
+    candidate solution asks for it)."""
+    if used is None:
+        if "target noise" not in prob._memo:
+            prob._memo["target noise"] = _target_noise(prob, None)
+        return prob._memo["target noise"]
+    return _target_noise(prob, used)
+
+
+def _target_noise(prob, used):
     images, used = measured_images(prob, used)
     per = [details(img, u) for img, u in zip(images, used)]
     floor = 2.0 * (prob.quantum or 0.0)  # a code step or two: where discrete codes make the median 0

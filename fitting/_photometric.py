@@ -253,9 +253,8 @@ def frame_check(capture: Capture) -> dict:
             cs = []
             for v, t in zip(capture.views, capture.targets):
                 d = np.asarray(v.directional.direction, np.float64)
-                # the view's direction back in the capture frame, then flipped the other way
-                back = -d * np.array([1.0, -1.0, -1.0])
-                alt = to_camera_frame(back * np.array([1.0, -1.0 if flip_y else 1.0, -1.0 if flip_z else 1.0]))
+                # the view's direction back in the capture frame, then read with the flips
+                alt = to_camera_frame(-d * np.array([1.0, -1.0, -1.0]), flip_y, flip_z)
                 s = eqx.tree_at(
                     lambda s: (s.material, s.directional.direction, s.directional.color),
                     v,

@@ -393,6 +393,8 @@ class Problem:
     devices: tuple = ()  # the devices the views are sharded over (() or one: no sharding)
     lower: bool = False  # entries at 0 of an integer target are censored from below
     _placed: dict = field(default_factory=dict, repr=False)  # device copies of the data, by what
+    # host summaries of the targets, which a fit does not change (fitting._noise.target_noise)
+    _memo: dict = field(default_factory=dict, repr=False)
 
     @classmethod
     def build(
@@ -581,13 +583,11 @@ class Problem:
     def counts(self):
         """``(n_two_sided, n_censored)``: residual entries with non-zero weight on covered pixels
         (the uncovered ones do not depend on the parameters and are left out of the statistics)."""
-        n, c = 0, 0
+        c = 0
         for vd in self.data:
             w = np.broadcast_to(np.asarray(vd.weight) > 0, vd.hi.shape)
-            cens = np.asarray(vd.hi | vd.lo)
-            n += int((w & ~cens).sum())
-            c += int((w & cens).sum())
-        return n, c
+            c += int((w & np.asarray(vd.hi | vd.lo)).sum())
+        return int(self.two_sided().sum()), c
 
     def two_sided(self) -> np.ndarray:
         """Flat, in :meth:`residual`'s order: the entries with non-zero weight whose target is not
@@ -621,15 +621,15 @@ class Problem:
             out.append(ok.reshape(-1))
         return np.concatenate(out)
 
-    def images_of(self, flat) -> list[np.ndarray]:
-        """A flat per-entry array (:meth:`residual`'s order) placed into ``[H, W, 3]`` images
-        (zero / False on the pixels that are not compacted)."""
+    def images_of(self, flat, fill=None) -> list[np.ndarray]:
+        """A flat per-entry array (:meth:`residual`'s order) placed into ``[H, W, 3]`` images;
+        elsewhere ``fill(view_data, book)`` (an ``[H·W, 3]`` array), default zero / False."""
         out, off = [], 0
         for vd, b in zip(self.data, self.views):
             n = vd.target.shape[0]
             v = np.asarray(flat[off * 3 : (off + n) * 3]).reshape(n, 3)[: len(b.rows)]
             off += n
-            img = np.zeros((b.shape[0] * b.shape[1], 3), v.dtype)
+            img = np.zeros((b.shape[0] * b.shape[1], 3), v.dtype) if fill is None else fill(vd, b)
             img[b.rows] = v
             out.append(img.reshape(*b.shape, 3))
         return out
@@ -637,37 +637,18 @@ class Problem:
     def residual_images(self, r_flat) -> list[np.ndarray]:
         """The flat compacted residual scattered back into ``[H, W, 3]`` images (with the constant
         part of the uncovered pixels)."""
-        out, off = [], 0
-        for vd, b in zip(self.data, self.views):
-            n = vd.target.shape[0]
-            r = np.asarray(r_flat[off * 3 : (off + n) * 3], np.float64).reshape(n, 3)[: len(b.rows)]
-            off += n
-            img = b.const.copy().reshape(-1, 3)
-            img[b.rows] = r
-            out.append(img.reshape(*b.shape, 3))
-        return out
+        return self.images_of(np.asarray(r_flat, np.float64), lambda vd, b: b.const.copy().reshape(-1, 3))
 
     def full_images(self, img_flat) -> list[np.ndarray]:
         """The model at the compacted pixels (flat, as :meth:`residual` orders them) placed into
         ``[H, W, 3]`` images, the background elsewhere (what :func:`diffshade.render` gives)."""
-        out, off = [], 0
-        for vd, b in zip(self.data, self.views):
-            n = vd.target.shape[0]
-            m = np.asarray(img_flat[off * 3 : (off + n) * 3], np.float64).reshape(n, 3)[: len(b.rows)]
-            off += n
+
+        def background(vd, b):
             bg = np.asarray(vd.scene.background, np.float64) * np.asarray(vd.scene.camera.gain(), np.float64)
-            img = np.broadcast_to(bg, (b.shape[0] * b.shape[1], 3)).copy()
-            img[b.rows] = m
-            out.append(img.reshape(*b.shape, 3))
-        return out
+            return np.broadcast_to(bg, (b.shape[0] * b.shape[1], 3)).copy()
+
+        return self.images_of(np.asarray(img_flat, np.float64), background)
 
     def used_masks(self) -> list[np.ndarray]:
         """Per view ``[H, W, 3]`` bool: the residuals of covered pixels that are two-sided and weighted."""
-        out = []
-        for vd, b in zip(self.data, self.views):
-            m = np.zeros((b.shape[0] * b.shape[1], 3), bool)
-            w = np.broadcast_to(np.asarray(vd.weight) > 0, vd.hi.shape)[: len(b.rows)]
-            cens = np.asarray(vd.hi | vd.lo)[: len(b.rows)]
-            m[b.rows] = w & ~cens
-            out.append(m.reshape(*b.shape, 3))
-        return out
+        return self.images_of(self.two_sided())

@@ -404,10 +404,10 @@ def _combination(v, pivot, members, cov, theta, labels) -> str:
         u = np.array([v[i] / theta[i] for i in members])
         if np.all(np.abs(np.abs(u) / np.abs(u).max() - 1) < 0.05):
             parts = []
+            jp = members.index(pivot)
             for j, i in enumerate(members):
                 if i == pivot:
                     continue
-                jp = members.index(pivot)
                 sign = -1.0 if u[j] * u[jp] < 0 else 1.0  # opposite scalings: their product is seen
                 q = theta[pivot] * theta[i] ** (-sign)
                 g = np.zeros(len(theta))
@@ -482,15 +482,13 @@ def candidate(prob, p, res, n2, noise) -> Candidate:
     # at 1.056× the noise with them, 1.005× without); nor is an entry whose model lies within
     # 3σ of a clip level (what is read there is the noise truncated: 15-25 % of the entries at
     # 0, fits at the truth were rejected at 1.1-1.4× the noise)
-    keep = prob.two_sided()
+    two = keep = prob.two_sided()
     inside = prob.inside_range(img, 3.0 * sigma)
-    if inside is not None and int((keep & inside).sum()) > len(theta) + 10 and not (keep <= inside).all():
-        keep = keep & inside
+    if inside is not None and int((two & inside).sum()) > len(theta) + 10 and not (two <= inside).all():
+        keep = two & inside
         if noise is None:
-            sigma, source = noise_level(
-                prob, res_images, None, [u & b for u, b in zip(prob.used_masks(), prob.images_of(inside))]
-            )
-        source += f"; {int((prob.two_sided() & ~inside).sum())} entries within 3σ of a clip level left out"
+            sigma, source = noise_level(prob, res_images, None, prob.images_of(keep))
+        source += f"; {int((two & ~inside).sum())} entries within 3σ of a clip level left out"
     r2 = np.asarray(r)[keep]
     s2 = float(r2 @ r2) / max(int(keep.sum()) - len(theta), 1)
     return Candidate(

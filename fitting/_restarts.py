@@ -76,7 +76,7 @@ def _restart_loop(driver, restarts: int, n2: int):
 def _same_point(a: Attempt, best: Candidate, best_u) -> bool:
     """Whether attempt ``a`` reached ``best``'s solution: its χ² within one noise variance of the
     best's, and its nonlinear scalars within 0.05 of them (in the solver's unbounded coordinates)."""
-    close = best_u is None or not len(best_u) or float(np.max(np.abs(a.u - best_u))) < 0.05
+    close = not len(best_u) or float(np.max(np.abs(a.u - best_u))) < 0.05
     return close and abs(a.cand.rss - best.rss) <= max(best.sigma, a.cand.sigma) ** 2
 
 

@@ -69,7 +69,6 @@ def load_target(
         enc, why = "linear", f"{image.why}: read as linear (pass --encoding srgb for a photograph)"
     else:
         enc, why = image.encoding, image.why
-    img = np.asarray(img, np.float64)
     h, w = resolution
     alpha = None
     if with_alpha and img.ndim == 3 and img.shape[2] == 4:
@@ -486,7 +485,7 @@ class _Targets:
         self.encodings = [e for *_, e, _ in loaded]
         self.alphas = [a for *_, a in loaded]
         for t, (enc, why) in zip(self.paths, self.encodings):
-            undeclared = why.startswith("no sRGB")
+            undeclared = "read as linear" in why  # a file that declares no encoding (load_target)
             print(f"{'warning: ' if undeclared else ''}{t}: {enc} ({why})")
 
 
