@@ -41,6 +41,7 @@ from ._scene import (
 from ._shade import blinn_to_phong, phong_to_blinn
 from ._surface import Needs, Sites, Surface, needs, surface_points
 from ._trace import secondary_rays
+from ._texture import Texture, mip_pyramid, texture_from_image
 from ._util import keep
 from .images import Image, ImageError, read_image, write_image
 
@@ -56,6 +57,9 @@ __all__ = [
     "Fog",
     "Fragments",
     "Material",
+    "Texture",
+    "texture_from_image",
+    "mip_pyramid",
     "Mesh",
     "MeshError",
     "MultiLobeLights",

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
@@ -301,6 +302,11 @@ def illuminate(
     to_px = sites.to_pixels
 
     def side(normal, mat, back):
+        if sites.modulate:  # mapped colour fields: each field's terms apart, times its texels
+            return _modulated_side(side_of, sites.modulate, normal, mat, back)
+        return side_of(normal, mat, back)
+
+    def side_of(normal, mat, back):
         if to_px is None:  # the sites are the pixels
             return shade_points(sites.points, normal, eye, mat, scene, lighting, back, visibility, separate=separate)
         if visibility is None:
@@ -338,3 +344,24 @@ def _vertex_clamp(col, output: Output):
 def _color_sum(col):
     """The primary plus the secondary colour (``color_sum = "separate"``: 6 components), else ``col``."""
     return tuple(col[k] + col[k + 3] for k in range(3)) if len(col) == 6 else tuple(col)
+
+
+_COLOUR_FIELDS = ("emission", "ambient", "diffuse", "specular", "transmission")
+
+
+def _modulated_side(side, modulate: dict, normal, mat: Material, back: bool):
+    """One side's colour at the pixels when colour fields have texture maps (Gouraud, flat): the
+    colour is linear in each colour field, so the terms of each mapped field are lit apart (the
+    others zero), brought to the pixels, and multiplied there by the field's texels; the rest is
+    lit once with the mapped fields zero. (With ``clamp = "vertex"`` each part is clamped apart.)"""
+
+    def only(keep_fields):
+        zero = {f: jnp.zeros_like(getattr(mat, f)) for f in _COLOUR_FIELDS if f not in keep_fields}
+        return eqx.tree_at(lambda m: tuple(getattr(m, f) for f in zero), mat, tuple(zero.values()))
+
+    rest = [f for f in _COLOUR_FIELDS if f not in modulate]
+    color = side(normal, only(rest), back)
+    for f, tex in modulate.items():
+        part = side(normal, only((f,)), back)
+        color = tuple(c + t * p for c, t, p in zip(color, tex, part))
+    return color

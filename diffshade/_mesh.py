@@ -32,6 +32,8 @@ class Mesh(eqx.Module):
     :meth:`vertex_normals` returns them, normalised, instead of computing them; they are data
     (they do not follow the vertices in a fit that moves them). ``colors`` (optional, one linear
     RGB per vertex) are per-vertex reflectances, used where ``RenderOptions.vertex_color`` asks.
+    ``uv`` (optional, one ``(u, v)`` per vertex, :math:`v = 0` at the bottom of a map) are the
+    texture coordinates a material's maps are sampled at (OBJ ``vt``; docs/model.md §15).
     ``adjacency`` (optional, one row per face) is the face across each edge
     (:func:`diffshade.face_adjacency`), which ``RenderOptions.antialias`` needs: computed from the
     faces where they are concrete, or beforehand with :meth:`with_adjacency` for a mesh passed
@@ -48,6 +50,9 @@ class Mesh(eqx.Module):
         converter=lambda x: None if x is None else as_float_array(x), default=None
     )
     adjacency: Int[Array, "F 3"] | None = eqx.field(converter=_ids, default=None)
+    uv: Float[Array, "V 2"] | None = eqx.field(
+        converter=lambda x: None if x is None else as_float_array(x), default=None
+    )
 
     def __check_init__(self):
         nv = self.vertices.shape[0]
@@ -59,6 +64,8 @@ class Mesh(eqx.Module):
             x = getattr(self, name)
             if x is not None and x.shape != (nv, 3):
                 raise ValueError(f"Mesh.{name} must be shaped ({nv}, 3), one per vertex, got {x.shape}")
+        if self.uv is not None and self.uv.shape != (nv, 2):
+            raise ValueError(f"Mesh.uv must be shaped ({nv}, 2), one (u, v) per vertex, got {self.uv.shape}")
 
     def with_adjacency(self) -> "Mesh":
         """This mesh with its :attr:`adjacency` computed (on the host, from the faces)."""

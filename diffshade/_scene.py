@@ -18,8 +18,12 @@ from jaxtyping import Array, Float
 from ._camera import Camera
 from ._domains import check_scene, is_concrete
 from ._mesh import Mesh
+from ._texture import Texture
 from ._util import as_float_array
 from ._util import rgb_array as _rgb
+
+
+MAPPED_FIELDS = ("emission", "ambient", "diffuse", "specular", "shininess", "opacity")
 
 
 def _rows(n: int):
@@ -44,6 +48,11 @@ class Material(eqx.Module):
     ``specular`` :math:`k_s`, ``shininess`` :math:`m > 0` (Phong exponent; Blinn–Phong uses
     it as :math:`m'` directly, see :func:`diffshade.phong_to_blinn`), ``ior`` :math:`\eta`
     (for the Fresnel-weighted specular and the refraction of directed transmission).
+
+    Texture maps (docs/model.md §15): ``emission_map``, ``ambient_map``, ``diffuse_map``,
+    ``specular_map``, ``shininess_map`` and ``opacity_map`` (each a :class:`diffshade.Texture`, or
+    None) multiply their field per pixel at the mesh's texture coordinates (``Mesh.uv``); the
+    ambient term follows the diffuse map unless it has its own.
 
     Transparency and transmission (docs/model.md §2, §5; used only where :class:`RenderOptions` turns
     them on): ``opacity`` :math:`t \in [0, 1]` (1 opaque, 0 invisible); with ``kay=True``
@@ -82,6 +91,21 @@ class Material(eqx.Module):
     refraction: Float[Array, "3"] = eqx.field(converter=_rgb, default=(0.0, 0.0, 0.0))
     kay: bool = eqx.field(static=True, default=False)
     casts_shadow: bool = eqx.field(static=True, default=True)
+    emission_map: Texture | None = None
+    ambient_map: Texture | None = None
+    diffuse_map: Texture | None = None
+    specular_map: Texture | None = None
+    shininess_map: Texture | None = None
+    opacity_map: Texture | None = None
+
+    def maps(self, fields=None) -> dict:
+        """The texture map of each field that has one (docs/model.md §15): ``{field: Texture}``,
+        the ambient term tied to the diffuse map unless it has its own (OpenGL's ``GL_MODULATE``,
+        and the MTL convention); only the ``fields`` asked for (default: all)."""
+        out = {f: getattr(self, f + "_map") for f in MAPPED_FIELDS}
+        if out["ambient"] is None:
+            out["ambient"] = self.diffuse_map
+        return {f: t for f, t in out.items() if t is not None and (fields is None or f in fields)}
 
     @classmethod
     def opengl(cls, **fields) -> Material:

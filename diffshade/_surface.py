@@ -17,7 +17,7 @@ material, and (where asked) its position and normal.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -28,6 +28,7 @@ from ._materials import _COMPOSITING_FIELDS, _MATERIAL_FIELDS, _material_at
 from ._options import Raster, RenderOptions
 from ._raster import Fragments, _pixel_vertex_ids, interpolate
 from ._scene import Material, Scene
+from ._texture import footprint, level_of_detail, pixel_derivatives, sample
 from ._util import keep
 
 Components = tuple  # a vector or colour as a tuple of same-shaped arrays, one per component
@@ -75,13 +76,17 @@ def needs(opts: RenderOptions) -> Needs:
 class Sites:
     """Where the lighting is evaluated: ``points`` with unit ``normal`` (front side; the back
     side is lit with the reversed normal), their front and back materials, and ``to_pixels``, the
-    linear map of a colour at the sites to the pixels (``None``: the sites are the pixels)."""
+    linear map of a colour at the sites to the pixels (``None``: the sites are the pixels);
+    ``modulate``: per colour field with a texture map, its texels at the pixels (component
+    tuples), by which that field's terms are multiplied after ``to_pixels`` (the sites' material
+    holds the field's constant)."""
 
     points: Components
     normal: Components
     material: Material
     back_material: Material
     to_pixels: Callable[[Components], Components] | None
+    modulate: dict | None = None
 
 
 @dataclass(frozen=True)
@@ -168,6 +173,9 @@ def surface_points(
     need = Needs(need.fields, need.positions, need.kay and any(kay))
     build = {"phong": _phong_sites, "gouraud": _gouraud_sites, "flat": _flat_sites}[raster.shading]
     sites, normal, pmat = build(scene, raster, need, frags, bary, multi, pmat, back, position)
+    maps = [m.maps(need.fields) for m in mats] + [scene.back_material.maps() if scene.back_material else {}]
+    if any(maps):
+        sites, pmat = _textured(scene, raster, need, frags, bary, clip, multi, sites, pmat)
     return Surface(
         frags=frags,
         valid=valid,
@@ -248,3 +256,65 @@ def _flat_sites(scene, raster, need, frags, bary, multi, pmat, back, position):
 
     normal = tuple(c[safe_tid] for c in S.vec(mesh.face_normals())) if need.kay else None
     return Sites(pts, nrm, fmat, fback, to_pixels), normal, pmat
+
+
+_SCALAR_MAPS = ("shininess", "opacity")
+
+
+def _texels(scene: Scene, need: Needs, frags: Fragments, bary, clip) -> dict:
+    """Each used map's texels at the pixels, ``{field: components}`` (one component for the
+    shininess and opacity, three for colours; a one-channel colour map is grey)."""
+    mesh, cam = scene.mesh, scene.camera
+    maps = scene.material.maps(need.fields)
+    if mesh.uv is None:
+        raise ValueError(f"the material has texture maps ({', '.join(f + '_map' for f in maps)}) but the mesh has no texture coordinates (Mesh.uv)")
+    lerp = _lerp(frags, mesh.faces, bary)
+    u, v = lerp((mesh.uv[:, 0], mesh.uv[:, 1]))
+    deriv = None
+    if any(t.filter == "trilinear" for t in maps.values()):
+        per_face = footprint(clip, mesh.faces)
+        deriv = pixel_derivatives(per_face, mesh.uv[mesh.faces], frags.tri_id, frags.w, u, v, cam.width, cam.height)
+    done, out = {}, {}
+    for f, t in maps.items():
+        if f in _SCALAR_MAPS and t.channels != 1:
+            raise ValueError(f"Material.{f}_map must have one channel, got {t.channels}")
+        if id(t) not in done:
+            lod = level_of_detail(t, *deriv) if t.filter == "trilinear" else None
+            smp = sample(t, u, v, lod)
+            done[id(t)] = keep(*(smp[..., c] for c in range(t.channels)))
+        c = done[id(t)]
+        out[f] = c if (f in _SCALAR_MAPS or len(c) == 3) else c * 3
+    return out
+
+
+def _modulated(mat: Material, texels: dict) -> Material:
+    """``mat`` with each field in ``texels`` multiplied by its texels (per pixel)."""
+    if not texels:
+        return mat
+    new = {}
+    for f, t in texels.items():
+        base = getattr(mat, f)
+        if f in _SCALAR_MAPS:
+            new[f] = base * t[0]
+        else:
+            new[f] = jnp.stack([base[..., c] * t[c] for c in range(3)], axis=-1)
+    return eqx.tree_at(lambda m: tuple(getattr(m, f) for f in new), mat, tuple(new.values()))
+
+
+def _textured(scene, raster, need, frags, bary, clip, multi, sites: Sites, pmat: Material):
+    """The sites and pixel material with the scene's texture maps applied: per pixel in Phong
+    shading (the material at each pixel), and for Gouraud and flat shading each mapped colour
+    field's terms multiplied by its texels after interpolation (:attr:`Sites.modulate`)."""
+    if multi or scene.back_material is not None:
+        raise ValueError("texture maps apply to a one-material scene without a back material (for now)")
+    texels = _texels(scene, need, frags, bary, clip)
+    if raster.shading == "phong":
+        m = _modulated(sites.material, texels)
+        return replace(sites, material=m, back_material=m), m
+    if "shininess" in texels:
+        raise ValueError(
+            f"a shininess map needs Phong shading ({raster.shading} shading lights the vertices or faces, not the pixels)"
+        )
+    colour = {f: t for f, t in texels.items() if f not in _SCALAR_MAPS}
+    pixel = {f: t for f, t in texels.items() if f in _SCALAR_MAPS}
+    return replace(sites, modulate=colour or None), _modulated(pmat, pixel)

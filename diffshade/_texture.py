@@ -1,0 +1,191 @@
+r"""Texture maps for the material terms (docs/model.md §15): a map multiplies its material field.
+
+A :class:`Texture` is an image of linear values, row 0 at the top, sampled at texture coordinates
+:math:`(u, v)` with :math:`v = 0` at the bottom (the OBJ and OpenGL convention; the texel
+centres lie at :math:`((i + \tfrac12)/W,\ 1 - (j + \tfrac12)/H)`). Sampling is OpenGL's:
+
+- ``filter = "bilinear"``: ``GL_LINEAR``, the four nearest texels of the map;
+- ``filter = "trilinear"`` (the default): ``GL_LINEAR_MIPMAP_LINEAR`` for minification and
+  ``GL_LINEAR`` for magnification. The mipmap pyramid is built by 2×2 box averages
+  (``glGenerateMipmap``; an odd row or column is repeated first, so every texel is averaged with
+  its neighbour or itself), and the level of detail is :math:`\lambda = \log_2 \rho`,
+  :math:`\rho = \max(|\partial(u W, v H)/\partial x|, |\partial(u W, v H)/\partial y|)` per
+  pixel, with the exact derivatives of the perspective-correct coordinates (a GPU takes
+  differences between neighbouring pixels of a 2×2 quad). Two levels are blended by the
+  fractional part of :math:`\lambda`.
+
+Gradients: a sample is linear in the texels (bilinear weights, box-filter pyramid, the blend
+of two levels), so the gradient with respect to a texel is the sum of the weights it received
+over the pixels; with respect to the coordinates it is the bilinear slope (and through the
+level of detail, the blend's slope: both piecewise smooth, with jumps where a texel index or
+a level changes).
+
+``wrap = "repeat"`` (``GL_REPEAT``) or ``"clamp"`` (``GL_CLAMP_TO_EDGE``).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._util import as_float_array
+
+WRAPS = ("repeat", "clamp")
+FILTERS = ("trilinear", "bilinear")
+
+
+def _texels(x):
+    x = as_float_array(x)
+    return x[..., None] if jnp.ndim(x) == 2 else x
+
+
+class Texture(eqx.Module):
+    """A map ``texels`` ``[H, W, C]`` (``C`` 1 or 3; ``[H, W]`` is one channel) of linear values,
+    row 0 at the top; ``wrap`` and ``filter`` are static (part of the compiled program). The
+    texels are traced data: differentiable, and a new map of the same size compiles nothing."""
+
+    texels: Float[Array, "H W C"] = eqx.field(converter=_texels)
+    wrap: str = eqx.field(static=True, default="repeat")
+    filter: str = eqx.field(static=True, default="trilinear")
+
+    def __check_init__(self):
+        t = self.texels
+        if jnp.ndim(t) != 3 or t.shape[-1] not in (1, 3) or t.shape[0] < 1 or t.shape[1] < 1:
+            raise ValueError(f"Texture.texels must be shaped (H, W), (H, W, 1) or (H, W, 3), got {jnp.shape(t)}")
+        if self.wrap not in WRAPS:
+            raise ValueError(f"Texture.wrap must be one of {WRAPS}, got {self.wrap!r}")
+        if self.filter not in FILTERS:
+            raise ValueError(f"Texture.filter must be one of {FILTERS}, got {self.filter!r}")
+
+    @property
+    def channels(self) -> int:
+        return int(self.texels.shape[-1])
+
+    def levels(self) -> list:
+        """The mipmap pyramid, level 0 first (one level without mipmapped filtering)."""
+        return mip_pyramid(self.texels) if self.filter == "trilinear" else [self.texels]
+
+
+def mip_pyramid(texels) -> list:
+    """Levels of 2×2 box averages down to 1×1 (an odd row or column repeated first)."""
+    out = [texels]
+    t = texels
+    while t.shape[0] > 1 or t.shape[1] > 1:
+        h, w = t.shape[:2]
+        if h > 1:
+            if h % 2:
+                t = jnp.concatenate([t, t[-1:]], axis=0)
+            t = 0.5 * (t[0::2] + t[1::2])
+        if w > 1:
+            if w % 2:
+                t = jnp.concatenate([t, t[:, -1:]], axis=1)
+            t = 0.5 * (t[:, 0::2] + t[:, 1::2])
+        out.append(t)
+    return out
+
+
+def _packed(levels):
+    """The levels flattened into one ``[N, C]`` array, with each level's offset, width, height."""
+    flat = jnp.concatenate([lv.reshape(-1, lv.shape[-1]) for lv in levels])
+    sizes = np.array([[lv.shape[1], lv.shape[0]] for lv in levels], np.int32)
+    offs = np.concatenate([[0], np.cumsum(sizes[:, 0] * sizes[:, 1])[:-1]]).astype(np.int32)
+    return flat, offs, sizes
+
+
+def _wrap(i, n, mode: str):
+    return jnp.mod(i, n) if mode == "repeat" else jnp.clip(i, 0, n - 1)
+
+
+def _bilinear(flat, off, w, h, u, v, wrap: str):
+    """Bilinear samples ``[..., C]`` of the level at ``off`` (``w × h`` texels) at ``(u, v)``."""
+    x = u * w - 0.5
+    y = (1.0 - v) * h - 0.5
+    x0f, y0f = jnp.floor(x), jnp.floor(y)
+    fx, fy = (x - x0f)[..., None], (y - y0f)[..., None]
+    x0, y0 = x0f.astype(jnp.int32), y0f.astype(jnp.int32)
+    xs = (_wrap(x0, w, wrap), _wrap(x0 + 1, w, wrap))
+    ys = (_wrap(y0, h, wrap), _wrap(y0 + 1, h, wrap))
+    t = [[flat[off + ys[j] * w + xs[i]] for i in range(2)] for j in range(2)]
+    top = t[0][0] + fx * (t[0][1] - t[0][0])
+    bottom = t[1][0] + fx * (t[1][1] - t[1][0])
+    return top + fy * (bottom - top)
+
+
+def level_of_detail(tex: Texture, duv_dx, duv_dy):
+    r""":math:`\lambda = \log_2\rho` from the coordinates' derivatives per pixel (``(du, dv)``
+    tuples), in level-0 texels; finite where the footprint is zero (:math:`\lambda` very negative)."""
+    h, w = tex.texels.shape[:2]
+    rx = (duv_dx[0] * w) ** 2 + (duv_dx[1] * h) ** 2
+    ry = (duv_dy[0] * w) ** 2 + (duv_dy[1] * h) ** 2
+    r2 = jnp.maximum(rx, ry)
+    ok = r2 > 1e-30
+    return jnp.where(ok, 0.5 * jnp.log2(jnp.where(ok, r2, 1.0)), -100.0)
+
+
+def sample(tex: Texture, u, v, lod=None) -> Float[Array, "... C"]:
+    """The map at coordinates ``(u, v)`` (arrays of one shape) with the level of detail ``lod``
+    (:func:`level_of_detail`; needed by ``filter = "trilinear"``, ignored by ``"bilinear"``)."""
+    levels = tex.levels()
+    flat, offs, sizes = _packed(levels)
+    if len(levels) == 1 or lod is None:
+        return _bilinear(flat, 0, int(sizes[0, 0]), int(sizes[0, 1]), u, v, tex.wrap)
+    top = len(levels) - 1
+    d = jnp.clip(lod, 0.0, float(top))
+    lo = jnp.minimum(jnp.floor(d).astype(jnp.int32), top)
+    hi = jnp.minimum(lo + 1, top)
+    frac = (d - lo)[..., None]
+    offs_j, w_j, h_j = jnp.asarray(offs), jnp.asarray(sizes[:, 0]), jnp.asarray(sizes[:, 1])
+    a = _bilinear(flat, offs_j[lo], w_j[lo], h_j[lo], u, v, tex.wrap)
+    b = _bilinear(flat, offs_j[hi], w_j[hi], h_j[hi], u, v, tex.wrap)
+    return a + frac * (b - a)
+
+
+def texture_from_image(path, encoding: str | None = None, wrap: str = "repeat", filter: str = "trilinear") -> Texture:
+    """A :class:`Texture` from an image file, decoded to linear values by its declared encoding
+    (``encoding`` overrides it; a file that declares none is read as sRGB, what an 8-bit map in
+    a material file is). Alpha is dropped; a grey image stored as RGB stays RGB."""
+    from .images import read_image
+
+    img = read_image(path)
+    enc = encoding or img.encoding or ("srgb" if img.bits is not None else "linear")
+    lin = np.asarray(img.linear(enc), np.float64)
+    if lin.ndim == 3 and lin.shape[-1] in (2, 4):  # grey + alpha, RGB + alpha
+        lin = lin[..., :-1]
+    if lin.ndim == 3 and lin.shape[-1] not in (1, 3):
+        raise ValueError(f"{path}: a texture map needs 1 or 3 channels (4 with alpha), got {lin.shape[-1]}")
+    return Texture(lin, wrap=wrap, filter=filter)
+
+
+def footprint(clip, faces):
+    r"""Per face, the terms of the exact derivatives of perspective-correct coordinates
+    (:func:`pixel_derivatives`): with the edge functions
+    :math:`E_i = c_i + x a_i + y b_i` of a triangle (clip-space vertices, as
+    :func:`diffshade.fragments`), :math:`\sum_i E_i = \det / w` and
+    :math:`\partial u/\partial x = (\sum_i a_i u_i - u \sum_i a_i)\, w / \det`; returns
+    ``(a, b, det)``."""
+    tri = clip[faces]
+    X, Y, W = tri[..., 0], tri[..., 1], tri[..., 3]
+    ax = [W[:, (i + 2) % 3] * Y[:, (i + 1) % 3] - W[:, (i + 1) % 3] * Y[:, (i + 2) % 3] for i in range(3)]
+    ay = [X[:, (i + 2) % 3] * W[:, (i + 1) % 3] - X[:, (i + 1) % 3] * W[:, (i + 2) % 3] for i in range(3)]
+    det = X[:, 0] * (Y[:, 1] * W[:, 2] - Y[:, 2] * W[:, 1]) - Y[:, 0] * (X[:, 1] * W[:, 2] - X[:, 2] * W[:, 1])
+    det = det + W[:, 0] * (X[:, 1] * Y[:, 2] - X[:, 2] * Y[:, 1])
+    return ax, ay, det
+
+
+def pixel_derivatives(per_face, uvf, tri_id, w_pix, u, v, width: int, height: int):
+    """:func:`footprint`'s per-face terms gathered to the pixels: the coordinates' derivatives
+    per pixel step, ``((du/dx, dv/dx), (du/dy, dv/dy))``."""
+    ax, ay, det = per_face
+    valid = tri_id >= 0
+    tid = jnp.where(valid, tri_id, 0)
+    cols = [sum(ax[i] * uvf[:, i, c] for i in range(3)) for c in range(2)]
+    cols += [sum(ay[i] * uvf[:, i, c] for i in range(3)) for c in range(2)]
+    cols += [ax[0] + ax[1] + ax[2], ay[0] + ay[1] + ay[2], det]
+    g = jnp.stack(cols, -1)[tid]
+    Axu, Axv, Ayu, Ayv, Sx, Sy, dt = (g[..., k] for k in range(7))
+    ok = valid & (dt != 0)
+    scale = jnp.where(ok, w_pix / jnp.where(ok, dt, 1.0), 0.0)
+    sx, sy = scale * (2.0 / width), scale * (2.0 / height)
+    return ((Axu - u * Sx) * sx, (Axv - v * Sx) * sx), ((Ayu - u * Sy) * sy, (Ayv - v * Sy) * sy)

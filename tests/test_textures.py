@@ -1,0 +1,199 @@
+"""Texture maps (docs/model.md §15): sampling against an independent brute-force reference (ray
+and plane, finite-difference footprint, a pyramid and trilinear filter written out in numpy),
+constant maps against constant materials in every shading mode, the terms each map multiplies,
+gradients, and what a loader and a scene must refuse."""
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import check_grads
+
+import diffshade as ds
+
+SIZE = 40
+
+
+def _plane_scene(texture, repeat=4.0, size=SIZE, field="emission", eye=(0.0, -0.4, 2.6), offset=-0.3):
+    """A 2×2 square tilted away from the camera (its far part minified, its near part
+    magnified), texture coordinates ``repeat`` times over it from ``offset``, lit by ``field``'s
+    term alone."""
+    p0 = np.array([-1.0, -1.0, 0.6])
+    e1 = np.array([2.0, 0.0, 0.0])
+    e2 = np.array([0.0, 2.0, -2.4])
+    ab = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
+    v = p0 + ab[:, :1] * e1 + ab[:, 1:] * e2
+    mesh = ds.Mesh(vertices=v, faces=[[0, 1, 2], [0, 2, 3]], uv=ab * repeat + offset)
+    cam = ds.Camera(eye=eye, target=[0, 0, 0], up=[0, 1, 0], fov_y=50.0, near=0.3, far=10.0, width=size, height=size)
+    mat = ds.Material(emission=1.0, ambient=0.0, diffuse=0.0, specular=0.0, **{field + "_map": texture})
+    scene = ds.Scene(mesh=mesh, camera=cam, material=mat, background=(0.0, 0.0, 0.0), ambient_light=0.0)
+    return scene, (p0, e1, e2)
+
+
+def _reference(scene, plane, texels, repeat, wrap="repeat", offset=-0.3):
+    """Brute force: each pixel centre's ray meets the plane; its coordinates, their derivatives by
+    central differences, and OpenGL's LINEAR_MIPMAP_LINEAR filter over a numpy pyramid."""
+    cam = scene.camera
+    h, w = cam.height, cam.width
+    M = np.asarray(cam.projection_matrix() @ cam.view_matrix(), np.float64)
+    Minv = np.linalg.inv(M)
+    p0, e1, e2 = plane
+    n = np.cross(e1, e2)
+
+    def ab_at(x, y):
+        a = Minv @ [x, y, -1.0, 1.0]
+        b = Minv @ [x, y, 1.0, 1.0]
+        a, b = a[:3] / a[3], b[:3] / b[3]
+        d = b - a
+        t = np.dot(p0 - a, n) / np.dot(d, n)
+        q = a + t * d - p0
+        G = np.array([[e1 @ e1, e1 @ e2], [e1 @ e2, e2 @ e2]])
+        return np.linalg.solve(G, [q @ e1, q @ e2])
+
+    pyr = [texels]
+    while pyr[-1].shape[0] > 1:
+        t = pyr[-1]
+        pyr.append(0.25 * (t[0::2, 0::2] + t[1::2, 0::2] + t[0::2, 1::2] + t[1::2, 1::2]))
+
+    def bilinear(t, u, v):
+        th, tw = t.shape[:2]
+        x, y = u * tw - 0.5, (1 - v) * th - 0.5
+        x0, y0 = int(np.floor(x)), int(np.floor(y))
+        fx, fy = x - x0, y - y0
+
+        def at(i, j):
+            if wrap == "repeat":
+                return t[j % th, i % tw]
+            return t[min(max(j, 0), th - 1), min(max(i, 0), tw - 1)]
+
+        return (1 - fy) * ((1 - fx) * at(x0, y0) + fx * at(x0 + 1, y0)) + fy * (
+            (1 - fx) * at(x0, y0 + 1) + fx * at(x0 + 1, y0 + 1)
+        )
+
+    xs, ys = (np.asarray(c, np.float64) for c in ds.pixel_centres(h, w, jnp.float64))
+    out = np.zeros((h, w, texels.shape[-1]))
+    covered = np.zeros((h, w), bool)
+    eps_x, eps_y = 1e-4 * 2 / w, 1e-4 * 2 / h
+    for j in range(h):
+        for i in range(w):
+            ab = ab_at(xs[i], ys[j])
+            if not (0 < ab[0] < 1 and 0 < ab[1] < 1):
+                continue
+            covered[j, i] = True
+            u, v = ab * repeat + offset
+            dx = (ab_at(xs[i] + eps_x, ys[j]) - ab_at(xs[i] - eps_x, ys[j])) * repeat / 2e-4
+            dy = (ab_at(xs[i], ys[j] + eps_y) - ab_at(xs[i], ys[j] - eps_y)) * repeat / 2e-4
+            th, tw = texels.shape[:2]
+            rho = max(np.hypot(dx[0] * tw, dx[1] * th), np.hypot(dy[0] * tw, dy[1] * th))
+            lam = np.log2(rho)
+            if lam <= 0:
+                out[j, i] = bilinear(pyr[0], u, v)
+                continue
+            d = min(lam, len(pyr) - 1)
+            lo = int(np.floor(d))
+            hi = min(lo + 1, len(pyr) - 1)
+            f = d - lo
+            out[j, i] = (1 - f) * bilinear(pyr[lo], u, v) + f * bilinear(pyr[hi], u, v)
+    return out, covered
+
+
+@pytest.fixture(scope="module")
+def texels():
+    return np.random.default_rng(7).uniform(0.05, 0.95, (32, 32, 3))
+
+
+EMISSION = ds.RenderOptions.from_keys(
+    shading="phong", emission=True, ambient=False, diffuse=False, specular="none", fog="none"
+)
+
+
+@pytest.mark.parametrize("wrap", ["repeat", "clamp"])
+def test_trilinear_sampling_matches_a_brute_force_reference(texels, wrap):
+    repeat = 1.0 if wrap == "repeat" else 1.3
+    scene, plane = _plane_scene(ds.Texture(texels, wrap=wrap), repeat=repeat)
+    img = np.asarray(ds.render(scene, EMISSION))
+    ref, covered = _reference(scene, plane, texels, repeat, wrap)
+    inner = covered.copy()  # pixel centres within a hair of the square's edges: coverage may differ
+    inner[1:-1, 1:-1] &= covered[:-2, 1:-1] & covered[2:, 1:-1] & covered[1:-1, :-2] & covered[1:-1, 2:]
+    assert inner.sum() > 0.3 * SIZE * SIZE
+    err = np.abs(img - ref)[inner]
+    assert err.max() < 1e-6, err.max()
+    # the scene has both: texels minified (far) and magnified (near)
+    lod = _lods(scene)
+    assert lod[inner].min() < -0.05 and lod[inner].max() > 1.2
+
+
+def _lods(scene):
+    import diffshade._texture as T
+
+    mesh, cam = scene.mesh, scene.camera
+    clip = cam.world_to_clip(mesh.vertices)
+    ids = ds.visibility(clip, mesh.faces, cam.resolution, 1)
+    frags = ds.fragments(clip, mesh.faces, ids)
+    u, v = ds.interpolate((mesh.uv[:, 0], mesh.uv[:, 1]), mesh.faces, frags)
+    d = T.pixel_derivatives(T.footprint(clip, mesh.faces), mesh.uv[mesh.faces], ids, frags.w, u, v, cam.width, cam.height)
+    return np.asarray(T.level_of_detail(scene.material.emission_map, *d))[0]
+
+
+def test_bilinear_filter_ignores_the_footprint(texels):
+    scene, plane = _plane_scene(ds.Texture(texels, filter="bilinear"), repeat=1.0)
+    img = np.asarray(ds.render(scene, EMISSION))
+    tri, _ = _plane_scene(ds.Texture(texels), repeat=1.0)
+    far = np.asarray(ds.render(tri, EMISSION))
+    # where minified the two differ (the pyramid averages), where magnified they agree; a 1×1
+    # map is the same either way
+    lod = _lods(tri)
+    diff = np.abs(img - far).max(-1)
+    assert diff[lod > 1].min() > 0 and diff[lod > 1].max() > 0.05
+    magnified = (lod < 0) & (lod > -50)  # (-100: no pixel)
+    assert magnified.sum() > 20 and diff[magnified].max() < 1e-12
+    one = np.full((1, 1, 3), 0.4)
+    a = np.asarray(ds.render(_plane_scene(ds.Texture(one, filter="bilinear"))[0], EMISSION))
+    b = np.asarray(ds.render(_plane_scene(ds.Texture(one))[0], EMISSION))
+    assert np.abs(a - b).max() < 1e-12
+
+
+def test_mip_pyramid_is_box_averages_and_keeps_the_mean():
+    t = np.random.default_rng(1).uniform(size=(8, 4, 3))
+    levels = ds.mip_pyramid(jnp.asarray(t))
+    assert [lv.shape[:2] for lv in levels] == [(8, 4), (4, 2), (2, 1), (1, 1)]
+    np.testing.assert_allclose(levels[1][1, 0], t[2:4, 0:2].mean(axis=(0, 1)), atol=1e-14)
+    np.testing.assert_allclose(levels[-1][0, 0], t.mean(axis=(0, 1)), atol=1e-14)
+    odd = ds.mip_pyramid(jnp.asarray(np.arange(3.0).reshape(3, 1, 1)))  # 0,1,2 -> (0+1)/2, (2+2)/2
+    np.testing.assert_allclose(np.asarray(odd[1]).ravel(), [0.5, 2.0])
+
+
+def _textured_default(shading, maps, size=24):
+    scene, opts = ds.default_scene()
+    m = scene.mesh
+    v = np.asarray(m.vertices)
+    uv = np.stack([np.arctan2(v[:, 1], v[:, 0]) / (2 * np.pi) + 0.5, 0.5 + 0.5 * v[:, 2]], 1)
+    mesh = ds.Mesh(m.vertices, m.faces, normals=m.normals, uv=uv)
+    cam = dataclasses.replace(scene.camera, width=size, height=size)
+    mat = dataclasses.replace(scene.material, **{f + "_map": t for f, t in maps.items()})
+    scene = dataclasses.replace(scene, mesh=mesh, camera=cam, material=mat)
+    return scene, opts.with_keys(shading=shading, emission=True)
+
+
+@pytest.mark.parametrize("shading", ["phong", "gouraud", "flat"])
+def test_constant_maps_are_constant_materials(shading):
+    """A map of one value c for every colour field renders as the material with the field times c."""
+    c = np.array([0.6, 0.8, 0.9])
+    maps = {f: ds.Texture(np.broadcast_to(c, (4, 8, 3)).copy()) for f in ("emission", "ambient", "diffuse", "specular")}
+    scene, opts = _textured_default(shading, maps)
+    mat = dataclasses.replace(
+        scene.material,
+        emission=jnp.asarray([0.05, 0.02, 0.0]) * c,
+        ambient=scene.material.ambient * c,
+        diffuse=scene.material.diffuse * c,
+        specular=scene.material.specular * c,
+        **{f + "_map": None for f in maps},
+    )
+    plain = dataclasses.replace(scene, material=mat)
+    scene = dataclasses.replace(scene, material=dataclasses.replace(scene.material, emission=jnp.asarray([0.05, 0.02, 0.0])))
+    a, b = np.asarray(ds.render(scene, opts)), np.asarray(ds.render(plain, opts))
+    assert np.abs(a - b).max() < 1e-12
+    assert np.abs(a).max() > 0.1
