@@ -197,3 +197,74 @@ def test_constant_maps_are_constant_materials(shading):
     a, b = np.asarray(ds.render(scene, opts)), np.asarray(ds.render(plain, opts))
     assert np.abs(a - b).max() < 1e-12
     assert np.abs(a).max() > 0.1
+
+
+@pytest.mark.parametrize("shading", ["phong", "gouraud"])
+def test_gradients_by_texels_coordinates_and_vertices_match_finite_differences(shading):
+    """Forward and reverse mode against float64 central differences: texels (diffuse and
+    specular maps), the texture coordinates and the vertices (through the barycentrics and,
+    trilinear, the footprint's level of detail), visibility held fixed."""
+    rng = np.random.default_rng(3)
+    dmap, smap = ds.Texture(rng.uniform(0.2, 0.9, (8, 8, 3))), ds.Texture(rng.uniform(0.2, 0.9, (4, 4, 1)))
+    scene, opts = _textured_default(shading, {"diffuse": dmap, "specular": smap}, size=12)
+    ids = ds.scene_visibility(scene, opts)
+    # pixels whose barycentrics stay inside their triangle, and texture coordinates kept away from
+    # the seams of the map (a texel index is piecewise constant)
+    uv0 = np.asarray(scene.mesh.uv) * 0.8 + 0.13
+
+    def f(td, ts, uv, v):
+        mesh = dataclasses.replace(scene.mesh, uv=uv, vertices=v)
+        mat = dataclasses.replace(scene.material, diffuse_map=ds.Texture(td), specular_map=ds.Texture(ts))
+        return ds.shade(dataclasses.replace(scene, mesh=mesh, material=mat), ids, opts)
+
+    args = (dmap.texels, smap.texels, jnp.asarray(uv0), scene.mesh.vertices)
+    check_grads(f, args, modes=("fwd", "rev"), eps=1e-6, atol=2e-5, rtol=2e-5)
+
+
+def test_hard_cases_are_finite():
+    """A zero footprint (every vertex at one texture coordinate: lod -inf), coordinates far out
+    of range (wrapped and clamped), texel values of 0, a 1×1 map: values, a JVP and a gradient
+    finite, in float32."""
+    scene, opts = _textured_default("phong", {"diffuse": ds.Texture(np.zeros((1, 1, 3)))}, size=12)
+    scene = jax.tree.map(lambda x: x.astype(jnp.float32) if jnp.issubdtype(x.dtype, jnp.floating) else x, scene)
+    n = scene.mesh.uv.shape[0]
+    for uv in (jnp.zeros((n, 2), jnp.float32), scene.mesh.uv * 1e4 - 3e3):
+        for wrap in ("repeat", "clamp"):
+            tex = ds.Texture(jnp.zeros((4, 4, 3), jnp.float32), wrap=wrap)
+
+            def f(t, uv_, tex=tex):
+                mat = dataclasses.replace(scene.material, diffuse_map=ds.Texture(t, wrap=tex.wrap))
+                s = dataclasses.replace(scene, material=mat, mesh=dataclasses.replace(scene.mesh, uv=uv_))
+                return jnp.sum(ds.render(s, opts) ** 2)
+
+            val, tan = jax.jvp(f, (tex.texels, uv), (jnp.ones_like(tex.texels), jnp.ones_like(uv)))
+            g = jax.grad(f, argnums=(0, 1))(tex.texels, uv)
+            assert np.isfinite(val) and np.isfinite(tan) and all(np.isfinite(np.asarray(x)).all() for x in g)
+
+
+def test_what_a_scene_with_maps_must_refuse():
+    scene, opts = _textured_default("phong", {"diffuse": ds.Texture(np.ones((2, 2, 3)))}, size=8)
+    with pytest.raises(ValueError, match="no texture coordinates"):
+        ds.render(dataclasses.replace(scene, mesh=dataclasses.replace(scene.mesh, uv=None)), opts)
+    with pytest.raises(ValueError, match="shininess map needs Phong"):
+        s = dataclasses.replace(scene, material=dataclasses.replace(scene.material, shininess_map=ds.Texture(np.ones((2, 2)))))
+        ds.render(s, opts.with_keys(shading="gouraud"))
+    with pytest.raises(ValueError, match="one channel"):
+        s = dataclasses.replace(scene, material=dataclasses.replace(scene.material, shininess_map=ds.Texture(np.ones((2, 2, 3)))))
+        ds.render(s, opts)
+    with pytest.raises(ValueError, match=r"Mesh.uv must be shaped"):
+        ds.Mesh(scene.mesh.vertices, scene.mesh.faces, uv=np.zeros((3, 2)))
+    with pytest.raises(ValueError, match="Texture.texels must be shaped"):
+        ds.Texture(np.ones((2, 2, 4)))
+    with pytest.raises(ValueError, match="Texture.wrap"):
+        ds.Texture(np.ones((2, 2)), wrap="mirror")
+
+
+def test_changing_texels_compiles_nothing():
+    scene, opts = _textured_default("phong", {"diffuse": ds.Texture(np.full((4, 4, 3), 0.5))}, size=8)
+    render = jax.jit(ds.render, static_argnames="opts")
+    a = render(scene, opts)
+    s2 = dataclasses.replace(scene, material=dataclasses.replace(scene.material, diffuse_map=ds.Texture(np.full((4, 4, 3), 0.25))))
+    b = render(s2, opts)
+    assert render._cache_size() == 1
+    assert not np.allclose(np.asarray(a), np.asarray(b))
