@@ -42,6 +42,7 @@ from ._shade import blinn_to_phong, phong_to_blinn
 from ._surface import Needs, Sites, Surface, needs, surface_points
 from ._trace import secondary_rays
 from ._texture import Texture, mip_pyramid, texture_from_image
+from ._mtl import load_material
 from ._util import keep
 from .images import Image, ImageError, read_image, write_image
 
@@ -80,6 +81,7 @@ __all__ = [
     "interpolate",
     "load_camera",
     "load_mesh",
+    "load_material",
     "load_scene",
     "mesh_from_arrays",
     "no_directional",

@@ -183,7 +183,8 @@ def load_mesh(path: str | Path, vertices: str = "authored", colors: str = "srgb"
     Scenes are merged into one mesh. Per-vertex colours (PLY ``red green blue``, OBJ ``v x y z r g
     b``) become ``Mesh.colors``, decoded as ``colors`` says: ``"srgb"`` (the default: 8-bit colours
     in files are display values), ``"linear"``, or ``"ignore"``; merged vertices average theirs.
-    Texture coordinates and materials in the file are not used. Raises :class:`MeshError` with the file name for a missing or unreadable file, a
+    Texture coordinates (OBJ ``vt``) become ``Mesh.uv`` (authored vertices only: merging ignores
+    them); the file's materials are read by :func:`diffshade.load_material`. Raises :class:`MeshError` with the file name for a missing or unreadable file, a
     mesh with no triangles, malformed faces, non-finite vertex positions or normals.
     """
     if vertices not in VERTEX_MODES:
@@ -256,7 +257,24 @@ def load_mesh(path: str | Path, vertices: str = "authored", colors: str = "srgb"
         zero = np.linalg.norm(normals, axis=1) == 0
         if zero.any():  # a zero normal shades nothing: computed ones stand in for those
             normals[zero] = np.asarray(Mesh(vertices=v, faces=f).vertex_normals())[zero]
-    return Mesh(vertices=v, faces=f, normals=normals, colors=col)
+    return Mesh(vertices=v, faces=f, normals=normals, colors=col, uv=_file_uv(parts, path))
+
+
+def _file_uv(parts, path):
+    """The file's texture coordinates, one per (authored, so split) vertex; None without them."""
+    uvs = []
+    for g in parts:
+        uv = getattr(getattr(g, "visual", None), "uv", None)
+        if uv is None or np.shape(uv) != (len(g.vertices), 2):
+            return None
+        uvs.append(np.asarray(uv, np.float64))
+    uv = np.concatenate(uvs)
+    bad = ~np.isfinite(uv).all(axis=1)
+    if bad.any():
+        raise MeshError(
+            f"{path}: {int(bad.sum())} texture coordinate(s) are NaN or infinite (first: vertex {int(np.argmax(bad))})"
+        )
+    return uv
 
 
 def icosphere(subdivisions: int = 3, radius: float = 1.0) -> Mesh:

@@ -268,3 +268,47 @@ def test_changing_texels_compiles_nothing():
     b = render(s2, opts)
     assert render._cache_size() == 1
     assert not np.allclose(np.asarray(a), np.asarray(b))
+
+
+def test_obj_and_mtl_load_as_authored(meshes_dir, tmp_path):
+    import os
+
+    mesh = ds.load_mesh(os.path.join(meshes_dir, "fuze.obj"))
+    assert mesh.uv is not None and mesh.uv.shape == (664, 2)  # 502 positions split at UV seams
+    mat = ds.load_material(os.path.join(meshes_dir, "fuze.obj"))
+    assert mat.diffuse_map.texels.shape == (256, 256, 3) and mat.ambient_map is None
+    np.testing.assert_allclose(np.asarray(mat.diffuse), 1.0)
+    # the map decoded from sRGB: the JPEG's codes through the sRGB curve
+    img = ds.read_image(os.path.join(meshes_dir, "fuze uv.jpg"))
+    np.testing.assert_allclose(np.asarray(mat.diffuse_map.texels), ds.color.decode(img.values(), "srgb"), atol=1e-6)
+    rabbit = ds.load_material(os.path.join(meshes_dir, "rabbit.obj"))
+    np.testing.assert_allclose(np.asarray(rabbit.diffuse), [1.0, 0.0, 1.0])
+    assert float(rabbit.shininess) == 100.0 and rabbit.diffuse_map is None
+
+    # a material file of every statement, and what must be refused, each by file and line
+    ds.write_image(tmp_path / "grey.png", np.full((4, 4), 0.5), encoding="linear")
+    ds.write_image(tmp_path / "col.png", np.random.default_rng(0).uniform(size=(4, 4, 3)), encoding="srgb")
+    (tmp_path / "m.mtl").write_text(
+        "newmtl a\nKa 0.1 0.2 0.3\nKd 0.5\nKs 0.2 0.2 0.2\nKe 0 0 0\nNs 40\nd 0.8\nTr 0.1\nillum 2\n"
+        "map_Kd -clamp on col.png\nmap_Ns grey.png\nmap_d grey.png\n"
+    )
+    a = ds.load_material(tmp_path / "m.mtl")
+    assert a.diffuse_map.wrap == "clamp" and a.shininess_map.channels == 1 and float(a.opacity) == 0.8
+    np.testing.assert_allclose(np.asarray(a.ambient), [0.1, 0.2, 0.3])
+    bad = {
+        "map_Kd missing.png\n": "missing.png was not found",
+        "map_Kd -s 2 2 1 col.png\n": "option -s is not supported",
+        "map_Ns col.png\n": "must be grey",
+        "Kd 0.5 nan 0.1\n": "finite",
+        "frobnicate 1\n": "unknown MTL statement",
+    }
+    for line, msg in bad.items():
+        (tmp_path / "b.mtl").write_text("newmtl b\n" + line)
+        with pytest.raises(ds.MeshError, match=msg) as info:
+            ds.load_material(tmp_path / "b.mtl")
+        assert "b.mtl: line 2" in str(info.value)
+    with pytest.raises(ds.MeshError, match="material file not found"):
+        ds.load_material(tmp_path / "none.mtl")
+    (tmp_path / "nan.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt nan 0\nvt 0 1\nf 1/1 2/2 3/3\n")
+    with pytest.raises(ds.MeshError, match="texture coordinate"):
+        ds.load_mesh(tmp_path / "nan.obj")
