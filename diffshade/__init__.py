@@ -20,6 +20,7 @@ from ._domains import Domain, check_scene
 from ._io import DEFAULT_SCENE, SceneError, default_scene, load_camera, load_scene, scene_from_dict
 from ._lighting import LightVisibility, illuminate
 from ._mesh import Mesh, MeshError, box, combine, icosphere, load_mesh, mesh_from_arrays, quad
+from ._mtl import load_material
 from ._options import FogModel, Lighting, Output, Raster, Rays, RenderOptions, ShadowMaps, ShadowRays, Transparency
 from ._raster import Fragments, fragments, interpolate, pixel_centres, rasterize, visibility, visibility_passes
 from ._render import light_visibility, ray_counts, render, scene_visibility, shade, to_uint8, truncated_pixels
@@ -40,9 +41,8 @@ from ._scene import (
 )
 from ._shade import blinn_to_phong, phong_to_blinn
 from ._surface import Needs, Sites, Surface, needs, surface_points
-from ._trace import secondary_rays
 from ._texture import Texture, mip_pyramid, texture_from_image
-from ._mtl import load_material
+from ._trace import secondary_rays
 from ._util import keep
 from .images import Image, ImageError, read_image, write_image
 

@@ -158,4 +158,3 @@ def load_material(path: str | Path, name: str | None = None, encoding: str | Non
         return Material(**fields)
     except ValueError as exc:
         raise MeshError(f"{path}: material {name!r}: {exc}") from exc
-

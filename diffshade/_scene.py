@@ -22,7 +22,6 @@ from ._texture import Texture
 from ._util import as_float_array
 from ._util import rgb_array as _rgb
 
-
 MAPPED_FIELDS = ("emission", "ambient", "diffuse", "specular", "shininess", "opacity")
 
 

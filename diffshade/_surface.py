@@ -267,7 +267,9 @@ def _texels(scene: Scene, need: Needs, frags: Fragments, bary, clip) -> dict:
     mesh, cam = scene.mesh, scene.camera
     maps = scene.material.maps(need.fields)
     if mesh.uv is None:
-        raise ValueError(f"the material has texture maps ({', '.join(f + '_map' for f in maps)}) but the mesh has no texture coordinates (Mesh.uv)")
+        raise ValueError(
+            f"the material has texture maps ({', '.join(f + '_map' for f in maps)}) but the mesh has no texture coordinates (Mesh.uv)"
+        )
     lerp = _lerp(frags, mesh.faces, bary)
     u, v = lerp((mesh.uv[:, 0], mesh.uv[:, 1]))
     deriv = None

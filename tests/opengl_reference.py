@@ -176,6 +176,8 @@ def render(scene, opts):
     N = np.asarray(scene.mesh.vertex_normals(), np.float64)
     corners = F.reshape(-1)  # face-major corners: the provoking vertex is each face's last
     pos, nrm = _f32(V[corners]), _f32(N[corners])
+    maps = scene.material.maps()
+    uvs = _f32(np.asarray(scene.mesh.uv, np.float64)[corners]) if maps else None
     if scene.mesh.material_ids is not None and len(scene.materials):
         raise ValueError("OpenGL reference: one material per scene")
     if (
@@ -212,6 +214,10 @@ def render(scene, opts):
         _phong_program(c, scene, opts, lights, front, back, view)
     else:
         _fixed_function(gl, scene, opts, lights, front, back)
+    textures = _bind_textures(gl, scene, opts, maps)
+    if maps:
+        gl.glEnableClientState(gl.GL_TEXTURE_COORD_ARRAY)
+        gl.glTexCoordPointer(2, gl.GL_FLOAT, 0, uvs)
     gl.glEnableClientState(gl.GL_VERTEX_ARRAY)
     gl.glEnableClientState(gl.GL_NORMAL_ARRAY)
     gl.glVertexPointer(3, gl.GL_FLOAT, 0, pos)
@@ -219,6 +225,12 @@ def render(scene, opts):
     gl.glDrawArrays(gl.GL_TRIANGLES, 0, len(corners))
     gl.glDisableClientState(gl.GL_VERTEX_ARRAY)
     gl.glDisableClientState(gl.GL_NORMAL_ARRAY)
+    gl.glDisableClientState(gl.GL_TEXTURE_COORD_ARRAY)
+    for unit in (1, 0):
+        gl.glActiveTexture(gl.GL_TEXTURE0 + unit)
+        gl.glDisable(gl.GL_TEXTURE_2D)
+    if textures:
+        gl.glDeleteTextures(textures)
     gl.glUseProgram(0)
     gl.glFinish()
     px = np.asarray(gl.glReadPixels(0, 0, w, h, gl.GL_RGBA, gl.GL_FLOAT), np.float64).reshape(h, w, 4)[::-1]
@@ -289,7 +301,9 @@ _VERTEX = """
 #version 120
 varying vec3 p_eye;
 varying vec3 n_eye;
+varying vec2 uv;
 void main() {
+    uv = gl_MultiTexCoord0.xy;
     p_eye = (gl_ModelViewMatrix * gl_Vertex).xyz;
     n_eye = gl_NormalMatrix * gl_Normal;
     gl_Position = gl_ProjectionMatrix * (gl_ModelViewMatrix * gl_Vertex);
@@ -299,6 +313,9 @@ void main() {
 _FRAGMENT = """
 varying vec3 p_eye;
 varying vec3 n_eye;
+varying vec2 uv;
+uniform sampler2D diffuse_tex;
+uniform sampler2D specular_tex;
 uniform int n_lights;
 uniform vec4 l_pos[8];
 uniform vec3 l_diffuse[8];
@@ -332,8 +349,16 @@ void main() {
     vec3 v = normalize(-p_eye);
 #endif
     vec3 c = vec3(0.0);
+    vec3 ka = m_ambient[side], kd = m_diffuse[side], ks = m_specular[side];
+#ifdef DIFFUSE_MAP
+    ka *= texture2D(diffuse_tex, uv).rgb;
+    kd *= texture2D(diffuse_tex, uv).rgb;
+#endif
+#ifdef SPECULAR_MAP
+    ks *= texture2D(specular_tex, uv).rgb;
+#endif
 #ifdef AMBIENT
-    c += m_ambient[side] * ambient_light;
+    c += ka * ambient_light;
 #endif
 #ifdef EMISSION
     c += m_emission[side];
@@ -364,16 +389,16 @@ void main() {
         float ndl = dot(n, l);
         vec3 term = vec3(0.0);
 #ifdef PER_LIGHT_AMBIENT
-        term += m_ambient[side] * l_ambient[i];
+        term += ka * l_ambient[i];
 #endif
 #ifdef DIFFUSE
-        term += l_diffuse[i] * m_diffuse[side] * max(ndl, 0.0);
+        term += l_diffuse[i] * kd * max(ndl, 0.0);
 #endif
 #ifdef SPECULAR_PHONG
-        if (ndl > 0.0) term += l_specular[i] * m_specular[side] * spow(dot(v, 2.0 * ndl * n - l), m_shininess[side]);
+        if (ndl > 0.0) term += l_specular[i] * ks * spow(dot(v, 2.0 * ndl * n - l), m_shininess[side]);
 #endif
 #ifdef SPECULAR_BLINN
-        if (ndl > 0.0) term += l_specular[i] * m_specular[side] * spow(dot(n, normalize(l + v)), m_shininess[side]);
+        if (ndl > 0.0) term += l_specular[i] * ks * spow(dot(n, normalize(l + v)), m_shininess[side]);
 #endif
         c += f * term;
     }
@@ -417,6 +442,8 @@ def _phong_program(c, scene, opts, lights, front, back, view):
         ("SMOOTH_EDGE", opts.spot_edge == "smooth"),
         ("CLAMP", opts.clamp),
         ("FOG_DEPTH", opts.fog_distance == "depth"),
+        ("DIFFUSE_MAP", front.diffuse_map is not None),
+        ("SPECULAR_MAP", front.specular_map is not None),
     ):
         if on:
             defs.append(f"#define {flag}")
@@ -439,9 +466,58 @@ def _phong_program(c, scene, opts, lights, front, back, view):
             u(f"m_{key}"), 2, _f32([np.broadcast_to(np.asarray(getattr(m, key)), (3,)) for m in (front, back)])
         )
     gl.glUniform1fv(u("m_shininess"), 2, _f32([float(front.shininess), float(back.shininess)]))
+    gl.glUniform1i(u("diffuse_tex"), 0)
+    gl.glUniform1i(u("specular_tex"), 1)
     gl.glUniform3fv(u("ambient_light"), 1, _f32(scene.ambient_light))
     gl.glUniform3fv(u("fog_color"), 1, _f32(scene.fog.color))
     gl.glUniform3fv(u("fog_params"), 1, _f32([float(scene.fog.start), float(scene.fog.end), float(scene.fog.density)]))
+
+
+def _bind_textures(gl, scene, opts, maps):
+    """The material's maps as float textures (unit 0: diffuse, 1: specular), rows flipped (OpenGL's
+    row 0 is t = 0), mipmapped by ``glGenerateMipmap`` where the filter is trilinear. The fixed
+    function modulates the primary colour (``GL_MODULATE``: emission, ambient and diffuse), so
+    there the scene must have a diffuse map only, no emission, and the specular colour apart."""
+    if not maps:
+        return []
+    m = scene.material
+    if set(maps) - {"diffuse", "ambient", "specular"} or (m.ambient_map is not None):
+        raise ValueError("OpenGL reference: diffuse (with its ambient) and specular maps only")
+    if opts.shading != "phong" and (
+        m.specular_map is not None or opts.emission or opts.color_sum != "separate" or scene.back_material
+    ):
+        raise ValueError(
+            "OpenGL reference: the fixed function modulates the primary colour: a diffuse map only, no emission, separate specular"
+        )
+    names = []
+    for unit, tex in ((0, m.diffuse_map), (1, m.specular_map)):
+        if tex is None:
+            continue
+        t = np.asarray(tex.texels, np.float64)[::-1]
+        h, w, ch = t.shape
+        if ch == 1:
+            t = np.repeat(t, 3, axis=-1)
+        gl.glActiveTexture(gl.GL_TEXTURE0 + unit)
+        name = gl.glGenTextures(1)
+        names.append(name)
+        gl.glBindTexture(gl.GL_TEXTURE_2D, name)
+        gl.glPixelStorei(gl.GL_UNPACK_ALIGNMENT, 1)
+        gl.glTexImage2D(gl.GL_TEXTURE_2D, 0, gl.GL_RGB32F, w, h, 0, gl.GL_RGB, gl.GL_FLOAT, _f32(t))
+        trilinear = tex.filter == "trilinear"
+        if trilinear:
+            gl.glGenerateMipmap(gl.GL_TEXTURE_2D)
+        gl.glTexParameteri(
+            gl.GL_TEXTURE_2D, gl.GL_TEXTURE_MIN_FILTER, gl.GL_LINEAR_MIPMAP_LINEAR if trilinear else gl.GL_LINEAR
+        )
+        gl.glTexParameteri(gl.GL_TEXTURE_2D, gl.GL_TEXTURE_MAG_FILTER, gl.GL_LINEAR)
+        wrap = gl.GL_REPEAT if tex.wrap == "repeat" else gl.GL_CLAMP_TO_EDGE
+        gl.glTexParameteri(gl.GL_TEXTURE_2D, gl.GL_TEXTURE_WRAP_S, wrap)
+        gl.glTexParameteri(gl.GL_TEXTURE_2D, gl.GL_TEXTURE_WRAP_T, wrap)
+        if opts.shading != "phong":
+            gl.glEnable(gl.GL_TEXTURE_2D)
+            gl.glTexEnvi(gl.GL_TEXTURE_ENV, gl.GL_TEXTURE_ENV_MODE, gl.GL_MODULATE)
+    gl.glActiveTexture(gl.GL_TEXTURE0)
+    return names
 
 
 def compare(img, covered, ref, ref_covered, margin: int = 0):

@@ -61,8 +61,60 @@ def _hard_box_scene(opts):
     return scene, opts
 
 
+_LIGHT = dict(color=[[1.0, 1.0, 1.0]], position=[[0.5, 1.0, 2.5]], attenuation=[[1.0, 0.0, 0.0]], ambient=[[0, 0, 0]])
+_TEXELS = np.random.default_rng(7).uniform(0.05, 0.95, (32, 32, 3))
+_GL_MODULATE = ds.RenderOptions.opengl().with_keys(color_sum="separate", emission=False)
+_PHONG_BLINN = ds.RenderOptions.from_keys(shading="phong", fog="none", specular="blinn")
+
+
+def _textured_plane(phong: bool):
+    """The tilted square of tests/test_textures.py with a 32² map of random texels (magnified
+    everywhere: 0.5 repeats over 64 pixels), lit by a point light; a one-channel specular map in
+    Phong (GLSL), the diffuse map alone in Gouraud (the fixed function's GL_MODULATE)."""
+    from test_textures import _plane_scene
+
+    tex = ds.Texture(_TEXELS)
+    scene, _ = _plane_scene(tex, repeat=0.5, field="diffuse", size=64)
+    spec = ds.Texture(_TEXELS[..., :1]) if phong else None
+    mat = ds.Material(ambient=0.2, diffuse=0.9, specular=0.3, shininess=20.0, diffuse_map=tex, specular_map=spec)
+    scene = ds.Scene(
+        **{
+            **{f: getattr(scene, f) for f in scene.__dataclass_fields__},
+            "material": mat,
+            "point": ds.PointLights(**_LIGHT),
+            "ambient_light": 0.3,
+        }
+    )
+    return scene, (_PHONG_BLINN if phong else _GL_MODULATE)
+
+
+def _textured_fuze(phong: bool, size: int = 256):
+    """The vendored fuze bottle with its authored texture coordinates and MTL map (256², sRGB),
+    magnified at 256² (96 % of its pixels)."""
+    import os
+
+    from conftest import shared_mesh_dir
+
+    path = os.path.join(shared_mesh_dir(), "fuze.obj")
+    m = ds.load_mesh(path)
+    v = np.asarray(m.vertices)
+    v = (v - v.mean(0)) / np.abs(v - v.mean(0)).max()
+    mesh = ds.Mesh(vertices=v, faces=m.faces, normals=m.normals, uv=m.uv)
+    mat = ds.load_material(path)
+    mat = ds.Material(ambient=0.3, diffuse=0.8, specular=0.3, shininess=30.0, diffuse_map=mat.diffuse_map)
+    cam = ds.Camera(
+        eye=[2.2, 0.8, 0.0], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.5, far=10.0, width=size, height=size
+    )
+    scene = ds.Scene(mesh=mesh, material=mat, camera=cam, point=ds.PointLights(**_LIGHT), ambient_light=0.3)
+    return scene, (_PHONG_BLINN if phong else _GL_MODULATE)
+
+
 # (name, scene factory): flat/Gouraud with OpenGL's fixed-function choices, Phong/Blinn by GLSL
 SCENES = {
+    "phong (GLSL), textured plane, diffuse and specular maps": lambda: _textured_plane(True),
+    "gouraud, textured plane, GL_MODULATE": lambda: _textured_plane(False),
+    "phong (GLSL), fuze bottle, its map_Kd": lambda: _textured_fuze(True),
+    "gouraud, fuze bottle, its map_Kd, GL_MODULATE": lambda: _textured_fuze(False),
     "flat, three light kinds, exp fog, specular colours": lambda: make_scene("opengl-specular-colours", "flat"),
     "gouraud, three light kinds, exp fog, specular colours": lambda: make_scene("opengl-specular-colours", "gouraud"),
     "gouraud, separate specular, two-sided back material": lambda: make_scene("opengl-separate-specular", "gouraud"),

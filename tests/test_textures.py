@@ -5,7 +5,6 @@ gradients, and what a loader and a scene must refuse."""
 
 import dataclasses
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -134,7 +133,9 @@ def _lods(scene):
     ids = ds.visibility(clip, mesh.faces, cam.resolution, 1)
     frags = ds.fragments(clip, mesh.faces, ids)
     u, v = ds.interpolate((mesh.uv[:, 0], mesh.uv[:, 1]), mesh.faces, frags)
-    d = T.pixel_derivatives(T.footprint(clip, mesh.faces), mesh.uv[mesh.faces], ids, frags.w, u, v, cam.width, cam.height)
+    d = T.pixel_derivatives(
+        T.footprint(clip, mesh.faces), mesh.uv[mesh.faces], ids, frags.w, u, v, cam.width, cam.height
+    )
     return np.asarray(T.level_of_detail(scene.material.emission_map, *d))[0]
 
 
@@ -193,7 +194,9 @@ def test_constant_maps_are_constant_materials(shading):
         **{f + "_map": None for f in maps},
     )
     plain = dataclasses.replace(scene, material=mat)
-    scene = dataclasses.replace(scene, material=dataclasses.replace(scene.material, emission=jnp.asarray([0.05, 0.02, 0.0])))
+    scene = dataclasses.replace(
+        scene, material=dataclasses.replace(scene.material, emission=jnp.asarray([0.05, 0.02, 0.0]))
+    )
     a, b = np.asarray(ds.render(scene, opts)), np.asarray(ds.render(plain, opts))
     assert np.abs(a - b).max() < 1e-12
     assert np.abs(a).max() > 0.1
@@ -247,10 +250,14 @@ def test_what_a_scene_with_maps_must_refuse():
     with pytest.raises(ValueError, match="no texture coordinates"):
         ds.render(dataclasses.replace(scene, mesh=dataclasses.replace(scene.mesh, uv=None)), opts)
     with pytest.raises(ValueError, match="shininess map needs Phong"):
-        s = dataclasses.replace(scene, material=dataclasses.replace(scene.material, shininess_map=ds.Texture(np.ones((2, 2)))))
+        s = dataclasses.replace(
+            scene, material=dataclasses.replace(scene.material, shininess_map=ds.Texture(np.ones((2, 2))))
+        )
         ds.render(s, opts.with_keys(shading="gouraud"))
     with pytest.raises(ValueError, match="one channel"):
-        s = dataclasses.replace(scene, material=dataclasses.replace(scene.material, shininess_map=ds.Texture(np.ones((2, 2, 3)))))
+        s = dataclasses.replace(
+            scene, material=dataclasses.replace(scene.material, shininess_map=ds.Texture(np.ones((2, 2, 3))))
+        )
         ds.render(s, opts)
     with pytest.raises(ValueError, match=r"Mesh.uv must be shaped"):
         ds.Mesh(scene.mesh.vertices, scene.mesh.faces, uv=np.zeros((3, 2)))
@@ -264,7 +271,9 @@ def test_changing_texels_compiles_nothing():
     scene, opts = _textured_default("phong", {"diffuse": ds.Texture(np.full((4, 4, 3), 0.5))}, size=8)
     render = jax.jit(ds.render, static_argnames="opts")
     a = render(scene, opts)
-    s2 = dataclasses.replace(scene, material=dataclasses.replace(scene.material, diffuse_map=ds.Texture(np.full((4, 4, 3), 0.25))))
+    s2 = dataclasses.replace(
+        scene, material=dataclasses.replace(scene.material, diffuse_map=ds.Texture(np.full((4, 4, 3), 0.25)))
+    )
     b = render(s2, opts)
     assert render._cache_size() == 1
     assert not np.allclose(np.asarray(a), np.asarray(b))
