@@ -309,6 +309,8 @@ def _textured(scene, raster, need, frags, bary, clip, multi, sites: Sites, pmat:
     field's terms multiplied by its texels after interpolation (:attr:`Sites.modulate`)."""
     if multi or scene.back_material is not None:
         raise ValueError("texture maps apply to a one-material scene without a back material (for now)")
+    if {"mirror", "refraction"} & need.fields:
+        raise ValueError("texture maps are not sampled at the hits of reflected and refracted rays: ray_depth = 0")
     texels = _texels(scene, need, frags, bary, clip)
     if raster.shading == "phong":
         m = _modulated(sites.material, texels)

@@ -226,23 +226,27 @@ def test_gradients_by_texels_coordinates_and_vertices_match_finite_differences(s
 
 def test_hard_cases_are_finite():
     """A zero footprint (every vertex at one texture coordinate: lod -inf), coordinates far out
-    of range (wrapped and clamped), texel values of 0, a 1×1 map: values, a JVP and a gradient
-    finite, in float32."""
+    of range (a repeated map and a clamped one), texel values of 0: values, a JVP and a gradient
+    finite, in float32 (one compiled program of each)."""
     scene, opts = _textured_default("phong", {"diffuse": ds.Texture(np.zeros((1, 1, 3)))}, size=12)
     scene = jax.tree.map(lambda x: x.astype(jnp.float32) if jnp.issubdtype(x.dtype, jnp.floating) else x, scene)
     n = scene.mesh.uv.shape[0]
+
+    def f(td, ts, uv):
+        mat = dataclasses.replace(
+            scene.material, diffuse_map=ds.Texture(td, wrap="repeat"), specular_map=ds.Texture(ts, wrap="clamp")
+        )
+        s = dataclasses.replace(scene, material=mat, mesh=dataclasses.replace(scene.mesh, uv=uv))
+        return jnp.sum(ds.render(s, opts) ** 2)
+
+    push = jax.jit(lambda a, t: jax.jvp(f, a, t))
+    grad = jax.jit(jax.grad(f, argnums=(0, 1, 2)))
+    texels = (jnp.zeros((4, 4, 3), jnp.float32), jnp.zeros((4, 4, 1), jnp.float32))
     for uv in (jnp.zeros((n, 2), jnp.float32), scene.mesh.uv * 1e4 - 3e3):
-        for wrap in ("repeat", "clamp"):
-            tex = ds.Texture(jnp.zeros((4, 4, 3), jnp.float32), wrap=wrap)
-
-            def f(t, uv_, tex=tex):
-                mat = dataclasses.replace(scene.material, diffuse_map=ds.Texture(t, wrap=tex.wrap))
-                s = dataclasses.replace(scene, material=mat, mesh=dataclasses.replace(scene.mesh, uv=uv_))
-                return jnp.sum(ds.render(s, opts) ** 2)
-
-            val, tan = jax.jvp(f, (tex.texels, uv), (jnp.ones_like(tex.texels), jnp.ones_like(uv)))
-            g = jax.grad(f, argnums=(0, 1))(tex.texels, uv)
-            assert np.isfinite(val) and np.isfinite(tan) and all(np.isfinite(np.asarray(x)).all() for x in g)
+        args = (*texels, uv)
+        val, tan = push(args, tuple(jnp.ones_like(a) for a in args))
+        g = grad(*args)
+        assert np.isfinite(val) and np.isfinite(tan) and all(np.isfinite(np.asarray(x)).all() for x in g)
 
 
 def test_what_a_scene_with_maps_must_refuse():
@@ -259,6 +263,8 @@ def test_what_a_scene_with_maps_must_refuse():
             scene, material=dataclasses.replace(scene.material, shininess_map=ds.Texture(np.ones((2, 2, 3))))
         )
         ds.render(s, opts)
+    with pytest.raises(ValueError, match="ray_depth = 0"):
+        ds.render(scene, opts.with_keys(ray_depth=1))
     with pytest.raises(ValueError, match=r"Mesh.uv must be shaped"):
         ds.Mesh(scene.mesh.vertices, scene.mesh.faces, uv=np.zeros((3, 2)))
     with pytest.raises(ValueError, match="Texture.texels must be shaped"):
@@ -269,7 +275,7 @@ def test_what_a_scene_with_maps_must_refuse():
 
 def test_changing_texels_compiles_nothing():
     scene, opts = _textured_default("phong", {"diffuse": ds.Texture(np.full((4, 4, 3), 0.5))}, size=8)
-    render = jax.jit(ds.render, static_argnames="opts")
+    render = jax.jit(lambda s, o: ds.render(s, o), static_argnums=1)  # a cache of its own
     a = render(scene, opts)
     s2 = dataclasses.replace(
         scene, material=dataclasses.replace(scene.material, diffuse_map=ds.Texture(np.full((4, 4, 3), 0.25)))

@@ -1,0 +1,75 @@
+"""The price of a texture map: the default scene (icosphere of 5,120 faces with spherical texture
+coordinates) rendered with a constant k_d and with a k_d map (256², trilinear and bilinear),
+Phong and Gouraud shading, at 256² and 512². Medians over interleaved repeats, compile apart;
+the ratio is to the constant-material render measured in the same run.
+
+    GLIBC_TUNABLES=glibc.malloc.hugetlb=1 python benchmarks/bench_textures.py [--repeats 30]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import statistics
+import sys
+import time
+
+import jax
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+import diffshade as ds  # noqa: E402
+
+
+def scene_at(size: int, texture: ds.Texture | None):
+    scene, opts = ds.default_scene()
+    mesh = ds.icosphere(4)
+    v = np.asarray(mesh.vertices)
+    uv = np.stack([np.arctan2(v[:, 1], v[:, 0]) / (2 * np.pi) + 0.5, 0.5 + 0.5 * v[:, 2]], 1)
+    mesh = dataclasses.replace(mesh, uv=uv)
+    cam = dataclasses.replace(scene.camera, width=size, height=size)
+    mat = dataclasses.replace(scene.material, diffuse_map=texture)
+    return dataclasses.replace(scene, mesh=mesh, camera=cam, material=mat), opts
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--repeats", type=int, default=30)
+    args = ap.parse_args()
+    texels = np.random.default_rng(0).uniform(0.2, 0.9, (256, 256, 3))
+    render = jax.jit(ds.render, static_argnames="opts")
+    print(f"jax {jax.__version__}, {jax.devices()[0].platform}; medians of {args.repeats} interleaved calls")
+    for size in (256, 512):
+        for shading in ("phong", "gouraud"):
+            variants = {
+                "constant k_d": None,
+                "k_d map, trilinear": ds.Texture(texels),
+                "k_d map, bilinear": ds.Texture(texels, filter="bilinear"),
+            }
+            calls, compile_s = {}, {}
+            for name, tex in variants.items():
+                scene, opts = scene_at(size, tex)
+                opts = opts.with_keys(shading=shading)
+                t0 = time.perf_counter()
+                jax.block_until_ready(render(scene, opts))
+                compile_s[name] = time.perf_counter() - t0
+                calls[name] = (scene, opts)
+            times = {name: [] for name in variants}
+            for _ in range(args.repeats):
+                for name, (scene, opts) in calls.items():
+                    t0 = time.perf_counter()
+                    jax.block_until_ready(render(scene, opts))
+                    times[name].append(time.perf_counter() - t0)
+            base = statistics.median(times["constant k_d"])
+            for name in variants:
+                med = statistics.median(times[name])
+                print(
+                    f"{size}² {shading:8s} {name:20s} {med * 1e3:7.2f} ms  x{med / base:4.2f}  "
+                    f"(first call {compile_s[name]:.2f} s)"
+                )
+
+
+if __name__ == "__main__":
+    main()
