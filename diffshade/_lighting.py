@@ -361,7 +361,10 @@ def _modulated_side(side, modulate: dict, normal, mat: Material, back: bool):
 
     rest = [f for f in _COLOUR_FIELDS if f not in modulate]
     color = side(normal, only(rest), back)
+    groups: dict = {}  # fields under one map (the ambient under the diffuse map) lit together
     for f, tex in modulate.items():
-        part = side(normal, only((f,)), back)
+        groups.setdefault(id(tex), (tex, []))[1].append(f)
+    for tex, fields in groups.values():
+        part = side(normal, only(fields), back)
         color = tuple(c + t * p for c, t, p in zip(color, tex, part))
     return color
