@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ._mesh import MeshError
-from ._scene import Material
+from ._scene import SCALAR_MAPPED, Material
 from ._texture import Texture, texture_from_image
 
 _COLOURS = {"Ka": "ambient", "Kd": "diffuse", "Ks": "specular", "Ke": "emission"}
@@ -112,10 +112,10 @@ def _texture(field: str, spec, encoding):
     if not Path(image).is_file():
         raise MeshError(f"{where}: the {field} map's image {image} was not found")
     try:
-        tex = texture_from_image(image, encoding=None if field in ("shininess", "opacity") else encoding, wrap=wrap)
+        tex = texture_from_image(image, encoding=None if field in SCALAR_MAPPED else encoding, wrap=wrap)
     except Exception as exc:
         raise MeshError(f"{where}: the {field} map's image {image} could not be read ({exc})") from exc
-    if field in ("shininess", "opacity") and tex.channels == 3:
+    if field in SCALAR_MAPPED and tex.channels == 3:
         t = np.asarray(tex.texels)
         if not np.allclose(t[..., 0:1], t):
             raise MeshError(f"{where}: the {field} map {image} must be grey (one channel), got colour")

@@ -23,6 +23,7 @@ from ._util import as_float_array
 from ._util import rgb_array as _rgb
 
 MAPPED_FIELDS = ("emission", "ambient", "diffuse", "specular", "shininess", "opacity")
+SCALAR_MAPPED = ("shininess", "opacity")  # one-channel maps; the others are colours
 
 
 def _rows(n: int):

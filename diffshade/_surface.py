@@ -27,7 +27,7 @@ from . import _shade as S
 from ._materials import _COMPOSITING_FIELDS, _MATERIAL_FIELDS, _material_at
 from ._options import Raster, RenderOptions
 from ._raster import Fragments, _pixel_vertex_ids, interpolate
-from ._scene import Material, Scene
+from ._scene import SCALAR_MAPPED, Material, Scene
 from ._texture import footprint, level_of_detail, pixel_derivatives, sample
 from ._util import keep
 
@@ -173,8 +173,7 @@ def surface_points(
     need = Needs(need.fields, need.positions, need.kay and any(kay))
     build = {"phong": _phong_sites, "gouraud": _gouraud_sites, "flat": _flat_sites}[raster.shading]
     sites, normal, pmat = build(scene, raster, need, frags, bary, multi, pmat, back, position)
-    maps = [m.maps(need.fields) for m in mats] + [scene.back_material.maps() if scene.back_material else {}]
-    if any(maps):
+    if any(m.maps(need.fields) for m in mats) or (scene.back_material is not None and scene.back_material.maps()):
         sites, pmat = _textured(scene, raster, need, frags, bary, clip, multi, sites, pmat)
     return Surface(
         frags=frags,
@@ -258,9 +257,6 @@ def _flat_sites(scene, raster, need, frags, bary, multi, pmat, back, position):
     return Sites(pts, nrm, fmat, fback, to_pixels), normal, pmat
 
 
-_SCALAR_MAPS = ("shininess", "opacity")
-
-
 def _texels(scene: Scene, need: Needs, frags: Fragments, bary, clip) -> dict:
     """Each used map's texels at the pixels, ``{field: components}`` (one component for the
     shininess and opacity, three for colours; a one-channel colour map is grey)."""
@@ -278,14 +274,14 @@ def _texels(scene: Scene, need: Needs, frags: Fragments, bary, clip) -> dict:
         deriv = pixel_derivatives(per_face, mesh.uv[mesh.faces], frags.tri_id, frags.w, u, v, cam.width, cam.height)
     done, out = {}, {}
     for f, t in maps.items():
-        if f in _SCALAR_MAPS and t.channels != 1:
+        if f in SCALAR_MAPPED and t.channels != 1:
             raise ValueError(f"Material.{f}_map must have one channel, got {t.channels}")
         if id(t) not in done:
             lod = level_of_detail(t, *deriv) if t.filter == "trilinear" else None
             smp = sample(t, u, v, lod)
             done[id(t)] = keep(*(smp[..., c] for c in range(t.channels)))
         c = done[id(t)]
-        out[f] = c if (f in _SCALAR_MAPS or len(c) == 3) else c * 3
+        out[f] = c if (f in SCALAR_MAPPED or len(c) == 3) else c * 3
     return out
 
 
@@ -296,7 +292,7 @@ def _modulated(mat: Material, texels: dict) -> Material:
     new = {}
     for f, t in texels.items():
         base = getattr(mat, f)
-        if f in _SCALAR_MAPS:
+        if f in SCALAR_MAPPED:
             new[f] = base * t[0]
         else:
             new[f] = jnp.stack([base[..., c] * t[c] for c in range(3)], axis=-1)
@@ -319,6 +315,6 @@ def _textured(scene, raster, need, frags, bary, clip, multi, sites: Sites, pmat:
         raise ValueError(
             f"a shininess map needs Phong shading ({raster.shading} shading lights the vertices or faces, not the pixels)"
         )
-    colour = {f: t for f, t in texels.items() if f not in _SCALAR_MAPS}
-    pixel = {f: t for f, t in texels.items() if f in _SCALAR_MAPS}
+    colour = {f: t for f, t in texels.items() if f not in SCALAR_MAPPED}
+    pixel = {f: t for f, t in texels.items() if f in SCALAR_MAPPED}
     return replace(sites, modulate=colour or None), _modulated(pmat, pixel)
