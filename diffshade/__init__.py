@@ -40,8 +40,8 @@ from ._scene import (
     no_spot,
 )
 from ._shade import blinn_to_phong, phong_to_blinn
-from ._surface import Needs, Sites, Surface, needs, surface_points
-from ._texture import Texture, mip_pyramid, texture_from_image
+from ._surface import Needs, Sites, Surface, needs, surface_points, texture_coordinates
+from ._texture import Texture, level_of_detail, mip_pyramid, sample, sample_weights, texture_from_image
 from ._trace import secondary_rays
 from ._util import keep
 from .images import Image, ImageError, read_image, write_image
@@ -61,6 +61,10 @@ __all__ = [
     "Texture",
     "texture_from_image",
     "mip_pyramid",
+    "sample",
+    "sample_weights",
+    "level_of_detail",
+    "texture_coordinates",
     "Mesh",
     "MeshError",
     "MultiLobeLights",

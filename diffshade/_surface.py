@@ -26,7 +26,7 @@ from jaxtyping import Array, Bool, Float, Int
 from . import _shade as S
 from ._materials import _COMPOSITING_FIELDS, _MATERIAL_FIELDS, _material_at
 from ._options import Raster, RenderOptions
-from ._raster import Fragments, _pixel_vertex_ids, interpolate
+from ._raster import Fragments, _pixel_vertex_ids, fragments, interpolate
 from ._scene import SCALAR_MAPPED, Material, Scene
 from ._texture import footprint, level_of_detail, pixel_derivatives, sample
 from ._util import keep
@@ -260,18 +260,13 @@ def _flat_sites(scene, raster, need, frags, bary, multi, pmat, back, position):
 def _texels(scene: Scene, need: Needs, frags: Fragments, bary, clip) -> dict:
     """Each used map's texels at the pixels, ``{field: components}`` (one component for the
     shininess and opacity, three for colours; a one-channel colour map is grey)."""
-    mesh, cam = scene.mesh, scene.camera
     maps = scene.material.maps(need.fields)
-    if mesh.uv is None:
+    if scene.mesh.uv is None:
         raise ValueError(
             f"the material has texture maps ({', '.join(f + '_map' for f in maps)}) but the mesh has no texture coordinates (Mesh.uv)"
         )
-    lerp = _lerp(frags, mesh.faces, bary)
-    u, v = lerp((mesh.uv[:, 0], mesh.uv[:, 1]))
-    deriv = None
-    if any(t.filter == "trilinear" for t in maps.values()):
-        per_face = footprint(clip, mesh.faces)
-        deriv = pixel_derivatives(per_face, mesh.uv[mesh.faces], frags.tri_id, frags.w, u, v, cam.width, cam.height)
+    trilinear = any(t.filter == "trilinear" for t in maps.values())
+    u, v, deriv = _coordinates(scene, frags, bary, clip, trilinear)
     done, out = {}, {}
     for f, t in maps.items():
         if f in SCALAR_MAPPED and t.channels != 1:
@@ -283,6 +278,32 @@ def _texels(scene: Scene, need: Needs, frags: Fragments, bary, clip) -> dict:
         c = done[id(t)]
         out[f] = c if (f in SCALAR_MAPPED or len(c) == 3) else c * 3
     return out
+
+
+def _coordinates(scene: Scene, frags: Fragments, bary, clip, derivatives: bool):
+    """``(u, v, derivatives or None)`` at the fragments (:func:`texture_coordinates`)."""
+    mesh, cam = scene.mesh, scene.camera
+    u, v = _lerp(frags, mesh.faces, bary)((mesh.uv[:, 0], mesh.uv[:, 1]))
+    if not derivatives:
+        return u, v, None
+    per_face = footprint(clip, mesh.faces)
+    return u, v, pixel_derivatives(per_face, mesh.uv[mesh.faces], frags.tri_id, frags.w, u, v, cam.width, cam.height)
+
+
+def texture_coordinates(scene: Scene, ids: Int[Array, "K H W"], raster: Raster = Raster(), pixels=None):
+    """The texture coordinates the renderer samples at the pixels of ``ids`` (layer 0):
+    ``(u, v, ((du/dx, dv/dx), (du/dy, dv/dy)))``, perspective-correct (affine with
+    ``raster.interpolation = "affine"``), the derivatives per pixel step as the level of detail
+    uses them (:func:`diffshade.level_of_detail`). ``pixels``: NDC centres of a pixel subset, as
+    :func:`diffshade.fragments` takes them. Zero where no triangle covers a pixel."""
+    if scene.mesh.uv is None:
+        raise ValueError("texture_coordinates: the mesh has no texture coordinates (Mesh.uv)")
+    clip = scene.camera.world_to_clip(scene.mesh.vertices)
+    frags = fragments(clip, scene.mesh.faces, ids[:1], None if pixels is None else pixels[:2])
+    if raster.interpolation == "affine":
+        frags = _affine(frags, clip, scene.mesh.faces)
+    bary = tuple(frags.bary[..., j] for j in range(3))
+    return _coordinates(scene, frags, bary, clip, True)
 
 
 def _modulated(mat: Material, texels: dict) -> Material:

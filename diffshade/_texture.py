@@ -189,3 +189,77 @@ def pixel_derivatives(per_face, uvf, tri_id, w_pix, u, v, width: int, height: in
     scale = jnp.where(ok, w_pix / jnp.where(ok, dt, 1.0), 0.0)
     sx, sy = scale * (2.0 / width), scale * (2.0 / height)
     return ((Axu - u * Sx) * sx, (Axv - v * Sx) * sx), ((Ayu - u * Sy) * sy, (Ayv - v * Sy) * sy)
+
+
+def _box_1d(n: int) -> np.ndarray:
+    """The 1-D step of :func:`mip_pyramid` as a matrix (``ceil(n/2) × n``; identity for n = 1)."""
+    if n == 1:
+        return np.ones((1, 1))
+    m = (n + 1) // 2
+    out = np.zeros((m, n))
+    out[np.arange(m), 2 * np.arange(m)] += 0.5
+    out[np.arange(m), np.minimum(2 * np.arange(m) + 1, n - 1)] += 0.5
+    return out
+
+
+def pyramid_operator(height: int, width: int, filter: str = "trilinear"):
+    """The linear map from a map's level-0 texels to its packed levels (:func:`mip_pyramid`,
+    levels flattened row-major and stacked): a SciPy sparse matrix ``[Σ texels per level, H·W]``,
+    and each level's ``(offset, width, height)``."""
+    import scipy.sparse as sp
+
+    h, w = height, width
+    ops, op, sizes = [sp.identity(h * w, format="csr")], sp.identity(h * w, format="csr"), [(w, h)]
+    while filter == "trilinear" and (h > 1 or w > 1):
+        step = sp.kron(sp.csr_matrix(_box_1d(h)), sp.csr_matrix(_box_1d(w)), format="csr")
+        op = step @ op
+        h, w = (h + 1) // 2, (w + 1) // 2
+        ops.append(op)
+        sizes.append((w, h))
+    offs = np.concatenate([[0], np.cumsum([a * b for a, b in sizes])[:-1]])
+    return sp.vstack(ops, format="csr"), [(int(o), a, b) for o, (a, b) in zip(offs, sizes)]
+
+
+def _bilinear_taps(off, w, h, u, v, wrap: str):
+    """The four packed indices and weights of :func:`_bilinear` (NumPy, float64)."""
+    x = u * w - 0.5
+    y = (1.0 - v) * h - 0.5
+    x0, y0 = np.floor(x), np.floor(y)
+    fx, fy = x - x0, y - y0
+    x0, y0 = x0.astype(np.int64), y0.astype(np.int64)
+
+    def wrap_(i, n):
+        return np.mod(i, n) if wrap == "repeat" else np.clip(i, 0, n - 1)
+
+    xs, ys = (wrap_(x0, w), wrap_(x0 + 1, w)), (wrap_(y0, h), wrap_(y0 + 1, h))
+    idx = [off + ys[j] * w + xs[i] for j in range(2) for i in range(2)]
+    wts = [(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx]
+    return idx, wts
+
+
+def sample_weights(tex: Texture, u, v, lod=None):
+    """What :func:`sample` computes, as a matrix: the SciPy sparse ``W`` ``[N, H·W]`` with
+    ``sample(tex, u, v, lod)[k, c] = (W @ texels.reshape(H·W, C))[k, c]`` for N points
+    (host, float64; the level-0 texels row-major). A fit solves for the texels through it."""
+    import scipy.sparse as sp
+
+    h, w = (int(n) for n in tex.texels.shape[:2])
+    u, v = np.asarray(u, np.float64).reshape(-1), np.asarray(v, np.float64).reshape(-1)
+    n = len(u)
+    P, levels = pyramid_operator(h, w, tex.filter)
+    if len(levels) == 1 or lod is None:
+        idx, wts = _bilinear_taps(0, w, h, u, v, tex.wrap)
+    else:
+        top = len(levels) - 1
+        d = np.clip(np.asarray(lod, np.float64).reshape(-1), 0.0, float(top))
+        lo = np.minimum(np.floor(d).astype(np.int64), top)
+        hi = np.minimum(lo + 1, top)
+        frac = d - lo
+        meta = np.asarray(levels)
+        a = _bilinear_taps(meta[lo, 0], meta[lo, 1], meta[lo, 2], u, v, tex.wrap)
+        b = _bilinear_taps(meta[hi, 0], meta[hi, 1], meta[hi, 2], u, v, tex.wrap)
+        idx = a[0] + b[0]
+        wts = [x * (1 - frac) for x in a[1]] + [x * frac for x in b[1]]
+    rows = np.tile(np.arange(n), len(idx))
+    Wp = sp.csr_matrix((np.concatenate(wts), (rows, np.concatenate(idx))), shape=(n, P.shape[0]))
+    return (Wp @ P).tocsr() if len(levels) > 1 else Wp

@@ -172,6 +172,20 @@ class AlbedoProblem:
             ]
         )
 
+    what = "per-vertex albedo scalars"
+
+    def intro(self) -> str:
+        return (
+            f"albedo: {self.nv} vertices in {self.n_col} colour classes ({self.n_col + len(self.other)} tangents per "
+            f"evaluation), smoothness λ = {self.smoothness:g}"
+        )
+
+    def inverse_diagonal(self, G, idx_det) -> np.ndarray:
+        return _channel_inverse_diagonal(G, idx_det)
+
+    def unseen_notes(self, red, se, prior: bool, steps):
+        return _unseen_notes(self, red, prior, steps)
+
     def prior(self):
         """``√λ`` times the edge differences of the albedo, per channel (sparse, n_edges·3 × n_alb)."""
         sp = self.sp
@@ -336,22 +350,36 @@ class _AlbedoSolver:
         return red, steps, converged
 
 
-def _albedo_stderr(ap: AlbedoProblem, solver: _AlbedoSolver, red: _Reduced, s2_eff) -> np.ndarray:
-    r"""The albedo's standard errors: the marginal covariance of the full problem
+def block_stderr(ap, solver: _AlbedoSolver, red: _Reduced, s2_eff) -> np.ndarray:
+    r"""The linear block's standard errors: the marginal covariance of the full problem
     :math:`[x; \theta_o]` through its Schur complement, :math:`\mathrm{cov}_x = M^{-1} + Z S^{-1}
     Z^T`, :math:`M = A^TA (+ \lambda L^TL)` over the determined scalars, :math:`Z = M^{-1}A^TJ_o`,
-    :math:`S = J_o^TJ_o - J_o^TA Z` (the other parameters' information with the albedo projected
-    out); :math:`\mathrm{diag}(M^{-1})` per channel (M is block diagonal by channel), dense up to
-    4000 vertices, the diagonal approximation beyond."""
+    :math:`S = J_o^TJ_o - J_o^TA Z` (the other parameters' information with the block projected
+    out); :math:`\mathrm{diag}(M^{-1})` from the block's ``inverse_diagonal``."""
     from scipy.sparse.linalg import factorized
 
     A, Lp = red.A, solver.Lp
-    Jo_fin = ap.evaluate(red.th)[2]  # at the final albedo (reduced() took the columns at the incoming one)
+    Jo_fin = ap.evaluate(red.th)[2]  # at the final values (reduced() took the columns at the incoming ones)
     idx_det = np.flatnonzero(red.seen | (Lp is not None))
     G = A.T @ A
     if Lp is not None:
         G = G + Lp.T @ Lp
     G = G.tocsc()[idx_det][:, idx_det]
+    diag_inv = ap.inverse_diagonal(G, idx_det)
+    if len(ap.other) and len(idx_det):
+        AtJ = np.asarray(A[:, idx_det].T @ Jo_fin)
+        solve = factorized((G + ap.sp.identity(G.shape[0]) * 1e-13 * max(G.diagonal().max(), 1e-300)).tocsc())
+        Z = np.column_stack([solve(AtJ[:, j]) for j in range(AtJ.shape[1])])
+        S = Jo_fin.T @ Jo_fin - AtJ.T @ Z
+        diag_inv = diag_inv + np.sum((Z @ np.linalg.pinv(S)) * Z, axis=1)
+    se = np.full(ap.n_alb, np.inf)
+    se[idx_det] = np.sqrt(np.clip(diag_inv, 0, None) * s2_eff)
+    return se
+
+
+def _channel_inverse_diagonal(G, idx_det) -> np.ndarray:
+    """:math:`\mathrm{diag}(G^{-1})` of the albedo's normal matrix per channel (block diagonal by
+    channel), dense up to 4000 vertices, the diagonal approximation beyond."""
     diag_inv = np.zeros(len(idx_det))
     for c in range(3):
         sel = np.flatnonzero(idx_det % 3 == c)
@@ -362,15 +390,7 @@ def _albedo_stderr(ap: AlbedoProblem, solver: _AlbedoSolver, red: _Reduced, s2_e
             diag_inv[sel] = np.diag(np.linalg.pinv(Gc.toarray()))
         else:  # the diagonal approximation (correlations with neighbours left out)
             diag_inv[sel] = 1.0 / np.maximum(Gc.diagonal(), 1e-300)
-    if len(ap.other) and len(idx_det):
-        AtJ = np.asarray(A[:, idx_det].T @ Jo_fin)
-        solve = factorized((G + ap.sp.identity(G.shape[0]) * 1e-13 * max(G.diagonal().max(), 1e-300)).tocsc())
-        Z = np.column_stack([solve(AtJ[:, j]) for j in range(AtJ.shape[1])])
-        S = Jo_fin.T @ Jo_fin - AtJ.T @ Z
-        diag_inv = diag_inv + np.sum((Z @ np.linalg.pinv(S)) * Z, axis=1)
-    se_alb = np.full(ap.n_alb, np.inf)
-    se_alb[idx_det] = np.sqrt(np.clip(diag_inv, 0, None) * s2_eff)
-    return se_alb
+    return diag_inv
 
 
 def _unseen_notes(ap, red: _Reduced, prior: bool, steps) -> tuple[list[str], list[str]]:
@@ -396,7 +416,8 @@ def _unseen_notes(ap, red: _Reduced, prior: bool, steps) -> tuple[list[str], lis
 
 
 def _albedo_result(ap, solver, red: _Reduced, theta0, converged, max_steps, noise, run: Run) -> FitResult:
-    """The report of an albedo fit: the verdict, the standard errors of both blocks, what the
+    """The report of a fit with a sparse linear block (``ap``: an :class:`AlbedoProblem` or a
+    :class:`fitting._maps.MapProblem`): the verdict, the standard errors of both blocks, what the
     images do not determine."""
     prob, r = ap.prob, red.r
     labels = prob.pset.labels
@@ -413,11 +434,11 @@ def _albedo_result(ap, solver, red: _Reduced, theta0, converged, max_steps, nois
     if len(ap.other):
         se_o, undetermined, gauges, _ = uncertainty(red.Jr, float(r2 @ r2), n2, [labels[i] for i in ap.other], sigma)
         stderr[ap.other] = se_o
-    stderr[ap.sl] = _albedo_stderr(ap, solver, red, max(s2, sigma**2))
-    unseen, notes = _unseen_notes(ap, red, solver.Lp is not None, run.steps)
+    stderr[ap.sl] = block_stderr(ap, solver, red, max(s2, sigma**2))
+    unseen, notes = ap.unseen_notes(red, stderr[ap.sl], solver.Lp is not None, run.steps)
     psnr, ssim = image_quality(prob.full_images(red.img)[0], prob.targets[0])
     method = (
-        f"variable projection with a sparse linear block: {ap.n_alb} per-vertex albedo scalars "
+        f"variable projection with a sparse linear block: {ap.n_alb} {ap.what} "
         f"(bounded sparse least squares{', smoothness prior' if solver.Lp is not None else ''}), "
         f"Levenberg–Marquardt on {len(ap.other)} other scalar(s)"
     )
@@ -462,16 +483,19 @@ def fit_albedo(
 ) -> FitResult:
     """Fit the per-vertex albedo and the other free parameters of ``prob`` (see the module)."""
     ap = AlbedoProblem(prob, smoothness)
+    return fit_block(ap, theta0, max_steps=max_steps, rtol=rtol, noise=noise, verbose=verbose)
+
+
+def fit_block(ap, theta0, *, max_steps: int = 50, rtol: float = 1e-10, noise=None, verbose: bool = False) -> FitResult:
+    """Variable projection over the sparse linear block ``ap`` and the other free parameters."""
+    prob, smoothness = ap.prob, ap.smoothness
     pset = prob.pset
     theta = np.array(pset.theta_from_u(pset.u_from_theta(jnp.asarray(theta0))), np.float64)  # inside the domain
     theta[ap.sl] = np.clip(np.asarray(theta0, np.float64)[ap.sl], 0.0, 1.0)
     compile_s = ap._compile(theta)
     t0 = time.perf_counter()
     solver = _AlbedoSolver(ap, smoothness, rtol, verbose)
-    notes = [
-        f"albedo: {ap.nv} vertices in {ap.n_col} colour classes ({ap.n_col + len(ap.other)} tangents per "
-        f"evaluation), smoothness λ = {smoothness:g}"
-    ]
+    notes = [ap.intro()]
     red, steps, converged = solver.lm(theta, max_steps)
     if prob.encoded:  # residuals in code values, exactly at the model (see Problem.relinearise)
         for _ in range(RELINEARISE_PASSES):

@@ -30,7 +30,7 @@ import diffshade as ds
 from ._domains import check_fit
 from ._linear import Reduced
 from ._observations import FitError, Observations, Strategy, VarPro
-from ._params import ParamSet
+from ._params import LINEAR_MAPS, ParamSet, is_map
 from ._problem import Problem
 from ._report import FitResult
 from ._restarts import solve
@@ -133,6 +133,18 @@ def _fit_once(
     pset, dtype = prob.pset, prob.dtype
     theta0 = pset.theta_of(scene, observations.views)
     pset.check(theta0)
+    if any(is_map(p) and p.path[1][:-4] in LINEAR_MAPS for p in pset.params):
+        from ._maps import fit_maps
+
+        return fit_maps(
+            prob,
+            np.asarray(theta0, np.float64),
+            smoothness=albedo_smoothness,
+            max_steps=max(strategy.max_steps, 20),
+            noise=observations.noise,
+            verbose=strategy.verbose,
+            rtol=strategy.tolerance(dtype),
+        )
     if any(p.path == ("mesh", "colors") for p in pset.params):
         from ._albedo import fit_albedo
 

@@ -25,6 +25,8 @@ receiver, which sees only the power); ``multi_lobe[i].<position|a0|a1|a2>`` (sha
 start direction about two axes normal to it (a chart of the sphere centred on the start: no pole
 where a light points straight down; the fitted direction is ``direction_of(tilt, frame)``);
 ``mesh.colors`` (per-vertex albedo, ``[0, 1]``, 3 per vertex; fitted by :mod:`fitting._albedo`);
+``material.<emission|ambient|diffuse|specular|shininess|opacity>_map`` (a texture map's texels, at
+the start map's resolution: the first four are a linear block, fitted by :mod:`fitting._maps`);
 ``camera.exposure`` (one gain), ``camera.white_balance`` (RGB gains) and, for an OpenCV camera,
 ``camera.rvec``/``camera.tvec`` (its pose). RGB fields are per channel unless listed as shared
 (one value for the three channels).
@@ -123,12 +125,15 @@ class Param:
     domain: object  # "unit" | "positive" | "real" | (lo, hi)
     view: int | None = None  # a per-view parameter: the view it belongs to
     frame: tuple | None = None  # a direction's chart: the start direction d0 and two axes e1, e2 normal to it
+    shape: tuple | None = None  # a texture map's texels (H, W, C)
 
     def get(self, scene: ds.Scene):
         if self.frame is not None:
             return tilt_of(self._node(scene), self.frame)
         if self.path == ("mesh", "colors"):
             return jnp.asarray(scene.mesh.colors).reshape(-1)
+        if is_map(self):
+            return jnp.asarray(_follow(scene, self.path).texels).reshape(-1)
         return self._leaf(scene)
 
     def _node(self, scene):
@@ -174,6 +179,9 @@ class Param:
         if self.path == ("mesh", "colors"):
             return (lambda s: s.mesh.colors), jnp.asarray(value).reshape(-1, 3).astype(scene.mesh.colors.dtype)
         p = self.path
+        if is_map(self):
+            old = _follow(scene, p).texels
+            return (lambda s: _follow(s, p).texels), jnp.asarray(value, old.dtype).reshape(old.shape)
         if p[0] in _KINDS and len(p) == 4:
             kind, i, j, field = p
             arr = getattr(scene.multi_lobe, field)
@@ -251,10 +259,40 @@ class Param:
     def labels(self) -> list[str]:
         if self.path == ("mesh", "colors"):
             return [f"mesh.colors[{v}][{c}]" for v in range(self.size // 3) for c in "rgb"]
+        if is_map(self):
+            h, w, ch = self.shape
+            rgb = "rgb" if ch == 3 else "v"
+            return [f"{self.name}[{i},{j}][{c}]" for i in range(h) for j in range(w) for c in rgb[:ch]]
         if self.frame is not None:
             return [f"{self.name}[tilt_u]", f"{self.name}[tilt_v]"]
         axes = "xyz" if self.domain == "real" else "rgb"
         return [f"{self.name}[{axes[c]}]" for c in range(3)] if self.size == 3 else [self.name]
+
+
+MAP_FIELDS = ("emission", "ambient", "diffuse", "specular", "shininess", "opacity")
+LINEAR_MAPS = ("emission", "ambient", "diffuse", "specular")  # the image is linear in their texels
+
+
+def is_map(p: Param) -> bool:
+    """Whether ``p`` is a texture map's texels (``material.<field>_map``)."""
+    return p.shape is not None
+
+
+def _parse_map(name, scene, shared):
+    field = name.split(".")[1][: -len("_map")]
+    if field not in MAP_FIELDS:
+        raise ParamError(f"unknown parameter {name!r}: the maps are material.<{'|'.join(MAP_FIELDS)}>_map")
+    tex = getattr(scene.material, field + "_map")
+    if tex is None:
+        raise ParamError(
+            f"{name}: the material has no {field} map to fit (give Material({field}_map=Texture(...)) a start, "
+            "e.g. a constant map of the resolution to fit)"
+        )
+    if shared:
+        raise ParamError(f"{name} has no shared form")
+    shape = tuple(int(n) for n in tex.texels.shape)
+    domain = "positive" if field == "shininess" else "unit"
+    return Param(name, ("material", field + "_map"), int(np.prod(shape)), domain, shape=shape)
 
 
 def _parse_mesh_colors(name, scene, shared):
@@ -360,7 +398,7 @@ def _parse_other(name, scene, shared):
         f"unknown parameter {name!r}; known: material.<{'|'.join(_MATERIAL)}>, material[i].<...> (material id i), "
         "back_material.<...>, ambient_light, <directional|point|spot|area>[i].<color|specular|ambient|position|a0|a1|a2|cutoff|"
         "exponent|edge|width|height>, directional[i].direction, spot[i].axis, multi_lobe[i].<position|a0|a1|a2>, multi_lobe[i].lobe[j].<color|ambient|cutoff|exponent|edge>, "
-        "fog.<color|start|end|density>, camera.<exposure|white_balance|rvec|tvec>, mesh.colors, view[i].<any of these>"
+        "fog.<color|start|end|density>, camera.<exposure|white_balance|rvec|tvec>, mesh.colors, material.<field>_map, view[i].<any of these>"
     )
 
 
@@ -385,6 +423,8 @@ def parse(name: str, scene: ds.Scene, shared: bool = False, n_views: int | None 
         return dataclasses.replace(parse(m.group(2), scene, shared), name=name, view=i)
     if name == "mesh.colors":
         return _parse_mesh_colors(name, scene, shared)
+    if name.startswith("material.") and name.endswith("_map"):
+        return _parse_map(name, scene, shared)
     if name.split(".")[0] == "camera":
         return _parse_camera(name, scene, shared)
     for pattern, fn in _PATTERNS:

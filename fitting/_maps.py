@@ -1,0 +1,263 @@
+r"""Texture maps in a fit: the texels of the emission, ambient, diffuse and specular maps as a
+sparse linear block of the variable projection (:mod:`fitting._albedo` holds the solver).
+
+Free as ``material.<field>_map``, a map is fitted at the resolution of its start map. The image
+is linear in such a map's texels :math:`x` (the map multiplies its field, docs/model.md §15):
+at pixel :math:`p` and channel :math:`c`, :math:`I_{pc} = S_{pc} \sum_t W_{pt} x_{t c} + b_{pc}`,
+where :math:`W` is the sampling (bilinear weights, and for trilinear filtering the blend of two
+levels of the box-filter pyramid, mapped back to level-0 texels: ``diffshade.sample_weights``)
+and :math:`S` the lighting the map multiplies. Since every row of :math:`W` sums to one, a single
+forward-mode tangent (the map's texels all +1) gives :math:`S`; the coordinates and the level of
+detail come out of the same compiled evaluation, and :math:`W` is assembled on the host. So the
+design matrix costs one tangent per map, whatever its resolution.
+
+**What the images cannot tell.** A texel no covered pixel samples has a zero column: it keeps its
+start value and is reported undetermined. Minified pixels sample coarse levels, which see only
+averages of level-0 texels; where every pixel that reaches a texel does so, the texel's own value
+is not determined either (the normal matrix is singular there: the variance inflation
+:math:`(G^{-1})_{tt} G_{tt}` exceeds :data:`UNDETERMINED`): its standard error is infinite and it
+is reported undetermined too. A smoothness prior (``albedo_smoothness``
+λ times the squared differences of 4-neighbouring texels) fills both from their neighbours.
+
+**Standard errors.** :math:`\mathrm{diag}(G^{-1})`, :math:`G = A^TA (+ \lambda L^TL)`, exactly
+(dense) for a connected block of up to 3000 texel scalars; beyond, by probing (Tang & Saad,
+2012): :math:`G^{-1}` is applied, through one sparse factorisation, to the indicator of each
+class of a colouring whose classes keep texels at least :data:`PROBE_DISTANCE` apart, and the
+diagonal read off; the error is the sum of the inverse's entries between same-class texels,
+which decays with their distance (measured in the randomised suite, benchmarks/bench_map_fit.py).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import diffshade as ds
+
+from . import _options
+from ._albedo import fit_block
+from ._cache import compiled
+from ._params import LINEAR_MAPS, is_map
+from ._problem import FitError, Problem
+from ._report import FitResult
+
+PROBE_DISTANCE = 8  # texels between the texels of one probing class
+DENSE_LIMIT = 3000  # a connected block up to this many scalars is inverted exactly
+UNDETERMINED = 1e6  # a texel's variance inflation diag(G⁻¹)·G_ii beyond which the images do not determine it
+
+
+class MapProblem:
+    """The texel block of a :class:`fitting._problem.Problem`: the compiled evaluation (image,
+    one tangent per map, the other tangents, the coordinates) and the sparse assembly."""
+
+    what = "texel scalars of the texture maps"
+
+    def __init__(self, prob: Problem, smoothness: float = 0.0):
+        import scipy.sparse as sp
+
+        self.sp, self.prob, self.smoothness = sp, prob, float(smoothness)
+        pset, opts = prob.pset, prob.opts
+        self.maps = [k for k, p in enumerate(pset.params) if is_map(p) and p.path[1][:-4] in LINEAR_MAPS]
+        names = ", ".join(pset.params[k].name for k in self.maps)
+        for bad, why in (
+            (_options.clamp(opts), "clamp = true: the image is not linear in the texels; fit without clamping"),
+            (_options.layered(opts), "transparency layers are not supported"),
+            (_options.antialias(opts), "antialias blends neighbouring pixels' texels; fit without it"),
+            (any(p.path == ("mesh", "colors") for p in pset.params), "fit mesh.colors or a map, not both"),
+            (any(pset.params[k].view is not None for k in self.maps), "a map is shared by every view"),
+        ):
+            if bad:
+                raise FitError(f"{names}: {why}")
+        if prob.data[0].scene.mesh.uv is None:
+            raise FitError(f"{names}: the mesh has no texture coordinates (Mesh.uv)")
+        off = pset.offsets
+        self.sl = np.concatenate([np.arange(off[k], off[k + 1]) for k in self.maps])
+        self.n_alb = len(self.sl)
+        self.other = np.setdiff1d(np.arange(int(off[-1])), self.sl)
+        mat = prob.data[0].scene.material
+        self.textures = [getattr(mat, pset.params[k].path[1]) for k in self.maps]
+        self.shapes = [pset.params[k].shape for k in self.maps]
+        self.starts = np.concatenate([[0], np.cumsum([int(np.prod(s)) for s in self.shapes])])
+        E = np.zeros((len(self.maps) + len(self.other), int(off[-1])))
+        for j, k in enumerate(self.maps):
+            E[j, off[k] : off[k + 1]] = 1.0
+        E[len(self.maps) + np.arange(len(self.other)), self.other] = 1.0
+        self.E = E
+        self._fn = None
+
+    # -- the compiled evaluation ----------------------------------------------------------------
+    def _view(self, vd, th, E):
+        """``[1 + tangents + maps, N, 3]``: the image, its tangents, and per map ``(u, v, λ)``."""
+        prob = self.prob
+        img, T = jax.vmap(lambda e: jax.jvp(lambda t: prob.image(vd, t), (th,), (e,)), out_axes=(None, 0))(E)
+        scene = prob.pset.apply(vd.scene, th, vd.index)
+        u, v, deriv = ds.texture_coordinates(scene, vd.ids, prob.opts.raster, (vd.px, vd.py))
+        coords = []
+        for k in self.maps:
+            tex = getattr(scene.material, prob.pset.params[k].path[1])
+            lod = ds.level_of_detail(tex, *deriv) if tex.filter == "trilinear" else jnp.zeros_like(u)
+            coords.append(jnp.stack([u.reshape(-1), v.reshape(-1), lod.reshape(-1)], -1))
+        return jnp.concatenate([img[None], T, jnp.stack(coords).astype(img.dtype)])
+
+    def _compile(self, theta):
+        prob = self.prob
+
+        def evaluate(th, E, data):
+            if isinstance(data, list):
+                return [self._view(vd, th, E) for vd in data]
+            return prob.map_views(lambda vd, t, e: self._view(vd, t, e), data, th, E)
+
+        args = (jnp.asarray(theta, prob.dtype), jnp.asarray(self.E, prob.dtype), prob.device_data())
+        self._fn, seconds = compiled(prob, "maps", evaluate, *args)
+        return seconds
+
+    def evaluate(self, theta):
+        """``(img [M], A (sparse, M × texels), J_o [M, n_o], w [M])`` at ``theta`` (natural), as
+        :meth:`fitting._albedo.AlbedoProblem.evaluate`."""
+        sp = self.sp
+        out = self._fn(jnp.asarray(theta, self.prob.dtype), jnp.asarray(self.E, self.prob.dtype), self.prob.device_data())
+        out = [np.asarray(o, np.float64) for o in out]
+        n_maps = len(self.maps)
+        imgs, blocks, Jo, ws = [], [], [], []
+        for vd, o in zip(self.prob.data, out):
+            img, S, To, uvl = o[0], o[1 : 1 + n_maps], o[1 + n_maps : -n_maps], o[-n_maps:]
+            w = np.asarray(vd.weight, np.float64) * ~np.asarray(vd.hi | vd.lo)  # [N, 3]
+            n = img.shape[0]
+            row = []
+            for j, (tex, shape) in enumerate(zip(self.textures, self.shapes)):
+                W = ds.sample_weights(tex, uvl[j, :, 0], uvl[j, :, 1], uvl[j, :, 2]).tocoo()
+                ch = shape[2]
+                for c in range(3):
+                    val = W.data * S[j, W.row, c] * w[W.row, c]
+                    keep = val != 0
+                    cols = W.col[keep] * ch + (c if ch == 3 else 0)
+                    row.append(sp.csr_matrix((val[keep], (W.row[keep] * 3 + c, cols + self.starts[j])), shape=(3 * n, self.n_alb)))
+            blocks.append(sum(row[1:], row[0]))
+            Jo.append((To * w).reshape(len(self.other), 3 * n).T)
+            imgs.append(img.reshape(-1))
+            ws.append(w.reshape(-1))
+        A = sp.vstack(blocks, format="csr")
+        A.sum_duplicates()
+        return np.concatenate(imgs), A, np.concatenate(Jo), np.concatenate(ws)
+
+    def target(self):
+        return np.concatenate(
+            [
+                (
+                    np.asarray(vd.target, np.float64) * np.asarray(vd.weight, np.float64) * ~np.asarray(vd.hi | vd.lo)
+                ).reshape(-1)
+                for vd in self.prob.data
+            ]
+        )
+
+    # -- the prior, the inverse's diagonal, the report ------------------------------------------
+    def _grid(self):
+        """Per texel scalar: ``(map, row, column, channel)``."""
+        parts = []
+        for j, (h, w, c) in enumerate(self.shapes):
+            i, k, ch = np.meshgrid(np.arange(h), np.arange(w), np.arange(c), indexing="ij")
+            parts.append(np.stack([np.full(i.size, j), i.ravel(), k.ravel(), ch.ravel()], -1))
+        return np.concatenate(parts)
+
+    def prior(self):
+        """``√λ`` times the differences of 4-neighbouring texels, per map and channel."""
+        sp = self.sp
+        pairs = []
+        for j, (h, w, c) in enumerate(self.shapes):
+            idx = self.starts[j] + np.arange(h * w * c).reshape(h, w, c)
+            pairs += [np.stack([idx[:, :-1].ravel(), idx[:, 1:].ravel()], -1)]
+            pairs += [np.stack([idx[:-1].ravel(), idx[1:].ravel()], -1)]
+        e = np.concatenate(pairs)
+        m = len(e)
+        rows = np.repeat(np.arange(m), 2)
+        vals = np.tile([1.0, -1.0], m) * np.sqrt(self.smoothness)
+        return sp.csr_matrix((vals, (rows, e.reshape(-1))), shape=(m, self.n_alb))
+
+    def inverse_diagonal(self, G, idx_det) -> np.ndarray:
+        r""":math:`\mathrm{diag}(G^{-1})` over the determined scalars: exact per connected block up
+        to :data:`DENSE_LIMIT`, by probing beyond (see the module)."""
+        from scipy.sparse.csgraph import connected_components
+        from scipy.sparse.linalg import factorized
+
+        G = G.tocsc()
+        n_comp, comp = connected_components(G, directed=False)
+        out = np.zeros(G.shape[0])
+        ridge = 1e-13 * max(G.diagonal().max(), 1e-300)
+        sizes = np.bincount(comp, minlength=n_comp)
+        big = np.zeros(G.shape[0], bool)
+        for k in np.flatnonzero(sizes <= DENSE_LIMIT):
+            sel = np.flatnonzero(comp == k)
+            Gk = G[sel][:, sel].toarray() + ridge * np.eye(len(sel))
+            out[sel] = np.diag(np.linalg.inv(Gk))
+        big[np.isin(comp, np.flatnonzero(sizes > DENSE_LIMIT))] = True
+        if big.any():
+            sel = np.flatnonzero(big)
+            solve = factorized((G[sel][:, sel] + self.sp.identity(len(sel)) * ridge).tocsc())
+            g = self._grid()[idx_det[sel]]
+            d = PROBE_DISTANCE
+            cls = ((g[:, 0] * d + g[:, 1] % d) * d + g[:, 2] % d) * 3 + g[:, 3]
+            diag = np.zeros(len(sel))
+            for c in np.unique(cls):
+                e = (cls == c).astype(float)
+                diag += e * solve(e)
+            out[sel] = diag
+        # the variance inflation: beyond UNDETERMINED, a direction of G is (nearly) null (a texel
+        # seen only through averages with others): not determined by the images (inf)
+        return np.where(out * G.diagonal() > UNDETERMINED, np.inf, out)
+
+    def intro(self) -> str:
+        desc = ", ".join(
+            f"{self.prob.pset.params[k].name} {h}×{w}×{c}" for k, (h, w, c) in zip(self.maps, self.shapes)
+        )
+        return (
+            f"maps: {desc} ({len(self.maps) + len(self.other)} tangents per evaluation), smoothness λ = {self.smoothness:g}"
+        )
+
+    def unseen_notes(self, red, se, prior: bool, steps):
+        """The texels the images do not determine (no pixel samples them, or only through averages
+        with others: standard error above the map's range), as undetermined labels and notes."""
+        labels = np.asarray(self.prob.pset.labels, dtype=object)[self.sl]
+        notes, undetermined = [], []
+        unseen = ~red.seen
+        weak = red.seen & ~np.isfinite(se)
+        per = np.concatenate([[0], np.cumsum([int(np.prod(s)) for s in self.shapes])])
+        for j, k in enumerate(self.maps):
+            name = self.prob.pset.params[k].name
+            a, b = per[j], per[j + 1]
+            n_un, n_weak = int(unseen[a:b].sum()), int(weak[a:b].sum())
+            if n_un or n_weak:
+                how = (
+                    "their values come from the smoothness prior alone"
+                    if prior
+                    else "undetermined (unsampled ones keep their start; the others move only along what the images see)"
+                )
+                notes.append(
+                    f"{name}: {n_un} of {b - a} texel scalars sampled by no covered pixel"
+                    + (f", {n_weak} only through averages with their neighbours" if n_weak else "")
+                    + f": {how}"
+                )
+        if not prior:
+            undetermined = list(labels[unseen | weak])
+        on_bound = int((~red.free & red.seen).sum())
+        notes.append(
+            f"maps: {int(red.seen.sum())} texel scalars sampled; {on_bound} on a bound (0 or 1); "
+            f"{steps} LM steps on the {len(self.other)} other scalar(s)"
+        )
+        return undetermined, notes
+
+
+def fit_maps(
+    prob: Problem,
+    theta0,
+    *,
+    smoothness: float = 0.0,
+    max_steps: int = 50,
+    rtol: float = 1e-10,
+    noise=None,
+    verbose: bool = False,
+) -> FitResult:
+    """Fit the texture maps and the other free parameters of ``prob`` (see the module)."""
+    return fit_block(
+        MapProblem(prob, smoothness), theta0, max_steps=max_steps, rtol=rtol, noise=noise, verbose=verbose
+    )
