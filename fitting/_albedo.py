@@ -217,6 +217,7 @@ class _AlbedoSolver:
     def __init__(self, ap: AlbedoProblem, smoothness, rtol, verbose):
         pset = ap.prob.pset
         self.ap, self.rtol, self.verbose = ap, rtol, verbose
+        self._gram = None
         self.y = ap.target()
         self.Lp = ap.prior() if smoothness > 0 else None
         self.lo = np.concatenate([np.full(p.size, p.box[0]) for p in pset.params])[ap.other]
@@ -228,13 +229,16 @@ class _AlbedoSolver:
         """A sparse factorisation of ``A_I^T A_I + λ L_I^T L_I`` over the scalars ``idx``."""
         from scipy.sparse.linalg import factorized
 
-        Af = A[:, idx]
-        G = Af.T @ Af
-        if self.Lp is not None:
-            Lf = self.Lp[:, idx]
-            G = G + Lf.T @ Lf
-        G = G + self.ap.sp.identity(G.shape[0]) * (1e-13 * max(G.diagonal().max(), 1e-300))
-        return factorized(G.tocsc())
+        if self._gram is None or self._gram[0] is not A:  # A^T A (+ λ L^T L) once per design matrix
+            G = A.T @ A
+            self._gram = (A, (G + self.Lp.T @ self.Lp if self.Lp is not None else G).tocsc())
+        sp = self.ap.sp
+        G = self._gram[1][idx][:, idx]
+        # Jacobi-scaled, so that the ridge (what keeps a null direction at its start) is relative to
+        # each scalar's own information, not to the best-seen one's
+        d = 1 / np.sqrt(np.maximum(G.diagonal(), 1e-300))
+        solve = factorized((sp.diags(d) @ G @ sp.diags(d) + sp.identity(G.shape[0]) * 1e-10).tocsc())
+        return lambda r: d * solve(d * r)
 
     def grad(self, x, A, b):
         g = A.T @ (A @ x + b - self.y)
@@ -378,7 +382,7 @@ def block_stderr(ap, solver: _AlbedoSolver, red: _Reduced, s2_eff) -> np.ndarray
 
 
 def _channel_inverse_diagonal(G, idx_det) -> np.ndarray:
-    """:math:`\mathrm{diag}(G^{-1})` of the albedo's normal matrix per channel (block diagonal by
+    r""":math:`\mathrm{diag}(G^{-1})` of the albedo's normal matrix per channel (block diagonal by
     channel), dense up to 4000 vertices, the diagonal approximation beyond."""
     diag_inv = np.zeros(len(idx_det))
     for c in range(3):

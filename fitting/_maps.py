@@ -44,7 +44,8 @@ from ._report import FitResult
 
 PROBE_DISTANCE = 8  # texels between the texels of one probing class
 DENSE_LIMIT = 3000  # a connected block up to this many scalars is inverted exactly
-UNDETERMINED = 1e6  # a texel's variance inflation diag(G⁻¹)·G_ii beyond which the images do not determine it
+MAX_LOD = 1.0  # pixels sampling a trilinear map at this level of detail or beyond are left out
+UNDETERMINED = 1e4  # a texel's variance inflation diag(G⁻¹)·G_ii beyond which the images do not determine it
 
 
 class MapProblem:
@@ -110,19 +111,36 @@ class MapProblem:
 
         args = (jnp.asarray(theta, prob.dtype), jnp.asarray(self.E, prob.dtype), prob.device_data())
         self._fn, seconds = compiled(prob, "maps", evaluate, *args)
+        self._drop = [np.zeros(vd.target.shape[0], bool) for vd in prob.data]
+        self._drop = [self._coarse(o) for o in self._outputs(theta)]
         return seconds
+
+    def _outputs(self, theta):
+        out = self._fn(
+            jnp.asarray(theta, self.prob.dtype), jnp.asarray(self.E, self.prob.dtype), self.prob.device_data()
+        )
+        return [np.asarray(o, np.float64) for o in out]
+
+    def _coarse(self, o) -> np.ndarray:
+        """The pixels that sample a trilinear map past level :data:`MAX_LOD`."""
+        lod = o[-len(self.maps) :, :, 2]
+        tri = np.asarray([t.filter == "trilinear" for t in self.textures])
+        return (tri[:, None] & (lod >= MAX_LOD)).any(axis=0)
+
+    def _weights(self, k, vd) -> np.ndarray:
+        """View ``k``'s weights ``[N, 3]``: 0 where censored or past :data:`MAX_LOD`."""
+        w = np.asarray(vd.weight, np.float64) * ~np.asarray(vd.hi | vd.lo)
+        return w * ~self._drop[k][:, None]
 
     def evaluate(self, theta):
         """``(img [M], A (sparse, M × texels), J_o [M, n_o], w [M])`` at ``theta`` (natural), as
         :meth:`fitting._albedo.AlbedoProblem.evaluate`."""
         sp = self.sp
-        out = self._fn(jnp.asarray(theta, self.prob.dtype), jnp.asarray(self.E, self.prob.dtype), self.prob.device_data())
-        out = [np.asarray(o, np.float64) for o in out]
         n_maps = len(self.maps)
         imgs, blocks, Jo, ws = [], [], [], []
-        for vd, o in zip(self.prob.data, out):
+        for k, (vd, o) in enumerate(zip(self.prob.data, self._outputs(theta))):
             img, S, To, uvl = o[0], o[1 : 1 + n_maps], o[1 + n_maps : -n_maps], o[-n_maps:]
-            w = np.asarray(vd.weight, np.float64) * ~np.asarray(vd.hi | vd.lo)  # [N, 3]
+            w = self._weights(k, vd)  # [N, 3]
             n = img.shape[0]
             row = []
             for j, (tex, shape) in enumerate(zip(self.textures, self.shapes)):
@@ -132,7 +150,11 @@ class MapProblem:
                     val = W.data * S[j, W.row, c] * w[W.row, c]
                     keep = val != 0
                     cols = W.col[keep] * ch + (c if ch == 3 else 0)
-                    row.append(sp.csr_matrix((val[keep], (W.row[keep] * 3 + c, cols + self.starts[j])), shape=(3 * n, self.n_alb)))
+                    row.append(
+                        sp.csr_matrix(
+                            (val[keep], (W.row[keep] * 3 + c, cols + self.starts[j])), shape=(3 * n, self.n_alb)
+                        )
+                    )
             blocks.append(sum(row[1:], row[0]))
             Jo.append((To * w).reshape(len(self.other), 3 * n).T)
             imgs.append(img.reshape(-1))
@@ -144,10 +166,8 @@ class MapProblem:
     def target(self):
         return np.concatenate(
             [
-                (
-                    np.asarray(vd.target, np.float64) * np.asarray(vd.weight, np.float64) * ~np.asarray(vd.hi | vd.lo)
-                ).reshape(-1)
-                for vd in self.prob.data
+                (np.asarray(vd.target, np.float64) * self._weights(k, vd)).reshape(-1)
+                for k, vd in enumerate(self.prob.data)
             ]
         )
 
@@ -180,17 +200,16 @@ class MapProblem:
         from scipy.sparse.csgraph import connected_components
         from scipy.sparse.linalg import factorized
 
-        G = G.tocsc()
+        dg = np.sqrt(np.maximum(G.diagonal(), 1e-300))
+        G = (self.sp.diags(1 / dg) @ G @ self.sp.diags(1 / dg)).tocsc()  # unit diagonal: the inflation is the inverse's
         n_comp, comp = connected_components(G, directed=False)
         out = np.zeros(G.shape[0])
-        ridge = 1e-13 * max(G.diagonal().max(), 1e-300)
+        ridge = 1e-13
         sizes = np.bincount(comp, minlength=n_comp)
-        big = np.zeros(G.shape[0], bool)
         for k in np.flatnonzero(sizes <= DENSE_LIMIT):
             sel = np.flatnonzero(comp == k)
-            Gk = G[sel][:, sel].toarray() + ridge * np.eye(len(sel))
-            out[sel] = np.diag(np.linalg.inv(Gk))
-        big[np.isin(comp, np.flatnonzero(sizes > DENSE_LIMIT))] = True
+            out[sel] = np.diag(np.linalg.inv(G[sel][:, sel].toarray() + ridge * np.eye(len(sel))))
+        big = np.isin(comp, np.flatnonzero(sizes > DENSE_LIMIT))
         if big.any():
             sel = np.flatnonzero(big)
             solve = factorized((G[sel][:, sel] + self.sp.identity(len(sel)) * ridge).tocsc())
@@ -204,14 +223,21 @@ class MapProblem:
             out[sel] = diag
         # the variance inflation: beyond UNDETERMINED, a direction of G is (nearly) null (a texel
         # seen only through averages with others): not determined by the images (inf)
-        return np.where(out * G.diagonal() > UNDETERMINED, np.inf, out)
+        return np.where(out > UNDETERMINED, np.inf, out / dg**2)
 
     def intro(self) -> str:
-        desc = ", ".join(
-            f"{self.prob.pset.params[k].name} {h}×{w}×{c}" for k, (h, w, c) in zip(self.maps, self.shapes)
+        desc = ", ".join(f"{self.prob.pset.params[k].name} {h}×{w}×{c}" for k, (h, w, c) in zip(self.maps, self.shapes))
+        n_drop = sum(int(d.sum()) for d in self._drop)
+        n_cov = sum(int((np.asarray(vd.weight) > 0).any(-1).sum()) for vd in self.prob.data)
+        drop = (
+            f"; {n_drop} of {n_cov} covered pixels sample the map at level of detail ≥ {MAX_LOD:g} (averages of "
+            "4+ texels) and are left out"
+            if n_drop
+            else ""
         )
         return (
-            f"maps: {desc} ({len(self.maps) + len(self.other)} tangents per evaluation), smoothness λ = {self.smoothness:g}"
+            f"maps: {desc} ({len(self.maps) + len(self.other)} tangents per evaluation), smoothness λ = "
+            f"{self.smoothness:g}{drop}"
         )
 
     def unseen_notes(self, red, se, prior: bool, steps):
@@ -258,6 +284,4 @@ def fit_maps(
     verbose: bool = False,
 ) -> FitResult:
     """Fit the texture maps and the other free parameters of ``prob`` (see the module)."""
-    return fit_block(
-        MapProblem(prob, smoothness), theta0, max_steps=max_steps, rtol=rtol, noise=noise, verbose=verbose
-    )
+    return fit_block(MapProblem(prob, smoothness), theta0, max_steps=max_steps, rtol=rtol, noise=noise, verbose=verbose)

@@ -1,0 +1,97 @@
+"""Texture maps in a fit (fitting._maps): the sampling as a sparse matrix against the renderer's
+sampler, the linear model against renders, recovery of every determined texel from noise-free
+views (bilinear and trilinear maps, with another parameter beside them), the texels no pixel
+samples kept at their start and named, and what a map fit refuses."""
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import diffshade as ds
+import fitting
+from fitting._maps import MapProblem
+from fitting._problem import FitError, Problem
+
+
+@pytest.mark.parametrize("filt", ["trilinear", "bilinear"])
+@pytest.mark.parametrize("wrap", ["repeat", "clamp"])
+def test_sample_weights_is_the_sampler_as_a_matrix(filt, wrap):
+    rng = np.random.default_rng(3)
+    for h, w in [(13, 7), (16, 16), (1, 5)]:
+        t = ds.Texture(rng.random((h, w, 3)), wrap=wrap, filter=filt)
+        u, v, lod = rng.uniform(-1, 2, 300), rng.uniform(-1, 2, 300), rng.uniform(-1, 6, 300)
+        ref = np.asarray(ds.sample(t, jnp.asarray(u), jnp.asarray(v), jnp.asarray(lod)))
+        W = ds.sample_weights(t, u, v, lod)
+        np.testing.assert_allclose(W @ np.asarray(t.texels).reshape(-1, 3), ref, atol=1e-14)
+        np.testing.assert_allclose(np.asarray(W.sum(axis=1)).ravel(), 1.0, atol=1e-14)  # the rows sum to one
+
+
+def _views(res, filt, size=48, azimuths=(0, 120, 240), seed=1):
+    """The default scene's sphere with a random diffuse map (coordinates from longitude and
+    height), seen from around it; the same scenes with a grey start map."""
+    rng = np.random.default_rng(seed)
+    scene, opts = ds.default_scene()
+    m = scene.mesh
+    v = np.asarray(m.vertices)
+    uv = np.stack([np.arctan2(v[:, 1], v[:, 0]) / (2 * np.pi) + 0.5, 0.5 + 0.5 * v[:, 2]], 1)
+    mesh = ds.Mesh(m.vertices, m.faces, normals=m.normals, uv=uv)
+    truth = rng.uniform(0.1, 0.9, (res, res, 3))
+    cam = dataclasses.replace(scene.camera, width=size, height=size)
+    scene = dataclasses.replace(scene, mesh=mesh, camera=cam)
+    opts = opts.with_keys(shading="phong")
+    true_mat = dataclasses.replace(scene.material, diffuse_map=ds.Texture(truth, filter=filt))
+    start_mat = dataclasses.replace(scene.material, diffuse_map=ds.Texture(np.full((res, res, 3), 0.5), filter=filt))
+    views, starts, targets = [], [], []
+    for az in azimuths:
+        a = np.deg2rad(az)
+        c = dataclasses.replace(cam, eye=jnp.asarray([3 * np.cos(a), 3 * np.sin(a), 1.0]), target=jnp.zeros(3))
+        views.append(dataclasses.replace(scene, camera=c, material=true_mat))
+        starts.append(dataclasses.replace(scene, camera=c, material=start_mat))
+        targets.append(np.asarray(ds.render(views[-1], opts)))
+    return starts, targets, truth, opts
+
+
+def test_the_linear_model_is_the_render():
+    """A x + b (the assembled design matrix) equals the render at random texels."""
+    starts, targets, truth, opts = _views(12, "trilinear", size=32, azimuths=(0, 180))
+    prob = Problem.build(starts[0], opts, fitting.Observations(targets, views=starts), ["material.diffuse_map"])
+    mp = MapProblem(prob)
+    x0 = np.full(truth.size, 0.5)
+    mp._compile(x0)
+    img, A, _, w = mp.evaluate(x0)
+    b = img * w - A @ x0
+    x = np.random.default_rng(0).uniform(0, 1, truth.size)
+    np.testing.assert_allclose(A @ x + b, mp.evaluate(x)[0] * w, atol=1e-13)
+
+
+@pytest.mark.parametrize("filt", ["bilinear", "trilinear"])
+def test_determined_texels_are_recovered_and_the_others_named(filt):
+    starts, targets, truth, opts = _views(16, filt)
+    free = ["material.diffuse_map", "point[0].color"]
+    true_colour = np.asarray(starts[0].point.color[0])
+    starts = [dataclasses.replace(s, point=dataclasses.replace(s.point, color=s.point.color * 1.3)) for s in starts]
+    r = fitting.fit(starts[0], opts, fitting.Observations(targets, views=starts), free, intervals=False)
+    x = r.values[: truth.size].reshape(truth.shape)
+    se = r.stderr[: truth.size].reshape(truth.shape)
+    det = np.isfinite(se)
+    assert 0.5 < det.mean() < 1.0  # the poles are not seen: some texels undetermined, most determined
+    # the light colour and the map are a gauge (only their product shows): the map up to that scale
+    scale = r.values[truth.size :] / true_colour
+    np.testing.assert_allclose(x[det] * np.broadcast_to(scale, truth.shape)[det], truth[det], atol=1e-6)
+    undetermined = set(r.diagnostics.undetermined)
+    assert {f"material.diffuse_map[{i},{j}][{'rgb'[c]}]" for i, j, c in zip(*np.nonzero(~det))} <= undetermined
+    if filt == "bilinear":  # (a trilinear map's coarse levels reach every texel)
+        assert (~det & (x == 0.5)).any()  # no pixel samples these: kept at their start
+
+
+def test_what_a_map_fit_refuses():
+    starts, targets, truth, opts = _views(8, "bilinear", size=24, azimuths=(0,))
+    obs = fitting.Observations(targets, views=starts)
+    with pytest.raises(FitError, match="clamp"):
+        fitting.fit(starts[0], opts.with_keys(clamp=True), obs, ["material.diffuse_map"])
+    with pytest.raises(fitting.ParamError, match="no specular map"):
+        fitting.fit(starts[0], opts, obs, ["material.specular_map"])
+    with pytest.raises(FitError, match="shared by every view"):
+        fitting.fit(starts[0], opts, obs, ["view[0].material.diffuse_map"])
