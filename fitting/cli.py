@@ -134,7 +134,39 @@ def write_mtl(scene, opts, path: Path, header: str) -> None:
         if o["transmission"]:
             lines.append(f"Tf {rgb(m.transmission)}")
         lines.append(f"illum {1 if o['specular'] == 'none' else (4 if o['transparency'] else 2)}")
+        lines += write_maps(m, path.parent, f"{path.stem}_{name}", lines)
     _write_text("\n".join(lines) + "\n", path)
+
+
+_MTL_MAPS = {"ambient": "Ka", "diffuse": "Kd", "specular": "Ks", "emission": "Ke", "shininess": "Ns", "opacity": "d"}
+
+
+def write_maps(m, folder: Path, stem: str, lines: list) -> list[str]:
+    """A material's texture maps as 16-bit PNGs beside its MTL (``stem_<field>.png``: colour maps
+    sRGB-encoded, the shininess and opacity maps linear grey; the file declares which), and the
+    ``map_*`` lines that name them. A shininess map beyond 1 is scaled into the file and its
+    scale moved into ``Ns`` (``lines``, the material's lines so far, is updated), as MTL
+    multiplies the two. A map with ``wrap = "clamp"`` gets ``-clamp on``."""
+    import numpy as np
+
+    import diffshade as ds
+
+    out = []
+    for field, key in _MTL_MAPS.items():
+        tex = getattr(m, field + "_map")
+        if tex is None:
+            continue
+        texels = np.asarray(tex.texels, np.float64)
+        if field == "shininess" and texels.max() > 1:
+            scale = float(texels.max())
+            texels = texels / scale
+            k = next(i for i in range(len(lines) - 1, -1, -1) if lines[i].startswith("Ns "))
+            lines[k] = f"Ns {float(m.shininess) * scale:.6g}"
+        file = folder / f"{stem}_{field}.png"
+        grey = field in ("shininess", "opacity")
+        ds.write_image(file, texels[..., 0] if texels.shape[-1] == 1 else texels, "linear" if grey else "srgb", bits=16)
+        out.append(f"map_{key} {'-clamp on ' if tex.wrap == 'clamp' else ''}{file.name}")
+    return out
 
 
 def _write_text(text: str, out: Path) -> None:
@@ -287,7 +319,10 @@ def cmd_demo(args) -> int:
         f"SSIM {r.residual.ssim:.6f}"
     )
     if r.diagnostics.undetermined or r.diagnostics.gauges:
-        print(f"not determined by the image: {r.diagnostics.undetermined}; {r.diagnostics.gauges}")
+        und = r.diagnostics.undetermined
+        print(
+            f"not determined by the image: {und if len(und) <= 20 else f'{len(und)} scalars'}; {r.diagnostics.gauges}"
+        )
     print(f"method: {r.method}")
     for n in r.notes:
         print("  " + n)
@@ -313,6 +348,16 @@ def _se_text(se: float, v: float, undetermined: bool) -> str:
     return f"{se:11.3g} {se / abs(v) if v != 0 else float('inf'):10.2e}"
 
 
+def _blocks(names) -> dict:
+    """The per-vertex albedo's and the texture maps' scalars, by parameter name: ``{name: [index]}``."""
+    out = {}
+    for i, n in enumerate(names):
+        head = n.split("[", 1)[0]
+        if head == "mesh.colors" or (head.startswith("material.") and head.endswith("_map")):
+            out.setdefault(head, []).append(i)
+    return out
+
+
 def _report_table(r) -> list[str]:
     import numpy as np
 
@@ -321,8 +366,8 @@ def _report_table(r) -> list[str]:
         f"{'parameter':26s} {'start':>11s} {'fitted':>11s} {'std. error':>11s} {'rel. s.e.':>10s}"
         + (f"  {'3σ profile interval':>25s}" if iv else "")
     ]
-    albedo = [i for i, n in enumerate(r.names) if n.startswith("mesh.colors[")]
-    skip = set(albedo)
+    blocks = _blocks(r.names)
+    skip = {i for idx in blocks.values() for i in idx}
     undetermined = set(r.diagnostics.undetermined)
     for i, (n, s_, v, se) in enumerate(zip(r.names, r.start, r.values, r.stderr)):
         if i in skip:
@@ -331,13 +376,14 @@ def _report_table(r) -> list[str]:
             f"{n:26s} {s_:11.5g} {v:11.5g} {_se_text(se, v, n in undetermined)}"
             + (f"  [{r.intervals.bounds[i, 0]:11.5g}, {r.intervals.bounds[i, 1]:11.5g}]" if iv else "")
         )
-    if albedo:  # thousands of scalars: a summary here, every value in fit.json
-        se = r.stderr[albedo]
+    for name, idx in blocks.items():  # thousands of scalars: a summary here, every value in fit.json
+        se = r.stderr[idx]
         fin = np.isfinite(se)
+        k, what = (3, "vertices") if name == "mesh.colors" else (1, "texel scalars")
         lines.append(
-            f"{'mesh.colors':26s} {len(albedo) // 3} vertices: values in [{r.values[albedo].min():.3g}, "
-            f"{r.values[albedo].max():.3g}], median s.e. {np.median(se[fin]) if fin.any() else np.inf:.3g}, "
-            f"{int((~fin).sum()) // 3} vertices undetermined (every value in fit.json)"
+            f"{name:26s} {len(idx) // k} {what}: values in [{r.values[idx].min():.3g}, "
+            f"{r.values[idx].max():.3g}], median s.e. {np.median(se[fin]) if fin.any() else np.inf:.3g}, "
+            f"{int((~fin).sum()) // k} {what} undetermined (every value in fit.json)"
         )
     lines.append(
         f"result: {r.result or 'successful'}; {r.steps} steps; compile {r.compile_s:.2f} s, solve {r.solve_s:.2f} s; "
@@ -355,11 +401,16 @@ def _report_table(r) -> list[str]:
     for n in r.notes:
         lines.append("  " + n)
     if diag.undetermined:
-        und = [u for u in diag.undetermined if not u.startswith("mesh.colors[")]
-        n_v = len(diag.undetermined) - len(und)
+        groups = _blocks(diag.undetermined)
+        in_block = {i for g in groups.values() for i in g}
+        und = [u for i, u in enumerate(diag.undetermined) if i not in in_block]
+        n_v = len(groups.pop("mesh.colors", []))
+        maps = [f"{len(g)} texel scalars of {name} (see the notes)" for name, g in groups.items()]
         lines.append(
             "NOT DETERMINED by the images (values are the starts, not estimates): "
-            + ", ".join(und + ([f"the albedo of {n_v} vertices (seen by no view, or unlit where seen)"] if n_v else []))
+            + ", ".join(
+                und + maps + ([f"the albedo of {n_v} vertices (seen by no view, or unlit where seen)"] if n_v else [])
+            )
         )
     for g in diag.gauges:
         lines.append("gauge (the images see these scalars only in combination): " + g)
