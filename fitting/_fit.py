@@ -27,6 +27,7 @@ import numpy as np
 
 import diffshade as ds
 
+from ._albedo import AlbedoProblem, fit_block
 from ._domains import check_fit
 from ._linear import Reduced
 from ._observations import FitError, Observations, Strategy, VarPro
@@ -125,6 +126,17 @@ def _pose_mask(scene, observations, free, shared) -> np.ndarray:
     )
 
 
+def _sparse_block(pset):
+    """The class of the sparse linear block among the free parameters, if any."""
+    if any(is_map(p) and p.path[1][:-4] in LINEAR_MAPS for p in pset.params):
+        from ._maps import MapProblem
+
+        return MapProblem
+    if any(p.path == ("mesh", "colors") for p in pset.params):
+        return AlbedoProblem
+    return None
+
+
 def _fit_once(
     scene, opts, observations, free, *, shared, strategy, albedo_smoothness, intervals, history, devices
 ) -> FitResult:
@@ -133,25 +145,11 @@ def _fit_once(
     pset, dtype = prob.pset, prob.dtype
     theta0 = pset.theta_of(scene, observations.views)
     pset.check(theta0)
-    if any(is_map(p) and p.path[1][:-4] in LINEAR_MAPS for p in pset.params):
-        from ._maps import fit_maps
-
-        return fit_maps(
-            prob,
+    block = _sparse_block(pset)
+    if block is not None:  # a sparse linear block: texture maps or per-vertex albedo
+        return fit_block(
+            block(prob, albedo_smoothness),
             np.asarray(theta0, np.float64),
-            smoothness=albedo_smoothness,
-            max_steps=max(strategy.max_steps, 20),
-            noise=observations.noise,
-            verbose=strategy.verbose,
-            rtol=strategy.tolerance(dtype),
-        )
-    if any(p.path == ("mesh", "colors") for p in pset.params):
-        from ._albedo import fit_albedo
-
-        return fit_albedo(
-            prob,
-            np.asarray(theta0, np.float64),
-            smoothness=albedo_smoothness,
             max_steps=max(strategy.max_steps, 20),
             noise=observations.noise,
             verbose=strategy.verbose,

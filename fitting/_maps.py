@@ -36,11 +36,9 @@ import numpy as np
 import diffshade as ds
 
 from . import _options
-from ._albedo import fit_block
 from ._cache import compiled
 from ._params import LINEAR_MAPS, is_map
 from ._problem import FitError, Problem
-from ._report import FitResult
 
 PROBE_DISTANCE = 8  # texels between the texels of one probing class
 DENSE_LIMIT = 3000  # a connected block up to this many scalars is inverted exactly
@@ -271,17 +269,3 @@ class MapProblem:
             f"{steps} LM steps on the {len(self.other)} other scalar(s)"
         )
         return undetermined, notes
-
-
-def fit_maps(
-    prob: Problem,
-    theta0,
-    *,
-    smoothness: float = 0.0,
-    max_steps: int = 50,
-    rtol: float = 1e-10,
-    noise=None,
-    verbose: bool = False,
-) -> FitResult:
-    """Fit the texture maps and the other free parameters of ``prob`` (see the module)."""
-    return fit_block(MapProblem(prob, smoothness), theta0, max_steps=max_steps, rtol=rtol, noise=noise, verbose=verbose)
