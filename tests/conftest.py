@@ -2,14 +2,17 @@ import os
 import re
 from importlib.metadata import version
 
-# The suite compiles far more than it runs (each test its own programs, 2 cores): XLA's CPU code
-# emitters of older design compile ~30 % faster (a fit's program: 3.2 s against 4.5 s, measured
-# interleaved on jaxlib 0.10.2), though what they emit runs 1.2-2x slower (a fit's solve 0.09
-# against 0.06 s), which is why the library leaves XLA's default alone. XLA reads XLA_FLAGS at
-# JAX's first computation, and aborts on an option it does not know: only for jaxlib 0.10 (0.10.0
-# and 0.10.2 checked), and never over an XLA_FLAGS that already sets it (to run the suite on the
-# default emitters: XLA_FLAGS=--xla_cpu_use_fusion_emitters=true).
-FAST_COMPILE = "--xla_cpu_use_fusion_emitters=false"
+# The suite compiles far more than it runs (each test its own programs, 2 cores), so it asks XLA
+# for the cheapest compile: its CPU code emitters of older design, and LLVM without optimisation
+# (--xla_backend_optimization_level=0). Measured on jaxlib 0.10.2, 2 cores: `make test`'s pytest
+# 10:05 with the default, 6:33 with both (tests/test_trace.py and test_numerics.py: 199 s of CPU
+# with the older emitters alone, 109 s with both); what they emit runs slower (a fit's solve 1.2-2x),
+# which is why the library leaves XLA's defaults alone. XLA reads XLA_FLAGS at JAX's first
+# computation, and aborts on an option it does not know: only for jaxlib 0.10 (0.10.0 and 0.10.2
+# checked), and never over an XLA_FLAGS that already chooses the emitters (to run the suite on the
+# defaults: XLA_FLAGS=--xla_cpu_use_fusion_emitters=true). Subprocesses (the notebooks' kernels,
+# the CLI, the sharding tests) inherit it.
+FAST_COMPILE = "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=0"
 if re.match(r"0\.10\.", version("jaxlib")) and "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {FAST_COMPILE}".strip()
 
