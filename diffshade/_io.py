@@ -72,8 +72,11 @@ from ._camera import Camera, OpenCVCamera
 from ._domains import SceneError
 from ._materials import _MATERIAL_FIELDS
 from ._mesh import COLOR_MODES, VERTEX_MODES, Mesh, MeshError, box, combine, icosphere, load_mesh, quad
+from ._mtl import load_material, map_texture
 from ._options import RenderOptions, ShadowMaps, ShadowRays
 from ._scene import (
+    MAPPED_FIELDS,
+    SCALAR_MAPPED,
     AreaLights,
     DirectionalLights,
     Fog,
@@ -88,6 +91,8 @@ from ._scene import (
     no_point,
     no_spot,
 )
+from ._texture import FILTERS, WRAPS
+from .color import EncodingError, parse_encoding
 
 
 class _V:
@@ -200,12 +205,53 @@ def _options(v: _V, r: dict) -> RenderOptions:
         v.fail("render", str(exc).replace("RenderOptions.", ""))
 
 
-def _material(v: _V, m: dict, where: str, gl: bool = False) -> Material:
+_MAP_KEYS = tuple(f + "_map" for f in MAPPED_FIELDS)
+
+
+def _map(v: _V, m: dict, key: str, where: str, base: Path | None):
+    """A ``<field>_map`` entry: an image path, or a table ``{path, wrap, filter, encoding}``."""
+    spec = m[key]
+    w = f"{where}.{key}"
+    if isinstance(spec, str):
+        spec = {"path": spec}
+    if not isinstance(spec, dict) or not isinstance(spec.get("path"), str):
+        v.fail(w, f"must be an image path or a table {{path, wrap, filter, encoding}}, got {spec!r}")
+    v.unknown(spec, ("path", "wrap", "filter", "encoding"), w)
+    for k, allowed in (("wrap", WRAPS), ("filter", FILTERS)):
+        if k in spec and spec[k] not in allowed:
+            v.fail(f"{w}.{k}", f"must be one of {', '.join(repr(a) for a in allowed)}, got {spec[k]!r}")
+    field = key[: -len("_map")]
+    if "encoding" in spec:
+        if field in SCALAR_MAPPED:
+            v.fail(f"{w}.encoding", f"a {field} map holds linear values; give no encoding")
+        try:
+            parse_encoding(spec["encoding"])
+        except EncodingError as exc:
+            v.fail(f"{w}.encoding", str(exc))
+    p = Path(spec["path"])
+    if not p.is_absolute() and base is not None:
+        p = base / p
+    try:
+        return map_texture(
+            field, p, w, spec.get("encoding"), wrap=spec.get("wrap", "repeat"), filter=spec.get("filter", "trilinear")
+        )
+    except MeshError as exc:
+        v.fail(w, str(exc).removeprefix(f"{w}: "))
+
+
+def _material(v: _V, m: dict, where: str, gl: bool = False, base: Path | None = None) -> Material:
     """A material table; with ``gl`` (``render.compat = "opengl"``) the values left out are
-    OpenGL's defaults, and shininess 0 is allowed (as in ``glMaterial``)."""
-    keys = (*_MATERIAL_FIELDS, "kay", "casts_shadow")  # the numbers and the two static flags
+    OpenGL's defaults, and shininess 0 is allowed (as in ``glMaterial``). ``mtl`` (an MTL file,
+    or an OBJ that names one; ``mtl_material`` picks one of its materials) gives the values and
+    maps as authored, the table's own entries override them; ``<field>_map`` names an image map."""
+    keys = (*_MATERIAL_FIELDS, "kay", "casts_shadow", *_MAP_KEYS, "mtl", "mtl_material")
     v.unknown(m, keys, where)
     d = Material.opengl() if gl else Material()
+    if "mtl_material" in m and "mtl" not in m:
+        v.fail(f"{where}.mtl_material", "names a material of an 'mtl' file; give the file too")
+    if "mtl" in m:
+        d = _authored(v, m, where, base)
+    maps = {k: _map(v, m, k, where, base) if k in m else getattr(d, k) for k in _MAP_KEYS}
     flags = {}
     for k, default in (("kay", False), ("casts_shadow", True)):
         flags[k] = m.get(k, default)
@@ -231,7 +277,22 @@ def _material(v: _V, m: dict, where: str, gl: bool = False) -> Material:
         specular=v.vec(m, "specular", where, default=np.asarray(d.specular), lo=0.0, hi=1.0, scalar_ok=True),
         shininess=v.num(m, "shininess", where, default=float(d.shininess), lo=0.0, lo_open=not gl),
         ior=v.num(m, "ior", where, default=float(d.ior), lo=0.0, lo_open=True),
+        **maps,
     )
+
+
+def _authored(v: _V, m: dict, where: str, base: Path | None) -> Material:
+    """The material an ``mtl`` entry names (:func:`diffshade.load_material`)."""
+    for k in ("mtl", "mtl_material"):
+        if k in m and not isinstance(m[k], str):
+            v.fail(f"{where}.{k}", f"must be a string, got {m[k]!r}")
+    p = Path(m["mtl"])
+    if not p.is_absolute() and base is not None:
+        p = base / p
+    try:
+        return load_material(p, m.get("mtl_material"))
+    except MeshError as exc:
+        v.fail(f"{where}.mtl", str(exc))
 
 
 _LIGHT_KINDS = ("directional", "point", "spot", "area", "multi_lobe")
@@ -489,7 +550,7 @@ def scene_from_dict(d: dict[str, Any], source: str = "scene", base: Path | None 
             "with red green blue, an OBJ with v x y z r g b)",
         )
     camera = _camera(v, v.table(d, "camera", required=True), "camera")
-    back = _material(v, d["back_material"], "back_material", gl) if "back_material" in d else None
+    back = _material(v, d["back_material"], "back_material", gl, base) if "back_material" in d else None
     if back is not None and len(materials) > 1:
         v.fail("back_material", "applies to a one-material scene; give each object its own material instead")
     sh = v.table(d, "shadow")
@@ -534,7 +595,7 @@ def _objects(v: _V, d: dict, base: Path | None, gl: bool) -> tuple[Mesh, tuple[M
         parts.append(
             (
                 _mesh(v, v.table(d, "mesh", required=True), "mesh", base),
-                _material(v, v.table(d, "material"), "material", gl),
+                _material(v, v.table(d, "material"), "material", gl, base),
             )
         )
     elif "material" in d:
@@ -553,10 +614,21 @@ def _objects(v: _V, d: dict, base: Path | None, gl: bool) -> tuple[Mesh, tuple[M
         nrm = None if m.normals is None else np.asarray(m.normals) / scale  # normals transform by the inverse
         parts.append(
             (
-                Mesh(vertices=np.asarray(m.vertices) * scale + shift, faces=m.faces, normals=nrm, colors=m.colors),
-                _material(v, mo, f"{w}.material", gl),
+                Mesh(
+                    vertices=np.asarray(m.vertices) * scale + shift,
+                    faces=m.faces,
+                    normals=nrm,
+                    colors=m.colors,
+                    uv=m.uv,
+                ),
+                _material(v, mo, f"{w}.material", gl, base),
             )
         )
+    for i, (m, mat) in enumerate(parts):
+        if mat.maps() and m.uv is None:
+            w = "material" if i == 0 and "mesh" in d else f"object[{i - int('mesh' in d)}].material"
+            names = ", ".join(k for k in _MAP_KEYS if getattr(mat, k) is not None)
+            v.fail(w, f"has texture maps ({names}) but its mesh has no texture coordinates (an OBJ with vt, or a quad)")
     try:
         mesh = parts[0][0] if len(parts) == 1 else combine(*(p[0] for p in parts))
     except ValueError as exc:

@@ -311,12 +311,18 @@ def combine(*meshes: Mesh) -> Mesh:
     if any(m.colors is not None for m in meshes) and not all(m.colors is not None for m in meshes):
         raise ValueError("combine: some meshes have vertex colours and some do not; give every mesh colours or none")
     colors = None if meshes[0].colors is None else jnp.concatenate([m.colors for m in meshes])
+    # texture coordinates kept where a mesh has them; (0, 0) for the vertices of one without
+    # (its material must have no maps: the renderer samples them there)
+    uv = None
+    if any(m.uv is not None for m in meshes):
+        uv = jnp.concatenate([m.uv if m.uv is not None else jnp.zeros((m.vertices.shape[0], 2)) for m in meshes])
     return Mesh(
         vertices=jnp.concatenate(verts),
         faces=jnp.concatenate(faces),
         material_ids=jnp.concatenate(ids),
         normals=normals,
         colors=colors,
+        uv=uv,
     )
 
 
@@ -337,7 +343,9 @@ def quad(
     divisions: int = 1,
 ) -> Mesh:
     """A flat rectangle of ``size`` centred at ``center``, facing ``normal`` (its front side),
-    split into ``divisions``² squares of two triangles each."""
+    split into ``divisions``² squares of two triangles each. Its texture coordinates ``uv`` run
+    from (0, 0) to (1, 1) over the rectangle: ``u`` along ``helper × normal`` (``helper`` the y
+    axis, or the x axis for a normal near y), ``v`` along ``normal × u``."""
     n = np.asarray(normal, float)
     n = n / np.linalg.norm(n)
     helper = np.array([0.0, 1.0, 0.0]) if abs(n[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
@@ -353,4 +361,5 @@ def quad(
         for i in range(k):
             a, b, c, d = j * (k + 1) + i, j * (k + 1) + i + 1, (j + 1) * (k + 1) + i + 1, (j + 1) * (k + 1) + i
             faces += [(a, b, c), (a, c, d)]
-    return Mesh(vertices=verts, faces=np.asarray(faces))
+    uv = np.stack([gu.reshape(-1) / size[0] + 0.5, gv.reshape(-1) / size[1] + 0.5], axis=-1)
+    return Mesh(vertices=verts, faces=np.asarray(faces), uv=uv)

@@ -107,19 +107,22 @@ def _obj_materials(path: Path) -> tuple[list[Path], list[str]]:
     return libs, used
 
 
-def _texture(field: str, spec, encoding):
-    image, wrap, where = spec
+def map_texture(field: str, image, where: str, encoding=None, wrap: str = "repeat", filter: str = "trilinear"):
+    """The :class:`Texture` of ``field``'s map from the image file ``image``: a colour map decoded
+    by ``encoding`` (default: its file's declared one), a shininess or opacity map as linear grey.
+    Raises :class:`MeshError` starting with ``where`` and naming the file."""
     if not Path(image).is_file():
         raise MeshError(f"{where}: the {field} map's image {image} was not found")
     try:
-        tex = texture_from_image(image, encoding=None if field in SCALAR_MAPPED else encoding, wrap=wrap)
+        enc = None if field in SCALAR_MAPPED else encoding
+        tex = texture_from_image(image, encoding=enc, wrap=wrap, filter=filter)
     except Exception as exc:
         raise MeshError(f"{where}: the {field} map's image {image} could not be read ({exc})") from exc
     if field in SCALAR_MAPPED and tex.channels == 3:
         t = np.asarray(tex.texels)
         if not np.allclose(t[..., 0:1], t):
             raise MeshError(f"{where}: the {field} map {image} must be grey (one channel), got colour")
-        tex = Texture(t[..., :1], wrap=wrap)
+        tex = Texture(t[..., :1], wrap=wrap, filter=filter)
     return tex
 
 
@@ -153,7 +156,10 @@ def load_material(path: str | Path, name: str | None = None, encoding: str | Non
         raise MeshError(f"{path}: no material {name!r} (the file has {list(mats)})")
     fields = {}
     for f, val in mats[name].items():
-        fields[f] = _texture(f[: -len("_map")], val, encoding) if f.endswith("_map") else val
+        if f.endswith("_map"):
+            image, wrap, where = val
+            val = map_texture(f[: -len("_map")], image, where, encoding, wrap=wrap)
+        fields[f] = val
     try:
         return Material(**fields)
     except ValueError as exc:

@@ -174,7 +174,7 @@ def surface_points(
     build = {"phong": _phong_sites, "gouraud": _gouraud_sites, "flat": _flat_sites}[raster.shading]
     sites, normal, pmat = build(scene, raster, need, frags, bary, multi, pmat, back, position)
     if any(m.maps(need.fields) for m in mats) or (scene.back_material is not None and scene.back_material.maps()):
-        sites, pmat = _textured(scene, raster, need, frags, bary, clip, multi, sites, pmat)
+        sites, pmat = _textured(scene, raster, need, frags, bary, clip, pix_mid, sites, pmat)
     return Surface(
         frags=frags,
         valid=valid,
@@ -257,26 +257,34 @@ def _flat_sites(scene, raster, need, frags, bary, multi, pmat, back, position):
     return Sites(pts, nrm, fmat, fback, to_pixels), normal, pmat
 
 
-def _texels(scene: Scene, need: Needs, frags: Fragments, bary, clip) -> dict:
+def _texels(scene: Scene, need: Needs, frags: Fragments, bary, clip, mids) -> dict:
     """Each used map's texels at the pixels, ``{field: components}`` (one component for the
-    shininess and opacity, three for colours; a one-channel colour map is grey)."""
-    maps = scene.material.maps(need.fields)
+    shininess and opacity, three for colours; a one-channel colour map is grey). With several
+    materials (``mids``, each pixel's material id) a material's maps apply to its own pixels; the
+    factor is 1 elsewhere."""
+    mats = scene.all_materials() if mids is not None else (scene.material,)
+    per_material = [m.maps(need.fields) for m in mats]
     if scene.mesh.uv is None:
+        names = sorted({f + "_map" for maps in per_material for f in maps})
         raise ValueError(
-            f"the material has texture maps ({', '.join(f + '_map' for f in maps)}) but the mesh has no texture coordinates (Mesh.uv)"
+            f"the material has texture maps ({', '.join(names)}) but the mesh has no texture coordinates (Mesh.uv)"
         )
-    trilinear = any(t.filter == "trilinear" for t in maps.values())
+    trilinear = any(t.filter == "trilinear" for maps in per_material for t in maps.values())
     u, v, deriv = _coordinates(scene, frags, bary, clip, trilinear)
     done, out = {}, {}
-    for f, t in maps.items():
-        if f in SCALAR_MAPPED and t.channels != 1:
-            raise ValueError(f"Material.{f}_map must have one channel, got {t.channels}")
-        if id(t) not in done:
-            lod = level_of_detail(t, *deriv) if t.filter == "trilinear" else None
-            smp = sample(t, u, v, lod)
-            done[id(t)] = keep(*(smp[..., c] for c in range(t.channels)))
-        c = done[id(t)]
-        out[f] = c if (f in SCALAR_MAPPED or len(c) == 3) else c * 3
+    for i, maps in enumerate(per_material):
+        for f, t in maps.items():
+            if f in SCALAR_MAPPED and t.channels != 1:
+                raise ValueError(f"Material.{f}_map must have one channel, got {t.channels}")
+            if id(t) not in done:
+                lod = level_of_detail(t, *deriv) if t.filter == "trilinear" else None
+                smp = sample(t, u, v, lod)
+                done[id(t)] = keep(*(smp[..., c] for c in range(t.channels)))
+            c = done[id(t)]
+            c = c if (f in SCALAR_MAPPED or len(c) == 3) else c * 3
+            if mids is not None:
+                c = tuple(jnp.where(mids == i, x, 1.0) for x in c)
+            out[f] = c if f not in out else tuple(a * b for a, b in zip(out[f], c))
     return out
 
 
@@ -320,15 +328,16 @@ def _modulated(mat: Material, texels: dict) -> Material:
     return eqx.tree_at(lambda m: tuple(getattr(m, f) for f in new), mat, tuple(new.values()))
 
 
-def _textured(scene, raster, need, frags, bary, clip, multi, sites: Sites, pmat: Material):
+def _textured(scene, raster, need, frags, bary, clip, mids, sites: Sites, pmat: Material):
     """The sites and pixel material with the scene's texture maps applied: per pixel in Phong
     shading (the material at each pixel), and for Gouraud and flat shading each mapped colour
-    field's terms multiplied by its texels after interpolation (:attr:`Sites.modulate`)."""
-    if multi or scene.back_material is not None:
-        raise ValueError("texture maps apply to a one-material scene without a back material (for now)")
+    field's terms multiplied by its texels after interpolation (:attr:`Sites.modulate`). With
+    several materials (``mids``: each pixel's id), each material's maps on its own pixels."""
+    if scene.back_material is not None:
+        raise ValueError("texture maps do not apply to a scene with a back material (give each side its own object)")
     if {"mirror", "refraction"} & need.fields:
         raise ValueError("texture maps are not sampled at the hits of reflected and refracted rays: ray_depth = 0")
-    texels = _texels(scene, need, frags, bary, clip)
+    texels = _texels(scene, need, frags, bary, clip, mids)
     if raster.shading == "phong":
         m = _modulated(sites.material, texels)
         return replace(sites, material=m, back_material=m), m

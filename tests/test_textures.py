@@ -327,3 +327,92 @@ def test_obj_and_mtl_load_as_authored(meshes_dir, tmp_path):
     (tmp_path / "nan.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt nan 0\nvt 0 1\nf 1/1 2/2 3/3\n")
     with pytest.raises(ds.MeshError, match="texture coordinate"):
         ds.load_mesh(tmp_path / "nan.obj")
+
+
+def test_scene_files_name_maps_and_objects_keep_their_own(meshes_dir, tmp_path):
+    """A scene file names maps (``<field>_map``: a path, or a table with wrap, filter and
+    encoding) or a whole MTL material (``mtl``); an object keeps its texture coordinates through
+    its placement, and in a scene of several objects each material's maps apply to its own pixels
+    only: each object's pixels are those of the object rendered alone."""
+    import os
+    import tomllib
+
+    rng = np.random.default_rng(3)
+    ds.write_image(tmp_path / "check.png", rng.uniform(0.2, 1.0, (8, 8, 3)), encoding="srgb", bits=8)
+    ds.write_image(tmp_path / "grey.png", rng.uniform(0.2, 1.0, (4, 4)), encoding="linear", bits=16)
+    text = f"""
+[camera]
+eye = [0.0, 1.2, 3.0]
+target = [0.0, -0.2, 0.0]
+width = 40
+height = 40
+[render]
+shading = "phong"
+fog = "none"
+[[light]]
+type = "point"
+position = [1.0, 2.0, 2.0]
+[[object]]
+quad = [3.0, 3.0]
+normal = [0.0, 1.0, 0.0]
+translate = [0.0, -0.6, 0.0]
+material = {{ diffuse = 0.9, diffuse_map = {{ path = "check.png", wrap = "clamp", filter = "bilinear" }}, specular_map = "grey.png" }}
+[[object]]
+path = "{os.path.join(meshes_dir, "fuze.obj")}"
+scale = 8.0
+translate = [0.0, -0.3, -1.0]
+material = {{ mtl = "{os.path.join(meshes_dir, "fuze.obj")}", specular = 0.1 }}
+"""
+    (tmp_path / "s.toml").write_text(text)
+    scene, opts = ds.load_scene(tmp_path / "s.toml")
+    floor, bottle = scene.all_materials()
+    assert floor.diffuse_map.wrap == "clamp" and floor.diffuse_map.filter == "bilinear"
+    np.testing.assert_allclose(
+        np.asarray(floor.diffuse_map.texels), ds.color.decode(ds.read_image(tmp_path / "check.png").values(), "srgb")
+    )
+    # a grey colour map has one channel, decoded by the encoding its file declares (linear here)
+    assert floor.specular_map.channels == 1
+    np.testing.assert_allclose(
+        np.asarray(floor.specular_map.texels)[..., 0], ds.read_image(tmp_path / "grey.png").values(), atol=1e-12
+    )
+    assert bottle.diffuse_map.texels.shape == (256, 256, 3) and float(bottle.specular[0]) == 0.1
+    ids = np.asarray(scene.mesh.material_ids)
+    np.testing.assert_allclose(np.asarray(scene.mesh.uv)[np.asarray(scene.mesh.faces)[ids == 1]].max(), 1.0, atol=0.05)
+
+    both = np.asarray(ds.render(scene, opts))
+    drawn = np.asarray(ds.scene_visibility(scene, opts)[0])
+    d = tomllib.loads(text)
+    for i in range(2):
+        alone = dict(d, object=[d["object"][i]])
+        s1, o1 = ds.scene_from_dict(alone, base=tmp_path)
+        mine = np.isin(drawn, np.flatnonzero(ids == i))
+        assert mine.sum() > 40
+        np.testing.assert_allclose(both[mine], np.asarray(ds.render(s1, o1))[mine], rtol=1e-6, atol=1e-7)
+
+    for patch, msg in (
+        (
+            {"diffuse_map": "missing.png"},
+            r"object\[0\].material.diffuse_map: the diffuse map's image .*missing.png was not found",
+        ),
+        (
+            {"diffuse_map": {"path": "check.png", "wrap": "mirror"}},
+            r"diffuse_map.wrap: must be one of 'repeat', 'clamp'",
+        ),
+        ({"diffuse_map": {"path": "check.png", "encoding": "gamma:99"}}, r"diffuse_map.encoding: .*gamma"),
+        (
+            {"shininess_map": {"path": "grey.png", "encoding": "srgb"}},
+            r"shininess_map.encoding: a shininess map holds linear",
+        ),
+        ({"shininess_map": "check.png"}, r"shininess_map: .*must be grey"),
+        ({"diffuse_map": 3}, r"diffuse_map: must be an image path or a table"),
+        ({"mtl": "none.mtl"}, r"object\[0\].material.mtl: .*none.mtl: material file not found"),
+        ({"mtl_material": "x"}, r"mtl_material: names a material of an 'mtl' file"),
+    ):
+        bad = dict(d, object=[dict(d["object"][0], material=patch)])
+        with pytest.raises(ds.SceneError, match=msg):
+            ds.scene_from_dict(bad, "s.toml", base=tmp_path)
+    sphere = dict(d, object=[{"icosphere": 1, "material": {"diffuse_map": "check.png"}}])
+    with pytest.raises(
+        ds.SceneError, match=r"object\[0\].material: has texture maps \(diffuse_map\) but its mesh has no"
+    ):
+        ds.scene_from_dict(sphere, "s.toml", base=tmp_path)
