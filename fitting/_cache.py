@@ -32,16 +32,38 @@ def _shapes(args) -> tuple:
     )
 
 
+# XLA's options for a program that runs little: its older CPU code emitters and LLVM without
+# optimisation compile a one-view fit ~2.4x faster, and what they emit runs ~2-3x slower
+# (docs/fit-design-notes.md, "The compile of a one-view fit").
+FAST_COMPILE = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 0}
+FAST_COMPILE_PIXELS = 65_536
+COMPILE_MODES = ("auto", "fast", "optimised")
+
+
+def compile_mode(pixels: int) -> str:
+    """``"fast"`` or ``"optimised"``: how a fit over ``pixels`` pixels (all views) is compiled.
+    ``$DIFFSHADE_COMPILE`` (``fast``, ``optimised`` or ``auto``, the default) chooses; ``auto``
+    compiles fast up to :data:`FAST_COMPILE_PIXELS`, where the compile saved outweighs the slower
+    solve."""
+    mode = os.environ.get("DIFFSHADE_COMPILE", "auto").strip().lower() or "auto"
+    if mode not in COMPILE_MODES:
+        raise ValueError(f"$DIFFSHADE_COMPILE must be one of {', '.join(COMPILE_MODES)}, got {mode!r}")
+    if mode == "auto":
+        return "fast" if pixels <= FAST_COMPILE_PIXELS else "optimised"
+    return mode
+
+
 def compiled(prob, what: str, fn, *args, extra=()):
     """``jax.jit(fn).lower(*args).compile()``, cached on the problem's structure (the
-    :data:`CACHE_SIZE` most recently used); returns ``(compiled, compile_seconds)`` (0 when
-    cached)."""
+    :data:`CACHE_SIZE` most recently used), compiled as :func:`compile_mode` says for the
+    problem's pixels; returns ``(compiled, compile_seconds)`` (0 when cached)."""
     pset = prob.pset
     structure = (tuple(pset.labels), tuple(p.path for p in pset.params), tuple(pset.sizes), prob.opts, *extra)
-    return program((what, *structure), fn, *args)
+    mode = compile_mode(sum(int(vd.target.shape[0]) for vd in prob.data))
+    return program((what, mode, *structure), fn, *args, options=FAST_COMPILE if mode == "fast" else None)
 
 
-def program(key: tuple, fn, *args):
+def program(key: tuple, fn, *args, options: dict | None = None):
     """``jax.jit(fn).lower(*args).compile()`` for ``fn`` (a function of arrays only, its static
     configuration closed over and named in ``key``), cached on ``key`` and the arguments'
     shapes in the one bounded cache; returns ``(compiled, compile_seconds)``.
@@ -57,7 +79,13 @@ def program(key: tuple, fn, *args):
         return _CACHE[key], 0.0
     _STATS["misses"] += 1
     t0 = time.perf_counter()
-    exe = jax.jit(fn).lower(*args).compile()
+    lowered = jax.jit(fn).lower(*args)
+    try:
+        exe = lowered.compile(compiler_options=options)
+    except Exception:  # an XLA that does not know an option: its defaults
+        if not options:
+            raise
+        exe = lowered.compile()
     dt = time.perf_counter() - t0
     _CACHE[key] = exe
     while len(_CACHE) > CACHE_SIZE:

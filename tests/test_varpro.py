@@ -8,6 +8,7 @@ import itertools
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from conftest import small_default_scene
 
 import diffshade as ds
@@ -182,3 +183,32 @@ def test_the_compiled_program_cache_keeps_only_the_most_recently_used(monkeypatc
     assert dt > 0 and float(exe(x)[0]) == 2.0
     info = _cache.cache_info()
     assert info["size"] == 3 and info["capacity"] == 3
+
+
+def test_the_compile_mode_follows_the_pixels_and_the_environment(monkeypatch):
+    """A fit of few pixels is compiled for a short compile, a larger one for speed; the mode is
+    part of the program's key (a fit compiled in the other mode compiles again and agrees), and
+    a bad ``$DIFFSHADE_COMPILE`` is named."""
+    from fitting import _cache, fit
+
+    monkeypatch.delenv("DIFFSHADE_COMPILE", raising=False)
+    n = _cache.FAST_COMPILE_PIXELS
+    assert _cache.compile_mode(n) == "fast" and _cache.compile_mode(n + 1) == "optimised"
+    monkeypatch.setenv("DIFFSHADE_COMPILE", "Optimised")
+    assert _cache.compile_mode(10) == "optimised"
+    monkeypatch.setenv("DIFFSHADE_COMPILE", "quick")
+    with pytest.raises(ValueError, match=r"\$DIFFSHADE_COMPILE must be one of auto, fast, optimised, got 'quick'"):
+        _cache.compile_mode(10)
+
+    scene, opts = small()
+    target = np.asarray(jax.jit(ds.render, static_argnames="opts")(scene, opts))
+    free = ["material.diffuse", "material.shininess"]
+    start = ParamSet(free, scene).apply(scene, jnp.asarray([0.5, 0.5, 0.5, 20.0]))
+    results = []
+    for mode in ("fast", "optimised"):
+        monkeypatch.setenv("DIFFSHADE_COMPILE", mode)
+        before = _cache.cache_info()["misses"]
+        results.append(fit(start, opts, Observations(target), free))
+        assert _cache.cache_info()["misses"] > before and results[-1].compile_s > 0
+    np.testing.assert_allclose(results[0].values, results[1].values, rtol=1e-5)
+    assert all(r.successful for r in results)
