@@ -15,6 +15,7 @@ import jax
 import numpy as np
 
 CACHE_SIZE = 16
+CACHE_BYTES = 2 << 30  # the persistent cache's bound on disk
 _CACHE: OrderedDict = OrderedDict()
 _STATS = {"hits": 0, "misses": 0}
 
@@ -112,6 +113,9 @@ def enable_compilation_cache(path: str | None = None) -> str:
     )
     os.makedirs(path, exist_ok=True)
     jax.config.update("jax_compilation_cache_dir", path)
+    # bounded (least recently used entries evicted): JAX then locks each read and write, so that
+    # concurrent runs never read an entry another is still writing
+    jax.config.update("jax_compilation_cache_max_size", CACHE_BYTES)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return path

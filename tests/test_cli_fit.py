@@ -212,3 +212,24 @@ def test_targets_are_decoded_as_their_files_declare(files, tmp_path, capsys):
         == EXIT_INPUT
     )
     assert "the gamma must be a number" in capsys.readouterr().err
+
+
+def test_the_persistent_cache_is_bounded_and_locks_its_entries(tmp_path):
+    """The CLI's persistent compilation cache is bounded, so JAX evicts the least recently used
+    entries and locks each read and write (two runs never read a half-written entry); a second
+    process loads the program the first wrote."""
+    import subprocess
+    import sys
+
+    code = (
+        f"import jax, fitting; p = fitting.enable_compilation_cache({str(tmp_path / 'xla')!r}); "
+        "jax.config.update('jax_persistent_cache_min_compile_time_secs', 0); "
+        "assert jax.config.jax_compilation_cache_max_size == fitting._cache.CACHE_BYTES > 0; "
+        "print(float(jax.jit(lambda x: x * 3 + 1)(2.0)))"
+    )
+    for _ in range(2):
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+        assert out.stdout.strip() == "7.0"
+    names = [p.name for p in (tmp_path / "xla").iterdir()]
+    assert ".lockfile" in names
+    assert any(n.endswith("-cache") for n in names) and any(n.endswith("-atime") for n in names)
