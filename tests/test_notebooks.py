@@ -16,6 +16,7 @@ NAMES = [
     "04_transparency_and_shadows.ipynb",
     "05_mirrors_and_glass.ipynb",
     "06_photographs.ipynb",
+    "07_textures.ipynb",
 ]
 
 
