@@ -1133,7 +1133,8 @@ samples, or only through averages with their neighbours, are reported as undeter
 standard error) and left at their start. The fitted map's saturated texels lie on the edges of
 the seen regions, where few pixels sample a texel and the noise pushes its estimate onto a bound.
 On these views slightly fewer determined texels lie within 3 s.e. than Gaussian noise would put
-there (about 98 % against 99.73 %): an open question of the standard errors near those edges.""",
+there (about 98 % against 99.73 %; the texels outside are mostly dark ones estimated too bright,
+not on a bound): why is an open question.""",
     ),
     (
         "code",
