@@ -208,6 +208,12 @@ def _options(v: _V, r: dict) -> RenderOptions:
 _MAP_KEYS = tuple(f + "_map" for f in MAPPED_FIELDS)
 
 
+def _resolve(path: str, base: Path | None) -> Path:
+    """A file a scene file names: relative paths are relative to the scene file's folder."""
+    p = Path(path)
+    return base / p if not p.is_absolute() and base is not None else p
+
+
 def _map(v: _V, m: dict, key: str, where: str, base: Path | None):
     """A ``<field>_map`` entry: an image path, or a table ``{path, wrap, filter, encoding}``."""
     spec = m[key]
@@ -228,9 +234,7 @@ def _map(v: _V, m: dict, key: str, where: str, base: Path | None):
             parse_encoding(spec["encoding"])
         except EncodingError as exc:
             v.fail(f"{w}.encoding", str(exc))
-    p = Path(spec["path"])
-    if not p.is_absolute() and base is not None:
-        p = base / p
+    p = _resolve(spec["path"], base)
     try:
         return map_texture(
             field, p, w, spec.get("encoding"), wrap=spec.get("wrap", "repeat"), filter=spec.get("filter", "trilinear")
@@ -286,11 +290,8 @@ def _authored(v: _V, m: dict, where: str, base: Path | None) -> Material:
     for k in ("mtl", "mtl_material"):
         if k in m and not isinstance(m[k], str):
             v.fail(f"{where}.{k}", f"must be a string, got {m[k]!r}")
-    p = Path(m["mtl"])
-    if not p.is_absolute() and base is not None:
-        p = base / p
     try:
-        return load_material(p, m.get("mtl_material"))
+        return load_material(_resolve(m["mtl"], base), m.get("mtl_material"))
     except MeshError as exc:
         v.fail(f"{where}.mtl", str(exc))
 
@@ -484,9 +485,7 @@ def _mesh(v: _V, m: dict, where: str, base: Path | None) -> Mesh:
     if kind == "path":
         if not isinstance(m["path"], str):
             v.fail(f"{where}.path", f"must be a string, got {m['path']!r}")
-        p = Path(m["path"])
-        if not p.is_absolute() and base is not None:
-            p = base / p
+        p = _resolve(m["path"], base)
         mode = m.get("vertices", "authored")
         if mode not in VERTEX_MODES:
             v.fail(
