@@ -197,6 +197,10 @@ class AlbedoProblem:
         return sp.csr_matrix((vals, (rows, cols)), shape=(3 * m, self.n_alb))
 
 
+RIDGE = 1e-10  # relative to each scalar's own information (Jacobi-scaled): holds null directions at their start
+MAX_NEWTON = 30  # projected Newton steps of one bounded solve
+
+
 class _Reduced(NamedTuple):
     """The reduced problem at one θ: the albedo solved, the residual and Kaufman's Jacobian."""
 
@@ -229,47 +233,68 @@ class _AlbedoSolver:
         """A sparse factorisation of ``A_I^T A_I + λ L_I^T L_I`` over the scalars ``idx``."""
         from scipy.sparse.linalg import factorized
 
-        if self._gram is None or self._gram[0] is not A:  # A^T A (+ λ L^T L) once per design matrix
-            G = A.T @ A
-            self._gram = (A, (G + self.Lp.T @ self.Lp if self.Lp is not None else G).tocsc())
         sp = self.ap.sp
-        G = self._gram[1][idx][:, idx]
+        G = self._gram_of(A)[idx][:, idx]
         # Jacobi-scaled, so that the ridge (what keeps a null direction at its start) is relative to
         # each scalar's own information, not to the best-seen one's
         d = 1 / np.sqrt(np.maximum(G.diagonal(), 1e-300))
-        solve = factorized((sp.diags(d) @ G @ sp.diags(d) + sp.identity(G.shape[0]) * 1e-10).tocsc())
+        solve = factorized((sp.diags(d) @ G @ sp.diags(d) + sp.identity(G.shape[0]) * RIDGE).tocsc())
         return lambda r: d * solve(d * r)
+
+    def _gram_of(self, A):
+        """``A^T A (+ λ L^T L)``, once per design matrix."""
+        if self._gram is None or self._gram[0] is not A:
+            G = A.T @ A
+            self._gram = (A, (G + self.Lp.T @ self.Lp if self.Lp is not None else G).tocsc())
+        return self._gram[1]
+
+    def _gram_diagonal(self, A):
+        return np.asarray(self._gram_of(A).diagonal())
 
     def grad(self, x, A, b):
         g = A.T @ (A @ x + b - self.y)
         return g + (self.Lp.T @ (self.Lp @ x) if self.Lp is not None else 0.0)
 
-    def active_set(self, x, A, b, det):
-        """The primal active set over [0, 1]: Newton steps on the free set, variables that leave
-        the box fixed on the bound they cross, released when their multiplier says so."""
-        at_lo, at_hi = np.zeros(self.ap.n_alb, bool), np.zeros(self.ap.n_alb, bool)
-        for _ in range(4 * 20):
-            free = det & ~at_lo & ~at_hi
-            idx = np.flatnonzero(free)
-            if len(idx):
-                x_new = x.copy()
-                x_new[idx] = x[idx] - self.normal(A, idx)(self.grad(x, A, b)[idx])
-            else:
-                x_new = x
-            out = free & ((x_new < 0) | (x_new > 1))
-            if out.any():  # fix the violators on the bound they crossed
-                at_lo |= out & (x_new < 0)
-                at_hi |= out & (x_new > 1)
-                x = np.clip(x_new, 0.0, 1.0)
-                continue
-            x = x_new
-            g = self.grad(x, A, b)
-            release = (at_lo & (g < 0)) | (at_hi & (g > 0))
-            if not release.any():
+    def bounded(self, x, A, b, seen):
+        """The bounded optimum over [0, 1] of the block's least squares plus the ridge that keeps a
+        direction the images do not see at its start: projected Newton (Bertsekas, 1982). Each step
+        solves on the scalars not held by a bound their gradient pushes against, and is projected
+        onto the box with an Armijo backtrack, so the objective falls at every step and a scalar
+        leaves or rejoins its bound as its multiplier says. ``(x, free)``."""
+        x0, ridge = x.copy(), RIDGE * self._gram_diagonal(A)
+
+        def objective(z):
+            r = A @ z + b - self.y
+            prior = float(np.sum((self.Lp @ z) ** 2)) if self.Lp is not None else 0.0
+            return 0.5 * (float(r @ r) + prior + float(np.sum(ridge * (z - x0) ** 2)))
+
+        f = objective(x)
+        for _ in range(MAX_NEWTON):
+            g = self.grad(x, A, b) + ridge * (x - x0)
+            held = ((x <= 0) & (g > 0)) | ((x >= 1) & (g < 0))
+            idx = np.flatnonzero(seen & ~held)
+            if not len(idx):
                 break
-            at_lo &= ~release
-            at_hi &= ~release
-        return x, det & ~at_lo & ~at_hi
+            step = np.zeros_like(x)
+            step[idx] = -self.normal(A, idx)(g[idx])
+            a = 1.0
+            while True:
+                x_new = np.clip(x + a * step, 0.0, 1.0)
+                f_new = objective(x_new)
+                if f_new <= f + 1e-4 * float(g @ (x_new - x)) or a < 1e-6:
+                    break
+                a /= 2
+            clipped = bool(np.any((x + a * step < 0) | (x + a * step > 1)))
+            if f_new >= f:  # no decrease left at float precision
+                break
+            x, f = x_new, f_new
+            if a == 1.0 and not clipped:  # the optimum on this face: done unless a bound lets go
+                g = self.grad(x, A, b) + ridge * (x - x0)
+                if not np.any((((x <= 0) & (g < 0)) | ((x >= 1) & (g > 0))) & held):
+                    break
+        g = self.grad(x, A, b) + ridge * (x - x0)
+        held = ((x <= 0) & (g > 0)) | ((x >= 1) & (g < 0))
+        return x, seen & ~held
 
     def solve_x(self, theta, x0):
         """The bounded optimum over the albedo, and the pieces the reduced problem needs."""
@@ -277,7 +302,7 @@ class _AlbedoSolver:
         img, A, Jo, w = ap.evaluate(theta)
         b = img * w - A @ theta[ap.sl]  # the (weighted) image with the albedo at 0
         seen = np.asarray(abs(A).sum(axis=0)).ravel() > 0
-        x, free = self.active_set(np.clip(x0, 0.0, 1.0), A, b, seen | (self.Lp is not None))
+        x, free = self.bounded(np.clip(x0, 0.0, 1.0), A, b, seen | (self.Lp is not None))
         idx = np.flatnonzero(free)
         solve = self.normal(A, idx) if len(idx) else None  # the factorisation of the final free set
         for _ in range(2):  # iterative refinement: the normal equations lose cond² digits
@@ -363,7 +388,6 @@ def block_stderr(ap, solver: _AlbedoSolver, red: _Reduced, s2_eff) -> np.ndarray
     from scipy.sparse.linalg import factorized
 
     A, Lp = red.A, solver.Lp
-    Jo_fin = ap.evaluate(red.th)[2]  # at the final values (reduced() took the columns at the incoming ones)
     idx_det = np.flatnonzero(red.seen | (Lp is not None))
     G = A.T @ A
     if Lp is not None:
@@ -371,6 +395,7 @@ def block_stderr(ap, solver: _AlbedoSolver, red: _Reduced, s2_eff) -> np.ndarray
     G = G.tocsc()[idx_det][:, idx_det]
     diag_inv = ap.inverse_diagonal(G, idx_det)
     if len(ap.other) and len(idx_det):
+        Jo_fin = ap.evaluate(red.th)[2]  # at the final values (reduced() took the columns at the incoming ones)
         AtJ = np.asarray(A[:, idx_det].T @ Jo_fin)
         solve = factorized((G + ap.sp.identity(G.shape[0]) * 1e-13 * max(G.diagonal().max(), 1e-300)).tocsc())
         Z = np.column_stack([solve(AtJ[:, j]) for j in range(AtJ.shape[1])])

@@ -43,6 +43,7 @@ from ._problem import FitError, Problem
 PROBE_DISTANCE = 8  # texels between the texels of one probing class
 DENSE_LIMIT = 3000  # a connected block up to this many scalars is inverted exactly
 MAX_LOD = 1.0  # pixels sampling a trilinear map at this level of detail or beyond are left out
+PROBES_PER_SOLVE = 32  # probe vectors solved together (one multi-column solve)
 UNDETERMINED = 1e4  # a texel's variance inflation diag(G⁻¹)·G_ii beyond which the images do not determine it
 
 
@@ -196,7 +197,7 @@ class MapProblem:
         r""":math:`\mathrm{diag}(G^{-1})` over the determined scalars: exact per connected block up
         to :data:`DENSE_LIMIT`, by probing beyond (see the module)."""
         from scipy.sparse.csgraph import connected_components
-        from scipy.sparse.linalg import factorized
+        from scipy.sparse.linalg import splu
 
         dg = np.sqrt(np.maximum(G.diagonal(), 1e-300))
         G = (self.sp.diags(1 / dg) @ G @ self.sp.diags(1 / dg)).tocsc()  # unit diagonal: the inflation is the inverse's
@@ -210,18 +211,26 @@ class MapProblem:
         big = np.isin(comp, np.flatnonzero(sizes > DENSE_LIMIT))
         if big.any():
             sel = np.flatnonzero(big)
-            solve = factorized((G[sel][:, sel] + self.sp.identity(len(sel)) * ridge).tocsc())
+            lu = splu((G[sel][:, sel] + self.sp.identity(len(sel)) * ridge).tocsc())
             g = self._grid()[idx_det[sel]]
             d = PROBE_DISTANCE
             cls = ((g[:, 0] * d + g[:, 1] % d) * d + g[:, 2] % d) * 3 + g[:, 3]
+            # scalars of different connected blocks (the channels of a colour map) never meet in G⁻¹:
+            # one probe carries a class of each block
+            probe = np.zeros(len(sel), np.int64)
+            for k in np.unique(comp[sel]):
+                m = comp[sel] == k
+                probe[m] = np.unique(cls[m], return_inverse=True)[1]
             diag = np.zeros(len(sel))
-            for c in np.unique(cls):
-                e = (cls == c).astype(float)
-                diag += e * solve(e)
+            for first in range(0, int(probe.max()) + 1, PROBES_PER_SOLVE):
+                E = (probe[:, None] == first + np.arange(PROBES_PER_SOLVE)).astype(float)
+                diag += np.sum(lu.solve(E) * E, axis=1)
             out[sel] = diag
         # the variance inflation: beyond UNDETERMINED, a direction of G is (nearly) null (a texel
-        # seen only through averages with others): not determined by the images (inf)
-        return np.where(out > UNDETERMINED, np.inf, out / dg**2)
+        # seen only through averages with others): not determined by the images (inf). Below 1 (a
+        # unit-diagonal matrix's inverse has a diagonal ≥ 1), the probe summed large entries of
+        # G⁻¹ between its texels: a (nearly) null direction reaches across them, undetermined too
+        return np.where((out > UNDETERMINED) | (out < 1 - 1e-3), np.inf, out / dg**2)
 
     def intro(self) -> str:
         desc = ", ".join(f"{self.prob.pset.params[k].name} {h}×{w}×{c}" for k, (h, w, c) in zip(self.maps, self.shapes))
