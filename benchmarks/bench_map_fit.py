@@ -59,8 +59,10 @@ def case(seed, res, size, filt):
             views=n_views,
             determined=float(det.mean()),
             max_err=float(err[det].max()) if det.any() else np.nan,
+            off=float((err[det] > 1e-4).mean()) if det.any() else np.nan,
             within3=float((err[det] <= 3 * se[det]).mean()) if det.any() else np.nan,
             successful=r.successful,
+            result=r.result,
             compile=r.compile_s,
             solve=r.solve_s,
             wall=wall,
@@ -81,8 +83,9 @@ def main():
             for kind, d in o.items():
                 print(
                     f"map {res}² seed {seed} {d['views']} views {kind:10s}: determined {d['determined']:.3f}, "
-                    f"max err {d['max_err']:.2e}, within 3 s.e. {d['within3']:.4f}, successful {d['successful']}, "
-                    f"compile {d['compile']:.2f} s, solve {d['solve']:.2f} s, wall {d['wall']:.2f} s",
+                    f"max err {d['max_err']:.2e} (beyond 1e-4: {d['off']:.4f}), within 3 s.e. {d['within3']:.4f}, successful {d['successful']}, "
+                    f"compile {d['compile']:.2f} s, solve {d['solve']:.2f} s, wall {d['wall']:.2f} s"
+                    + (f" ({d['result']})" if not d["successful"] else ""),
                     flush=True,
                 )
 

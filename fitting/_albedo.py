@@ -13,8 +13,9 @@ of that colour on its triangle. The same pass gives the image and one tangent pe
 scalar :math:`\theta` (exponent, attenuation, gains, light position, …).
 
 **The solve** is variable projection on the host in float64: for given :math:`\theta` the
-albedo is the bounded sparse least-squares optimum (``0 ≤ x ≤ 1``: a primal active set whose
-Newton steps are sparse Cholesky-type solves, ``scipy.sparse.linalg.factorized``; with an
+albedo is the bounded sparse least-squares optimum (``0 ≤ x ≤ 1``: projected Newton, Bertsekas
+1982, whose steps are sparse solves, ``scipy.sparse.linalg.factorized``, with a backtracking line
+search along the projection onto the box; with an
 optional smoothness prior :math:`\lambda \sum_{(i,j) \in \text{edges}} (x_i - x_j)^2`
 stacked under :math:`A`); Levenberg–Marquardt moves :math:`\theta` on the reduced residual with
 Kaufman's Jacobian :math:`P^\perp J_\theta`, the projection computed by a sparse factorisation of
