@@ -235,22 +235,19 @@ class _AlbedoSolver:
         from scipy.sparse.linalg import factorized
 
         sp = self.ap.sp
-        G = self._gram_of(A)[idx][:, idx]
+        G = self.gram(A)[idx][:, idx]
         # Jacobi-scaled, so that the ridge (what keeps a null direction at its start) is relative to
         # each scalar's own information, not to the best-seen one's
         d = 1 / np.sqrt(np.maximum(G.diagonal(), 1e-300))
         solve = factorized((sp.diags(d) @ G @ sp.diags(d) + sp.identity(G.shape[0]) * RIDGE).tocsc())
         return lambda r: d * solve(d * r)
 
-    def _gram_of(self, A):
-        """``A^T A (+ λ L^T L)``, once per design matrix."""
+    def gram(self, A):
+        """``A^T A (+ λ L^T L)`` (CSC), formed once per design matrix."""
         if self._gram is None or self._gram[0] is not A:
             G = A.T @ A
             self._gram = (A, (G + self.Lp.T @ self.Lp if self.Lp is not None else G).tocsc())
         return self._gram[1]
-
-    def _gram_diagonal(self, A):
-        return np.asarray(self._gram_of(A).diagonal())
 
     def grad(self, x, A, b):
         g = A.T @ (A @ x + b - self.y)
@@ -262,17 +259,21 @@ class _AlbedoSolver:
         solves on the scalars not held by a bound their gradient pushes against, and is projected
         onto the box with an Armijo backtrack, so the objective falls at every step and a scalar
         leaves or rejoins its bound as its multiplier says. ``(x, free)``."""
-        x0, ridge = x.copy(), RIDGE * self._gram_diagonal(A)
+        x0, ridge = x.copy(), RIDGE * self.gram(A).diagonal()
 
         def objective(z):
             r = A @ z + b - self.y
             prior = float(np.sum((self.Lp @ z) ** 2)) if self.Lp is not None else 0.0
             return 0.5 * (float(r @ r) + prior + float(np.sum(ridge * (z - x0) ** 2)))
 
+        def held_by_bound(z):
+            """The scalars on a bound that their gradient pushes against, and the gradient."""
+            g = self.grad(z, A, b) + ridge * (z - x0)
+            return ((z <= 0) & (g > 0)) | ((z >= 1) & (g < 0)), g
+
         f = objective(x)
         for _ in range(MAX_NEWTON):
-            g = self.grad(x, A, b) + ridge * (x - x0)
-            held = ((x <= 0) & (g > 0)) | ((x >= 1) & (g < 0))
+            held, g = held_by_bound(x)
             idx = np.flatnonzero(seen & ~held)
             if not len(idx):
                 break
@@ -285,17 +286,14 @@ class _AlbedoSolver:
                 if f_new <= f + 1e-4 * float(g @ (x_new - x)) or a < 1e-6:
                     break
                 a /= 2
-            clipped = bool(np.any((x + a * step < 0) | (x + a * step > 1)))
             if f_new >= f:  # no decrease left at float precision
                 break
+            clipped = bool(np.any(x_new != x + a * step))
             x, f = x_new, f_new
-            if a == 1.0 and not clipped:  # the optimum on this face: done unless a bound lets go
-                g = self.grad(x, A, b) + ridge * (x - x0)
-                if not np.any((((x <= 0) & (g < 0)) | ((x >= 1) & (g > 0))) & held):
-                    break
-        g = self.grad(x, A, b) + ridge * (x - x0)
-        held = ((x <= 0) & (g > 0)) | ((x >= 1) & (g < 0))
-        return x, seen & ~held
+            # the optimum on this face (a full step, nothing clipped): done unless a bound lets go
+            if a == 1.0 and not clipped and not np.any(held & ~held_by_bound(x)[0] & ((x <= 0) | (x >= 1))):
+                break
+        return x, seen & ~held_by_bound(x)[0]
 
     def solve_x(self, theta, x0):
         """The bounded optimum over the albedo, and the pieces the reduced problem needs."""
@@ -390,10 +388,7 @@ def block_stderr(ap, solver: _AlbedoSolver, red: _Reduced, s2_eff) -> np.ndarray
 
     A, Lp = red.A, solver.Lp
     idx_det = np.flatnonzero(red.seen | (Lp is not None))
-    G = A.T @ A
-    if Lp is not None:
-        G = G + Lp.T @ Lp
-    G = G.tocsc()[idx_det][:, idx_det]
+    G = solver.gram(A)[idx_det][:, idx_det]
     diag_inv = ap.inverse_diagonal(G, idx_det)
     if len(ap.other) and len(idx_det):
         Jo_fin = ap.evaluate(red.th)[2]  # at the final values (reduced() took the columns at the incoming ones)
