@@ -247,6 +247,12 @@ class Reduced:
         self.n_groups, self.n_slots = len(groups), len(slots)
         self.per_view_l, self.per_view_n = bool((self.view_l >= 0).any()), bool((self.view_n >= 0).any())
         self.param_of = np.repeat(np.arange(len(pset.params)), pset.sizes)
+        # θ's scalars from z = (x, u): scalar i is z[order[i]]
+        self.order = np.empty(len(self.idx_l) + len(self.idx_n), int)
+        self.order[self.idx_l] = np.arange(len(self.idx_l))
+        self.order[self.idx_n] = len(self.idx_l) + np.arange(len(self.idx_n))
+        self.is_linear = np.zeros(len(self.order), bool)
+        self.is_linear[self.idx_l] = True
 
     @property
     def method(self) -> str:
@@ -264,10 +270,8 @@ class Reduced:
     def theta(self, u_n, x, theta_ref):
         """Full natural θ from the nonlinear ``u`` and the linear ``x`` (``theta_ref`` fills nothing
         else: every scalar is one or the other)."""
-        pset = self.prob.pset
-        u = jnp.zeros(theta_ref.shape, u_n.dtype).at[self.idx_n].set(u_n)
-        th = pset.theta_from_u(u).astype(theta_ref.dtype)
-        return th.at[self.idx_l].set(x.astype(th.dtype))
+        z = jnp.concatenate([x.astype(theta_ref.dtype), u_n.astype(theta_ref.dtype)])[self.order]
+        return jnp.where(self.is_linear, z, self.prob.pset.theta_from_u(z))
 
     def design(self, vd, theta):
         """``(A, b)`` of one view at its compacted pixels: ``b`` the image with the linear scalars

@@ -178,30 +178,39 @@ class Param:
             value = direction_of(value, self.frame)
         if self.path == ("mesh", "colors"):
             return (lambda s: s.mesh.colors), jnp.asarray(value).reshape(-1, 3).astype(scene.mesh.colors.dtype)
-        p = self.path
         if is_map(self):
+            p = self.path
             old = _follow(scene, p).texels
             return (lambda s: _follow(s, p).texels), jnp.asarray(value, old.dtype).reshape(old.shape)
-        if p[0] in _KINDS and len(p) == 4:
-            kind, i, j, field = p
-            arr = getattr(scene.multi_lobe, field)
-            new = arr.at[i, j].set(jnp.broadcast_to(value, arr[i, j].shape).astype(arr.dtype))
-            return (lambda s: getattr(s.multi_lobe, field)), new
+        _, where, index = self.target()
+        old = where(scene)
+        if index == ():
+            return where, jnp.broadcast_to(jnp.asarray(value, old.dtype), old.shape)
+        return where, old.at[index].set(jnp.broadcast_to(value, old[index].shape).astype(old.dtype))
+
+    def target(self):
+        """``(key, where, index)``: the scene leaf a scalar or RGB parameter lives in (``key``
+        names it, ``where`` gets it from a scene) and its place in that leaf (``()``: the whole
+        leaf, its value broadcast)."""
+        p = self.path
+        if p[0] in _KINDS and len(p) == 4:  # a lobe of a multi-lobe light
+            _, i, j, field = p
+            return ("multi_lobe", field), (lambda s: getattr(s.multi_lobe, field)), (i, j)
         if p[0] in _KINDS:
             kind, i, field = p
             if field in ("a0", "a1", "a2"):
-                att = getattr(scene, kind).attenuation
-                return (lambda s: getattr(s, kind).attenuation), att.at[i, int(field[1])].set(
-                    jnp.asarray(value, att.dtype)
-                )
+                return (kind, "attenuation"), (lambda s: getattr(s, kind).attenuation), (i, int(field[1]))
             if field in _SIZE:
-                size = getattr(scene, kind).size
-                return (lambda s: getattr(s, kind).size), size.at[i, _SIZE[field]].set(jnp.asarray(value, size.dtype))
-            arr = getattr(getattr(scene, kind), field)
-            new = arr.at[i].set(jnp.broadcast_to(value, arr[i].shape).astype(arr.dtype))
-            return (lambda s: getattr(getattr(s, kind), field)), new
-        old = self._node(scene)
-        return (lambda s: _follow(s, p)), jnp.broadcast_to(jnp.asarray(value, old.dtype), old.shape)
+                return (kind, "size"), (lambda s: getattr(s, kind).size), (i, _SIZE[field])
+            return (kind, field), (lambda s: getattr(getattr(s, kind), field)), (i,)
+        return p, (lambda s: _follow(s, p)), ()
+
+    @property
+    def placed(self) -> bool:
+        """Whether the parameter's scalars go into their scene leaf as they are (no chart of a
+        direction, no texels or vertex colours): :meth:`ParamSet.apply` writes all such
+        parameters of one leaf at once."""
+        return self.frame is None and not is_map(self) and self.path != ("mesh", "colors")
 
     # -- reparametrisation -----------------------------------------------------------------
     @property
@@ -529,13 +538,54 @@ class ParamSet:
     def apply(self, scene, theta, view=None):
         """``scene`` with the parameters at ``theta``; ``view``: which view ``scene`` is (its
         own per-view parameters are set, other views' left alone; an int, or a traced index
-        when the views are stacked)."""
-        for p, v in zip(self.params, self.split(theta)):
-            scene = p.set(scene, v, view)
+        when the views are stacked).
+
+        The parameters that go into a scene leaf as they are (:attr:`Param.placed`) are written
+        leaf by leaf, each leaf one gather from ``theta`` (a fit's program then holds one small
+        kernel per leaf, not a scatter per parameter under each of its tangents); the others
+        (directions, maps, vertex colours, per-view ones of a traced view) one by one."""
+        static_view = view is None or isinstance(view, (int, np.integer))
+        leaves = {}
+        rest = []
+        for p, a in zip(self.params, self.offsets[:-1]):
+            if not p.placed or (p.view is not None and not static_view):
+                rest.append((p, a))
+                continue
+            if p.view is not None and p.view != view:
+                continue
+            key, where, index = p.target()
+            if key not in leaves:
+                leaves[key] = (where, np.full(np.shape(where(scene)), -1))
+            leaves[key][1][index] = np.arange(a, a + p.size) if p.size > 1 else a
+        for where, idx in leaves.values():
+            old = where(scene)
+            new = jnp.where(idx >= 0, jnp.asarray(theta)[np.maximum(idx, 0)].astype(old.dtype), old)
+            scene = eqx.tree_at(where, scene, new)
+        for p, a in rest:
+            scene = p.set(scene, theta[a] if p.size == 1 else theta[a : a + p.size], view)
         return scene
 
+    def _domains(self):
+        """Per scalar: its kind (0 real, 1 positive, 2 an interval) and the interval's ends."""
+        if getattr(self, "_domain_arrays", None) is None:
+            kind, lo, hi = [], [], []
+            for p in self.params:
+                k, a, b = (0, 0.0, 1.0) if p.domain == "real" else (1, 0.0, 1.0) if p.bounds is None else (2, *p.bounds)
+                kind += [k] * p.size
+                lo += [a] * p.size
+                hi += [b] * p.size
+            self._domain_arrays = (np.asarray(kind), np.asarray(lo), np.asarray(hi))
+        return self._domain_arrays
+
     def theta_from_u(self, u):
-        return jnp.concatenate([jnp.atleast_1d(p.from_u(v)) for p, v in zip(self.params, self.split(u))])
+        """θ from ``u``, every scalar by its domain (:meth:`Param.from_u`), as one elementwise
+        expression over the vector."""
+        kind, lo, hi = self._domains()
+        u = jnp.asarray(u)
+        # capped where θ² still fits the float type (Param.from_u)
+        pos = jnp.exp(jnp.minimum(u, 0.5 * np.log(np.finfo(u.dtype).max)))
+        box = lo.astype(u.dtype) + (hi - lo).astype(u.dtype) * jax.nn.sigmoid(u)
+        return jnp.where(kind == 1, pos, jnp.where(kind == 2, box, u))
 
     def u_from_theta(self, theta):
         return jnp.concatenate([jnp.atleast_1d(p.to_u(v)) for p, v in zip(self.params, self.split(theta))])

@@ -180,10 +180,10 @@ class _Program:
 
     def to_theta(self, zz, natural, theta_ref):
         """θ from ``z``: the nonlinear part is ``u`` (``natural`` False) or already θ (True)."""
-        n_l, idx_n = self.n_l, self.red.idx_n
+        n_l, red = self.n_l, self.red
         un = zz[n_l:]
-        th = self.red.theta(jnp.where(natural, 0.0, un), zz[:n_l], theta_ref)  # double where: exp(θ) may overflow
-        return th.at[idx_n].set(jnp.where(natural, un.astype(th.dtype), th[idx_n]))
+        th = red.theta(jnp.where(natural, 0.0, un), zz[:n_l], theta_ref)  # double where: exp(θ) may overflow
+        return jnp.where(natural & ~red.is_linear, zz.astype(th.dtype)[red.order], th)
 
     def images(self, z, c):
         """Flat image and its tangents, one per linear field and one per nonlinear scalar."""
