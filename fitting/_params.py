@@ -524,6 +524,11 @@ class ParamSet:
         return [lab for p in self.params for lab in p.labels()]
 
     @property
+    def moves_camera(self) -> bool:
+        """Whether a camera pose is free (what each pixel sees then moves with it)."""
+        return any(p.path[0] == "camera" and p.path[-1] in ("rvec", "tvec") for p in self.params)
+
+    @property
     def names(self) -> list[str]:
         return [p.name for p in self.params]
 

@@ -14,6 +14,7 @@ and its darkest (0) "at most this dark". Their residuals are one-sided,
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import equinox as eqx
@@ -86,6 +87,24 @@ def pixel_depths(scene, tri: np.ndarray) -> np.ndarray:
     den = np.einsum("hwk,hwk->hw", d, n)
     t = np.einsum("hwk,hwk->hw", a - o, n) / np.where(den != 0, den, 1.0)
     return np.where(ok & (den != 0), np.abs(t), np.inf)
+
+
+def sees_back_faces(scene, ids: np.ndarray, cos_min: float = 1e-3) -> bool:
+    """Whether any pixel of the visibility ``ids`` (``[K, H, W]``) sees a triangle from behind,
+    or so nearly edge-on (the cosine between its normal and the way to the eye below
+    ``cos_min``) that float rounding could turn it; host-side float64. For a pinhole camera
+    a triangle's projected winding (the rasterizer's front) is counter-clockwise exactly when
+    the eye lies on its normal's side."""
+    tri = np.unique(ids[ids >= 0])
+    if not len(tri):
+        return False
+    V = np.asarray(scene.mesh.vertices, np.float64)
+    f = np.asarray(scene.mesh.faces)[tri]
+    a = V[f[:, 0]]
+    n = np.cross(V[f[:, 1]] - a, V[f[:, 2]] - a)
+    to_eye = np.asarray(scene.camera.eye, np.float64) - a
+    den = np.linalg.norm(n, axis=1) * np.linalg.norm(to_eye, axis=1)
+    return bool(np.any(np.einsum("ij,ij->i", n, to_eye) <= cos_min * den))
 
 
 def near_edges(depth: np.ndarray, margin: int, ratio: float = 4.0) -> np.ndarray:
@@ -428,6 +447,11 @@ class Problem:
             _cover(k, t, v, m, enc, obs, lower, opts, vis)
             for k, (t, v, m, enc) in enumerate(zip(obs.targets, views, masks, obs.encodings))
         ]
+        if opts.lighting.two_sided and not opts.ray_traced and not pset.moves_camera:
+            if not any(sees_back_faces(c.view, c.ids) for c in covers):
+                # no pixel of any view sees a back face: its lighting would be computed for
+                # every pixel and never shown (a third of a Phong fit's program, half its shading)
+                opts = opts.replace(lighting=dataclasses.replace(opts.lighting, two_sided=False))
         # every view padded to the same count, so that the views stack into one batch
         n = max(PAD, max(-(-int(c.covered.sum()) // PAD) * PAD for c in covers))
         data, books = zip(*[_compact(k, c, obs.targets[k], n, dtype, opts) for k, c in enumerate(covers)])

@@ -666,3 +666,78 @@ def test_intervals_cover_a_second_solution_the_images_cannot_tell_apart():
     assert ambiguous == [0, 1]
     assert out[0, 0] == 0.0 and 0.2 < out[0, 1] <= 1.0 and out[1, 0] == 0.1 and out[1, 1] > 87.0
     np.testing.assert_array_equal(out[2], interval[2])
+
+
+def _half_sphere_scene(camera):
+    """The default scene with its icosphere cut in half (z < 0.3 kept): an open mesh whose
+    inside shows through the cut from a camera in front of it."""
+    scene, opts = small_scene()
+    v, f = np.asarray(scene.mesh.vertices), np.asarray(scene.mesh.faces)
+    keep = (v[f][:, :, 2] < 0.3).all(axis=1)
+    scene = eqx.tree_at(lambda s: s.mesh, scene, ds.mesh_from_arrays(v, f[keep]))
+    return eqx.tree_at(lambda s: s.camera, scene, camera), opts
+
+
+def test_the_host_says_which_triangles_are_seen_from_behind_as_the_rasterizer_does():
+    """``sees_back_faces`` (float64, from the eye's side of each triangle's plane) against the
+    rasterizer's projected winding (``Fragments.front``), triangle by triangle: an open mesh
+    seen through its cut (both sides in view) by a look-at and an OpenCV camera, and from behind."""
+    from conftest import opencv_look_at
+
+    from fitting._problem import sees_back_faces
+
+    eye = np.array([0.3, 0.8, 3.0])
+    R, t = opencv_look_at(eye)
+    K = np.array([[40.0, 0, 15.5], [0, 40.0, 15.5], [0, 0, 1]])
+    cameras = [
+        ds.Camera(eye=eye, target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.5, far=10.0, width=32, height=32),
+        ds.OpenCVCamera.from_opencv(K, R=R, t=t, width=32, height=32, near=0.5, far=10.0),
+        ds.Camera(eye=-eye, target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.5, far=10.0, width=32, height=32),
+    ]
+    seen = []
+    for cam in cameras:
+        scene, opts = _half_sphere_scene(cam)
+        ids = np.asarray(ds.scene_visibility(scene, opts))
+        front = np.asarray(ds.fragments(scene.camera.world_to_clip(scene.mesh.vertices), scene.mesh.faces, ids).front)
+        tris = np.unique(ids[ids >= 0])
+        both = set()
+        for tri in tris:
+            mine = ids == tri
+            only = np.where(mine, ids, -1)
+            both.add(bool(front[mine].all()))
+            assert front[mine].all() or not front[mine].any(), tri
+            assert sees_back_faces(scene, only) == (not front[mine].all()), (type(cam).__name__, tri)
+        assert sees_back_faces(scene, ids) == (not front[ids >= 0].all())
+        seen.append(both)
+    # in front of the cut both sides show; from behind, the outside only
+    assert seen == [{True, False}, {True, False}, {True}]
+
+
+def test_a_fit_that_sees_no_back_face_shades_one_side_and_the_same_image():
+    """Two-sided lighting lights every pixel twice (front and back) and keeps what the pixel's
+    side shows: where no pixel of any view sees a back face, the fit's program lights one side
+    only, and its image is the same."""
+    from fitting._problem import Problem
+
+    scene, opts = small_scene()
+    assert opts.lighting.two_sided
+    target = np.asarray(ds.render(scene, opts))
+    prob = Problem.build(scene, opts, Observations(target), ["material.diffuse"])
+    assert not prob.opts.lighting.two_sided
+    theta = prob.pset.theta_of(scene)
+    img = np.asarray(prob.image(prob.data[0], theta))
+    rows = prob.views[0].rows
+    np.testing.assert_allclose(img[: len(rows)], target.reshape(-1, 3)[rows], atol=1e-6)
+    # an open mesh seen through its cut keeps both sides, and so does a free camera pose
+    cam = ds.Camera(
+        eye=[0.3, 0.8, 3.0], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.5, far=10.0, width=32, height=32
+    )
+    open_scene, _ = _half_sphere_scene(cam)
+    prob = Problem.build(open_scene, opts, Observations(np.asarray(ds.render(open_scene, opts))), ["material.diffuse"])
+    assert prob.opts.lighting.two_sided
+    from conftest import pose_problem
+
+    start, opts, target, *_ = pose_problem(32)
+    assert opts.lighting.two_sided
+    assert Problem.build(start, opts, Observations(target), ["camera.rvec"]).opts.lighting.two_sided
+    assert not Problem.build(start, opts, Observations(target), ["material.diffuse"]).opts.lighting.two_sided
