@@ -101,6 +101,25 @@ class Mesh(eqx.Module):
             acc = acc.at[self.faces[:, k]].add(n)
         return safe_normalize(acc)
 
+    def with_vertex_normals(self) -> "Mesh":
+        """This mesh with :attr:`normals` set to :meth:`vertex_normals` computed once on the
+        host in float64 (where it gives none): for a program that never moves the vertices,
+        which then holds no scatter over the faces (a loop on XLA's CPU backend) to compute
+        them."""
+        if self.normals is not None:
+            return self
+        v, f = np.asarray(self.vertices, np.float64), np.asarray(self.faces)
+        tri = v[f]
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        acc = np.zeros_like(v)
+        for k in range(3):
+            np.add.at(acc, f[:, k], n)
+        length = np.linalg.norm(acc, axis=1, keepdims=True)
+        acc = np.where(length > 0, acc / np.where(length > 0, length, 1.0), 0.0)
+        return eqx.tree_at(
+            lambda m: m.normals, self, jnp.asarray(acc, self.vertices.dtype), is_leaf=lambda x: x is None
+        )
+
 
 def validate_arrays(vertices, faces, source: str = "mesh") -> tuple[np.ndarray, np.ndarray]:
     """Host-side checks of mesh arrays; raises :class:`MeshError` naming ``source`` and the problem."""

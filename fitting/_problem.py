@@ -435,6 +435,8 @@ class Problem:
                 v if v.mesh.adjacency is not None else eqx.tree_at(lambda s: s.mesh, v, v.mesh.with_adjacency())
                 for v in views
             ]
+        # a fit never moves the vertices: their normals are data, computed once
+        views = [eqx.tree_at(lambda s: s.mesh, v, v.mesh.with_vertex_normals()) for v in views]
         masks = list(obs.masks) if obs.masks is not None else [None] * len(obs.targets)
         dtype = scene.mesh.vertices.dtype
         pset = ParamSet(list(free), scene, shared, n_views=len(obs.targets))

@@ -190,6 +190,12 @@ def test_vertex_normals_area_weighted():
     sphere = ds.icosphere(3)
     vn = np.asarray(sphere.vertex_normals())
     np.testing.assert_allclose(vn, np.asarray(sphere.vertices), atol=2e-2)
+    # computed once on the host (what a fit gives its program): the same normals, and data after
+    for mesh in (ds.Mesh(vertices=v, faces=f), sphere):
+        host = mesh.with_vertex_normals()
+        assert host.normals is not None and host.normals.dtype == mesh.vertices.dtype
+        np.testing.assert_allclose(np.asarray(host.vertex_normals()), np.asarray(mesh.vertex_normals()), atol=1e-6)
+        assert host.with_vertex_normals() is host
 
 
 def scene_dict(**over):
