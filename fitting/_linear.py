@@ -104,9 +104,9 @@ def split_linear(pset, opts, scene=None) -> tuple[list[int], dict[str, str]]:
 # --------------------------------------------------------------------------------------------
 
 
-def _masked_solve(G, rhs, free, rcond):
-    """``d`` with ``G_ff d_f = rhs_f`` (pseudo-inverse), ``d = 0`` off the free set; ``rhs`` a
-    vector or a matrix (columns)."""
+def _pinv(G, free, rcond):
+    """The pseudo-inverse of ``G``'s free block as ``(inv, V, fr)``: ``G_ff⁺ rhs_f = fr V (inv
+    Vᵀ (fr rhs))`` (:func:`_apply`), zero off the free set."""
     # Jacobi scaling first: the pseudo-inverse's cut is then relative to correlations, not to
     # the parameters' units (unscaled, a weakly-scaled parameter's step would be cut to 0).
     dg = jnp.diag(G)
@@ -115,81 +115,97 @@ def _masked_solve(G, rhs, free, rcond):
     M = G * (dsc * f)[:, None] * (dsc * f)[None, :] + jnp.diag(1.0 - f)
     w, V = jnp.linalg.eigh(M)
     inv = jnp.where(w > rcond * jnp.max(w), 1.0 / jnp.where(w > 0, w, 1.0), 0.0)
-    fr = (dsc * f).reshape(f.shape + (1,) * (rhs.ndim - 1))
-    inv = inv.reshape(inv.shape + (1,) * (rhs.ndim - 1))
+    return inv, V, dsc * f
+
+
+def _apply(pinv, rhs):
+    """:func:`_pinv`'s pseudo-inverse times ``rhs`` (a vector or a matrix of columns)."""
+    inv, V, fr = (x.reshape(x.shape + (1,) * (rhs.ndim - 1)) if x.ndim == 1 else x for x in pinv)
     return (V @ (inv * (V.T @ (rhs * fr)))) * fr
 
 
+def _masked_solve(G, rhs, free, rcond):
+    """``d`` with ``G_ff d_f = rhs_f`` (pseudo-inverse), ``d = 0`` off the free set; ``rhs`` a
+    vector or a matrix (columns)."""
+    return _apply(_pinv(G, free, rcond), rhs)
+
+
 def bounded_lsq(A, r0, lo, hi, x0, iters: int | None = None):
+    r"""``argmin ‖A x + r0‖²`` subject to ``lo ≤ x ≤ hi`` (``hi`` may be inf), for a few columns;
+    ``(x, free)``: :func:`bounded_lsq_solver` without its solver."""
+    x, free, _ = bounded_lsq_solver(A, r0, lo, hi, x0, iters)
+    return x, free
+
+
+def bounded_lsq_solver(A, r0, lo, hi, x0, iters: int | None = None):
     r"""``argmin ‖A x + r0‖²`` subject to ``lo ≤ x ≤ hi`` (``hi`` may be inf), for a few columns.
 
-    The primal active-set method (Nocedal & Wright, Alg. 16.3) on the column-scaled normal
-    equations, with the working set carried from step to step: a Newton step on the free
-    variables; if it leaves the box, it is cut where it meets the first bound, which joins the
-    working set; if not, the variable of the working set with the most negative multiplier leaves
-    it. It ends at the optimum in at most a few times ``n`` steps (``iters``, static). Two last
-    steps use the gradient :math:`A^T(Ax + r_0)` recomputed from the residual (iterative
-    refinement: float32 normal equations lose :math:`\mathrm{cond}^2` digits). Columns that are
-    zero (a term the image does not show) keep ``x0``.
-    Returns ``(x, free)``: ``free`` marks variables strictly inside their bounds.
+    The primal active-set method (Nocedal & Wright, Alg. 16.3) on the column-scaled problem,
+    with the working set carried from step to step: at the subspace optimum the variable of the
+    working set with the most negative multiplier leaves it; then a Newton step on the free
+    variables, which, if it leaves the box, is cut where it meets the first bound, which joins
+    the working set. It ends after two steps in a row that neither met a bound nor released one
+    (the second a refinement), in at most ``iters`` (static; a few times ``n``). The gradient
+    :math:`A^T(Ax + r_0)` of each step is taken from the residual, not from the normal
+    equations (float32 normal equations lose :math:`\mathrm{cond}^2` digits), and the
+    pseudo-inverse of the scaled normal matrix on the free set is the one eigendecomposition a
+    step needs. Columns that are zero (a term the image does not show) keep ``x0``.
+
+    Returns ``(x, free, solve)``: ``free`` marks the variables the last step held free (inside
+    their bounds), and ``solve(rhs)`` solves ``(A_fᵀA_f) c = rhs`` on them with that step's
+    eigendecomposition (variable projection's Kaufman Jacobian needs it at the solution).
     """
-    n = A.shape[1]
+    At = A.T  # [n, M]: each column a row
+    n = At.shape[0]
     iters = 4 * n + 4 if iters is None else iters
-    dt = A.dtype
+    dt = At.dtype
     eps = float(jnp.finfo(dt).eps)
-    s = jnp.sqrt(jnp.sum(A * A, axis=0))
+    s = jnp.sqrt(jnp.sum(At * At, axis=1))
     det = s > 1e3 * eps * jnp.max(s)
     inv_s = jnp.where(det, 1.0 / jnp.where(det, s, 1.0), 0.0)
-    As = A * inv_s
-    G = As.T @ As
-    c = As.T @ r0
+    As = At * inv_s[:, None]
+    G = As @ As.T
     # scaled variables y = s x; undetermined ones fixed at s x0 (their column is ~0 anyway)
     ylo, yhi = lo * s, jnp.where(jnp.isinf(hi), jnp.inf, hi * s)
-    y0 = x0 * s
     rcond = 1e2 * eps
     big = jnp.asarray(jnp.inf, dt)
+    idx = jnp.arange(n)
 
-    def step(state, grad_fn):
-        y, w_lo, w_hi = state
-        free = det & ~w_lo & ~w_hi
-        d = -_masked_solve(G, grad_fn(y), free, rcond)
+    def body(carry):
+        k, y, w_lo, w_hi, blocked_prev, n_opt, _ = carry
+        g = As @ (As.T @ y + r0)
+        # at the subspace optimum: release the working-set variable with the most negative multiplier
+        lam = jnp.where(w_lo, g, jnp.where(w_hi, -g, big))
+        worst = jnp.argmin(lam)
+        release = ~blocked_prev & (lam[worst] < -1e2 * eps * (1.0 + jnp.max(jnp.abs(g))))
+        w_lo, w_hi = w_lo & ~(release & (idx == worst)), w_hi & ~(release & (idx == worst))
+        pinv = _pinv(G, det & ~w_lo & ~w_hi, rcond)
+        d = -_apply(pinv, g)
+        free = pinv[2] > 0
         room = jnp.where(
             d < 0, (ylo - y) / jnp.where(d < 0, d, -1.0), jnp.where(d > 0, (yhi - y) / jnp.where(d > 0, d, 1.0), big)
         )
         room = jnp.where(free, jnp.maximum(room, 0.0), big)
         alpha = jnp.minimum(jnp.min(room), 1.0)
         blocked = alpha < 1.0
-        y_new = jnp.clip(jnp.where(free, y + alpha * d, y), ylo, yhi)
-        hit = jnp.argmin(room)
-        w_lo = w_lo | (blocked & (jnp.arange(n) == hit) & (d < 0))
-        w_hi = w_hi | (blocked & (jnp.arange(n) == hit) & (d > 0))
-        # at the subspace optimum: release the working-set variable with the most negative multiplier
-        g = grad_fn(y_new)
-        lam = jnp.where(w_lo, g, jnp.where(w_hi, -g, big))
-        worst = jnp.argmin(lam)
-        release = ~blocked & (lam[worst] < -1e2 * eps * (1.0 + jnp.max(jnp.abs(g))))
-        sel = release & (jnp.arange(n) == worst)
-        return y_new, w_lo & ~sel, w_hi & ~sel
-
-    def body(carry):
-        # active-set steps until the working set repeats, then two refinement steps: one copy
-        # of the step in the program (each copy of an eigendecomposition costs compile time)
-        k, st, done, n_ref = carry
-        grad = lambda v: jax.lax.cond(done, lambda: As.T @ (As @ v + r0), lambda: G @ v + c)  # noqa: E731
-        new = step(st, grad)
-        same = jnp.all(new[0] == st[0]) & jnp.all(new[1] == st[1]) & jnp.all(new[2] == st[2])
-        return k + 1, new, done | same | (k + 1 >= iters), n_ref + done
+        hit = blocked & (idx == jnp.argmin(room))
+        y = jnp.clip(jnp.where(free, y + alpha * d, y), ylo, yhi)
+        n_opt = jnp.where(blocked | release, 0, n_opt + 1)
+        return k + 1, y, w_lo | (hit & (d < 0)), w_hi | (hit & (d > 0)), blocked, n_opt, pinv
 
     # from the start clipped into the box with an empty working set
-    y = jnp.where(det, jnp.clip(y0, ylo, yhi), y0)
+    y0 = x0 * s
     none = jnp.zeros(n, bool)
-    _, state, _, _ = jax.lax.while_loop(
-        lambda cr: cr[3] < 2, body, (jnp.asarray(0), (y, none, none), jnp.asarray(False), jnp.asarray(0))
-    )
-    y = state[0]
+    pinv0 = (jnp.zeros(n, dt), jnp.eye(n, dtype=dt), jnp.zeros(n, dt))
+    carry = (jnp.asarray(0), jnp.where(det, jnp.clip(y0, ylo, yhi), y0), none, none, jnp.asarray(True), 0, pinv0)
+    _, y, _, _, _, _, pinv = jax.lax.while_loop(lambda c: (c[5] < 2) & (c[0] < iters), body, carry)
     x = jnp.where(det, y * inv_s, x0)
-    free = det & (x > lo) & (x < hi)
-    return x, free
+
+    def solve(rhs):
+        sc = inv_s.reshape(inv_s.shape + (1,) * (rhs.ndim - 1))
+        return sc * _apply(pinv, sc * rhs)
+
+    return x, pinv[2] > 0, solve
 
 
 # --------------------------------------------------------------------------------------------

@@ -36,7 +36,7 @@ import numpy as np
 from diffshade import keep
 
 from ._cache import compiled
-from ._linear import Reduced, _masked_solve, bounded_lsq, in_view
+from ._linear import Reduced, bounded_lsq_solver, in_view
 from ._problem import ViewData, to_host
 from ._starts import candidates
 
@@ -195,14 +195,14 @@ class _Program:
         return keep(img, T)
 
     def linear_block(self, z, c, A, d):
-        """``(x*, r, A_f, free)``: the linear block solved under its bounds at ``z``'s ``u`` (``A``
-        the linear columns, ``d`` the weighted residual), the reduced residual, the weighted
-        columns of the free linear scalars and which are free."""
+        """``(x*, r, A_f, solve)``: the linear block solved under its bounds at ``z``'s ``u``
+        (``A`` the linear columns, ``d`` the weighted residual), the reduced residual, the
+        weighted columns of the free linear scalars and the solve of their normal equations."""
         n_l = self.n_l
         Aw = A * c.wu
         r0 = d - Aw.T @ z[:n_l]
-        x_new, free = bounded_lsq(Aw.T, r0, c.lo_x, c.hi_x, z[:n_l])
-        return x_new, r0 + Aw.T @ x_new, Aw * free[:, None].astype(c.dt), free
+        x_new, free, solve = bounded_lsq_solver(Aw.T, r0, c.lo_x, c.hi_x, z[:n_l])
+        return x_new, r0 + Aw.T @ x_new, Aw * free[:, None].astype(c.dt), solve
 
     def evaluate(self, z, c):
         """The linear block solved at ``z``'s ``u``; the reduced cost, ``J^T J`` and ``J^T r`` of
@@ -217,8 +217,8 @@ class _Program:
         if n_l:
 
             def project(_):
-                x_new, r_red, Af, free = self.linear_block(z, c, A, d)
-                coef = _masked_solve(Af @ Af.T, Af @ Juw.T, free, c.rcond)  # [n_l, n_n]
+                x_new, r_red, Af, solve = self.linear_block(z, c, A, d)
+                coef = solve(Af @ Juw.T)  # [n_l, n_n]
                 return x_new, r_red, Juw - coef.T @ Af
 
             # evaluation mode wants the image and tangents only
@@ -245,19 +245,22 @@ class _Program:
             return jnp.einsum("baj,jb->aj", P[:, :, slot], ind)
 
         if n_l:
-            none = (z[:n_l], d, jnp.zeros_like(A), jnp.zeros(n_l, bool))
-            x_new, r_red, Af, free = jax.lax.cond(
-                c.natural, lambda _: none, lambda _: self.linear_block(z, c, A, d), None
-            )
+
+            def project(_):
+                x_new, r_red, Af, solve = self.linear_block(z, c, A, d)
+                PJ = spread(per_view_gram(Af, S, c.sizes))  # [n_l, n_n]
+                return x_new, r_red, Af, PJ, solve(PJ)
+
+            zero = jnp.zeros((n_l, self.n_n), dt)
+            none = (z[:n_l], d, jnp.zeros_like(A), zero, zero)
+            x_new, r_red, Af, PJ, C = jax.lax.cond(c.natural, lambda _: none, project, None)
         else:
-            x_new, r_red, Af, free = z[:0], d, A, jnp.zeros(0, bool)
+            x_new, r_red = z[:0], d
         SS = per_view_gram(S, S, c.sizes)  # [views, slots, slots]
         JJ = jnp.einsum("bjk,jb,kb->jk", SS[:, slot][:, :, slot], ind, ind)
         Jr = spread(per_view_gram(r_red[None], S, c.sizes))[0]
         if n_l:
-            PJ = spread(per_view_gram(Af, S, c.sizes))  # [n_l, n_n]
             G = Af @ Af.T
-            C = _masked_solve(G, PJ, free, c.rcond)
             JJ = JJ - PJ.T @ C - C.T @ PJ + C.T @ G @ C
             Jr = Jr - C.T @ (Af @ r_red)
         z_new = jnp.concatenate([x_new, z[n_l:]])
