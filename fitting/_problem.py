@@ -534,26 +534,21 @@ class Problem:
         return jnp.concatenate([self.image(vd, theta).reshape(-1) for vd in data])
 
     def map_views(self, fn, data: ViewData, *args):
-        """``fn(view, *args)`` for every stacked view, stacked, in one copy in the program (its
-        compile does not grow with the view count). Over several devices this runs inside
-        ``shard_map``: each device maps over its own views.
+        """``fn(view, *args)`` for every stacked view, stacked: one loop over the views (XLA's, so
+        the program holds one copy of the view's computation and its compile does not grow with
+        the view count). Over several devices this runs inside ``shard_map``: each device loops
+        over its own views.
 
-        Where the views differ in data only (no per-view parameter is free), the views are a
-        batch axis (``vmap``): as fast as a loop, and compiled like one view (the
-        photometric sweep's compile at 96 views 1.27× one view's, a loop's 1.54×). With a
-        per-view parameter they are one loop (``lax.scan``, XLA's): batched, the per-view
-        tangents of a free camera pose made one fusion recompute its inputs per element (45×
-        slower) and free exposures cost 19 % more per step. Each view's output in the loop also
-        feeds a reduction carried through it (an exact zero added back): without a second use
-        XLA fuses the whole shading into the in-place update of the stacked output, and XLA's
-        CPU backend runs such a fusion on one thread (design notes: docs/fit-design-notes.md,
-        "Stacked views")."""
+        Each view's output also feeds a reduction carried through the loop (an exact zero added
+        back): without a second use XLA fuses the whole shading into the in-place update of the
+        stacked output, and XLA's CPU backend runs such a fusion on one thread. (Unrolled, the
+        compile grew with the views; under ``vmap``, batched gathers of per-view tangents made
+        one fusion recompute its inputs per element, 60× slower: design notes,
+        docs/fit-design-notes.md, "Stacked views".)"""
 
         def body(d, *a):
             if d.target.shape[0] == 1:  # one view: no loop (its transformations cost tracing time)
                 return fn(jax.tree.map(lambda x: x[0], d), *a)[None]
-            if not any(p.view is not None for p in self.pset.params):
-                return jax.vmap(lambda v: fn(v, *a))(d)
 
             def step(c, v):
                 out = fn(v, *a)

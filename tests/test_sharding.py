@@ -95,7 +95,7 @@ def test_stacked_views_render_what_the_views_do_one_by_one():
     img1 = stacked.reshape(3, -1)
     np.testing.assert_allclose(img2[:2], img1[:2], atol=1e-12)
     np.testing.assert_allclose(img2[2], 2.0 * img1[2], rtol=1e-12, atol=1e-14)
-    # views that differ in data only are a batch axis (vmap), not a loop: the same images
+    # and without a per-view parameter: the same images
     prob = Problem.build(scene, opts, Observations(targets, views=views), free[:2])
     theta = jnp.asarray(theta[: len(prob.pset.labels)])
     images = jax.jit(prob.images)
