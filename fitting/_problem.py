@@ -533,6 +533,22 @@ class Problem:
             return self.map_views(self.image, data, theta).reshape(-1)
         return jnp.concatenate([self.image(vd, theta).reshape(-1) for vd in data])
 
+    def images_jvp(self, theta, tangents, data):
+        """:meth:`images` and its derivatives along each row of ``tangents`` (``[T, p]``, in
+        θ), ``[T, M]``: one forward-mode pass, the tangents batched. The loop over stacked views
+        holds the transformed view (JAX's forward mode and batching of a loop trace its body to
+        a fixed point, a loop of the transformed body once)."""
+
+        def one(vd, th, tans):
+            return jax.vmap(lambda e: jax.jvp(lambda t: self.image(vd, t), (th,), (e,)), out_axes=(None, 0))(tans)
+
+        if isinstance(data, ViewData):
+            img, T = self.map_views(one, data, theta, tangents)  # [views, N, 3], [views, T, N, 3]
+            return img.reshape(-1), jnp.moveaxis(T, 1, 0).reshape(T.shape[1], -1)
+        parts = [one(vd, theta, tangents) for vd in data]
+        img = jnp.concatenate([i.reshape(-1) for i, _ in parts])
+        return img, jnp.concatenate([t.reshape(t.shape[0], -1) for _, t in parts], axis=1)
+
     def map_views(self, fn, data: ViewData, *args):
         """``fn(view, *args)`` for every stacked view, stacked: one loop over the views (XLA's, so
         the program holds one copy of the view's computation and its compile does not grow with
@@ -548,16 +564,16 @@ class Problem:
 
         def body(d, *a):
             if d.target.shape[0] == 1:  # one view: no loop (its transformations cost tracing time)
-                return fn(jax.tree.map(lambda x: x[0], d), *a)[None]
+                return jax.tree.map(lambda o: o[None], fn(jax.tree.map(lambda x: x[0], d), *a))
 
             def step(c, v):
                 out = fn(v, *a)
-                head = out.reshape(-1)[:1]
+                head = jax.tree.leaves(out)[0].reshape(-1)[:1]
                 return c + jnp.sum(jnp.where(jnp.isfinite(head), head, 0) * 0).astype(c.dtype), out
 
             init = jnp.sum(d.target[:0])  # 0, of the data's kind (varying over shard_map's views)
             zero, out = jax.lax.scan(step, init, d)
-            return out + zero.astype(out.dtype)
+            return jax.tree.map(lambda o: o + zero.astype(o.dtype), out)
 
         if len(self.devices) > 1:
             from jax.sharding import Mesh, PartitionSpec

@@ -188,11 +188,12 @@ class _Program:
     def images(self, z, c):
         """Flat image and its tangents, one per linear field and one per nonlinear scalar."""
 
-        def f(zz):
-            return self.prob.images(self.to_theta(zz, c.natural, c.theta_ref), c.data)
+        def theta(zz):
+            return self.to_theta(zz, c.natural, c.theta_ref)
 
-        img, T = jax.vmap(lambda e: jax.jvp(f, (z,), (e,)), out_axes=(None, 0))(jnp.asarray(self.E_all, c.dt))
-        return keep(img, T)
+        # θ and its tangents first (z -> θ is elementwise), then the views' images along them
+        th, dth = jax.vmap(lambda e: jax.jvp(theta, (z,), (e,)), out_axes=(None, 0))(jnp.asarray(self.E_all, c.dt))
+        return keep(*self.prob.images_jvp(th, dth, c.data))
 
     def linear_block(self, z, c, A, d):
         """``(x*, r, A_f, solve)``: the linear block solved under its bounds at ``z``'s ``u``
