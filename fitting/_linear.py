@@ -19,6 +19,8 @@ With ``clamp`` on, nothing is linear: the same machinery runs with every paramet
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -130,32 +132,55 @@ def _masked_solve(G, rhs, free, rcond):
     return _apply(_pinv(G, free, rcond), rhs)
 
 
+class LinearSolution(NamedTuple):
+    """:func:`bounded_lsq_solver`'s optimum ``x``, its ``free`` variables, and what solves their
+    normal equations (a pytree of arrays: it passes through ``lax.cond``)."""
+
+    x: jax.Array
+    free: jax.Array
+    pinv: tuple  # _pinv's (inv, V, fr) of the column-scaled normal matrix on the free set
+    scale: jax.Array  # the columns' inverse norms
+    gram: jax.Array  # A_fᵀA_f: the normal matrix of the free variables (0 elsewhere), unscaled
+
+    def solve(self, rhs):
+        """``c`` with ``(A_fᵀA_f) c = rhs`` on the free variables (0 elsewhere)."""
+        sc = self.scale.reshape(self.scale.shape + (1,) * (rhs.ndim - 1))
+        return sc * _apply(self.pinv, sc * rhs)
+
+    @classmethod
+    def none(cls, x):
+        """No solution: ``x`` kept, nothing free, every solve 0."""
+        n, dt = x.shape[0], x.dtype
+        z = jnp.zeros(n, dt)
+        return cls(x, jnp.zeros(n, bool), (z, jnp.eye(n, dtype=dt), z), z, jnp.zeros((n, n), dt))
+
+
 def bounded_lsq(A, r0, lo, hi, x0, iters: int | None = None):
     r"""``argmin ‖A x + r0‖²`` subject to ``lo ≤ x ≤ hi`` (``hi`` may be inf), for a few columns;
-    ``(x, free)``: :func:`bounded_lsq_solver` without its solver."""
-    x, free, _ = bounded_lsq_solver(A, r0, lo, hi, x0, iters)
-    return x, free
+    ``(x, free)`` of :func:`bounded_lsq_solver`."""
+    sol = bounded_lsq_solver(A, r0, lo, hi, x0, iters)
+    return sol.x, sol.free
 
 
-def bounded_lsq_solver(A, r0, lo, hi, x0, iters: int | None = None):
+def bounded_lsq_solver(A, r0, lo, hi, x0, iters: int | None = None, refine: int = 2):
     r"""``argmin ‖A x + r0‖²`` subject to ``lo ≤ x ≤ hi`` (``hi`` may be inf), for a few columns.
 
-    The primal active-set method (Nocedal & Wright, Alg. 16.3) on the column-scaled problem,
-    with the working set carried from step to step: at the subspace optimum the variable of the
-    working set with the most negative multiplier leaves it; then a Newton step on the free
-    variables, which, if it leaves the box, is cut where it meets the first bound, which joins
-    the working set. It ends after two steps in a row that neither met a bound nor released one
-    (the second a refinement), in at most ``iters`` (static; a few times ``n``). The gradient
-    :math:`A^T(Ax + r_0)` of each step is taken from the residual, not from the normal
-    equations (float32 normal equations lose :math:`\mathrm{cond}^2` digits), and the
-    pseudo-inverse of the scaled normal matrix on the free set is the one eigendecomposition a
-    step needs. Columns that are zero (a term the image does not show) keep ``x0``.
+    The primal active-set method (Nocedal & Wright, Alg. 16.3) on the column-scaled normal
+    equations, with the working set carried from step to step: at the subspace optimum the
+    variable of the working set with the most negative multiplier leaves it; then a Newton step
+    on the free variables, which, if it leaves the box, is cut where it meets the first bound,
+    which joins the working set. It ends after two steps in a row that neither met a bound nor
+    released one, in at most ``iters`` (static; a few times ``n``). Then ``refine`` steps on
+    that free set with the gradient :math:`A^T(Ax + r_0)` taken from the residual (iterative
+    refinement: float32 normal equations lose :math:`\mathrm{cond}^2` digits), each with the
+    last step's eigendecomposition (one in the program, in the loop). Columns that are zero (a
+    term the image does not show) keep ``x0``.
 
-    Returns ``(x, free, solve)``: ``free`` marks the variables the last step held free (inside
-    their bounds), and ``solve(rhs)`` solves ``(A_fᵀA_f) c = rhs`` on them with that step's
-    eigendecomposition (variable projection's Kaufman Jacobian needs it at the solution).
+    Returns a :class:`LinearSolution`: ``free`` marks the variables the last step held free
+    (inside their bounds), and its ``solve`` and ``gram`` are their normal equations with that
+    step's eigendecomposition (variable projection's Kaufman Jacobian needs them at the solution).
     """
-    At = A.T  # [n, M]: each column a row
+    At = A.T  # [n, M]: each column a row (products over the rows need no transposed copy)
     n = At.shape[0]
     iters = 4 * n + 4 if iters is None else iters
     dt = At.dtype
@@ -165,6 +190,7 @@ def bounded_lsq_solver(A, r0, lo, hi, x0, iters: int | None = None):
     inv_s = jnp.where(det, 1.0 / jnp.where(det, s, 1.0), 0.0)
     As = At * inv_s[:, None]
     G = As @ As.T
+    c = As @ r0
     # scaled variables y = s x; undetermined ones fixed at s x0 (their column is ~0 anyway)
     ylo, yhi = lo * s, jnp.where(jnp.isinf(hi), jnp.inf, hi * s)
     rcond = 1e2 * eps
@@ -173,7 +199,7 @@ def bounded_lsq_solver(A, r0, lo, hi, x0, iters: int | None = None):
 
     def body(carry):
         k, y, w_lo, w_hi, blocked_prev, n_opt, _ = carry
-        g = As @ (As.T @ y + r0)
+        g = G @ y + c
         # at the subspace optimum: release the working-set variable with the most negative multiplier
         lam = jnp.where(w_lo, g, jnp.where(w_hi, -g, big))
         worst = jnp.argmin(lam)
@@ -199,13 +225,13 @@ def bounded_lsq_solver(A, r0, lo, hi, x0, iters: int | None = None):
     pinv0 = (jnp.zeros(n, dt), jnp.eye(n, dtype=dt), jnp.zeros(n, dt))
     carry = (jnp.asarray(0), jnp.where(det, jnp.clip(y0, ylo, yhi), y0), none, none, jnp.asarray(True), 0, pinv0)
     _, y, _, _, _, _, pinv = jax.lax.while_loop(lambda c: (c[5] < 2) & (c[0] < iters), body, carry)
+    free = pinv[2] > 0
+    for _ in range(refine):
+        g = As @ (y @ As + r0)
+        y = jnp.clip(jnp.where(free, y - _apply(pinv, g), y), ylo, yhi)
     x = jnp.where(det, y * inv_s, x0)
-
-    def solve(rhs):
-        sc = inv_s.reshape(inv_s.shape + (1,) * (rhs.ndim - 1))
-        return sc * _apply(pinv, sc * rhs)
-
-    return x, pinv[2] > 0, solve
+    sf = s * free
+    return LinearSolution(x, free, pinv, inv_s, G * sf[:, None] * sf[None, :])
 
 
 # --------------------------------------------------------------------------------------------

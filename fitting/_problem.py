@@ -568,8 +568,10 @@ class Problem:
 
             def step(c, v):
                 out = fn(v, *a)
-                head = jax.tree.leaves(out)[0].reshape(-1)[:1]
-                return c + jnp.sum(jnp.where(jnp.isfinite(head), head, 0) * 0).astype(c.dtype), out
+                for o in jax.tree.leaves(out):  # every output a second use
+                    head = o.reshape(-1)[:1]
+                    c = c + jnp.sum(jnp.where(jnp.isfinite(head), head, 0) * 0).astype(c.dtype)
+                return c, out
 
             init = jnp.sum(d.target[:0])  # 0, of the data's kind (varying over shard_map's views)
             zero, out = jax.lax.scan(step, init, d)

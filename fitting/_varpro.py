@@ -36,7 +36,7 @@ import numpy as np
 from diffshade import keep
 
 from ._cache import compiled
-from ._linear import Reduced, bounded_lsq_solver, in_view
+from ._linear import LinearSolution, Reduced, bounded_lsq_solver, in_view
 from ._problem import ViewData, to_host
 from ._starts import candidates
 
@@ -196,14 +196,15 @@ class _Program:
         return keep(*self.prob.images_jvp(th, dth, c.data))
 
     def linear_block(self, z, c, A, d):
-        """``(x*, r, A_f, solve)``: the linear block solved under its bounds at ``z``'s ``u``
+        """``(x*, r, A_f, solution)``: the linear block solved under its bounds at ``z``'s ``u``
         (``A`` the linear columns, ``d`` the weighted residual), the reduced residual, the
-        weighted columns of the free linear scalars and the solve of their normal equations."""
+        weighted columns of the free linear scalars and the :class:`LinearSolution` (their
+        normal equations)."""
         n_l = self.n_l
         Aw = A * c.wu
         r0 = d - Aw.T @ z[:n_l]
-        x_new, free, solve = bounded_lsq_solver(Aw.T, r0, c.lo_x, c.hi_x, z[:n_l])
-        return x_new, r0 + Aw.T @ x_new, Aw * free[:, None].astype(c.dt), solve
+        sol = bounded_lsq_solver(Aw.T, r0, c.lo_x, c.hi_x, z[:n_l])
+        return sol.x, r0 + Aw.T @ sol.x, Aw * sol.free[:, None].astype(c.dt), sol
 
     def evaluate(self, z, c):
         """The linear block solved at ``z``'s ``u``; the reduced cost, ``J^T J`` and ``J^T r`` of
@@ -218,8 +219,8 @@ class _Program:
         if n_l:
 
             def project(_):
-                x_new, r_red, Af, solve = self.linear_block(z, c, A, d)
-                coef = solve(Af @ Juw.T)  # [n_l, n_n]
+                x_new, r_red, Af, sol = self.linear_block(z, c, A, d)
+                coef = sol.solve(Af @ Juw.T)  # [n_l, n_n]
                 return x_new, r_red, Juw - coef.T @ Af
 
             # evaluation mode wants the image and tangents only
@@ -245,23 +246,23 @@ class _Program:
         def spread(P):  # [views, a, slots] -> [a, n_n]: each scalar's slot, summed over its views
             return jnp.einsum("baj,jb->aj", P[:, :, slot], ind)
 
+        ns = S.shape[0]
         if n_l:
-
-            def project(_):
-                x_new, r_red, Af, solve = self.linear_block(z, c, A, d)
-                PJ = spread(per_view_gram(Af, S, c.sizes))  # [n_l, n_n]
-                return x_new, r_red, Af, PJ, solve(PJ)
-
-            zero = jnp.zeros((n_l, self.n_n), dt)
-            none = (z[:n_l], d, jnp.zeros_like(A), zero, zero)
-            x_new, r_red, Af, PJ, C = jax.lax.cond(c.natural, lambda _: none, project, None)
+            none = (z[:n_l], d, jnp.zeros_like(A), LinearSolution.none(z[:n_l]))
+            x_new, r_red, Af, sol = jax.lax.cond(
+                c.natural, lambda _: none, lambda _: self.linear_block(z, c, A, d), None
+            )
+            Y = jnp.concatenate([Af, S, r_red[None]])
         else:
             x_new, r_red = z[:0], d
-        SS = per_view_gram(S, S, c.sizes)  # [views, slots, slots]
-        JJ = jnp.einsum("bjk,jb,kb->jk", SS[:, slot][:, :, slot], ind, ind)
-        Jr = spread(per_view_gram(r_red[None], S, c.sizes))[0]
+            Y = jnp.concatenate([S, r_red[None]])
+        # every per-view product with the shared tangents in one pass over the stacked rows
+        PV = per_view_gram(Y, S, c.sizes)  # [views, n_l + slots + 1, slots]
+        JJ = jnp.einsum("bjk,jb,kb->jk", PV[:, n_l : n_l + ns][:, slot][:, :, slot], ind, ind)
+        Jr = spread(PV[:, -1:])[0]
         if n_l:
-            G = Af @ Af.T
+            PJ = spread(PV[:, :n_l])  # [n_l, n_n]
+            C, G = sol.solve(PJ), sol.gram
             JJ = JJ - PJ.T @ C - C.T @ PJ + C.T @ G @ C
             Jr = Jr - C.T @ (Af @ r_red)
         z_new = jnp.concatenate([x_new, z[n_l:]])
