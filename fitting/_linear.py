@@ -107,29 +107,24 @@ def split_linear(pset, opts, scene=None) -> tuple[list[int], dict[str, str]]:
 
 
 def _pinv(G, free, rcond):
-    """The pseudo-inverse of ``G``'s free block as ``(inv, V, fr)``: ``G_ff⁺ rhs_f = fr V (inv
-    Vᵀ (fr rhs))`` (:func:`_apply`), zero off the free set."""
+    """``(P, f)``: the pseudo-inverse ``P`` of ``G``'s free block (``G_ff⁺``, zero off the free
+    set) as a matrix, and the free set ``f`` it has (``free`` where ``G``'s diagonal is not 0)."""
     # Jacobi scaling first: the pseudo-inverse's cut is then relative to correlations, not to
     # the parameters' units (unscaled, a weakly-scaled parameter's step would be cut to 0).
     dg = jnp.diag(G)
-    f = (free & (dg > 0)).astype(G.dtype)
-    dsc = jnp.where(f > 0, 1.0 / jnp.sqrt(jnp.where(f > 0, dg, 1.0)), 0.0)
-    M = G * (dsc * f)[:, None] * (dsc * f)[None, :] + jnp.diag(1.0 - f)
+    f = free & (dg > 0)
+    fr = jnp.where(f, 1.0 / jnp.sqrt(jnp.where(f, dg, 1.0)), 0.0)
+    M = G * fr[:, None] * fr[None, :] + jnp.diag(jnp.where(f, 0.0, 1.0).astype(G.dtype))
     w, V = jnp.linalg.eigh(M)
     inv = jnp.where(w > rcond * jnp.max(w), 1.0 / jnp.where(w > 0, w, 1.0), 0.0)
-    return inv, V, dsc * f
-
-
-def _apply(pinv, rhs):
-    """:func:`_pinv`'s pseudo-inverse times ``rhs`` (a vector or a matrix of columns)."""
-    inv, V, fr = (x.reshape(x.shape + (1,) * (rhs.ndim - 1)) if x.ndim == 1 else x for x in pinv)
-    return (V @ (inv * (V.T @ (rhs * fr)))) * fr
+    W = V * fr[:, None]
+    return (W * inv) @ W.T, f
 
 
 def _masked_solve(G, rhs, free, rcond):
     """``d`` with ``G_ff d_f = rhs_f`` (pseudo-inverse), ``d = 0`` off the free set; ``rhs`` a
     vector or a matrix (columns)."""
-    return _apply(_pinv(G, free, rcond), rhs)
+    return _pinv(G, free, rcond)[0] @ rhs
 
 
 class LinearSolution(NamedTuple):
@@ -138,21 +133,18 @@ class LinearSolution(NamedTuple):
 
     x: jax.Array
     free: jax.Array
-    pinv: tuple  # _pinv's (inv, V, fr) of the column-scaled normal matrix on the free set
-    scale: jax.Array  # the columns' inverse norms
-    gram: jax.Array  # A_fᵀA_f: the normal matrix of the free variables (0 elsewhere), unscaled
+    inverse: jax.Array  # (A_fᵀA_f)⁺: the pseudo-inverse of the free variables' normal matrix
+    gram: jax.Array  # A_fᵀA_f: the normal matrix of the free variables (0 elsewhere)
 
     def solve(self, rhs):
         """``c`` with ``(A_fᵀA_f) c = rhs`` on the free variables (0 elsewhere)."""
-        sc = self.scale.reshape(self.scale.shape + (1,) * (rhs.ndim - 1))
-        return sc * _apply(self.pinv, sc * rhs)
+        return self.inverse @ rhs
 
     @classmethod
     def none(cls, x):
         """No solution: ``x`` kept, nothing free, every solve 0."""
         n, dt = x.shape[0], x.dtype
-        z = jnp.zeros(n, dt)
-        return cls(x, jnp.zeros(n, bool), (z, jnp.eye(n, dtype=dt), z), z, jnp.zeros((n, n), dt))
+        return cls(x, jnp.zeros(n, bool), jnp.zeros((n, n), dt), jnp.zeros((n, n), dt))
 
 
 def bounded_lsq(A, r0, lo, hi, x0, iters: int | None = None):
@@ -205,9 +197,8 @@ def bounded_lsq_solver(A, r0, lo, hi, x0, iters: int | None = None, refine: int 
         worst = jnp.argmin(lam)
         release = ~blocked_prev & (lam[worst] < -1e2 * eps * (1.0 + jnp.max(jnp.abs(g))))
         w_lo, w_hi = w_lo & ~(release & (idx == worst)), w_hi & ~(release & (idx == worst))
-        pinv = _pinv(G, det & ~w_lo & ~w_hi, rcond)
-        d = -_apply(pinv, g)
-        free = pinv[2] > 0
+        P, free = _pinv(G, det & ~w_lo & ~w_hi, rcond)
+        d = -(P @ g)
         room = jnp.where(
             d < 0, (ylo - y) / jnp.where(d < 0, d, -1.0), jnp.where(d > 0, (yhi - y) / jnp.where(d > 0, d, 1.0), big)
         )
@@ -217,21 +208,20 @@ def bounded_lsq_solver(A, r0, lo, hi, x0, iters: int | None = None, refine: int 
         hit = blocked & (idx == jnp.argmin(room))
         y = jnp.clip(jnp.where(free, y + alpha * d, y), ylo, yhi)
         n_opt = jnp.where(blocked | release, 0, n_opt + 1)
-        return k + 1, y, w_lo | (hit & (d < 0)), w_hi | (hit & (d > 0)), blocked, n_opt, pinv
+        return k + 1, y, w_lo | (hit & (d < 0)), w_hi | (hit & (d > 0)), blocked, n_opt, (P, free)
 
     # from the start clipped into the box with an empty working set
     y0 = x0 * s
     none = jnp.zeros(n, bool)
-    pinv0 = (jnp.zeros(n, dt), jnp.eye(n, dtype=dt), jnp.zeros(n, dt))
-    carry = (jnp.asarray(0), jnp.where(det, jnp.clip(y0, ylo, yhi), y0), none, none, jnp.asarray(True), 0, pinv0)
-    _, y, _, _, _, _, pinv = jax.lax.while_loop(lambda c: (c[5] < 2) & (c[0] < iters), body, carry)
-    free = pinv[2] > 0
+    carry = (jnp.asarray(0), jnp.where(det, jnp.clip(y0, ylo, yhi), y0), none, none, jnp.asarray(True), 0)
+    carry += ((jnp.zeros((n, n), dt), none),)
+    _, y, _, _, _, _, (P, free) = jax.lax.while_loop(lambda c: (c[5] < 2) & (c[0] < iters), body, carry)
     for _ in range(refine):
         g = As @ (y @ As + r0)
-        y = jnp.clip(jnp.where(free, y - _apply(pinv, g), y), ylo, yhi)
+        y = jnp.clip(jnp.where(free, y - P @ g, y), ylo, yhi)
     x = jnp.where(det, y * inv_s, x0)
     sf = s * free
-    return LinearSolution(x, free, pinv, inv_s, G * sf[:, None] * sf[None, :])
+    return LinearSolution(x, free, P * inv_s[:, None] * inv_s[None, :], G * sf[:, None] * sf[None, :])
 
 
 # --------------------------------------------------------------------------------------------
