@@ -7,6 +7,7 @@ docs/fit-design-notes.md, "The compiled-program cache")."""
 
 from __future__ import annotations
 
+import gc
 import os
 import time
 from collections import OrderedDict
@@ -93,7 +94,16 @@ def program(key: tuple, fn, *args, options: dict | None = None):
         return _CACHE[key], 0.0
     _STATS["misses"] += 1
     t0 = time.perf_counter()
-    lowered = jax.jit(fn).lower(*args)
+    # Tracing makes hundreds of thousands of objects, and Python's cyclic collector walks the
+    # growing heap again and again meanwhile: off for the trace (measured, suite structures:
+    # tracing and lowering 0.05-0.1 s faster of 0.4-0.55 s); what it would free is freed after.
+    collecting = gc.isenabled()
+    gc.disable()
+    try:
+        lowered = jax.jit(fn).lower(*args)
+    finally:
+        if collecting:
+            gc.enable()
     try:
         exe = lowered.compile(compiler_options=options)
     except Exception:  # an XLA that does not know an option: its defaults
