@@ -308,7 +308,7 @@ def main():
         print(line)
     comp = [r["compile"] for r in rows if r["compile"] > 0]
     if comp:
-        print(f"compile (first fit of each structure): median {statistics.median(comp):.1f} s, max {max(comp):.1f} s")
+        print(f"compile (first fit of each structure): median {statistics.median(comp):.2f} s, max {max(comp):.2f} s")
 
 
 if __name__ == "__main__":
