@@ -202,9 +202,9 @@ class _Program:
         normal equations)."""
         n_l = self.n_l
         Aw = A * c.wu
-        r0 = d - Aw.T @ z[:n_l]
+        r0 = d - z[:n_l] @ Aw
         sol = bounded_lsq_solver(Aw.T, r0, c.lo_x, c.hi_x, z[:n_l])
-        return sol.x, r0 + Aw.T @ sol.x, Aw * sol.free[:, None].astype(c.dt), sol
+        return sol.x, r0 + sol.x @ Aw, Aw * sol.free[:, None].astype(c.dt), sol
 
     def evaluate(self, z, c):
         """The linear block solved at ``z``'s ``u``; the reduced cost, ``J^T J`` and ``J^T r`` of
