@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 
 from . import _shade as S
-from ._materials import _select
+from ._materials import _select, _select_sides
 from ._options import Lighting, Output
 from ._scene import Lights, Material, Scene
 from ._surface import Components, Surface
@@ -320,11 +320,15 @@ def illuminate(
         return tuple(b + d for b, d in zip(to_px(base), direct))
 
     if lighting.two_sided and to_px is None:
-        # per pixel both sides are lit with the normal facing the viewer (the mesh's, reversed on
-        # back faces), so that what depends on the normal alone is computed once for both
-        n_face = tuple(jnp.where(surface.front, c, -c) for c in sites.normal)
-        front, back = side(n_face, sites.material, False), side(n_face, sites.back_material, True)
-        color = _select(surface.front, front, back)
+        # each pixel is lit once, on the side it shows: the normal facing the viewer (the
+        # mesh's, reversed on a back face), that side's material, and for transmission the
+        # viewer inside on a back face (lighting both sides and keeping one cost twice the work)
+        front = surface.front
+        n_face = tuple(jnp.where(front, c, -c) for c in sites.normal)
+        mat = sites.material
+        if sites.back_material is not mat:
+            mat = _select_sides(front, mat, sites.back_material)
+        color = side(n_face, mat, ~front)
     else:
         color = side(sites.normal, sites.material, False)
         if lighting.two_sided:

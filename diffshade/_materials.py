@@ -51,3 +51,14 @@ def _material_at(mats, idx, used: set[str]) -> Material:
         return out
 
     return Material(**{f: pick(f) for f in _MATERIAL_FIELDS})
+
+
+def _select_sides(front, a: Material, b: Material) -> Material:
+    """Per point the front material ``a`` where ``front``, else the back material ``b`` (each
+    field a constant or per point; an RGB field's channels last)."""
+
+    def pick(x, y):
+        nd = max(jnp.ndim(x), jnp.ndim(y))
+        return jnp.where(front if nd in (0, jnp.ndim(front)) else front[..., None], x, y)
+
+    return Material(**{f: pick(getattr(a, f), getattr(b, f)) for f in _MATERIAL_FIELDS})

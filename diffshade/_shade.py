@@ -193,7 +193,7 @@ def distance(a: V3, b: V3):
     return norm(sub(a, b))
 
 
-def directed_transmission(n, l, v, m, ior, back: bool, fresnel: str = "none"):
+def directed_transmission(n, l, v, m, ior, back, fresnel: str = "none"):
     r"""Directed transmission factor :math:`W \cos^m\beta` (docs/model.md §2), to be scaled by
     :math:`k_t I_p`.
 
@@ -201,7 +201,7 @@ def directed_transmission(n, l, v, m, ior, back: bool, fresnel: str = "none"):
     on the other side (:math:`n\cdot l < 0`, else 0). The light direction :math:`-l` is
     refracted into the viewer's side by Snell's law with relative index
     :math:`\eta_{light}/\eta_{viewer}`: ``ior`` for a front face (the viewer outside the
-    material), ``1/ior`` for a back face (the viewer inside):
+    material), ``1/ior`` for a back face (the viewer inside; ``back`` a bool, or per point):
     :math:`f = -\eta l + (\eta (n\cdot l) + \sqrt{k})\,n`, :math:`k = 1 - \eta^2(1 - (n\cdot l)^2)`;
     :math:`k \le 0` is total internal reflection and transmits nothing. :math:`\cos\beta = f\cdot v`,
     :math:`\cos^m\beta` for :math:`f\cdot v > 0`. ``W`` is 1, or with ``fresnel`` the transmitted
@@ -209,7 +209,7 @@ def directed_transmission(n, l, v, m, ior, back: bool, fresnel: str = "none"):
     denser side), which falls to 0 at the critical angle.
     """
     ndl = dot(n, l)
-    eta = 1.0 / ior if back else ior
+    eta = (1.0 / ior if back else ior) if isinstance(back, bool) else jnp.where(back, 1.0 / ior, ior)
     behind = ndl < 0
     k = 1.0 - eta * eta * (1.0 - ndl * ndl)
     ok = behind & (k > 0)
