@@ -161,6 +161,10 @@ def _plane_eval(c0, cx, cy, qx, qy, keep: int, count: int):
     return e
 
 
+# The bounding box's margin in pixels around a triangle in front of the near plane (raster.cc
+# kBoxMargin: the same value).
+BOX_MARGIN = 1.0 / 64
+
 # --------------------------------------------------------------------------------------------
 # Triangle set-up (shared by both backends)
 # --------------------------------------------------------------------------------------------
@@ -247,10 +251,14 @@ def _setup(clip: Float[Array, "V 4"], faces: Int[Array, "F 3"], height: int, wid
         nx, ny = jnp.clip(qx / qw, -big, big), jnp.clip(qy / qw, -big, big)
         xmin, xmax = jnp.where(qok, jnp.minimum(xmin, nx), xmin), jnp.where(qok, jnp.maximum(xmax, nx), xmax)
         ymin, ymax = jnp.where(qok, jnp.minimum(ymin, ny), ymin), jnp.where(qok, jnp.maximum(ymax, ny), ymax)
-    x0 = jnp.clip(jnp.floor((xmin + 1) * (width / 2) - 0.5) - 1, 0, width).astype(jnp.int32)
-    x1 = jnp.clip(jnp.ceil((xmax + 1) * (width / 2) - 0.5) + 1, -1, width - 1).astype(jnp.int32)
-    y0 = jnp.clip(jnp.floor((1 - ymax) * (height / 2) - 0.5) - 1, 0, height).astype(jnp.int32)
-    y1 = jnp.clip(jnp.ceil((1 - ymin) * (height / 2) - 0.5) + 1, -1, height - 1).astype(jnp.int32)
+    # The box's margin: a triangle wholly in front of the near plane has its corners at x/w
+    # (rounding below 1e-3 pixel at MAX_SIDE), one that crosses it at interpolated points (a
+    # pixel). The pixels tested are then about a third fewer (5,120 faces at 256²).
+    pad = jnp.where(inside[0] & inside[1] & inside[2], jnp.float32(BOX_MARGIN), jnp.float32(1.0))
+    x0 = jnp.clip(jnp.floor((xmin + 1) * (width / 2) - 0.5 - pad), 0, width).astype(jnp.int32)
+    x1 = jnp.clip(jnp.ceil((xmax + 1) * (width / 2) - 0.5 + pad), -1, width - 1).astype(jnp.int32)
+    y0 = jnp.clip(jnp.floor((1 - ymax) * (height / 2) - 0.5 - pad), 0, height).astype(jnp.int32)
+    y1 = jnp.clip(jnp.ceil((1 - ymin) * (height / 2) - 0.5 + pad), -1, height - 1).astype(jnp.int32)
     finite = functools.reduce(jnp.logical_and, [jnp.isfinite(c) for c in x + y + z + w])
     valid = (inside[0] | inside[1] | inside[2]) & (det != 0) & finite & (y0 <= y1)
     x0 = jnp.where(valid, x0, 1)

@@ -169,6 +169,9 @@ void RasterBand(const float* coef, const float* zw, const int32_t* meta, int64_t
 }
 
 // NDC plane (c, ax, ay) scaled by W * H into pixel units (_raster.py::_to_pixel_units).
+// The bounding box's margin around a triangle in front of the near plane (_raster.py BOX_MARGIN).
+constexpr float kBoxMargin = 1.0f / 64;
+
 inline void ToPixelUnits(float c, float ax, float ay, int64_t height, int64_t width, float* out) {
   const float wh = static_cast<float>(width * height);
   out[0] = Mul((c - ax) + ay, wh);
@@ -251,8 +254,10 @@ void Setup(const float* clip, const int32_t* faces, int64_t num_verts, int64_t n
       }
     }
     const float hw = static_cast<float>(width) / 2, hh = static_cast<float>(height) / 2;
-    float fx0 = std::floor((xmin + 1) * hw - 0.5f) - 1, fx1 = std::ceil((xmax + 1) * hw - 0.5f) + 1;
-    float fy0 = std::floor((1 - ymax) * hh - 0.5f) - 1, fy1 = std::ceil((1 - ymin) * hh - 0.5f) + 1;
+    // margin: kBoxMargin pixels for a triangle wholly in front of the near plane, else one pixel
+    const float pad = (dist[0] >= 0 && dist[1] >= 0 && dist[2] >= 0) ? kBoxMargin : 1.0f;
+    float fx0 = std::floor((xmin + 1) * hw - 0.5f - pad), fx1 = std::ceil((xmax + 1) * hw - 0.5f + pad);
+    float fy0 = std::floor((1 - ymax) * hh - 0.5f - pad), fy1 = std::ceil((1 - ymin) * hh - 0.5f + pad);
     int32_t x0 = static_cast<int32_t>(std::min(std::max(fx0, 0.0f), static_cast<float>(width)));
     int32_t x1 = static_cast<int32_t>(std::min(std::max(fx1, -1.0f), static_cast<float>(width - 1)));
     int32_t y0 = static_cast<int32_t>(std::min(std::max(fy0, 0.0f), static_cast<float>(height)));
