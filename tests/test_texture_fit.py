@@ -176,3 +176,30 @@ def test_the_bounded_solve_is_the_bounded_least_squares_optimum():
         assert ((ref <= 0) | (ref >= 1)).sum() > 10
         np.testing.assert_allclose(x, ref, atol=1e-7)
         np.testing.assert_array_equal(free, (ref > 0) & (ref < 1))
+
+
+def test_a_coarse_shininess_map_is_fitted_as_nonlinear_parameters():
+    """A shininess map is not linear in the image: its texels are fitted like any nonlinear
+    parameter (Levenberg–Marquardt beside the linear block), so at a coarse resolution: here a
+    2×2 map (four regions of the sphere, clamped), with k_d and k_s free beside it, from four
+    noise-free views."""
+    starts, _, _, opts = _views(2, "bilinear", size=48, azimuths=(0, 90, 180, 270))
+    m_true = np.random.default_rng(4).uniform(8.0, 60.0, (2, 2, 1))
+
+    def with_material(s, shininess, diffuse, specular):
+        tex = ds.Texture(shininess, filter="bilinear", wrap="clamp")
+        mat = dataclasses.replace(
+            s.material, diffuse_map=None, shininess_map=tex, shininess=1.0, diffuse=diffuse, specular=specular
+        )
+        return dataclasses.replace(s, material=mat)
+
+    views = [with_material(s, m_true, jnp.asarray([0.6, 0.4, 0.3]), jnp.asarray(0.35)) for s in starts]
+    targets = [np.asarray(ds.render(v, opts)) for v in views]
+    starts = [with_material(s, np.full((2, 2, 1), 20.0), jnp.asarray([0.5] * 3), jnp.asarray(0.5)) for s in starts]
+    free = ["material.shininess_map", "material.diffuse", "material.specular"]
+    r = fitting.fit(starts[0], opts, fitting.Observations(targets, views=starts), free, intervals=False)
+    assert r.successful, r.result
+    truth = np.concatenate([m_true.ravel(), [0.6, 0.4, 0.3], [0.35] * 3])  # k_s per channel
+    assert np.all(np.isfinite(r.stderr))
+    np.testing.assert_allclose(r.values, truth, rtol=1e-3)
+    assert np.all(np.abs(r.values - truth) <= 3 * r.stderr + 1e-6 * truth), (r.values, truth, r.stderr)
