@@ -5,6 +5,7 @@ the largest error of a determined texel (noise-free) or the fraction within 3 re
 errors (noisy), compile and solve time.
 
     python benchmarks/bench_map_fit.py --cases 6 --res 16 32 --size 64
+    python benchmarks/bench_map_fit.py --cases 3 --res 256 --size 256 --views 4   # issue 35's floor
 """
 
 import argparse
@@ -21,7 +22,7 @@ import diffshade as ds  # noqa: E402
 import fitting  # noqa: E402
 
 
-def case(seed, res, size, filt):
+def case(seed, res, size, filt, views=None):
     rng = np.random.default_rng(seed)
     scene, opts = ds.default_scene()
     m = scene.mesh
@@ -33,7 +34,7 @@ def case(seed, res, size, filt):
     opts = opts.with_keys(shading="phong")
     true_mat = dataclasses.replace(scene.material, diffuse_map=ds.Texture(truth, filter=filt))
     start_mat = dataclasses.replace(scene.material, diffuse_map=ds.Texture(np.full(truth.shape, 0.5), filter=filt))
-    n_views = int(rng.integers(2, 5))
+    n_views = int(rng.integers(2, 5)) if views is None else views
     starts, clean = [], []
     for _ in range(n_views):
         az, el = rng.uniform(0, 2 * np.pi), rng.uniform(-0.4, 0.6)
@@ -76,10 +77,11 @@ def main():
     ap.add_argument("--res", type=int, nargs="+", default=[16, 32])
     ap.add_argument("--size", type=int, default=64)
     ap.add_argument("--filter", default="bilinear")
+    ap.add_argument("--views", type=int, default=None, help="views per case (default: 2-4 at random)")
     a = ap.parse_args()
     for res in a.res:
         for seed in range(a.cases):
-            o = case(1000 + seed, res, a.size, a.filter)
+            o = case(1000 + seed, res, a.size, a.filter, a.views)
             for kind, d in o.items():
                 print(
                     f"map {res}² seed {seed} {d['views']} views {kind:10s}: determined {d['determined']:.3f}, "

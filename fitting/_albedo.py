@@ -14,8 +14,9 @@ scalar :math:`\theta` (exponent, attenuation, gains, light position, …).
 
 **The solve** is variable projection on the host in float64: for given :math:`\theta` the
 albedo is the bounded sparse least-squares optimum (``0 ≤ x ≤ 1``: projected Newton, Bertsekas
-1982, whose steps are sparse solves, ``scipy.sparse.linalg.factorized``, with a backtracking line
-search along the projection onto the box; with an
+1982, whose steps are sparse solves, SuperLU's symmetric mode on each connected block, updated
+by a bordered system while a face differs by a few scalars, with a backtracking line search
+along the projection onto the box; see :meth:`_AlbedoSolver.bounded`; with an
 optional smoothness prior :math:`\lambda \sum_{(i,j) \in \text{edges}} (x_i - x_j)^2`
 stacked under :math:`A`); Levenberg–Marquardt moves :math:`\theta` on the reduced residual with
 Kaufman's Jacobian :math:`P^\perp J_\theta`, the projection computed by a sparse factorisation of
@@ -198,8 +199,110 @@ class AlbedoProblem:
         return sp.csr_matrix((vals, (rows, cols)), shape=(3 * m, self.n_alb))
 
 
-RIDGE = 1e-10  # relative to each scalar's own information (Jacobi-scaled): holds null directions at their start
+RIDGE = 1e-10  # relative to a scalar's information, floored at the seen scalars' mean: holds null directions
 MAX_NEWTON = 30  # projected Newton steps of one bounded solve
+MAX_HOLDS = 8  # bounds a Newton step may meet and hold before it is projected instead
+PROXIMAL_ROUNDS = 6  # bounded solves, each with its ridge centred on the last one's optimum
+TIGHT = 1e-13  # the ridge of the rounds after the first, relative as RIDGE
+BLOCK = 1000  # scalars of a connected block of G factorised on its own
+CAPACITY = 32  # scalars a face may differ by from the factorised one before it is factorised anew
+
+
+class _Face:
+    r"""Newton steps on the faces of the box from one sparse factorisation. :math:`M = G +
+    \mathrm{diag}(\rho)` is factorised once over a base set :math:`B` (SuperLU in its symmetric
+    mode: M is positive definite, so no pivoting, and an ordering of :math:`M + M^T`). A later
+    face holds some scalars :math:`K` of the base at their bounds and frees some :math:`J` outside
+    it; its step solves the bordered system, whose border needs :math:`M_{BB}^{-1}` of one column
+    per changed scalar (:math:`e_k`, :math:`M_{Bj}`), kept across steps: a face that differs from
+    the base by a few scalars costs a solve, not a factorisation."""
+
+    def __init__(self, sp, M, free):
+        from scipy.sparse.linalg import splu
+
+        self.M, self.base, self.cols = M, np.flatnonzero(free), {}
+        self.in_base = free.copy()
+        Mb = M[self.base][:, self.base]
+        self.d = 1 / np.sqrt(np.maximum(Mb.diagonal(), 1e-300))
+        Mb = (sp.diags(self.d) @ Mb @ sp.diags(self.d)).tocsc()
+        self.lu = splu(Mb, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+
+    def _inv(self, r):
+        d = self.d if r.ndim == 1 else self.d[:, None]
+        return d * self.lu.solve(np.asfortranarray(d * r))
+
+    def covers(self, free) -> bool:
+        """Whether the face ``free`` (a mask) differs from the base by at most :data:`CAPACITY`
+        scalars."""
+        return int(np.count_nonzero(free != self.in_base)) <= CAPACITY
+
+    def _border(self, keys, make):
+        """:math:`M_{BB}^{-1}` of the columns ``make(new keys)``, cached per key, stacked."""
+        new = [k for k in keys if k not in self.cols]
+        if new:
+            self.cols.update(zip(new, self._inv(make(new)).T))
+        return np.stack([self.cols[k] for k in keys], 1) if len(keys) else np.zeros((len(self.base), 0))
+
+    def step(self, r, free):
+        """``s`` with ``M_FF s_F = r_F`` on the free scalars ``F``, zero elsewhere."""
+        nb, B = len(self.base), self.base
+        K = np.flatnonzero(~free[B])  # held, positions in the base
+        J = np.flatnonzero(free & ~self.in_base)  # freed outside the base
+        u = self._inv(r[B])
+        s = np.zeros(len(r))
+        if len(K) or len(J):
+
+            def unit(ks):
+                E = np.zeros((nb, len(ks)))
+                E[[k for _, k in ks], np.arange(len(ks))] = 1.0
+                return E
+
+            def columns(ks):  # M_Bj, from the columns of M (CSC)
+                return self.M[:, [j for _, j in ks]].toarray()[B]
+
+            Z = self._border([("k", k) for k in K], unit)
+            Y = self._border([("j", j) for j in J], columns)
+            MJ = self.M[:, J].toarray()
+            MBJ, MJJ = MJ[B], MJ[J]
+            # unknowns t = [s_J, μ_K]: s_B = u - Y s_J + Z μ, with s_B[K] = 0 and row J of M s = r
+            C = np.block([[MJJ - MBJ.T @ Y, MBJ.T @ Z], [-Y[K], Z[K]]])
+            t = np.linalg.solve(C, np.concatenate([r[J] - MBJ.T @ u, -u[K]]))
+            u = u - Y @ t[: len(J)] + Z @ t[len(J) :]
+            u[K] = 0.0
+            s[J] = t[: len(J)]
+        s[B] = u
+        return s
+
+
+class _Faces:
+    """The faces of the box, one :class:`_Face` per connected block of :math:`M` over the seen
+    scalars (the channels of a map or of vertex colours never meet in it; blocks under
+    :data:`BLOCK` scalars share one), each on the block's own matrix: a block is factorised anew
+    only where its own face moved."""
+
+    def __init__(self, sp, G, rho, seen):
+        from scipy.sparse.csgraph import connected_components
+
+        idx = np.flatnonzero(seen)
+        M = (G[idx][:, idx] + sp.diags(rho[idx])).tocsr()
+        _, comp = connected_components(M, directed=False)
+        sizes = np.bincount(comp)
+        comp = np.where(sizes[comp] >= BLOCK, comp, -1)
+        self.groups = [idx[comp == k] for k in np.unique(comp)]
+        self.blocks = [M[comp == k][:, comp == k].tocsc() for k in np.unique(comp)]
+        self.sp, self.faces = sp, [None] * len(self.groups)
+
+    def step(self, r, free):
+        """``s`` with ``M_FF s_F = r_F`` on the free scalars ``F``, zero elsewhere."""
+        s = np.zeros(len(r))
+        for k, (g, M) in enumerate(zip(self.groups, self.blocks)):
+            f = free[g]
+            if not f.any():
+                continue
+            if self.faces[k] is None or not self.faces[k].covers(f):
+                self.faces[k] = _Face(self.sp, M, f)
+            s[g] = self.faces[k].step(r[g], f)
+        return s
 
 
 class _Reduced(NamedTuple):
@@ -230,18 +333,6 @@ class _AlbedoSolver:
         param_of = np.repeat(np.arange(len(pset.params)), pset.sizes)
         self.pos = np.asarray([pset.params[param_of[i]].domain == "positive" for i in ap.other], bool)
 
-    def normal(self, A, idx):
-        """A sparse factorisation of ``A_I^T A_I + λ L_I^T L_I`` over the scalars ``idx``."""
-        from scipy.sparse.linalg import factorized
-
-        sp = self.ap.sp
-        G = self.gram(A)[idx][:, idx]
-        # Jacobi-scaled, so that the ridge (what keeps a null direction at its start) is relative to
-        # each scalar's own information, not to the best-seen one's
-        d = 1 / np.sqrt(np.maximum(G.diagonal(), 1e-300))
-        solve = factorized((sp.diags(d) @ G @ sp.diags(d) + sp.identity(G.shape[0]) * RIDGE).tocsc())
-        return lambda r: d * solve(d * r)
-
     def gram(self, A):
         """``A^T A (+ λ L^T L)`` (CSC), formed once per design matrix."""
         if self._gram is None or self._gram[0] is not A:
@@ -253,32 +344,102 @@ class _AlbedoSolver:
         g = A.T @ (A @ x + b - self.y)
         return g + (self.Lp.T @ (self.Lp @ x) if self.Lp is not None else 0.0)
 
+    def data(self, z, A, b) -> float:
+        """Half the block's squared residual, the prior's included."""
+        r = A @ z + b - self.y
+        return 0.5 * (float(r @ r) + (float(np.sum((self.Lp @ z) ** 2)) if self.Lp is not None else 0.0))
+
     def bounded(self, x, A, b, seen):
-        """The bounded optimum over [0, 1] of the block's least squares plus the ridge that keeps a
-        direction the images do not see at its start: projected Newton (Bertsekas, 1982). Each step
-        solves on the scalars not held by a bound their gradient pushes against, and is projected
-        onto the box with an Armijo backtrack, so the objective falls at every step and a scalar
-        leaves or rejoins its bound as its multiplier says. ``(x, free)``."""
-        x0, ridge = x.copy(), RIDGE * self.gram(A).diagonal()
+        r"""The bounded optimum over [0, 1] of the block's least squares, a direction the images do
+        not see held at its start: ``(x, free, solve)``, ``solve`` the inverse of the normal matrix
+        on the free scalars.
+
+        The ridge :math:`\rho_i` that holds a null direction is relative to the scalar's
+        information, floored at the mean over the seen scalars: Jacobi-scaled alone, the solve
+        spreads a pixel's misfit equally over its scalars in scaled units, which throws a scalar
+        the pixel barely samples (a texel at the edge of a footprint) out of [0, 1] by thousands,
+        and the bounds then take dozens of steps. Where a first step throws many scalars against
+        the bounds, noise does: the ridge rises to the noise variance :math:`\sigma^2` (a prior of
+        unit variance about the start; a direction whose information is below it is known to
+        worse than the box's width), estimated from the residual, its degrees of freedom counted.
+        The ridge's pull is then removed by proximal rounds, each a bounded solve with the ridge
+        centred on the last round's optimum (iterated Tikhonov) and, after the first, a ridge a
+        thousandth as strong (or the noise variance), until the cost stops falling, at most
+        :data:`PROXIMAL_ROUNDS`: the rounds converge fast where the images determine the
+        scalars, slowly only where they barely do."""
+        G = self.gram(A)
+        dg = G.diagonal()
+        n_seen = int(np.count_nonzero(seen))
+        info = np.maximum(dg, dg[seen].mean() if n_seen else 0.0)
+        dof = max(int(np.count_nonzero(np.diff(A.tocsr().indptr))) - n_seen, 1)
+        rho = RIDGE * info
+        face = _Faces(self.ap.sp, G, rho, seen)
+        x, face = self._newton(x, x.copy(), A, b, seen, rho, face, steps=1)
+        cost = self.data(x, A, b)
+        s2 = 2 * cost / dof
+        noisy = int(np.count_nonzero(seen & ((x <= 0) | (x >= 1)))) > CAPACITY
+        if noisy:
+            rho = np.maximum(rho, s2)
+            face = _Faces(self.ap.sp, G, rho, seen)
+        for _ in range(PROXIMAL_ROUNDS):
+            x, face = self._newton(x, x.copy(), A, b, seen, rho, face)
+            cost, last = self.data(x, A, b), cost
+            s2 = min(s2, 2 * cost / dof)
+            if last - cost <= 1e-15 * last:  # at float precision
+                break
+            tight = np.maximum(TIGHT * info, s2 if noisy else 0.0)
+            if np.any(rho > 10 * tight):  # a new factorisation pays for itself
+                rho, face = tight, _Faces(self.ap.sp, G, tight, seen)
+        g = self.grad(x, A, b)
+        free = seen & ~(((x <= 0) & (g > 0)) | ((x >= 1) & (g < 0)))
+        idx = np.flatnonzero(free)
+        if not len(idx):
+            return x, free, None
+
+        def solve(r):
+            full = np.zeros(len(x))
+            full[idx] = r
+            return face.step(full, free)[idx]
+
+        return x, free, solve
+
+    def _newton(self, x, c, A, b, seen, rho, face, steps=MAX_NEWTON):
+        """Projected Newton (Bertsekas, 1982) on the least squares plus the ridge centred at ``c``:
+        each step solves on the scalars not held by a bound their gradient pushes against, and is
+        projected onto the box with an Armijo backtrack, so the objective falls at every step and
+        a scalar leaves or rejoins its bound as its multiplier says. ``(x, face)``."""
 
         def objective(z):
-            r = A @ z + b - self.y
-            prior = float(np.sum((self.Lp @ z) ** 2)) if self.Lp is not None else 0.0
-            return 0.5 * (float(r @ r) + prior + float(np.sum(ridge * (z - x0) ** 2)))
+            return self.data(z, A, b) + 0.5 * float(np.sum(rho * (z - c) ** 2))
 
         def held_by_bound(z):
             """The scalars on a bound that their gradient pushes against, and the gradient."""
-            g = self.grad(z, A, b) + ridge * (z - x0)
+            g = self.grad(z, A, b) + rho * (z - c)
             return ((z <= 0) & (g > 0)) | ((z >= 1) & (g < 0)), g
 
         f = objective(x)
-        for _ in range(MAX_NEWTON):
+        for _ in range(steps):
             held, g = held_by_bound(x)
-            idx = np.flatnonzero(seen & ~held)
-            if not len(idx):
+            free = seen & ~held
+            if not free.any():
                 break
-            step = np.zeros_like(x)
-            step[idx] = -self.normal(A, idx)(g[idx])
+            step = -face.step(g, free)
+            for _ in range(MAX_HOLDS):
+                # Lawson–Hanson: go as far as the first bound the step meets, hold the scalars that
+                # reached theirs, and solve again on the smaller face
+                out = np.flatnonzero(free & ((x + step < 0) | (x + step > 1)))
+                if not len(out) or len(out) > MAX_HOLDS:  # many: projected instead
+                    break
+                reach = np.where(step[out] < 0, -x[out], 1 - x[out]) / step[out]
+                t = float(np.clip(reach.min(), 0.0, 1.0))
+                hit = out[reach <= t * (1 + 1e-9) + 1e-300]
+                x = np.clip(x + t * step, 0.0, 1.0)
+                x[hit] = np.where(step[hit] < 0, 0.0, 1.0)
+                free[hit] = False
+                f, g = objective(x), self.grad(x, A, b) + rho * (x - c)
+                step = -face.step(g, free)
+            if -float(g @ step) <= 1e-15 * f:  # what a step could gain is below float precision
+                break
             a = 1.0
             while True:
                 x_new = np.clip(x + a * step, 0.0, 1.0)
@@ -293,7 +454,7 @@ class _AlbedoSolver:
             # the optimum on this face (a full step, nothing clipped): done unless a bound lets go
             if a == 1.0 and not clipped and not np.any(held & ~held_by_bound(x)[0] & ((x <= 0) | (x >= 1))):
                 break
-        return x, seen & ~held_by_bound(x)[0]
+        return x, face
 
     def solve_x(self, theta, x0):
         """The bounded optimum over the albedo, and the pieces the reduced problem needs."""
@@ -301,12 +462,7 @@ class _AlbedoSolver:
         img, A, Jo, w = ap.evaluate(theta)
         b = img * w - A @ theta[ap.sl]  # the (weighted) image with the albedo at 0
         seen = np.asarray(abs(A).sum(axis=0)).ravel() > 0
-        x, free = self.bounded(np.clip(x0, 0.0, 1.0), A, b, seen | (self.Lp is not None))
-        idx = np.flatnonzero(free)
-        solve = self.normal(A, idx) if len(idx) else None  # the factorisation of the final free set
-        for _ in range(2):  # iterative refinement: the normal equations lose cond² digits
-            if solve is not None:
-                x[idx] = np.clip(x[idx] - solve(self.grad(x, A, b)[idx]), 0.0, 1.0)
+        x, free, solve = self.bounded(np.clip(x0, 0.0, 1.0), A, b, seen | (self.Lp is not None))
         r = A @ x + b - self.y
         return x, r, A, Jo, seen, img, free, solve
 

@@ -205,13 +205,24 @@ class MapProblem:
         out = np.zeros(G.shape[0])
         ridge = 1e-13
         sizes = np.bincount(comp, minlength=n_comp)
-        for k in np.flatnonzero(sizes <= DENSE_LIMIT):
-            sel = np.flatnonzero(comp == k)
-            out[sel] = np.diag(np.linalg.inv(G[sel][:, sel].toarray() + ridge * np.eye(len(sel))))
-        big = np.isin(comp, np.flatnonzero(sizes > DENSE_LIMIT))
+        # the small blocks, from one slice with each block's scalars consecutive
+        small = np.flatnonzero(sizes[comp] <= DENSE_LIMIT)
+        order = small[np.argsort(comp[small], kind="stable")]
+        Gs = G[order][:, order].tocsr()
+        cuts = np.concatenate([[0], np.flatnonzero(np.diff(comp[order])) + 1, [len(order)]])
+        out[order] = 1 / (Gs.diagonal() + ridge)  # a block of one scalar
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            if b - a > 1:
+                out[order[a:b]] = np.diag(np.linalg.inv(Gs[a:b, a:b].toarray() + ridge * np.eye(b - a)))
+        big = sizes[comp] > DENSE_LIMIT
         if big.any():
             sel = np.flatnonzero(big)
-            lu = splu((G[sel][:, sel] + self.sp.identity(len(sel)) * ridge).tocsc())
+            lu = splu(  # positive definite: the symmetric mode, no pivoting
+                (G[sel][:, sel] + self.sp.identity(len(sel)) * ridge).tocsc(),
+                permc_spec="MMD_AT_PLUS_A",
+                diag_pivot_thresh=0.0,
+                options=dict(SymmetricMode=True),
+            )
             g = self._grid()[idx_det[sel]]
             d = PROBE_DISTANCE
             cls = ((g[:, 0] * d + g[:, 1] % d) * d + g[:, 2] % d) * 3 + g[:, 3]

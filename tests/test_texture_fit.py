@@ -171,7 +171,7 @@ def test_the_bounded_solve_is_the_bounded_least_squares_optimum():
         solver = _AlbedoSolver.__new__(_AlbedoSolver)
         solver.ap, solver.Lp, solver.y, solver._gram = types.SimpleNamespace(sp=sp), None, y, None
         seen = np.ones(80, bool)
-        x, free = solver.bounded(np.full(80, 0.5), A, np.zeros(300), seen)
+        x, free, _ = solver.bounded(np.full(80, 0.5), A, np.zeros(300), seen)
         ref = lsq_linear(A.toarray(), y, bounds=(0, 1), method="bvls", tol=1e-14).x
         assert ((ref <= 0) | (ref >= 1)).sum() > 10
         np.testing.assert_allclose(x, ref, atol=1e-7)
