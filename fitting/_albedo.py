@@ -377,7 +377,7 @@ class _AlbedoSolver:
         x, face = self._newton(x, x.copy(), A, b, seen, rho, face, steps=1)
         cost = self.data(x, A, b)
         s2 = 2 * cost / dof
-        noisy = int(np.count_nonzero(seen & ((x <= 0) | (x >= 1)))) > CAPACITY
+        noisy = n_seen >= BLOCK and int(np.count_nonzero(seen & ((x <= 0) | (x >= 1)))) > CAPACITY
         if noisy:
             rho = np.maximum(rho, s2)
             face = _Faces(self.ap.sp, G, rho, seen)
