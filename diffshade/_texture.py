@@ -99,14 +99,23 @@ def _wrap(i, n, mode: str):
 
 
 def _bilinear(flat, off, w, h, u, v, wrap: str):
-    """Bilinear samples ``[..., C]`` of the level at ``off`` (``w × h`` texels) at ``(u, v)``."""
+    """Bilinear samples ``[..., C]`` of the level at ``off`` (``w × h`` texels) at ``(u, v)``.
+    Repeating, the coordinates are wrapped into [0, 1) first, so that a tap's index leaves the
+    level by one texel at most and wraps with a select: an integer remainder by a level's size
+    that varies per pixel (trilinear) does not vectorise."""
+    if wrap == "repeat":
+        u, v = u - jnp.floor(u), v - jnp.floor(v)
     x = u * w - 0.5
     y = (1.0 - v) * h - 0.5
     x0f, y0f = jnp.floor(x), jnp.floor(y)
     fx, fy = (x - x0f)[..., None], (y - y0f)[..., None]
     x0, y0 = x0f.astype(jnp.int32), y0f.astype(jnp.int32)
-    xs = (_wrap(x0, w, wrap), _wrap(x0 + 1, w, wrap))
-    ys = (_wrap(y0, h, wrap), _wrap(y0 + 1, h, wrap))
+    if wrap == "repeat":
+        xs = (jnp.where(x0 < 0, x0 + w, x0), jnp.where(x0 + 1 >= w, x0 + 1 - w, x0 + 1))
+        ys = (jnp.where(y0 < 0, y0 + h, y0), jnp.where(y0 + 1 >= h, y0 + 1 - h, y0 + 1))
+    else:
+        xs = (_wrap(x0, w, wrap), _wrap(x0 + 1, w, wrap))
+        ys = (_wrap(y0, h, wrap), _wrap(y0 + 1, h, wrap))
     t = [[flat[off + ys[j] * w + xs[i]] for i in range(2)] for j in range(2)]
     top = t[0][0] + fx * (t[0][1] - t[0][0])
     bottom = t[1][0] + fx * (t[1][1] - t[1][0])
