@@ -203,6 +203,7 @@ RIDGE = 1e-10  # relative to a scalar's information, floored at the seen scalars
 MAX_NEWTON = 30  # projected Newton steps of one bounded solve
 MAX_HOLDS = 8  # bounds a Newton step may meet and hold before it is projected instead
 PROXIMAL_ROUNDS = 6  # bounded solves, each with its ridge centred on the last one's optimum
+ROUND_GAIN = 5e-4  # a round that lowers the cost by under this × σ² per seen scalar (χ² by 1e-3) is the last
 TIGHT = 1e-13  # the ridge of the rounds after the first, relative as RIDGE
 BLOCK = 1000  # scalars of a connected block of G factorised on its own
 CAPACITY = 32  # scalars a face may differ by from the factorised one before it is factorised anew
@@ -364,9 +365,11 @@ class _AlbedoSolver:
         worse than the box's width), estimated from the residual, its degrees of freedom counted.
         The ridge's pull is then removed by proximal rounds, each a bounded solve with the ridge
         centred on the last round's optimum (iterated Tikhonov) and, after the first, a ridge a
-        thousandth as strong (or the noise variance), until the cost stops falling, at most
-        :data:`PROXIMAL_ROUNDS`: the rounds converge fast where the images determine the
-        scalars, slowly only where they barely do."""
+        thousandth as strong (or the noise variance), at most :data:`PROXIMAL_ROUNDS`: the
+        rounds converge fast where the images determine the scalars, slowly only where they
+        barely do, so they stop when a round lowers :math:`\chi^2` by under 1e-3 per seen
+        scalar (:data:`ROUND_GAIN`), :math:`\sigma^2` estimated from each round's residual, its
+        degrees of freedom counted."""
         G = self.gram(A)
         dg = G.diagonal()
         n_seen = int(np.count_nonzero(seen))
@@ -385,7 +388,7 @@ class _AlbedoSolver:
             x, face = self._newton(x, x.copy(), A, b, seen, rho, face)
             cost, last = self.data(x, A, b), cost
             s2 = min(s2, 2 * cost / dof)
-            if last - cost <= 1e-15 * last:  # at float precision
+            if last - cost <= ROUND_GAIN * s2 * n_seen + 1e-15 * last:
                 break
             tight = np.maximum(TIGHT * info, s2 if noisy else 0.0)
             if np.any(rho > 10 * tight):  # a new factorisation pays for itself
