@@ -317,6 +317,7 @@ class _Reduced(NamedTuple):
     seen: np.ndarray
     free: np.ndarray
     img: np.ndarray
+    solve: object  # the inverse of the normal matrix on the free scalars (None where none is free)
 
 
 class _AlbedoSolver:
@@ -378,21 +379,23 @@ class _AlbedoSolver:
         rho = RIDGE * info
         face = _Faces(self.ap.sp, G, rho, seen)
         x, face = self._newton(x, x.copy(), A, b, seen, rho, face, steps=1)
+        rounds = 1  # with the present ridge
         cost = self.data(x, A, b)
         s2 = 2 * cost / dof
         noisy = n_seen >= BLOCK and int(np.count_nonzero(seen & ((x <= 0) | (x >= 1)))) > CAPACITY
         if noisy:
-            rho = np.maximum(rho, s2)
+            rho, rounds = np.maximum(rho, s2), 0
             face = _Faces(self.ap.sp, G, rho, seen)
         for _ in range(PROXIMAL_ROUNDS):
             x, face = self._newton(x, x.copy(), A, b, seen, rho, face)
+            rounds += 1
             cost, last = self.data(x, A, b), cost
             s2 = min(s2, 2 * cost / dof)
             if last - cost <= ROUND_GAIN * s2 * n_seen + 1e-15 * last:
                 break
             tight = np.maximum(TIGHT * info, s2 if noisy else 0.0)
             if np.any(rho > 10 * tight):  # a new factorisation pays for itself
-                rho, face = tight, _Faces(self.ap.sp, G, tight, seen)
+                rho, face, rounds = tight, _Faces(self.ap.sp, G, tight, seen), 0
         g = self.grad(x, A, b)
         free = seen & ~(((x <= 0) & (g > 0)) | ((x >= 1) & (g < 0)))
         idx = np.flatnonzero(free)
@@ -404,6 +407,8 @@ class _AlbedoSolver:
             full[idx] = r
             return face.step(full, free)[idx]
 
+        # what the rounds filtered the normal equations by (a tiny ridge: nothing): the hat matrix
+        solve.ridge, solve.rounds = rho[idx], max(rounds, 1) if noisy else 1
         return x, free, solve
 
     def _newton(self, x, c, A, b, seen, rho, face, steps=MAX_NEWTON):
@@ -481,7 +486,7 @@ class _AlbedoSolver:
         else:
             Jr = Jo
         cost = float(r @ r) + (float(np.sum((Lp @ x) ** 2)) if Lp is not None else 0.0)
-        return _Reduced(th, r, Jr, cost, A, seen, free, img)
+        return _Reduced(th, r, Jr, cost, A, seen, free, img, solve)
 
     def lm_step(self, red: _Reduced, lam, act, H, g):
         """A damped step from ``red`` that lowers the cost (damping raised until one does, at most
@@ -599,6 +604,51 @@ def _unseen_notes(ap, red: _Reduced, prior: bool, steps) -> tuple[list[str], lis
     return undetermined, notes
 
 
+def difference_leverage(prob, red: _Reduced, probes: int = 4) -> float:
+    r"""What the fit leaves of the noise in the neighbour differences the verdict's white-noise
+    estimate (:func:`fitting._report.white_noise`) takes: :math:`\kappa = \mathrm{E}|Dr|^2 /
+    (\sigma^2 \|D\|_F^2)` for the residual :math:`r = (I - H)\varepsilon`, :math:`H = A_F M^{-1}
+    A_F^T` the hat matrix of the free linear scalars (as the proximal rounds of
+    :meth:`_AlbedoSolver.bounded` filtered it), :math:`D` the differences of used
+    neighbouring entries: :math:`\kappa = 1 - \mathrm{tr}(D H D^T) / \|D\|_F^2`, the trace by
+    Hutchinson's estimator (``probes`` random signs, one solve each). A block of thousands of
+    texels or vertex colours fits a share of the noise (a third, for a 256² map seen by four
+    256² views), and the white part of its residual is that much below the noise: the verdict
+    divides it by :math:`\sqrt\kappa`. 1 where nothing is free."""
+    import scipy.sparse as sp
+
+    if red.solve is None or not red.free.any():
+        return 1.0
+    n_r = red.A.shape[0]
+    index = prob.images_of(np.arange(1, n_r + 1, dtype=np.int64))  # 0: an entry the block does not have
+    ia, ib = [], []
+    for img, m in zip(index, prob.used_masks()):
+        for ax in (0, 1):
+            a, b = (np.take(img, range(k, img.shape[ax] - 1 + k), axis=ax) for k in (1, 0))
+            ok = np.take(m, range(1, m.shape[ax]), axis=ax) & np.take(m, range(m.shape[ax] - 1), axis=ax)
+            ia.append(a[ok])
+            ib.append(b[ok])
+    ia, ib = np.concatenate(ia), np.concatenate(ib)
+    if not len(ia):
+        return 1.0
+    Af = sp.vstack([sp.csr_matrix((1, int(red.free.sum()))), red.A.tocsc()[:, red.free].tocsr()], format="csr")
+    C = Af[ia] - Af[ib]
+    # k rounds of iterated Tikhonov with the ridge R filter the normal equations' inverse into
+    # (I - (R M⁻¹)ᵏ) G⁻¹ = Σ_{j<k} (M⁻¹ R)ʲ M⁻¹, M = G + R: the fit's own hat matrix
+    ridge, rounds = getattr(red.solve, "ridge", 0.0), getattr(red.solve, "rounds", 1)
+    rng = np.random.default_rng(0)
+    t = 0.0
+    for _ in range(probes):
+        w = C.T @ rng.choice([-1.0, 1.0], len(ia))
+        u = red.solve(w)
+        acc = u.copy()
+        for _ in range(rounds - 1):
+            u = red.solve(ridge * u)
+            acc += u
+        t += float(w @ acc) / probes
+    return float(np.clip(1.0 - t / (2.0 * len(ia)), 1e-3, 1.0))
+
+
 def _albedo_result(ap, solver, red: _Reduced, theta0, converged, max_steps, noise, run: Run) -> FitResult:
     """The report of a fit with a sparse linear block (``ap``: an :class:`AlbedoProblem` or a
     :class:`fitting._maps.MapProblem`): the verdict, the standard errors of both blocks, what the
@@ -606,7 +656,8 @@ def _albedo_result(ap, solver, red: _Reduced, theta0, converged, max_steps, nois
     prob, r = ap.prob, red.r
     labels = prob.pset.labels
     n2 = run.n_residuals
-    sigma, source = noise_level(prob, prob.residual_images(r), noise)
+    kappa = difference_leverage(prob, red) if noise is None else 1.0
+    sigma, source = noise_level(prob, prob.residual_images(r), noise, leverage=kappa)
     r2 = np.asarray(r)[prob.two_sided()]  # the verdict's χ²: two-sided entries (fitting._report.candidate)
     s2 = float(r2 @ r2) / max(n2 - (int(red.free.sum()) + len(ap.other)), 1)
     ratio = float(np.sqrt(s2) / max(sigma, 1e-300))

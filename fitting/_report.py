@@ -213,28 +213,34 @@ def white_noise(res_images, used_masks, quantum: float | None = None) -> tuple[f
 WHITE_SPREAD = 2.0  # the largest RMS / robust ratio of the residual's differences taken for noise
 
 
-def noise_level(prob, res_images, noise=None, used=None) -> tuple[float, str]:
+def noise_level(prob, res_images, noise=None, used=None, leverage: float = 1.0) -> tuple[float, str]:
     """σ for the verdict and a phrase saying where it came from: the user's; else the smaller of
     the targets' own noise (:func:`fitting._noise.target_noise`, which a misfit cannot inflate but
     a noise-free target's curvature can) and the residual's white part (which a misfit can
     inflate, a noise-free target's curvature cannot), no less than the floor of the target's
-    codes or floats."""
+    codes or floats. ``leverage``: the share of the noise the fit leaves in the residual's
+    neighbour differences (:func:`fitting._albedo.difference_leverage`; 1 for a fit of a few
+    parameters), by whose root the white part is divided."""
     if noise is not None:
         return float(noise), "given"
     from ._noise import target_noise
 
     used = prob.used_masks() if used is None else used
     sw, _, rms = white_noise(res_images, used, prob.quantum)
+    lev = ""
+    if leverage < 1.0:
+        sw, rms = sw / np.sqrt(leverage), rms / np.sqrt(leverage)
+        lev = f", ×{1 / np.sqrt(leverage):.3g} for the share of the noise the fitted scalars took"
     if sw < rms:
         cands = [
             (
                 sw,
                 f"white part of the residual, robust estimate (the RMS estimate {rms:.3g} is "
-                f"{rms / max(sw, 1e-300):.3g}× that: a few pixels with jumps, not noise)",
+                f"{rms / max(sw, 1e-300):.3g}× that: a few pixels with jumps, not noise){lev}",
             )
         ]
     else:
-        cands = [(sw, "white part of the residual")]
+        cands = [(sw, f"white part of the residual{lev}")]
     own = target_noise(prob, used)
     if own is not None and own[0] < cands[0][0]:
         cands = [

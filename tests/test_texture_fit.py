@@ -203,3 +203,31 @@ def test_a_coarse_shininess_map_is_fitted_as_nonlinear_parameters():
     assert np.all(np.isfinite(r.stderr))
     np.testing.assert_allclose(r.values, truth, rtol=1e-3)
     assert np.all(np.abs(r.values - truth) <= 3 * r.stderr + 1e-6 * truth), (r.values, truth, r.stderr)
+
+
+def test_the_verdicts_noise_level_counts_the_noise_the_texels_fit():
+    """A map fits a share of the noise, so the white part of its residual lies below the noise;
+    the verdict divides it by √κ, κ (difference_leverage: Hutchinson's estimate of a trace)
+    against a simulation: noise drawn 200 times, projected out by the dense hat matrix, and the
+    white-noise estimate of each residual averaged."""
+    from fitting._albedo import _AlbedoSolver, difference_leverage
+    from fitting._report import white_noise
+
+    starts, targets, truth, opts = _views(8, "bilinear", size=24)
+    prob = Problem.build(starts[0], opts, fitting.Observations(targets, views=starts), ["material.diffuse_map"])
+    mp = MapProblem(prob)
+    theta = np.full(truth.size, 0.5)
+    mp._compile(theta)
+    red = _AlbedoSolver(mp, 0.0, 1e-10, False).reduced(theta)
+    kappa = difference_leverage(prob, red)
+    Af = red.A[:, red.free].toarray()
+    Q = np.linalg.qr(Af)[0][:, : np.linalg.matrix_rank(Af)]  # H = Q Qᵀ
+    rng = np.random.default_rng(0)
+    used = prob.used_masks()
+    sims = []
+    for _ in range(200):
+        e = rng.normal(0.0, 1.0, Af.shape[0])
+        sims.append(white_noise(prob.images_of(e - Q @ (Q.T @ e)), used)[2] ** 2)
+    kappa_mc = float(np.mean(sims))
+    assert 0.0 < 1.0 - kappa_mc  # the texels took a share
+    assert abs(kappa - kappa_mc) <= 0.25 * (1.0 - kappa_mc)
