@@ -604,7 +604,7 @@ def _unseen_notes(ap, red: _Reduced, prior: bool, steps) -> tuple[list[str], lis
     return undetermined, notes
 
 
-def difference_leverage(prob, red: _Reduced, probes: int = 4) -> float:
+def difference_leverage(prob, red: _Reduced, probes: int = 2) -> float:
     r"""What the fit leaves of the noise in the neighbour differences the verdict's white-noise
     estimate (:func:`fitting._report.white_noise`) takes: :math:`\kappa = \mathrm{E}|Dr|^2 /
     (\sigma^2 \|D\|_F^2)` for the residual :math:`r = (I - H)\varepsilon`, :math:`H = A_F M^{-1}
@@ -615,8 +615,6 @@ def difference_leverage(prob, red: _Reduced, probes: int = 4) -> float:
     texels or vertex colours fits a share of the noise (a third, for a 256² map seen by four
     256² views), and the white part of its residual is that much below the noise: the verdict
     divides it by :math:`\sqrt\kappa`. 1 where nothing is free."""
-    import scipy.sparse as sp
-
     if red.solve is None or not red.free.any():
         return 1.0
     n_r = red.A.shape[0]
@@ -631,22 +629,49 @@ def difference_leverage(prob, red: _Reduced, probes: int = 4) -> float:
     ia, ib = np.concatenate(ia), np.concatenate(ib)
     if not len(ia):
         return 1.0
-    Af = sp.vstack([sp.csr_matrix((1, int(red.free.sum()))), red.A.tocsc()[:, red.free].tocsr()], format="csr")
-    C = Af[ia] - Af[ib]
-    # k rounds of iterated Tikhonov with the ridge R filter the normal equations' inverse into
-    # (I - (R M⁻¹)ᵏ) G⁻¹ = Σ_{j<k} (M⁻¹ R)ʲ M⁻¹, M = G + R: the fit's own hat matrix
-    ridge, rounds = getattr(red.solve, "ridge", 0.0), getattr(red.solve, "rounds", 1)
     rng = np.random.default_rng(0)
     t = 0.0
-    for _ in range(probes):
-        w = C.T @ rng.choice([-1.0, 1.0], len(ia))
-        u = red.solve(w)
-        acc = u.copy()
-        for _ in range(rounds - 1):
-            u = red.solve(ridge * u)
-            acc += u
-        t += float(w @ acc) / probes
+    for _ in range(probes):  # zᵀ D A_F F A_Fᵀ Dᵀ z, with Dᵀz on the residual's entries
+        z = rng.choice([-1.0, 1.0], len(ia))
+        dz = (np.bincount(ia, z, n_r + 1) - np.bincount(ib, z, n_r + 1))[1:]
+        w = (red.A.T @ dz)[red.free]
+        t += float(w @ _filtered_inverse(red, w)) / probes
     return float(np.clip(1.0 - t / (2.0 * len(ia)), 1e-3, 1.0))
+
+
+def _filtered_inverse(red: _Reduced, w):
+    """The fit's own inverse of the normal matrix on the free scalars, applied to ``w``: k rounds
+    of iterated Tikhonov with the ridge R filter it into (I - (R M⁻¹)ᵏ) G⁻¹ = Σ_{j<k} (M⁻¹ R)ʲ M⁻¹,
+    M = G + R (:meth:`_AlbedoSolver.bounded`)."""
+    ridge, rounds = getattr(red.solve, "ridge", 0.0), getattr(red.solve, "rounds", 1)
+    u = red.solve(w)
+    acc = u.copy()
+    for _ in range(rounds - 1):
+        u = red.solve(ridge * u)
+        acc += u
+    return acc
+
+
+def effective_dof(red: _Reduced, probes: int = 2) -> float:
+    r"""The degrees of freedom the linear block takes from the residual: :math:`n - \mathrm{E}|r|^2
+    / \sigma^2 = 2\,\mathrm{tr}H - \mathrm{tr}H^2` for the fit's hat matrix :math:`H` (Hutchinson,
+    ``probes`` random signs). The number of free scalars where the fit is the least-squares
+    projection; fewer where the proximal rounds stopped before the directions the images barely
+    see were fitted."""
+    n_free = int(red.free.sum())
+    if red.solve is None or getattr(red.solve, "rounds", 1) <= 1:
+        return float(n_free)
+    A, free = red.A, red.free
+    rng = np.random.default_rng(1)
+    t1 = t2 = 0.0
+    for _ in range(probes):
+        z = rng.choice([-1.0, 1.0], A.shape[0])
+        x = np.zeros(A.shape[1])
+        x[free] = _filtered_inverse(red, (A.T @ z)[free])
+        hz = A @ x
+        t1 += float(z @ hz) / probes
+        t2 += float(hz @ hz) / probes
+    return float(np.clip(2 * t1 - t2, 0.0, n_free))
 
 
 def _albedo_result(ap, solver, red: _Reduced, theta0, converged, max_steps, noise, run: Run) -> FitResult:
@@ -659,7 +684,7 @@ def _albedo_result(ap, solver, red: _Reduced, theta0, converged, max_steps, nois
     kappa = difference_leverage(prob, red) if noise is None else 1.0
     sigma, source = noise_level(prob, prob.residual_images(r), noise, leverage=kappa)
     r2 = np.asarray(r)[prob.two_sided()]  # the verdict's χ²: two-sided entries (fitting._report.candidate)
-    s2 = float(r2 @ r2) / max(n2 - (int(red.free.sum()) + len(ap.other)), 1)
+    s2 = float(r2 @ r2) / max(n2 - (effective_dof(red) + len(ap.other)), 1)
     ratio = float(np.sqrt(s2) / max(sigma, 1e-300))
     successful, msg = verdict(
         converged, "" if converged else f"no convergence in {max_steps} steps", ratio, sigma, source, n2

@@ -231,3 +231,28 @@ def test_the_verdicts_noise_level_counts_the_noise_the_texels_fit():
     kappa_mc = float(np.mean(sims))
     assert 0.0 < 1.0 - kappa_mc  # the texels took a share
     assert abs(kappa - kappa_mc) <= 0.25 * (1.0 - kappa_mc)
+
+
+def test_the_degrees_of_freedom_of_a_block_stopped_by_its_rounds():
+    """k proximal rounds with a ridge R fit a direction of information λ by the factor
+    1 - (R/(λ+R))ᵏ: the block takes 2 tr H - tr H² degrees of freedom from the residual, where H is
+    that filtered hat matrix (here dense, against effective_dof's estimate)."""
+    from fitting._albedo import effective_dof
+
+    rng = np.random.default_rng(2)
+    A = sp.random(3000, 120, density=0.03, random_state=rng, format="csr")
+    A = sp.csr_matrix(A.toarray() * np.logspace(-3, 0, 120))  # columns from barely to well seen
+    G = (A.T @ A).toarray()
+    ridge, rounds = np.full(120, 1e-3), 3
+    M_inv = np.linalg.inv(G + np.diag(ridge))
+
+    def solve(w):
+        return M_inv @ w
+
+    solve.ridge, solve.rounds = ridge, rounds
+    red = types.SimpleNamespace(A=A, free=np.ones(120, bool), solve=solve)
+    F = np.linalg.solve(G, np.eye(120) - np.linalg.matrix_power(np.diag(ridge) @ M_inv, rounds).T)
+    H = A.toarray() @ F @ A.T.toarray()
+    exact = 2 * np.trace(H) - np.trace(H @ H)
+    assert exact < 110  # the rounds left some directions unfitted
+    assert abs(effective_dof(red, probes=64) - exact) < 0.05 * exact
