@@ -245,12 +245,13 @@ class _Face:
         return np.stack([self.cols[k] for k in keys], 1) if len(keys) else np.zeros((len(self.base), 0))
 
     def step(self, r, free):
-        """``s`` with ``M_FF s_F = r_F`` on the free scalars ``F``, zero elsewhere."""
+        """``s`` with ``M_FF s_F = r_F`` on the free scalars ``F``, zero elsewhere (``r``: a vector,
+        or a matrix of columns)."""
         nb, B = len(self.base), self.base
         K = np.flatnonzero(~free[B])  # held, positions in the base
         J = np.flatnonzero(free & ~self.in_base)  # freed outside the base
         u = self._inv(r[B])
-        s = np.zeros(len(r))
+        s = np.zeros(r.shape)
         if len(K) or len(J):
 
             def unit(ks):
@@ -294,8 +295,9 @@ class _Faces:
         self.sp, self.faces = sp, [None] * len(self.groups)
 
     def step(self, r, free):
-        """``s`` with ``M_FF s_F = r_F`` on the free scalars ``F``, zero elsewhere."""
-        s = np.zeros(len(r))
+        """``s`` with ``M_FF s_F = r_F`` on the free scalars ``F``, zero elsewhere (``r``: a vector,
+        or a matrix of columns)."""
+        s = np.zeros(r.shape)
         for k, (g, M) in enumerate(zip(self.groups, self.blocks)):
             f = free[g]
             if not f.any():
@@ -403,7 +405,7 @@ class _AlbedoSolver:
             return x, free, None
 
         def solve(r):
-            full = np.zeros(len(x))
+            full = np.zeros((len(x),) + r.shape[1:])
             full[idx] = r
             return face.step(full, free)[idx]
 
@@ -630,12 +632,12 @@ def difference_leverage(prob, red: _Reduced, probes: int = 2) -> float:
     if not len(ia):
         return 1.0
     rng = np.random.default_rng(0)
-    t = 0.0
-    for _ in range(probes):  # zᵀ D A_F F A_Fᵀ Dᵀ z, with Dᵀz on the residual's entries
+    dz = np.zeros((n_r, probes))
+    for j in range(probes):  # zᵀ D A_F F A_Fᵀ Dᵀ z, with Dᵀz on the residual's entries
         z = rng.choice([-1.0, 1.0], len(ia))
-        dz = (np.bincount(ia, z, n_r + 1) - np.bincount(ib, z, n_r + 1))[1:]
-        w = (red.A.T @ dz)[red.free]
-        t += float(w @ _filtered_inverse(red, w)) / probes
+        dz[:, j] = (np.bincount(ia, z, n_r + 1) - np.bincount(ib, z, n_r + 1))[1:]
+    W = np.asarray(red.A.T @ dz)[red.free]
+    t = float(np.sum(W * _filtered_inverse(red, W))) / probes
     return float(np.clip(1.0 - t / (2.0 * len(ia)), 1e-3, 1.0))
 
 
@@ -644,6 +646,7 @@ def _filtered_inverse(red: _Reduced, w):
     of iterated Tikhonov with the ridge R filter it into (I - (R M⁻¹)ᵏ) G⁻¹ = Σ_{j<k} (M⁻¹ R)ʲ M⁻¹,
     M = G + R (:meth:`_AlbedoSolver.bounded`)."""
     ridge, rounds = getattr(red.solve, "ridge", 0.0), getattr(red.solve, "rounds", 1)
+    ridge = np.reshape(ridge, np.shape(ridge) + (1,) * (w.ndim - 1))
     u = red.solve(w)
     acc = u.copy()
     for _ in range(rounds - 1):
@@ -662,16 +665,11 @@ def effective_dof(red: _Reduced, probes: int = 2) -> float:
     if red.solve is None or getattr(red.solve, "rounds", 1) <= 1:
         return float(n_free)
     A, free = red.A, red.free
-    rng = np.random.default_rng(1)
-    t1 = t2 = 0.0
-    for _ in range(probes):
-        z = rng.choice([-1.0, 1.0], A.shape[0])
-        x = np.zeros(A.shape[1])
-        x[free] = _filtered_inverse(red, (A.T @ z)[free])
-        hz = A @ x
-        t1 += float(z @ hz) / probes
-        t2 += float(hz @ hz) / probes
-    return float(np.clip(2 * t1 - t2, 0.0, n_free))
+    Z = np.random.default_rng(1).choice([-1.0, 1.0], (A.shape[0], probes))
+    X = np.zeros((A.shape[1], probes))
+    X[free] = _filtered_inverse(red, np.asarray(A.T @ Z)[free])
+    HZ = np.asarray(A @ X)
+    return float(np.clip((2 * np.sum(Z * HZ) - np.sum(HZ * HZ)) / probes, 0.0, n_free))
 
 
 def _albedo_result(ap, solver, red: _Reduced, theta0, converged, max_steps, noise, run: Run) -> FitResult:
