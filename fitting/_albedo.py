@@ -204,6 +204,7 @@ MAX_NEWTON = 30  # projected Newton steps of one bounded solve
 MAX_HOLDS = 8  # bounds a Newton step may meet and hold before it is projected instead
 PROXIMAL_ROUNDS = 6  # bounded solves, each with its ridge centred on the last one's optimum
 ROUND_GAIN = 5e-4  # a round that lowers the cost by under this × σ² per seen scalar (χ² by 1e-3) is the last
+NOISY = 0.01  # the share of a large block a first step throws against the bounds that tells noise
 TIGHT = 1e-13  # the ridge of the rounds after the first, relative as RIDGE
 BLOCK = 1000  # scalars of a connected block of G factorised on its own
 CAPACITY = 32  # scalars a face may differ by from the factorised one before it is factorised anew
@@ -386,7 +387,8 @@ class _AlbedoSolver:
         rounds = 1  # with the present ridge
         cost = self.data(x, A, b)
         s2 = 2 * cost / dof
-        noisy = n_seen >= BLOCK and int(np.count_nonzero(seen & ((x <= 0) | (x >= 1)))) > CAPACITY
+        on_bound = int(np.count_nonzero(seen & ((x <= 0) | (x >= 1))))
+        noisy = n_seen >= BLOCK and on_bound > max(CAPACITY, NOISY * n_seen)
         if noisy:
             rho, rounds = np.maximum(rho, s2), 0
             face = _Faces(self.ap.sp, G, rho, seen)
