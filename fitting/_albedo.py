@@ -206,7 +206,7 @@ PROXIMAL_ROUNDS = 6  # bounded solves, each with its ridge centred on the last o
 ROUND_GAIN = 5e-4  # a round that lowers the cost by under this × σ² per seen scalar (χ² by 1e-3) is the last
 NOISY = 0.01  # the share of a large block a first step throws against the bounds that tells noise
 TIGHT = 1e-13  # the ridge of the rounds after the first, relative as RIDGE
-BLOCK = 1000  # scalars of a connected block of G factorised on its own
+BLOCK = 1000  # scalars of a connected block of G factorised on its own (and of a block the noise ridge serves)
 CAPACITY = 32  # scalars a face may differ by from the factorised one before it is factorised anew
 
 
