@@ -222,7 +222,7 @@ class _Face:
     def __init__(self, sp, M, free):
         from scipy.sparse.linalg import splu
 
-        self.M, self.base, self.cols = M, np.flatnonzero(free), {}
+        self.M, self.base, self.cols, self.stacks = M, np.flatnonzero(free), {}, {}
         self.in_base = free.copy()
         Mb = M[self.base][:, self.base]
         self.d = 1 / np.sqrt(np.maximum(Mb.diagonal(), 1e-300))
@@ -239,11 +239,18 @@ class _Face:
         return int(np.count_nonzero(free != self.in_base)) <= CAPACITY
 
     def _border(self, keys, make):
-        """:math:`M_{BB}^{-1}` of the columns ``make(new keys)``, cached per key, stacked."""
+        """:math:`M_{BB}^{-1}` of the columns ``make(new keys)``, cached per key, stacked (the last
+        stack kept too: a face is often asked for again)."""
+        if not keys:
+            return np.zeros((len(self.base), 0))
+        keys, kind = tuple(keys), keys[0][0]
+        if kind in self.stacks and self.stacks[kind][0] == keys:
+            return self.stacks[kind][1]
         new = [k for k in keys if k not in self.cols]
         if new:
             self.cols.update(zip(new, self._inv(make(new)).T))
-        return np.stack([self.cols[k] for k in keys], 1) if len(keys) else np.zeros((len(self.base), 0))
+        self.stacks[kind] = (keys, np.stack([self.cols[k] for k in keys], 1))
+        return self.stacks[kind][1]
 
     def step(self, r, free):
         """``s`` with ``M_FF s_F = r_F`` on the free scalars ``F``, zero elsewhere (``r``: a vector,
