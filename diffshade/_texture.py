@@ -94,10 +94,6 @@ def _packed(levels):
     return flat, offs, sizes
 
 
-def _wrap(i, n, mode: str):
-    return jnp.mod(i, n) if mode == "repeat" else jnp.clip(i, 0, n - 1)
-
-
 def _bilinear(flat, off, w, h, u, v, wrap: str):
     """Bilinear samples ``[..., C]`` of the level at ``off`` (``w × h`` texels) at ``(u, v)``.
     Repeating, the coordinates are wrapped into [0, 1) first, so that a tap's index leaves the
@@ -114,8 +110,8 @@ def _bilinear(flat, off, w, h, u, v, wrap: str):
         xs = (jnp.where(x0 < 0, x0 + w, x0), jnp.where(x0 + 1 >= w, x0 + 1 - w, x0 + 1))
         ys = (jnp.where(y0 < 0, y0 + h, y0), jnp.where(y0 + 1 >= h, y0 + 1 - h, y0 + 1))
     else:
-        xs = (_wrap(x0, w, wrap), _wrap(x0 + 1, w, wrap))
-        ys = (_wrap(y0, h, wrap), _wrap(y0 + 1, h, wrap))
+        xs = (jnp.clip(x0, 0, w - 1), jnp.clip(x0 + 1, 0, w - 1))
+        ys = (jnp.clip(y0, 0, h - 1), jnp.clip(y0 + 1, 0, h - 1))
     t = [[flat[off + ys[j] * w + xs[i]] for i in range(2)] for j in range(2)]
     top = t[0][0] + fx * (t[0][1] - t[0][0])
     bottom = t[1][0] + fx * (t[1][1] - t[1][0])

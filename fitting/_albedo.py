@@ -44,7 +44,17 @@ from . import _options
 from ._cache import compiled
 from ._polish import RELINEARISE_PASSES
 from ._problem import FitError, Problem
-from ._report import Diagnostics, FitResult, ResidualStats, Run, image_quality, noise_level, uncertainty, verdict
+from ._report import (
+    Diagnostics,
+    FitResult,
+    ResidualStats,
+    Run,
+    image_quality,
+    neighbour_pairs,
+    noise_level,
+    uncertainty,
+    verdict,
+)
 
 
 def vertex_colouring(faces: np.ndarray, n_vertices: int) -> np.ndarray:
@@ -316,6 +326,20 @@ class _Faces:
         return s
 
 
+class _FreeInverse:
+    """``M⁻¹`` on the free scalars (``M = G + diag(ridge)`` through the faces), called on a vector
+    or a matrix of columns over them; ``ridge`` and ``rounds``: the proximal rounds that filtered
+    the fit by it (:func:`_filtered_inverse`)."""
+
+    def __init__(self, faces: _Faces, free, ridge, rounds: int):
+        self.faces, self.free, self.idx, self.ridge, self.rounds = faces, free, np.flatnonzero(free), ridge, rounds
+
+    def __call__(self, r):
+        full = np.zeros((len(self.free),) + r.shape[1:])
+        full[self.idx] = r
+        return self.faces.step(full, self.free)[self.idx]
+
+
 class _Reduced(NamedTuple):
     """The reduced problem at one θ: the albedo solved, the residual and Kaufman's Jacobian."""
 
@@ -327,7 +351,7 @@ class _Reduced(NamedTuple):
     seen: np.ndarray
     free: np.ndarray
     img: np.ndarray
-    solve: object  # the inverse of the normal matrix on the free scalars (None where none is free)
+    solve: _FreeInverse | None  # the inverse of the normal matrix on the free scalars
 
 
 class _AlbedoSolver:
@@ -416,14 +440,8 @@ class _AlbedoSolver:
         if not len(idx):
             return x, free, None
 
-        def solve(r):
-            full = np.zeros((len(x),) + r.shape[1:])
-            full[idx] = r
-            return face.step(full, free)[idx]
-
-        # what the rounds filtered the normal equations by (a tiny ridge: nothing): the hat matrix
-        solve.ridge, solve.rounds = rho[idx], max(rounds, 1) if noisy else 1
-        return x, free, solve
+        # with what the rounds filtered the normal equations by (a tiny ridge: nothing)
+        return x, free, _FreeInverse(face, free, rho[idx], max(rounds, 1) if noisy else 1)
 
     def _newton(self, x, c, A, b, seen, rho, face, steps=MAX_NEWTON):
         """Projected Newton (Bertsekas, 1982) on the least squares plus the ridge centred at ``c``:
@@ -633,14 +651,7 @@ def difference_leverage(prob, red: _Reduced, probes: int = 2) -> float:
         return 1.0
     n_r = red.A.shape[0]
     index = prob.images_of(np.arange(1, n_r + 1, dtype=np.int64))  # 0: an entry the block does not have
-    ia, ib = [], []
-    for img, m in zip(index, prob.used_masks()):
-        for ax in (0, 1):
-            a, b = (np.take(img, range(k, img.shape[ax] - 1 + k), axis=ax) for k in (1, 0))
-            ok = np.take(m, range(1, m.shape[ax]), axis=ax) & np.take(m, range(m.shape[ax] - 1), axis=ax)
-            ia.append(a[ok])
-            ib.append(b[ok])
-    ia, ib = np.concatenate(ia), np.concatenate(ib)
+    ia, ib = (p.astype(np.int64) for p in neighbour_pairs(index, prob.used_masks()))
     if not len(ia):
         return 1.0
     rng = np.random.default_rng(0)
@@ -657,11 +668,10 @@ def _filtered_inverse(red: _Reduced, w):
     """The fit's own inverse of the normal matrix on the free scalars, applied to ``w``: k rounds
     of iterated Tikhonov with the ridge R filter it into (I - (R M⁻¹)ᵏ) G⁻¹ = Σ_{j<k} (M⁻¹ R)ʲ M⁻¹,
     M = G + R (:meth:`_AlbedoSolver.bounded`)."""
-    ridge, rounds = getattr(red.solve, "ridge", 0.0), getattr(red.solve, "rounds", 1)
-    ridge = np.reshape(ridge, np.shape(ridge) + (1,) * (w.ndim - 1))
+    ridge = np.reshape(red.solve.ridge, np.shape(red.solve.ridge) + (1,) * (w.ndim - 1))
     u = red.solve(w)
     acc = u.copy()
-    for _ in range(rounds - 1):
+    for _ in range(red.solve.rounds - 1):
         u = red.solve(ridge * u)
         acc += u
     return acc
@@ -674,7 +684,7 @@ def effective_dof(red: _Reduced, probes: int = 2) -> float:
     projection; fewer where the proximal rounds stopped before the directions the images barely
     see were fitted."""
     n_free = int(red.free.sum())
-    if red.solve is None or getattr(red.solve, "rounds", 1) <= 1:
+    if red.solve is None or red.solve.rounds <= 1:
         return float(n_free)
     A, free = red.A, red.free
     Z = np.random.default_rng(1).choice([-1.0, 1.0], (A.shape[0], probes))

@@ -185,6 +185,19 @@ class FitResult:
         }
 
 
+def neighbour_pairs(images, masks) -> tuple[np.ndarray, np.ndarray]:
+    """``(a, b)``: the entries of horizontally and vertically neighbouring pixels (same channel)
+    where both are used, over every view (``images`` and ``masks``: ``[H, W, 3]`` per view)."""
+    ia, ib = [np.zeros(0)], [np.zeros(0)]
+    for img, m in zip(images, masks):
+        for ax in (0, 1):
+            a, b = (np.take(img, range(k, img.shape[ax] - 1 + k), axis=ax) for k in (1, 0))
+            ok = np.take(m, range(1, m.shape[ax]), axis=ax) & np.take(m, range(m.shape[ax] - 1), axis=ax)
+            ia.append(a[ok])
+            ib.append(b[ok])
+    return np.concatenate(ia), np.concatenate(ib)
+
+
 def white_noise(res_images, used_masks, quantum: float | None = None) -> tuple[float, int, float]:
     """``(σ̂_w, pairs, σ̂_rms)``: the white part of the residual from horizontal and vertical
     neighbour differences where both residuals are two-sided and weighted.
@@ -195,13 +208,8 @@ def white_noise(res_images, used_masks, quantum: float | None = None) -> tuple[f
     photon noise that varies with the signal, measured 1.2). A residual carried by a few pixels
     with jumps — refracted rays that cross a tile edge, a misplaced silhouette — has a large RMS
     and a small median, and is not noise."""
-    diffs = []
-    for r, m in zip(res_images, used_masks):
-        for ax in (0, 1):
-            a = np.take(r, range(1, r.shape[ax]), axis=ax) - np.take(r, range(r.shape[ax] - 1), axis=ax)
-            ok = np.take(m, range(1, m.shape[ax]), axis=ax) & np.take(m, range(m.shape[ax] - 1), axis=ax)
-            diffs.append(np.asarray(a[ok], np.float64).reshape(-1))
-    d = np.concatenate(diffs) if diffs else np.zeros(0)
+    a, b = neighbour_pairs(res_images, used_masks)
+    d = np.asarray(a, np.float64) - np.asarray(b, np.float64)
     n = len(d)
     if not n:
         return 0.0, 0, 0.0
