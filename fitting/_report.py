@@ -193,8 +193,8 @@ def neighbour_pairs(images, masks) -> tuple[np.ndarray, np.ndarray]:
         for ax in (0, 1):
             a, b = (np.take(img, range(k, img.shape[ax] - 1 + k), axis=ax) for k in (1, 0))
             ok = np.take(m, range(1, m.shape[ax]), axis=ax) & np.take(m, range(m.shape[ax] - 1), axis=ax)
-            ia.append(a[ok])
-            ib.append(b[ok])
+            ia.append(a[ok].reshape(-1))
+            ib.append(b[ok].reshape(-1))
     return np.concatenate(ia), np.concatenate(ib)
 
 
