@@ -195,48 +195,32 @@ class MapProblem:
 
     def inverse_diagonal(self, G, idx_det) -> np.ndarray:
         r""":math:`\mathrm{diag}(G^{-1})` over the determined scalars: exact per connected block up
-        to :data:`DENSE_LIMIT`, by probing beyond (see the module)."""
+        to :data:`DENSE_LIMIT`, by probing beyond (see the module). Blocks are taken from one
+        permutation that makes each consecutive; small blocks of one size are inverted as one
+        stack; a large block is factorised on its own (the channels of a colour map never meet in
+        :math:`G`: three factorisations of a channel cost less than one of all three)."""
         from scipy.sparse.csgraph import connected_components
-        from scipy.sparse.linalg import splu
 
         dg = np.sqrt(np.maximum(G.diagonal(), 1e-300))
         G = (self.sp.diags(1 / dg) @ G @ self.sp.diags(1 / dg)).tocsc()  # unit diagonal: the inflation is the inverse's
-        n_comp, comp = connected_components(G, directed=False)
-        out = np.zeros(G.shape[0])
-        ridge = 1e-13
-        sizes = np.bincount(comp, minlength=n_comp)
-        # the small blocks, from one slice with each block's scalars consecutive
-        small = np.flatnonzero(sizes[comp] <= DENSE_LIMIT)
-        order = small[np.argsort(comp[small], kind="stable")]
-        Gs = G[order][:, order].tocsr()
+        _, comp = connected_components(G, directed=False)
+        order = np.argsort(comp, kind="stable")
         cuts = np.concatenate([[0], np.flatnonzero(np.diff(comp[order])) + 1, [len(order)]])
-        out[order] = 1 / (Gs.diagonal() + ridge)  # a block of one scalar
-        for a, b in zip(cuts[:-1], cuts[1:]):
-            if b - a > 1:
-                out[order[a:b]] = np.diag(np.linalg.inv(Gs[a:b, a:b].toarray() + ridge * np.eye(b - a)))
-        big = sizes[comp] > DENSE_LIMIT
-        if big.any():
-            sel = np.flatnonzero(big)
-            lu = splu(  # positive definite: the symmetric mode, no pivoting
-                (G[sel][:, sel] + self.sp.identity(len(sel)) * ridge).tocsc(),
-                permc_spec="MMD_AT_PLUS_A",
-                diag_pivot_thresh=0.0,
-                options=dict(SymmetricMode=True),
-            )
-            g = self._grid()[idx_det[sel]]
-            d = PROBE_DISTANCE
-            cls = ((g[:, 0] * d + g[:, 1] % d) * d + g[:, 2] % d) * 3 + g[:, 3]
-            # scalars of different connected blocks (the channels of a colour map) never meet in G⁻¹:
-            # one probe carries a class of each block
-            probe = np.zeros(len(sel), np.int64)
-            for k in np.unique(comp[sel]):
-                m = comp[sel] == k
-                probe[m] = np.unique(cls[m], return_inverse=True)[1]
-            diag = np.zeros(len(sel))
-            for first in range(0, int(probe.max()) + 1, PROBES_PER_SOLVE):
-                E = (probe[:, None] == first + np.arange(PROBES_PER_SOLVE)).astype(float)
-                diag += np.sum(lu.solve(E) * E, axis=1)
-            out[sel] = diag
+        Gs = G[order][:, order].tocsc()
+        inv = np.zeros(G.shape[0])  # over the permuted scalars
+        sizes = np.diff(cuts)
+        for size in np.unique(sizes[sizes <= DENSE_LIMIT]):
+            first = cuts[:-1][sizes == size]
+            at = (first[:, None] + np.arange(size)).ravel()
+            inv[at] = _stacked_inverse_diagonal(Gs, first, int(size))
+        g = self._grid()[idx_det[order]]
+        d = PROBE_DISTANCE
+        cls = ((g[:, 0] * d + g[:, 1] % d) * d + g[:, 2] % d) * 4 + g[:, 3]  # a block may hold several channels
+        for a, b in zip(cuts[:-1][sizes > DENSE_LIMIT], cuts[1:][sizes > DENSE_LIMIT]):
+            probe = np.unique(cls[a:b], return_inverse=True)[1]
+            inv[a:b] = _probed_inverse_diagonal(self.sp, Gs[a:b, a:b], probe)
+        out = np.zeros(G.shape[0])
+        out[order] = inv
         # the variance inflation: beyond UNDETERMINED, a direction of G is (nearly) null (a texel
         # seen only through averages with others): not determined by the images (inf). Below 1 (a
         # unit-diagonal matrix's inverse has a diagonal ≥ 1), the probe summed large entries of
@@ -289,3 +273,39 @@ class MapProblem:
             f"{steps} LM steps on the {len(self.other)} other scalar(s)"
         )
         return undetermined, notes
+
+
+INVERSE_RIDGE = 1e-13  # added to the unit diagonal of a block's normal matrix before its inverse's diagonal is taken
+
+
+def _stacked_inverse_diagonal(Gs, first, size: int) -> np.ndarray:
+    """``diag(B⁻¹)`` of the diagonal blocks of ``Gs`` (CSC, block diagonal) of ``size`` scalars
+    starting at ``first``, inverted as one dense stack; flattened in block order."""
+    if size == 1:
+        return 1 / (Gs.diagonal()[first] + INVERSE_RIDGE)
+    coo = Gs[:, (first[:, None] + np.arange(size)).ravel()].tocoo()  # columns of these blocks only
+    blk = coo.col // size
+    D = np.zeros((len(first), size, size))
+    D[blk, coo.row - first[blk], coo.col % size] = coo.data
+    D += INVERSE_RIDGE * np.eye(size)
+    return np.diagonal(np.linalg.inv(D), axis1=1, axis2=2).reshape(-1)
+
+
+def _probed_inverse_diagonal(sp, Gk, probe) -> np.ndarray:
+    """``diag(G⁻¹)`` of one connected block by probing: ``probe`` gives each scalar's class (no two
+    of a class within :data:`PROBE_DISTANCE` texels); one factorisation (SuperLU's symmetric
+    mode: G is positive definite, no pivoting), the classes solved :data:`PROBES_PER_SOLVE` at a
+    time."""
+    from scipy.sparse.linalg import splu
+
+    lu = splu(
+        (Gk + sp.identity(Gk.shape[0]) * INVERSE_RIDGE).tocsc(),
+        permc_spec="MMD_AT_PLUS_A",
+        diag_pivot_thresh=0.0,
+        options=dict(SymmetricMode=True),
+    )
+    diag = np.zeros(Gk.shape[0])
+    for first in range(0, int(probe.max()) + 1, PROBES_PER_SOLVE):
+        E = (probe[:, None] == first + np.arange(PROBES_PER_SOLVE)).astype(float)
+        diag += np.sum(lu.solve(E) * E, axis=1)
+    return diag

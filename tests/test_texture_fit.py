@@ -157,6 +157,28 @@ def test_a_fine_map_is_recovered_where_the_views_determine_it():
         assert (np.sum(lu.solve(E) * E, axis=0) > 1e4).all()
 
 
+def test_the_inverse_diagonal_of_small_and_probed_blocks():
+    """diag(G⁻¹) of a block-diagonal G, its blocks in shuffled order: small blocks of several sizes
+    (inverted as stacks, one per size) exact; a chain of 3,500 scalars (beyond the dense limit,
+    probed) whose inverse decays tenfold per neighbour, to the probe's error at 8 texels."""
+    rng = np.random.default_rng(4)
+    blocks = []
+    for n in [1, 1, 2, 5, 5, 5, 7, 3500]:
+        off = rng.uniform(-0.1, 0.1, n - 1) if n > 1 else np.zeros(0)
+        B = sp.diags([off, rng.uniform(0.5, 2.0, n), off], [-1, 0, 1]) * rng.uniform(0.1, 10)
+        blocks.append(B.toarray() if n < 100 else B)
+    G = sp.block_diag(blocks).tocsr()
+    perm = rng.permutation(G.shape[0])
+    G = G[perm][:, perm].tocsc()
+    exact = np.concatenate([np.diag(np.linalg.inv(b.toarray() if sp.issparse(b) else b)) for b in blocks])[perm]
+    i = np.arange(G.shape[0])
+    chain = np.concatenate([np.zeros(26, int), np.arange(3500)])[perm]  # a texel's place along its block
+    grid = np.stack([np.zeros_like(i), chain // 64, chain % 64, np.zeros_like(i)], -1)
+    fake = types.SimpleNamespace(sp=sp, _grid=lambda: grid)
+    got = MapProblem.inverse_diagonal(fake, G, i)
+    np.testing.assert_allclose(got, exact, rtol=1e-7)
+
+
 def test_the_bounded_solve_is_the_bounded_least_squares_optimum():
     """The block's bounded solve against SciPy's bounded least squares (BVLS) on random sparse
     problems whose unbounded optimum leaves [0, 1] in many scalars."""
