@@ -55,6 +55,7 @@ from ._report import (
     uncertainty,
     verdict,
 )
+from ._sparse import factorise, in_threads
 
 
 def vertex_colouring(faces: np.ndarray, n_vertices: int) -> np.ndarray:
@@ -230,14 +231,11 @@ class _Face:
     the base by a few scalars costs a solve, not a factorisation."""
 
     def __init__(self, sp, M, free):
-        from scipy.sparse.linalg import splu
-
         self.M, self.base, self.cols, self.stacks = M, np.flatnonzero(free), {}, {}
         self.in_base = free.copy()
         Mb = M[self.base][:, self.base]
         self.d = 1 / np.sqrt(np.maximum(Mb.diagonal(), 1e-300))
-        Mb = (sp.diags(self.d) @ Mb @ sp.diags(self.d)).tocsc()
-        self.lu = splu(Mb, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+        self.lu = factorise((sp.diags(self.d) @ Mb @ sp.diags(self.d)).tocsc())
 
     def _inv(self, r):
         d = self.d if r.ndim == 1 else self.d[:, None]
@@ -316,13 +314,16 @@ class _Faces:
         """``s`` with ``M_FF s_F = r_F`` on the free scalars ``F``, zero elsewhere (``r``: a vector,
         or a matrix of columns)."""
         s = np.zeros(r.shape)
-        for k, (g, M) in enumerate(zip(self.groups, self.blocks)):
-            f = free[g]
-            if not f.any():
-                continue
-            if self.faces[k] is None or not self.faces[k].covers(f):
-                self.faces[k] = _Face(self.sp, M, f)
-            s[g] = self.faces[k].step(r[g], f)
+        new = [
+            k
+            for k, g in enumerate(self.groups)
+            if free[g].any() and not (self.faces[k] and self.faces[k].covers(free[g]))
+        ]
+        for k, face in zip(new, in_threads(lambda k: _Face(self.sp, self.blocks[k], free[self.groups[k]]), new)):
+            self.faces[k] = face
+        for k, g in enumerate(self.groups):
+            if free[g].any():
+                s[g] = self.faces[k].step(r[g], free[g])
         return s
 
 
@@ -770,7 +771,7 @@ def fit_block(ap, theta0, *, max_steps: int = 50, rtol: float = 1e-10, noise=Non
     """Variable projection over the sparse linear block ``ap`` and the other free parameters."""
     prob, smoothness = ap.prob, ap.smoothness
     pset = prob.pset
-    theta = np.array(pset.theta_from_u(pset.u_from_theta(jnp.asarray(theta0))), np.float64)  # inside the domain
+    theta = pset.theta_from_u_np(pset.u_from_theta_np(theta0))  # inside the domain
     theta[ap.sl] = np.clip(np.asarray(theta0, np.float64)[ap.sl], 0.0, 1.0)
     compile_s = ap._compile(theta)
     t0 = time.perf_counter()

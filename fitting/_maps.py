@@ -39,6 +39,7 @@ from . import _options
 from ._cache import compiled
 from ._params import LINEAR_MAPS, is_map
 from ._problem import FitError, Problem
+from ._sparse import factorise, in_threads
 
 PROBE_DISTANCE = 8  # texels between the texels of one probing class
 DENSE_LIMIT = 3000  # a connected block up to this many scalars is inverted exactly
@@ -216,9 +217,13 @@ class MapProblem:
         g = self._grid()[idx_det[order]]
         d = PROBE_DISTANCE
         cls = ((g[:, 0] * d + g[:, 1] % d) * d + g[:, 2] % d) * 4 + g[:, 3]  # a block may hold several channels
-        for a, b in zip(cuts[:-1][sizes > DENSE_LIMIT], cuts[1:][sizes > DENSE_LIMIT]):
-            probe = np.unique(cls[a:b], return_inverse=True)[1]
-            inv[a:b] = _probed_inverse_diagonal(self.sp, Gs[a:b, a:b], probe)
+        big = list(zip(cuts[:-1][sizes > DENSE_LIMIT], cuts[1:][sizes > DENSE_LIMIT]))
+        eye = self.sp.identity
+        lus = in_threads(
+            lambda ab: factorise((Gs[ab[0] : ab[1], ab[0] : ab[1]] + eye(ab[1] - ab[0]) * INVERSE_RIDGE).tocsc()), big
+        )
+        for (a, b), lu in zip(big, lus):
+            inv[a:b] = _probed_inverse_diagonal(lu, np.unique(cls[a:b], return_inverse=True)[1])
         out = np.zeros(G.shape[0])
         out[order] = inv
         # the variance inflation: beyond UNDETERMINED, a direction of G is (nearly) null (a texel
@@ -291,20 +296,11 @@ def _stacked_inverse_diagonal(Gs, first, size: int) -> np.ndarray:
     return np.diagonal(np.linalg.inv(D), axis1=1, axis2=2).reshape(-1)
 
 
-def _probed_inverse_diagonal(sp, Gk, probe) -> np.ndarray:
-    """``diag(G⁻¹)`` of one connected block by probing: ``probe`` gives each scalar's class (no two
-    of a class within :data:`PROBE_DISTANCE` texels); one factorisation (SuperLU's symmetric
-    mode: G is positive definite, no pivoting), the classes solved :data:`PROBES_PER_SOLVE` at a
-    time."""
-    from scipy.sparse.linalg import splu
-
-    lu = splu(
-        (Gk + sp.identity(Gk.shape[0]) * INVERSE_RIDGE).tocsc(),
-        permc_spec="MMD_AT_PLUS_A",
-        diag_pivot_thresh=0.0,
-        options=dict(SymmetricMode=True),
-    )
-    diag = np.zeros(Gk.shape[0])
+def _probed_inverse_diagonal(lu, probe) -> np.ndarray:
+    """``diag(G⁻¹)`` of one connected block by probing, ``lu`` its factorisation: ``probe`` gives
+    each scalar's class (no two of a class within :data:`PROBE_DISTANCE` texels), the classes
+    solved :data:`PROBES_PER_SOLVE` at a time."""
+    diag = np.zeros(len(probe))
     for first in range(0, int(probe.max()) + 1, PROBES_PER_SOLVE):
         E = (probe[:, None] == first + np.arange(PROBES_PER_SOLVE)).astype(float)
         diag += np.sum(lu.solve(E) * E, axis=1)

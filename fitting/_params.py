@@ -611,6 +611,15 @@ class ParamSet:
                 u[..., a:b] = np.log(t) - np.log1p(-t)
         return u
 
+    def theta_from_u_np(self, u) -> np.ndarray:
+        """:meth:`theta_from_u` in NumPy float64 (host work, no dispatch)."""
+        kind, lo, hi = self._domains()
+        u = np.asarray(u, np.float64)
+        with np.errstate(over="ignore"):
+            pos = np.exp(np.minimum(u, 0.5 * np.log(np.finfo(np.float64).max)))
+            box = lo + (hi - lo) / (1.0 + np.exp(-u))
+        return np.where(kind == 1, pos, np.where(kind == 2, box, u))
+
     def check(self, theta, what="start value"):
         for p, v in zip(self.params, self.split(np.asarray(theta))):
             p.check(v, what)

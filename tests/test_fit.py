@@ -33,6 +33,9 @@ def test_parameter_names_and_domains():
     ]
     theta = ps.theta_of(scene)
     np.testing.assert_allclose(np.asarray(ps.theta_from_u(ps.u_from_theta(theta))), np.asarray(theta), rtol=1e-6)
+    u = np.linspace(-40.0, 40.0, 13)[:, None] + np.zeros(len(ps.labels))  # the host pair is the traced one
+    np.testing.assert_allclose(ps.theta_from_u_np(u), np.asarray(jax.vmap(ps.theta_from_u)(u)), rtol=1e-6)
+    np.testing.assert_allclose(ps.u_from_theta_np(theta), np.asarray(ps.u_from_theta(theta)), rtol=1e-6, atol=1e-6)
     with pytest.raises(ParamError, match="unknown parameter 'material.colour'"):
         ParamSet(["material.colour"], scene)
     with pytest.raises(ParamError, match="the scene has 1 point light"):
