@@ -65,6 +65,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from . import _native
+from ._util import keep
 
 TILE = 8
 _BIG = jnp.iinfo(jnp.int32).max
@@ -480,6 +481,29 @@ def _pixel_vertex_ids(faces, tri_id, valid):
     return [faces[:, k][t] for k in range(3)]
 
 
+def _face_planes(clip: Float[Array, "V 4"], faces: Int[Array, "F 3"]) -> list[Array]:
+    r"""Per face, the 13 coefficients the fragments need, each an ``[F]`` array: the three
+    homogeneous edge functions :math:`E_i = c_i + a_i x + b_i y` (the cofactors of the clip-space
+    matrix :math:`[x_k; y_k; w_k]`), the plane :math:`\sum_i E_i z_i` and the determinant
+    :math:`D = \sum_i E_i w_i` (constant over the face). Computed once per face and gathered per
+    pixel: 13 gathers by triangle id instead of 3 vertex-id gathers and 12 of clip components, and
+    no per-pixel cofactors (the shading of a diffuse render at 512² moved 640 bytes per pixel,
+    now 460; docs/performance.md)."""
+    ct = clip.T
+    X, Y, Z, Wc = ([ct[c][faces[:, j]] for j in range(3)] for c in range(4))
+    planes = []
+    for i in range(3):
+        a, b = (i + 1) % 3, (i + 2) % 3
+        planes += [X[a] * Y[b] - X[b] * Y[a], Wc[b] * Y[a] - Wc[a] * Y[b], X[b] * Wc[a] - X[a] * Wc[b]]
+    planes += [sum(planes[3 * i + q] * Z[i] for i in range(3)) for q in range(3)]
+    planes.append(
+        X[0] * (Y[1] * Wc[2] - Y[2] * Wc[1])
+        - Y[0] * (X[1] * Wc[2] - X[2] * Wc[1])
+        + Wc[0] * (X[1] * Y[2] - X[2] * Y[1])
+    )
+    return planes
+
+
 def fragments(
     clip: Float[Array, "V 4"], faces: Int[Array, "F 3"], tri_id: Int[Array, "K H W"], pixels: tuple | None = None
 ) -> Fragments:
@@ -490,48 +514,40 @@ def fragments(
     covered ones, gathered with their ids — is shaded at the cost of that subset.
 
     With :math:`E_i` the edge functions at the pixel centre (see the module docstring),
-    :math:`b_i = E_i / \sum_k E_k`, :math:`w = \sum_i b_i w_i` and depth :math:`= \sum_i b_i z_i / w`.
-    Gradients flow to ``clip`` (and so to vertices and camera); empty pixels get zeros, with
-    finite gradients (double ``where``).
+    :math:`b_i = E_i / \sum_k E_k`; since :math:`\sum_i E_i (x_i, y_i, w_i) = D\,(x, y, 1)` for
+    the face's clip-space determinant :math:`D`, :math:`w = \sum_i b_i w_i = D / \sum_k E_k` and
+    depth :math:`= \sum_i b_i z_i / w = \sum_i E_i z_i / D`. Gradients flow to ``clip`` (and so
+    to vertices and camera); empty pixels get zeros, with finite gradients (double ``where``).
     """
     clip = jnp.asarray(clip)
     dtype = clip.dtype
     shape = tri_id.shape
     k, h, w = shape[-3:]
     valid = tri_id >= 0
-    vid = _pixel_vertex_ids(faces, tri_id, valid)
-    ct = clip.T
-    # tx[c][k]: component c (x, y, z, w) of vertex k, per pixel
-    comp = [[ct[c][vid[j]].reshape(shape) for j in range(3)] for c in range(4)]
-    X, Y, Z, Wc = comp
+    t = jnp.where(valid, tri_id, 0).reshape(-1)
+    # materialised per face (else XLA fuses each plane into its gather and recomputes it per pixel
+    # from gathered vertices); 1-D gathers (see _pixel_vertex_ids)
+    g = [c[t].reshape(shape) for c in keep(*_face_planes(clip, faces))]
     if pixels is None:
         xs, ys = pixel_centres(h, w, dtype)
         x = xs[None, None, :]
         y = ys[None, :, None]
     else:
         x, y = (jnp.asarray(c, dtype)[None] for c in pixels)
-    es = []
-    for i in range(3):
-        a, b = (i + 1) % 3, (i + 2) % 3
-        cc = X[a] * Y[b] - X[b] * Y[a]
-        ax = Wc[b] * Y[a] - Wc[a] * Y[b]
-        ay = X[b] * Wc[a] - X[a] * Wc[b]
-        es.append(cc + x * ax + y * ay)
+    es = [g[3 * i] + x * g[3 * i + 1] + y * g[3 * i + 2] for i in range(3)]
     s = es[0] + es[1] + es[2]
     ok = valid & (s != 0)
     inv = 1.0 / jnp.where(ok, s, 1.0)
     bary = [jnp.where(ok, e * inv, 0.0) for e in es]
-    wv = bary[0] * Wc[0] + bary[1] * Wc[1] + bary[2] * Wc[2]
-    zv = bary[0] * Z[0] + bary[1] * Z[1] + bary[2] * Z[2]
-    okw = ok & (wv != 0)
-    depth = jnp.where(okw, zv / jnp.where(okw, wv, 1.0), 1.0)
-    det = (
-        X[0] * (Y[1] * Wc[2] - Y[2] * Wc[1])
-        - Y[0] * (X[1] * Wc[2] - X[2] * Wc[1])
-        + Wc[0] * (X[1] * Y[2] - X[2] * Y[1])
-    )
+    det = g[12]
+    okw = ok & (det != 0)
+    depth = jnp.where(okw, (g[9] + x * g[10] + y * g[11]) / jnp.where(okw, det, 1.0), 1.0)
     return Fragments(
-        tri_id=tri_id, bary=jnp.stack(bary, axis=-1), depth=depth, w=jnp.where(ok, wv, 0.0), front=valid & (det > 0)
+        tri_id=tri_id,
+        bary=jnp.stack(bary, axis=-1),
+        depth=depth,
+        w=jnp.where(ok, det * inv, 0.0),
+        front=valid & (det > 0),
     )
 
 
