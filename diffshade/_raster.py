@@ -526,7 +526,7 @@ def fragments(
     valid = tri_id >= 0
     t = jnp.where(valid, tri_id, 0).reshape(-1)
     # materialised per face (else XLA fuses each plane into its gather and recomputes it per pixel
-    # from gathered vertices); 1-D gathers (see _pixel_vertex_ids)
+    # from gathered vertices, as it did in the reverse pass); 1-D gathers (see _pixel_vertex_ids)
     g = [c[t].reshape(shape) for c in keep(*_face_planes(clip, faces))]
     if pixels is None:
         xs, ys = pixel_centres(h, w, dtype)
