@@ -575,9 +575,13 @@ def interpolate(
     ``faces = arange(3F).reshape(F, 3)``. ``bary``: the three barycentric components to use
     instead of ``frags.bary`` (the surface stage passes them materialised, each contiguous)."""
     valid = frags.tri_id >= 0
-    vid = _pixel_vertex_ids(faces, frags.tri_id, valid)
+    t = jnp.where(valid, frags.tri_id, 0).reshape(-1)
     shape = frags.tri_id.shape
     comps = attr if isinstance(attr, tuple) else tuple(jnp.asarray(attr).T)
     bary = [frags.bary[..., j] for j in range(3)] if bary is None else list(bary)
-    out = tuple(jnp.where(valid, sum(bary[j] * a[vid[j]].reshape(shape) for j in range(3)), 0.0) for a in comps)
+    corners = keep(*(a[faces[:, j]] for a in comps for j in range(3)))  # per face and corner
+    out = tuple(
+        jnp.where(valid, sum(bary[j] * corners[3 * c + j][t].reshape(shape) for j in range(3)), 0.0)
+        for c in range(len(comps))
+    )
     return out if isinstance(attr, tuple) else jnp.stack(out, axis=-1)
