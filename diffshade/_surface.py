@@ -126,8 +126,7 @@ def _affine(frags: Fragments, clip, faces) -> Fragments:
 
 def _lerp(frags: Fragments, faces, bary: Components) -> Callable[[Components], Components]:
     """Interpolation of per-vertex components to the fragments' pixels (materialised), with the
-    barycentrics ``bary`` (materialised once, each component contiguous: the interpolations then
-    read them rather than recompute them, and not strided)."""
+    barycentrics ``bary`` (each component on its own, not strided)."""
     return lambda attr: keep(*interpolate(tuple(attr), faces, frags, bary))
 
 
@@ -152,7 +151,9 @@ def surface_points(
     clip = scene.camera.world_to_clip(mesh.vertices) if clip is None else clip
     if raster.interpolation == "affine":
         frags = _affine(frags, clip, mesh.faces)
-    bary = keep(*(frags.bary[..., j] for j in range(3)))
+    # not materialised: each consumer recomputing b_i = E_i / ΣE from the materialised edge functions
+    # costs less than writing and reading three more [H, W] arrays (full render -2 to -9 %)
+    bary = tuple(frags.bary[..., j] for j in range(3))
     tid = frags.tri_id
     valid = tid >= 0
     safe_tid = jnp.where(valid, tid, 0)
