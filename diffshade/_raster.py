@@ -481,6 +481,13 @@ def _pixel_vertex_ids(faces, tri_id, valid):
     return [faces[:, k][t] for k in range(3)]
 
 
+def _per_face(faces, t) -> bool:
+    """Whether per-face tables gathered by triangle id (``t``: per pixel and layer) cost less than
+    working from each pixel's vertices: when the faces are no more than the pixels. At 81,920
+    faces and 256² the tables cost more than they save (full render +10-20 %)."""
+    return faces.shape[0] <= t.size
+
+
 def _face_planes(clip: Float[Array, "V 4"], faces: Int[Array, "F 3"]) -> list[Array]:
     r"""Per face, the 13 coefficients the fragments need, each an ``[F]`` array: the three
     homogeneous edge functions :math:`E_i = c_i + a_i x + b_i y` (the cofactors of the clip-space
@@ -525,9 +532,11 @@ def fragments(
     k, h, w = shape[-3:]
     valid = tri_id >= 0
     t = jnp.where(valid, tri_id, 0).reshape(-1)
-    # materialised per face (else XLA fuses each plane into its gather and recomputes it per pixel
-    # from gathered vertices, as it did in the reverse pass); 1-D gathers (see _pixel_vertex_ids)
-    g = [c[t].reshape(shape) for c in keep(*_face_planes(clip, faces))]
+    if _per_face(faces, t):  # materialised per face (else XLA fuses each plane into its gather
+        # and recomputes it per pixel from gathered vertices, as it did in the reverse pass)
+        g = [c[t].reshape(shape) for c in keep(*_face_planes(clip, faces))]
+    else:  # more faces than pixels: the planes of each pixel's own triangle
+        g = [c.reshape(shape) for c in _face_planes(clip, jnp.stack(_pixel_vertex_ids(faces, tri_id, valid), -1))]
     if pixels is None:
         xs, ys = pixel_centres(h, w, dtype)
         x = xs[None, None, :]
@@ -579,9 +588,11 @@ def interpolate(
     shape = frags.tri_id.shape
     comps = attr if isinstance(attr, tuple) else tuple(jnp.asarray(attr).T)
     bary = [frags.bary[..., j] for j in range(3)] if bary is None else list(bary)
-    corners = keep(*(a[faces[:, j]] for a in comps for j in range(3)))  # per face and corner
-    out = tuple(
-        jnp.where(valid, sum(bary[j] * corners[3 * c + j][t].reshape(shape) for j in range(3)), 0.0)
-        for c in range(len(comps))
-    )
+    if _per_face(faces, t):  # each component per face and corner, gathered by triangle id
+        corners = keep(*(a[faces[:, j]] for a in comps for j in range(3)))
+        at = [[corners[3 * c + j][t].reshape(shape) for j in range(3)] for c in range(len(comps))]
+    else:  # more faces than pixels: through each pixel's vertex ids
+        vid = _pixel_vertex_ids(faces, frags.tri_id, valid)
+        at = [[a[vid[j]].reshape(shape) for j in range(3)] for a in comps]
+    out = tuple(jnp.where(valid, sum(bary[j] * a[j] for j in range(3)), 0.0) for a in at)
     return out if isinstance(attr, tuple) else jnp.stack(out, axis=-1)

@@ -11,7 +11,7 @@ from conftest import check_grads, shared_mesh_dir
 from reference import brute_force
 
 import diffshade as ds
-from diffshade import _native
+from diffshade import _native, _raster
 
 BACKENDS = [
     "jax",
@@ -237,8 +237,29 @@ def _interior(frags, margin=0.05):
     return np.asarray((frags.tri_id[0] >= 0) & (jnp.min(frags.bary[0], -1) > margin))
 
 
-def test_fragments_gradients_match_finite_differences():
-    # d(barycentrics, depth)/d(vertices, camera) at interior pixels, forward and reverse mode.
+def test_per_face_and_per_pixel_fragments_agree(monkeypatch):
+    # Fragments and interpolation through per-face tables gathered by triangle id (faces no more
+    # than pixels) or from each pixel's own vertices (more faces than pixels): the same values.
+    m = trimesh.creation.icosphere(subdivisions=2)
+    v = jnp.asarray(m.vertices, jnp.float64)
+    f = jnp.asarray(m.faces)
+    clip = camera(32).world_to_clip(v)
+    ids = ds.visibility(clip, f, (32, 32), 2)
+    out = {}
+    for per_face in (True, False):
+        monkeypatch.setattr(_raster, "_per_face", lambda faces, t, pf=per_face: pf)
+        fr = ds.fragments(clip, f, ids)
+        out[per_face] = (fr.bary, fr.depth, fr.w, fr.front, ds.interpolate(v, f, fr))
+    assert (np.asarray(ids[1]) >= 0).sum() > 100
+    for a, b in zip(out[True], out[False]):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("per_face", [True, False])
+def test_fragments_gradients_match_finite_differences(per_face, monkeypatch):
+    # d(barycentrics, depth)/d(vertices, camera) at interior pixels, forward and reverse mode,
+    # through per-face tables and from each pixel's vertices.
+    monkeypatch.setattr(_raster, "_per_face", lambda faces, t: per_face)
     m = trimesh.creation.icosphere(subdivisions=1)
     v0 = jnp.asarray(m.vertices, jnp.float64)
     f = jnp.asarray(m.faces)
