@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._util import as_float_array
+from ._util import as_float_array, keep
 
 WRAPS = ("repeat", "clamp")
 FILTERS = ("trilinear", "bilinear")
@@ -188,8 +188,8 @@ def pixel_derivatives(per_face, uvf, tri_id, w_pix, u, v, width: int, height: in
     cols = [sum(ax[i] * uvf[:, i, c] for i in range(3)) for c in range(2)]
     cols += [sum(ay[i] * uvf[:, i, c] for i in range(3)) for c in range(2)]
     cols += [ax[0] + ax[1] + ax[2], ay[0] + ay[1] + ay[2], det]
-    g = jnp.stack(cols, -1)[tid]
-    Axu, Axv, Ayu, Ayv, Sx, Sy, dt = (g[..., k] for k in range(7))
+    t = tid.reshape(-1)  # 1-D gathers of materialised per-face columns, not a row gather of seven
+    Axu, Axv, Ayu, Ayv, Sx, Sy, dt = (c[t].reshape(tid.shape) for c in keep(*cols))
     ok = valid & (dt != 0)
     scale = jnp.where(ok, w_pix / jnp.where(ok, dt, 1.0), 0.0)
     sx, sy = scale * (2.0 / width), scale * (2.0 / height)
