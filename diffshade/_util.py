@@ -40,7 +40,7 @@ def keep(*xs: ArrayLike) -> tuple[Array, ...]:
     """Materialise ``xs`` (returned as a tuple): an XLA fusion boundary, transparent to jit, grad, jvp and vmap.
 
     Without it XLA's CPU backend fuses shared producers (a light's specular power, the
-    barycentrics, a vertex colour) into every consumer and recomputes them there — per colour
+    interpolated normal, a vertex colour) into every consumer and recomputes them there — per colour
     channel, and per pixel inside the gathers of the interpolation, in scalar (unvectorised)
     code: the Gouraud render took 57 ms at 256², 3.3 ms with these boundaries.
     ``lax.optimization_barrier`` does not stop it on CPU (it is removed before fusion), and XLA
