@@ -582,7 +582,7 @@ def interpolate(
     tuple of ``[K, H, W]``, the form the shading stages work in). ``faces`` index ``attr``'s rows:
     per-corner attributes (``[3F]``, face-major) are interpolated with
     ``faces = arange(3F).reshape(F, 3)``. ``bary``: the three barycentric components to use
-    instead of ``frags.bary`` (the surface stage passes them materialised, each contiguous)."""
+    instead of ``frags.bary`` (the surface stage passes its own, each component on its own)."""
     valid = frags.tri_id >= 0
     t = jnp.where(valid, frags.tri_id, 0).reshape(-1)
     shape = frags.tri_id.shape
