@@ -474,10 +474,14 @@ def visibility_passes(
     return _visibility_jax(setup, h, w, layers, tile_capacity or tc, pair_capacity or pc)
 
 
-def _pixel_vertex_ids(faces, tri_id, valid):
-    """Vertex index ``k`` of each pixel's triangle, as three flat ``[N]`` arrays (1-D gathers are
-    much faster than row gathers on XLA's CPU backend)."""
-    t = jnp.where(valid, tri_id, 0).reshape(-1)
+def _flat_ids(tri_id):
+    """The triangle ids flat, an empty pixel's as 0 (its results are masked by ``tri_id >= 0``)."""
+    return jnp.where(tri_id >= 0, tri_id, 0).reshape(-1)
+
+
+def _pixel_vertex_ids(faces, t):
+    """Vertex index ``k`` of each pixel's triangle (``t``: :func:`_flat_ids`), as three flat
+    ``[N]`` arrays (1-D gathers are much faster than row gathers on XLA's CPU backend)."""
     return [faces[:, k][t] for k in range(3)]
 
 
@@ -531,12 +535,12 @@ def fragments(
     shape = tri_id.shape
     k, h, w = shape[-3:]
     valid = tri_id >= 0
-    t = jnp.where(valid, tri_id, 0).reshape(-1)
+    t = _flat_ids(tri_id)
     if _per_face(faces, t):  # materialised per face (else XLA fuses each plane into its gather
         # and recomputes it per pixel from gathered vertices, as it did in the reverse pass)
         g = [c[t].reshape(shape) for c in keep(*_face_planes(clip, faces))]
     else:  # more faces than pixels: the planes of each pixel's own triangle
-        g = [c.reshape(shape) for c in _face_planes(clip, jnp.stack(_pixel_vertex_ids(faces, tri_id, valid), -1))]
+        g = [c.reshape(shape) for c in _face_planes(clip, jnp.stack(_pixel_vertex_ids(faces, t), -1))]
     if pixels is None:
         xs, ys = pixel_centres(h, w, dtype)
         x = xs[None, None, :]
@@ -584,7 +588,7 @@ def interpolate(
     ``faces = arange(3F).reshape(F, 3)``. ``bary``: the three barycentric components to use
     instead of ``frags.bary`` (the surface stage passes its own, each component on its own)."""
     valid = frags.tri_id >= 0
-    t = jnp.where(valid, frags.tri_id, 0).reshape(-1)
+    t = _flat_ids(frags.tri_id)
     shape = frags.tri_id.shape
     comps = attr if isinstance(attr, tuple) else tuple(jnp.asarray(attr).T)
     bary = [frags.bary[..., j] for j in range(3)] if bary is None else list(bary)
@@ -592,7 +596,7 @@ def interpolate(
         corners = keep(*(a[faces[:, j]] for a in comps for j in range(3)))
         at = [[corners[3 * c + j][t].reshape(shape) for j in range(3)] for c in range(len(comps))]
     else:  # more faces than pixels: through each pixel's vertex ids
-        vid = _pixel_vertex_ids(faces, frags.tri_id, valid)
+        vid = _pixel_vertex_ids(faces, t)
         at = [[a[vid[j]].reshape(shape) for j in range(3)] for a in comps]
     out = tuple(jnp.where(valid, sum(bary[j] * a[j] for j in range(3)), 0.0) for a in at)
     return out if isinstance(attr, tuple) else jnp.stack(out, axis=-1)

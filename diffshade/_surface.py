@@ -26,7 +26,7 @@ from jaxtyping import Array, Bool, Float, Int
 from . import _shade as S
 from ._materials import _COMPOSITING_FIELDS, _MATERIAL_FIELDS, _material_at
 from ._options import Raster, RenderOptions
-from ._raster import Fragments, _pixel_vertex_ids, fragments, interpolate
+from ._raster import Fragments, _flat_ids, _pixel_vertex_ids, fragments, interpolate
 from ._scene import SCALAR_MAPPED, Material, Scene
 from ._texture import footprint, level_of_detail, pixel_derivatives, sample
 from ._util import keep
@@ -116,7 +116,7 @@ def _affine(frags: Fragments, clip, faces) -> Fragments:
     """The fragments with screen-space weights :math:`\\lambda_i = b_i w_i / \\sum_j b_j w_j` (what
     perspective-correct interpolation undoes; :math:`w_i` the clip w of the triangle's vertices)."""
     tid = frags.tri_id
-    vid = _pixel_vertex_ids(faces, tid, tid >= 0)
+    vid = _pixel_vertex_ids(faces, _flat_ids(tid))
     wv = [clip[:, 3][vid[j]].reshape(tid.shape) * frags.bary[..., j] for j in range(3)]
     sw = wv[0] + wv[1] + wv[2]
     ok = sw != 0

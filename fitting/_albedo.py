@@ -317,7 +317,7 @@ class _Faces:
         new = [
             k
             for k, g in enumerate(self.groups)
-            if free[g].any() and not (self.faces[k] and self.faces[k].covers(free[g]))
+            if free[g].any() and not (self.faces[k] is not None and self.faces[k].covers(free[g]))
         ]
         for k, face in zip(new, in_threads(lambda k: _Face(self.sp, self.blocks[k], free[self.groups[k]]), new)):
             self.faces[k] = face

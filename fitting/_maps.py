@@ -218,11 +218,8 @@ class MapProblem:
         d = PROBE_DISTANCE
         cls = ((g[:, 0] * d + g[:, 1] % d) * d + g[:, 2] % d) * 4 + g[:, 3]  # a block may hold several channels
         big = list(zip(cuts[:-1][sizes > DENSE_LIMIT], cuts[1:][sizes > DENSE_LIMIT]))
-        eye = self.sp.identity
-        lus = in_threads(
-            lambda ab: factorise((Gs[ab[0] : ab[1], ab[0] : ab[1]] + eye(ab[1] - ab[0]) * INVERSE_RIDGE).tocsc()), big
-        )
-        for (a, b), lu in zip(big, lus):
+        ridged = [(Gs[a:b, a:b] + self.sp.identity(b - a) * INVERSE_RIDGE).tocsc() for a, b in big]
+        for (a, b), lu in zip(big, in_threads(factorise, ridged)):
             inv[a:b] = _probed_inverse_diagonal(lu, np.unique(cls[a:b], return_inverse=True)[1])
         out = np.zeros(G.shape[0])
         out[order] = inv
