@@ -28,7 +28,7 @@ from ._materials import _COMPOSITING_FIELDS, _MATERIAL_FIELDS, _material_at
 from ._options import Raster, RenderOptions
 from ._raster import Fragments, _flat_ids, _pixel_vertex_ids, fragments, interpolate
 from ._scene import SCALAR_MAPPED, Material, Scene
-from ._texture import footprint, level_of_detail, pixel_derivatives, sample
+from ._texture import footprint, level_of_detail, pixel_derivatives, sample_channels
 from ._util import keep
 
 Components = tuple  # a vector or colour as a tuple of same-shaped arrays, one per component
@@ -279,8 +279,7 @@ def _texels(scene: Scene, need: Needs, frags: Fragments, bary, clip, mids) -> di
                 raise ValueError(f"Material.{f}_map must have one channel, got {t.channels}")
             if id(t) not in done:
                 lod = level_of_detail(t, *deriv) if t.filter == "trilinear" else None
-                smp = sample(t, u, v, lod)
-                done[id(t)] = keep(*(smp[..., c] for c in range(t.channels)))
+                done[id(t)] = keep(*sample_channels(t, u, v, lod))
             c = done[id(t)]
             c = c if (f in SCALAR_MAPPED or len(c) == 3) else c * 3
             if mids is not None:

@@ -86,36 +86,50 @@ def mip_pyramid(texels) -> list:
     return out
 
 
-def _packed(levels):
-    """The levels flattened into one ``[N, C]`` array, with each level's offset, width, height."""
-    flat = jnp.concatenate([lv.reshape(-1, lv.shape[-1]) for lv in levels])
-    sizes = np.array([[lv.shape[1], lv.shape[0]] for lv in levels], np.int32)
-    offs = np.concatenate([[0], np.cumsum(sizes[:, 0] * sizes[:, 1])[:-1]]).astype(np.int32)
-    return flat, offs, sizes
-
-
-def _bilinear(flat, off, w, h, u, v, wrap: str):
-    """Bilinear samples ``[..., C]`` of the level at ``off`` (``w × h`` texels) at ``(u, v)``.
-    Repeating, the coordinates are wrapped into [0, 1) first, so that a tap's index leaves the
-    level by one texel at most and wraps with a select: an integer remainder by a level's size
-    that varies per pixel (trilinear) does not vectorise."""
+def _padded(level, wrap: str):
+    """A level with a border of one texel on each side: the texels a tap one step outside the
+    level reads (the opposite edge repeating, the edge itself clamping)."""
     if wrap == "repeat":
-        u, v = u - jnp.floor(u), v - jnp.floor(v)
+        p = jnp.concatenate([level[-1:], level, level[:1]], axis=0)
+        return jnp.concatenate([p[:, -1:], p, p[:, :1]], axis=1)
+    return jnp.pad(level, ((1, 1), (1, 1), (0, 0)), mode="edge")
+
+
+def _pick(index, values):
+    """``values[index]`` for a short static list of ints, as a chain of selects: elementwise, where a
+    gather from a small table would be a scalar loop into which XLA fuses (and recomputes)
+    everything that computes the index."""
+    out = jnp.full(jnp.shape(index), values[0], jnp.int32)
+    for k in range(1, len(values)):
+        out = jnp.where(index == k, values[k], out)
+    return out
+
+
+def _taps(u, v, w, h, off):
+    """Where a bilinear sample of a padded level (``w × h`` texels at ``off``; ints, or arrays
+    per point) reads: the flat index of its top-left tap, the row stride, and the weights
+    ``(fx, fy)``. The taps are ``i``, ``i + 1``, ``i + stride``, ``i + stride + 1``. Coordinates
+    are wrapped into [0, 1] (repeating) by the caller; a tap outside the level reads the border."""
     x = u * w - 0.5
     y = (1.0 - v) * h - 0.5
     x0f, y0f = jnp.floor(x), jnp.floor(y)
-    fx, fy = (x - x0f)[..., None], (y - y0f)[..., None]
-    x0, y0 = x0f.astype(jnp.int32), y0f.astype(jnp.int32)
-    if wrap == "repeat":
-        xs = (jnp.where(x0 < 0, x0 + w, x0), jnp.where(x0 + 1 >= w, x0 + 1 - w, x0 + 1))
-        ys = (jnp.where(y0 < 0, y0 + h, y0), jnp.where(y0 + 1 >= h, y0 + 1 - h, y0 + 1))
-    else:
-        xs = (jnp.clip(x0, 0, w - 1), jnp.clip(x0 + 1, 0, w - 1))
-        ys = (jnp.clip(y0, 0, h - 1), jnp.clip(y0 + 1, 0, h - 1))
-    t = [[flat[off + ys[j] * w + xs[i]] for i in range(2)] for j in range(2)]
-    top = t[0][0] + fx * (t[0][1] - t[0][0])
-    bottom = t[1][0] + fx * (t[1][1] - t[1][0])
-    return top + fy * (bottom - top)
+    fx, fy = x - x0f, y - y0f
+    # clipped as floats (no integer overflow): beyond the border both taps read the edge texel
+    ix = jnp.clip(x0f, -1.0, w - 1).astype(jnp.int32) + 1
+    iy = jnp.clip(y0f, -1.0, h - 1).astype(jnp.int32) + 1
+    stride = w + 2
+    return off + iy * stride + ix, stride, fx, fy
+
+
+def _blend(columns, i, stride, fx, fy):
+    """The bilinear samples, one per channel column, at the taps of :func:`_taps`."""
+    out = []
+    for col in columns:
+        t00, t01, t10, t11 = col[i], col[i + 1], col[i + stride], col[i + stride + 1]
+        top = t00 + fx * (t01 - t00)
+        bottom = t10 + fx * (t11 - t10)
+        out.append(top + fy * (bottom - top))
+    return out
 
 
 def level_of_detail(tex: Texture, duv_dx, duv_dy):
@@ -132,19 +146,39 @@ def level_of_detail(tex: Texture, duv_dx, duv_dy):
 def sample(tex: Texture, u, v, lod=None) -> Float[Array, "... C"]:
     """The map at coordinates ``(u, v)`` (arrays of one shape) with the level of detail ``lod``
     (:func:`level_of_detail`; needed by ``filter = "trilinear"``, ignored by ``"bilinear"``)."""
-    levels = tex.levels()
-    flat, offs, sizes = _packed(levels)
-    if len(levels) == 1 or lod is None:
-        return _bilinear(flat, 0, int(sizes[0, 0]), int(sizes[0, 1]), u, v, tex.wrap)
+    return jnp.stack(sample_channels(tex, u, v, lod), axis=-1)
+
+
+def sample_channels(tex: Texture, u, v, lod=None) -> tuple:
+    """:func:`sample`, one array per channel.
+
+    Layout (it decides the speed on a CPU): each level gets a border of one texel
+    (:func:`_padded`), so that no tap needs a wrap or clamp of its own, and each channel of the
+    padded levels is one flat column. Every tap is a 1-D gather from a column: XLA's CPU
+    gather of a row of C values costs several times C gathers of one. The indices and weights
+    are materialised once and shared by the channels."""
+    trilinear = tex.filter == "trilinear" and lod is not None
+    levels = tex.levels() if trilinear else [tex.texels]
+    pads = [_padded(lv, tex.wrap) for lv in levels]
+    columns = [jnp.concatenate([p[..., c].reshape(-1) for p in pads]) for c in range(tex.channels)]
+    sizes = [(int(lv.shape[1]), int(lv.shape[0])) for lv in levels]
+    offs = np.concatenate([[0], np.cumsum([(w + 2) * (h + 2) for w, h in sizes])[:-1]]).astype(int)
+    if tex.wrap == "repeat":
+        u, v = u - jnp.floor(u), v - jnp.floor(v)
+    if not trilinear:
+        return tuple(_blend(columns, *keep(*_taps(u, v, sizes[0][0], sizes[0][1], 0))))
     top = len(levels) - 1
     d = jnp.clip(lod, 0.0, float(top))
     lo = jnp.minimum(jnp.floor(d).astype(jnp.int32), top)
     hi = jnp.minimum(lo + 1, top)
-    frac = (d - lo)[..., None]
-    offs_j, w_j, h_j = jnp.asarray(offs), jnp.asarray(sizes[:, 0]), jnp.asarray(sizes[:, 1])
-    a = _bilinear(flat, offs_j[lo], w_j[lo], h_j[lo], u, v, tex.wrap)
-    b = _bilinear(flat, offs_j[hi], w_j[hi], h_j[hi], u, v, tex.wrap)
-    return a + frac * (b - a)
+
+    def taps(level):
+        w, h = _pick(level, [s[0] for s in sizes]), _pick(level, [s[1] for s in sizes])
+        return _taps(u, v, w, h, _pick(level, [int(o) for o in offs]))
+
+    shared = keep(*taps(lo), *taps(hi), d - lo)
+    a, b, frac = _blend(columns, *shared[:4]), _blend(columns, *shared[4:8]), shared[8]
+    return tuple(x + frac * (y - x) for x, y in zip(a, b))
 
 
 def texture_from_image(path, encoding: str | None = None, wrap: str = "repeat", filter: str = "trilinear") -> Texture:
@@ -226,7 +260,7 @@ def pyramid_operator(height: int, width: int, filter: str = "trilinear"):
 
 
 def _bilinear_taps(off, w, h, u, v, wrap: str):
-    """The four packed indices and weights of :func:`_bilinear` (NumPy, float64)."""
+    """The four indices (levels packed without borders) and weights of a bilinear sample (NumPy, float64)."""
     x = u * w - 0.5
     y = (1.0 - v) * h - 0.5
     x0, y0 = np.floor(x), np.floor(y)
