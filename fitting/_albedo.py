@@ -363,6 +363,7 @@ class _AlbedoSolver:
         pset = ap.prob.pset
         self.ap, self.rtol, self.verbose = ap, rtol, verbose
         self._gram = None
+        self.unsettled = None  # the last proximal round's share of the cost, where the rounds ran out
         self.y = ap.target()
         self.Lp = ap.prior() if smoothness > 0 else None
         self.lo = np.concatenate([np.full(p.size, p.box[0]) for p in pset.params])[ap.other]
@@ -425,6 +426,7 @@ class _AlbedoSolver:
             rho, rounds = np.maximum(rho, s2), 0
             face = _Faces(self.ap.sp, G, rho, seen)
             x, cost = start, self.data(start, A, b)  # the step the noise threw is not a start
+        self.unsettled = None
         for _ in range(PROXIMAL_ROUNDS):
             x, face = self._newton(x, x.copy(), A, b, seen, rho, face)
             rounds += 1
@@ -435,6 +437,8 @@ class _AlbedoSolver:
             tight = np.maximum(TIGHT * info, s2 if noisy else 0.0)
             if np.any(rho > 10 * tight):  # a new factorisation pays for itself
                 rho, face, rounds = tight, _Faces(self.ap.sp, G, tight, seen), 0
+        else:  # the last round still lowered the cost: what share of it
+            self.unsettled = (last - cost) / max(last, 1e-300)
         g = self.grad(x, A, b)
         free = seen & ~(((x <= 0) & (g > 0)) | ((x >= 1) & (g < 0)))
         idx = np.flatnonzero(free)
@@ -710,6 +714,13 @@ def _albedo_result(ap, solver, red: _Reduced, theta0, converged, max_steps, nois
     successful, msg = verdict(
         converged, "" if converged else f"no convergence in {max_steps} steps", ratio, sigma, source, n2
     )
+    if not successful and solver.unsettled is not None:  # not a local minimum: the rounds ran out
+        converged = False
+        msg = (
+            f"the residual is {ratio:.3g}× the noise (σ = {sigma:.3g}, {source}), and the bounded solve's "
+            f"{PROXIMAL_ROUNDS} proximal rounds ended with the cost still falling ({solver.unsettled:.2g} of "
+            "it in the last round): directions the images barely see had not settled"
+        )
     stderr = np.full(len(red.th), np.inf)
     gauges, undetermined = [], []
     if len(ap.other):
