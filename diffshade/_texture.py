@@ -166,7 +166,9 @@ def sample_channels(tex: Texture, u, v, lod=None) -> tuple:
     if tex.wrap == "repeat":
         u, v = u - jnp.floor(u), v - jnp.floor(v)
     if not trilinear:
+        u, v = keep(u, v)  # (else each tap's index and weight recomputes the interpolation)
         return tuple(_blend(columns, *keep(*_taps(u, v, sizes[0][0], sizes[0][1], 0))))
+    u, v, lod = keep(u, v, lod)
     top = len(levels) - 1
     d = jnp.clip(lod, 0.0, float(top))
     lo = jnp.minimum(jnp.floor(d).astype(jnp.int32), top)
