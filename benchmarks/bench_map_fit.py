@@ -6,10 +6,16 @@ errors (noisy), compile and solve time.
 
     python benchmarks/bench_map_fit.py --cases 6 --res 16 32 --size 64
     python benchmarks/bench_map_fit.py --cases 3 --res 256 --size 256 --views 4   # issue 35's floor
+    python benchmarks/bench_map_fit.py --meshes sphere fuze rabbit --res 64 128 --size 128 --max-views 8
+
+``--meshes``: the default sphere, and the vendored ``fuze.obj`` (its authored texture coordinates)
+and ``rabbit.obj`` (none in the file: longitude and height about its centre), each scaled into the
+unit sphere.
 """
 
 import argparse
 import dataclasses
+import os
 import time
 
 import jax
@@ -21,20 +27,40 @@ import numpy as np  # noqa: E402
 import diffshade as ds  # noqa: E402
 import fitting  # noqa: E402
 
+MESHES = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests", "data", "meshes")
 
-def case(seed, res, size, filt, views=None):
+
+def _longitude_latitude(v):
+    """Texture coordinates from the direction of each vertex: longitude and height."""
+    d = v / np.linalg.norm(v, axis=1, keepdims=True)
+    return np.stack([np.arctan2(d[:, 1], d[:, 0]) / (2 * np.pi) + 0.5, 0.5 + 0.5 * d[:, 2]], 1)
+
+
+def mesh_for(name, sphere):
+    """The mesh of a case, within the unit sphere about the origin: the default sphere, or a
+    vendored mesh (``fuze``: its authored texture coordinates; ``rabbit``: none in the file, so
+    longitude and height about its centre)."""
+    if name == "sphere":
+        v = np.asarray(sphere.vertices)
+        return ds.Mesh(sphere.vertices, sphere.faces, normals=sphere.normals, uv=_longitude_latitude(v))
+    m = ds.load_mesh(os.path.join(MESHES, f"{name}.obj"))
+    v = np.asarray(m.vertices, np.float64)
+    v = v - 0.5 * (v.min(0) + v.max(0))
+    v = v / np.linalg.norm(v, axis=1).max()
+    uv = m.uv if m.uv is not None else _longitude_latitude(v)
+    return ds.Mesh(v, m.faces, normals=m.normals, uv=uv)
+
+
+def case(seed, res, size, filt, views=None, mesh="sphere", max_views=4):
     rng = np.random.default_rng(seed)
     scene, opts = ds.default_scene()
-    m = scene.mesh
-    v = np.asarray(m.vertices)
-    uv = np.stack([np.arctan2(v[:, 1], v[:, 0]) / (2 * np.pi) + 0.5, 0.5 + 0.5 * v[:, 2]], 1)
-    mesh = ds.Mesh(m.vertices, m.faces, normals=m.normals, uv=uv)
+    mesh = mesh_for(mesh, scene.mesh)
     truth = rng.uniform(0.05, 0.95, (res, res, 3))
     cam = dataclasses.replace(scene.camera, width=size, height=size)
     opts = opts.with_keys(shading="phong")
     true_mat = dataclasses.replace(scene.material, diffuse_map=ds.Texture(truth, filter=filt))
     start_mat = dataclasses.replace(scene.material, diffuse_map=ds.Texture(np.full(truth.shape, 0.5), filter=filt))
-    n_views = int(rng.integers(2, 5)) if views is None else views
+    n_views = int(rng.integers(2, max_views + 1)) if views is None else views
     starts, clean = [], []
     for _ in range(n_views):
         az, el = rng.uniform(0, 2 * np.pi), rng.uniform(-0.4, 0.6)
@@ -77,19 +103,25 @@ def main():
     ap.add_argument("--res", type=int, nargs="+", default=[16, 32])
     ap.add_argument("--size", type=int, default=64)
     ap.add_argument("--filter", default="bilinear")
-    ap.add_argument("--views", type=int, default=None, help="views per case (default: 2-4 at random)")
+    ap.add_argument("--views", type=int, default=None, help="views per case (default: 2 to --max-views at random)")
+    ap.add_argument("--max-views", type=int, default=4)
+    ap.add_argument("--meshes", nargs="+", default=["sphere"], choices=["sphere", "fuze", "rabbit"])
     a = ap.parse_args()
-    for res in a.res:
-        for seed in range(a.cases):
-            o = case(1000 + seed, res, a.size, a.filter, a.views)
-            for kind, d in o.items():
-                print(
-                    f"map {res}² seed {seed} {d['views']} views {kind:10s}: determined {d['determined']:.3f}, "
-                    f"max err {d['max_err']:.2e} (beyond 1e-4: {d['off']:.4f}), within 3 s.e. {d['within3']:.4f}, successful {d['successful']}, "
-                    f"compile {d['compile']:.2f} s, solve {d['solve']:.2f} s, wall {d['wall']:.2f} s"
-                    + (f" ({d['result']})" if not d["successful"] else ""),
-                    flush=True,
-                )
+    for mesh in a.meshes:
+        for res in a.res:
+            for seed in range(a.cases):
+                report(mesh, res, seed, case(1000 + seed, res, a.size, a.filter, a.views, mesh, a.max_views))
+
+
+def report(mesh, res, seed, o):
+    for kind, d in o.items():
+        print(
+            f"{mesh} map {res}² seed {seed} {d['views']} views {kind:10s}: determined {d['determined']:.3f}, "
+            f"max err {d['max_err']:.2e} (beyond 1e-4: {d['off']:.4f}), within 3 s.e. {d['within3']:.4f}, successful {d['successful']}, "
+            f"compile {d['compile']:.2f} s, solve {d['solve']:.2f} s, wall {d['wall']:.2f} s"
+            + (f" ({d['result']})" if not d["successful"] else ""),
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

@@ -219,6 +219,7 @@ NOISY = 0.01  # the share of a large block a first step throws against the bound
 TIGHT = 1e-13  # the ridge of the rounds after the first, relative as RIDGE
 BLOCK = 1000  # scalars of a connected block of G factorised on its own (and of a block the noise ridge serves)
 CAPACITY = 32  # scalars a face may differ by from the factorised one before it is factorised anew
+JUDGED = 0.05  # the share of the residuals' degrees of freedom a fit must leave for its verdict to judge it
 
 
 class _Face:
@@ -709,12 +710,20 @@ def _albedo_result(ap, solver, red: _Reduced, theta0, converged, max_steps, nois
     kappa = difference_leverage(prob, red) if noise is None else 1.0
     sigma, source = noise_level(prob, prob.residual_images(r), noise, leverage=kappa)
     r2 = np.asarray(r)[prob.two_sided()]  # the verdict's χ²: two-sided entries (fitting._report.candidate)
-    s2 = float(r2 @ r2) / max(n2 - (effective_dof(red) + len(ap.other)), 1)
+    taken = effective_dof(red) + len(ap.other)
+    s2 = float(r2 @ r2) / max(n2 - taken, 1)
     ratio = float(np.sqrt(s2) / max(sigma, 1e-300))
     successful, msg = verdict(
         converged, "" if converged else f"no convergence in {max_steps} steps", ratio, sigma, source, n2
     )
-    if not successful and solver.unsettled is not None:  # not a local minimum: the rounds ran out
+    if n2 - taken < JUDGED * n2:  # (the residual's variance then rests on a few degrees of freedom)
+        successful = False
+        msg = (
+            f"the fit cannot be judged: the fitted {ap.what} take {min(taken, n2):.0f} of the {n2} residuals' "
+            f"degrees of freedom, and the {max(n2 - taken, 0):.3g} left cannot tell a misfit from the noise "
+            "(more or larger views, a coarser map or a smoothness prior leave more)"
+        )
+    elif not successful and solver.unsettled is not None:  # not a local minimum: the rounds ran out
         converged = False
         msg = (
             f"the residual is {ratio:.3g}× the noise (σ = {sigma:.3g}, {source}), and the bounded solve's "

@@ -292,3 +292,14 @@ def test_a_solve_whose_rounds_ran_out_says_so(monkeypatch):
     r = fitting.fit(starts[0], opts, fitting.Observations(targets, views=starts), ["material.diffuse_map"])
     assert not r.successful and not r.converged
     assert "proximal rounds ended with the cost still falling" in r.result and "local minimum" not in r.result
+
+
+def test_a_map_that_takes_every_degree_of_freedom_cannot_be_judged():
+    """One 24² view of a 64² map: the texels it samples are as many as its residuals, so the
+    residual says nothing about misfit against noise. The verdict says that. Before, it rested on
+    the one degree of freedom it counted as left: this fit was called successful, and an 8-bit
+    fit of a rabbit (bench_map_fit.py) a local minimum at 129× the noise."""
+    starts, targets, truth, opts = _views(64, "bilinear", size=24, azimuths=(0,))
+    r = fitting.fit(starts[0], opts, fitting.Observations(targets, views=starts), ["material.diffuse_map"])
+    assert not r.successful
+    assert "cannot be judged" in r.result and "degrees of freedom" in r.result and "local minimum" not in r.result
