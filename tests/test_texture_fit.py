@@ -20,10 +20,18 @@ from fitting._problem import FitError, Problem
 @pytest.mark.parametrize("filt", ["trilinear", "bilinear"])
 @pytest.mark.parametrize("wrap", ["repeat", "clamp"])
 def test_sample_weights_is_the_sampler_as_a_matrix(filt, wrap):
+    """The sparse weights built in numpy with an integer remainder or clip per tap, against the
+    renderer's sampler (which reads a one-texel border instead, and clamps far coordinates before
+    converting them to integers): odd sizes (whose pyramid repeats rows), coordinates on, within
+    a hair of and far beyond the edges, every level of detail."""
     rng = np.random.default_rng(3)
+    edges = [0.0, 1.0, -1e-9, 1 + 1e-9, 0.05, 0.97, -0.3, 1.3, -2.9, 3.01]
+    far = [-1e6, 1e6, -1e9, 4e9] if wrap == "clamp" else [-7.25, 12.5]
     for h, w in [(13, 7), (16, 16), (1, 5)]:
         t = ds.Texture(rng.random((h, w, 3)), wrap=wrap, filter=filt)
-        u, v, lod = rng.uniform(-1, 2, 300), rng.uniform(-1, 2, 300), rng.uniform(-1, 6, 300)
+        coords = np.concatenate([edges, far, rng.uniform(-1, 2, 16)])
+        u, v = (c.ravel() for c in np.meshgrid(coords, coords[::-1]))
+        lod = rng.uniform(-1, 6, u.shape)
         ref = np.asarray(ds.sample(t, jnp.asarray(u), jnp.asarray(v), jnp.asarray(lod)))
         W = ds.sample_weights(t, u, v, lod)
         np.testing.assert_allclose(W @ np.asarray(t.texels).reshape(-1, 3), ref, atol=1e-14)
