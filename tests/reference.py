@@ -25,7 +25,7 @@ def brute_force(clip, faces, h, w, layers=1, chunk=512, tie_eps=1e-7, depth_eps=
     X, Y = np.meshgrid(xs, ys)
     p = np.stack([X.ravel(), Y.ravel(), np.ones(X.size)], axis=1)  # N 3
     n = p.shape[0]
-    depth_all, id_all = [], []
+    depth_all = []
     amb = np.zeros(n, bool)
     for f0 in range(0, len(faces), chunk):
         fc = faces[f0 : f0 + chunk]
@@ -48,13 +48,16 @@ def brute_force(clip, faces, h, w, layers=1, chunk=512, tie_eps=1e-7, depth_eps=
         near_edge = good[None] & (np.abs(bmin) < tie_eps * (1 + np.abs(b).max(-1))) & (s > 0)
         near_clip = good[None] & np.all(b >= -tie_eps, -1) & (s > 0) & (np.abs(np.abs(z) - wv) < 1e-9 * np.abs(wv))
         amb |= np.any(near_edge | near_clip, axis=1)
-        depth_all.append(np.where(inside, d, np.inf))
-        id_all.append(np.broadcast_to(np.arange(f0, f0 + len(fc)), (n, len(fc))))
-    D = np.concatenate(depth_all, 1)
-    I = np.concatenate(id_all, 1)
-    order = np.lexsort((I, D), axis=1)[:, : layers + 1]
-    Ds = np.take_along_axis(D, order, 1)
-    Is = np.take_along_axis(I, order, 1)
+        pix, col = np.nonzero(inside)  # the fragments, as (pixel, depth, id) triples
+        depth_all.append((pix, d[pix, col], f0 + col))
+    # per pixel, the first K+1 fragments by (depth, id)
+    pix, D, I = (np.concatenate(x) for x in zip(*depth_all))
+    order = np.lexsort((I, D, pix))
+    pix, D, I = pix[order], D[order], I[order]
+    rank = np.arange(len(pix)) - np.searchsorted(pix, pix)  # position within its pixel's list
+    first = rank < layers + 1
+    Ds, Is = np.full((n, layers + 1), np.inf), np.zeros((n, layers + 1), np.int64)
+    Ds[pix[first], rank[first]], Is[pix[first], rank[first]] = D[first], I[first]
     ids = np.where(np.isfinite(Ds[:, :layers]), Is[:, :layers], -1)
     with np.errstate(invalid="ignore"):
         gaps = np.abs(np.diff(Ds, axis=1))

@@ -104,9 +104,10 @@ def test_shared_meshes_match_brute_force(name, meshes_dir):
         eye=[1.2, 0.9, 2.4], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.1, far=10.0, width=40, height=40
     )
     clip = np.asarray(cam.world_to_clip(jnp.asarray(v)))
-    for backend in ["jax", "native"] if _native.available() else ["jax"]:
-        ids = vis(clip, f, 40, 2, backend)
-        assert_matches_reference(ids, clip, f, 40, 2, min_checked=0.75)
+    ids = vis(clip, f, 40, 2, "jax")
+    assert_matches_reference(ids, clip, f, 40, 2, min_checked=0.75)  # (the brute force once: 16k faces take 7 s)
+    if _native.available():  # the native kernel: the same ids, ambiguous pixels included
+        np.testing.assert_array_equal(vis(clip, f, 40, 2, "native"), ids)
 
 
 @pytest.mark.skipif(
