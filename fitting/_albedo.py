@@ -700,6 +700,31 @@ def effective_dof(red: _Reduced, probes: int = 2) -> float:
     return float(np.clip((2 * np.sum(Z * HZ) - np.sum(HZ * HZ)) / probes, 0.0, n_free))
 
 
+def _block_verdict(ap, solver, converged, max_steps, ratio, sigma, source, n2: int, taken: float):
+    """``(successful, why not, converged)``: :func:`fitting._report.verdict`, except where the
+    fitted scalars take nearly all the residuals' degrees of freedom (the fit cannot be judged by
+    its residual) or the proximal rounds ran out with the cost still falling (not a local
+    minimum: the directions the images barely see had not settled)."""
+    successful, msg = verdict(
+        converged, "" if converged else f"no convergence in {max_steps} steps", ratio, sigma, source, n2
+    )
+    if n2 - taken < JUDGED * n2:  # (the residual's variance then rests on a few degrees of freedom)
+        msg = (
+            f"the fit cannot be judged: the fitted {ap.what} take {min(taken, n2):.0f} of the {n2} residuals' "
+            f"degrees of freedom, and the {max(n2 - taken, 0):.3g} left cannot tell a misfit from the noise "
+            "(more or larger views, a coarser map or a smoothness prior leave more)"
+        )
+        return False, msg, converged
+    if not successful and solver.unsettled is not None:
+        msg = (
+            f"the residual is {ratio:.3g}× the noise (σ = {sigma:.3g}, {source}), and the bounded solve's "
+            f"{PROXIMAL_ROUNDS} proximal rounds ended with the cost still falling ({solver.unsettled:.2g} of "
+            "it in the last round): directions the images barely see had not settled"
+        )
+        return False, msg, False
+    return successful, msg, converged
+
+
 def _albedo_result(ap, solver, red: _Reduced, theta0, converged, max_steps, noise, run: Run) -> FitResult:
     """The report of a fit with a sparse linear block (``ap``: an :class:`AlbedoProblem` or a
     :class:`fitting._maps.MapProblem`): the verdict, the standard errors of both blocks, what the
@@ -713,23 +738,7 @@ def _albedo_result(ap, solver, red: _Reduced, theta0, converged, max_steps, nois
     taken = effective_dof(red) + len(ap.other)
     s2 = float(r2 @ r2) / max(n2 - taken, 1)
     ratio = float(np.sqrt(s2) / max(sigma, 1e-300))
-    successful, msg = verdict(
-        converged, "" if converged else f"no convergence in {max_steps} steps", ratio, sigma, source, n2
-    )
-    if n2 - taken < JUDGED * n2:  # (the residual's variance then rests on a few degrees of freedom)
-        successful = False
-        msg = (
-            f"the fit cannot be judged: the fitted {ap.what} take {min(taken, n2):.0f} of the {n2} residuals' "
-            f"degrees of freedom, and the {max(n2 - taken, 0):.3g} left cannot tell a misfit from the noise "
-            "(more or larger views, a coarser map or a smoothness prior leave more)"
-        )
-    elif not successful and solver.unsettled is not None:  # not a local minimum: the rounds ran out
-        converged = False
-        msg = (
-            f"the residual is {ratio:.3g}× the noise (σ = {sigma:.3g}, {source}), and the bounded solve's "
-            f"{PROXIMAL_ROUNDS} proximal rounds ended with the cost still falling ({solver.unsettled:.2g} of "
-            "it in the last round): directions the images barely see had not settled"
-        )
+    successful, msg, converged = _block_verdict(ap, solver, converged, max_steps, ratio, sigma, source, n2, taken)
     stderr = np.full(len(red.th), np.inf)
     gauges, undetermined = [], []
     if len(ap.other):
