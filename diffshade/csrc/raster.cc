@@ -10,7 +10,9 @@
 // Bit-for-bit agreement with XLA: XLA may contract a*b + c into a fused multiply-add, so every
 // product here is exact (factors split into short pieces, see Mul and Plane), which makes
 // contraction irrelevant; additions happen in the same order as in _raster.py; and denormals
-// are flushed to zero (FTZ/DAZ) as XLA's CPU backend does. Compiled with -ffp-contract=off.
+// are flushed to zero (FTZ/DAZ) as XLA's CPU backend does. Compiled with -ffp-contract=off, and
+// with -fno-trapping-math, which lets the compiler vectorise the branch-free row test (it
+// changes no result: IEEE operations round the same in vector registers).
 
 #include <algorithm>
 #include <cmath>
@@ -111,12 +113,39 @@ inline void PiecePlan(int64_t height, int64_t width, int* keep, int* count) {
   *count = (24 + *keep - 1) / *keep;
 }
 
+// Insert the fragment (d, f) into pixel pix's sorted list of K (depth, id); ids arrive in
+// increasing order, so equal depths keep the earlier (smaller) id first. A depth that is not
+// below the list's last (+inf: not covered; NaN) is not inserted.
+inline void Insert(float d, int64_t pix, int64_t f, int64_t layers, int64_t stride, float* depth_buf,
+                   int32_t* ids) {
+  float* dl = depth_buf + pix * layers;
+  int32_t* il = ids + pix;  // stride height * width between layers
+  if (!(d < dl[layers - 1])) return;
+  int64_t k = layers - 1;
+  while (k > 0 && dl[k - 1] > d) {
+    dl[k] = dl[k - 1];
+    il[k * stride] = il[(k - 1) * stride];
+    --k;
+  }
+  dl[k] = d;
+  il[k * stride] = static_cast<int32_t>(f);
+}
+
+// Bounding boxes at least this wide are tested a row at a time without branches (vectorised);
+// narrower ones pixel by pixel, each test stopping at the first edge that fails. Measured on an
+// icosphere: a row at a time, 5,120 faces take 15 % less at 256² and 23 % less at 512², while
+// 81,920 faces (boxes of a few pixels) took 4 % more with every box done so; from 8 pixels on,
+// no case is slower than pixel by pixel.
+constexpr int64_t kRowSpan = 8;
+
 // Rasterize one image: rows [row_begin, row_end) only (row bands are independent).
 template <int kCount>
 void RasterBand(const float* coef, const float* zw, const int32_t* meta, int64_t num_faces,
                 int64_t height, int64_t width, int64_t layers, int keep, int64_t row_begin,
                 int64_t row_end, float* depth_buf, int32_t* ids) {
   ScopedFlushDenormals ftz;
+  constexpr float kInf = std::numeric_limits<float>::infinity();
+  thread_local std::vector<float> row;  // one row's depths (pass 1 below)
   const int64_t nf = num_faces;
   const int64_t stride = height * width;
   for (int64_t f = 0; f < nf; ++f) {
@@ -135,35 +164,48 @@ void RasterBand(const float* coef, const float* zw, const int32_t* meta, int64_t
       pl[k].y = Split(src[2 * nf + f], keep, kCount);
     }
     const bool own0 = own & 1, own1 = own & 2, own2 = own & 4;
+    const int64_t span = x1 - x0 + 1;
+    if (span >= kRowSpan && static_cast<int64_t>(row.size()) < span) row.resize(static_cast<size_t>(span));
+    float* rd = row.data();
+    if (span < kRowSpan) {
+      for (int64_t py = y0; py <= y1; ++py) {
+        const float qy = static_cast<float>(2 * py + 1);
+        for (int64_t px = x0; px <= x1; ++px) {
+          const float qx = static_cast<float>(2 * px + 1);
+          const float e0 = Eval<kCount>(pl[0], qx, qy);
+          if (!(e0 > 0.0f || (e0 == 0.0f && own0))) continue;  // (as _raster.py: NaN is outside)
+          const float e1 = Eval<kCount>(pl[1], qx, qy);
+          if (!(e1 > 0.0f || (e1 == 0.0f && own1))) continue;
+          const float e2 = Eval<kCount>(pl[2], qx, qy);
+          if (!(e2 > 0.0f || (e2 == 0.0f && own2))) continue;
+          const float zz = Eval<kCount>(pl[3], qx, qy);
+          const float ww = Eval<kCount>(pl[4], qx, qy);
+          if (!(zz >= -ww && zz <= ww)) continue;
+          Insert(zz / ww, py * width + px, f, layers, stride, depth_buf, ids);
+        }
+      }
+      continue;
+    }
     for (int64_t py = y0; py <= y1; ++py) {
       const float qy = static_cast<float>(2 * py + 1);
-      for (int64_t px = x0; px <= x1; ++px) {
-        const float qx = static_cast<float>(2 * px + 1);
+      // Pass 1, branch-free (the compiler vectorises it): every pixel of the row's span gets its
+      // depth if the triangle covers it there, +inf if not. The same operations in the same
+      // order as a test pixel by pixel: only which results are looked at differs.
+      const int32_t q0 = static_cast<int32_t>(2 * x0 + 1), n = static_cast<int32_t>(span);
+      for (int32_t i = 0; i < n; ++i) {
+        const float qx = static_cast<float>(q0 + 2 * i);  // (int32: SSE2 converts it 4 at a time)
         const float e0 = Eval<kCount>(pl[0], qx, qy);
-        if (e0 < 0.0f || (e0 == 0.0f && !own0)) continue;
         const float e1 = Eval<kCount>(pl[1], qx, qy);
-        if (e1 < 0.0f || (e1 == 0.0f && !own1)) continue;
         const float e2 = Eval<kCount>(pl[2], qx, qy);
-        if (e2 < 0.0f || (e2 == 0.0f && !own2)) continue;
         const float zz = Eval<kCount>(pl[3], qx, qy);
         const float ww = Eval<kCount>(pl[4], qx, qy);
-        if (!(zz >= -ww && zz <= ww)) continue;
+        const bool inside = ((e0 > 0.0f) | ((e0 == 0.0f) & own0)) & ((e1 > 0.0f) | ((e1 == 0.0f) & own1)) &
+                            ((e2 > 0.0f) | ((e2 == 0.0f) & own2)) & (zz >= -ww) & (zz <= ww);
         const float d = zz / ww;
-        const int64_t pix = py * width + px;
-        // Insert into the per-pixel sorted list of K (depth, id); ids arrive in increasing
-        // order, so equal depths keep the earlier (smaller) id first.
-        float* dl = depth_buf + pix * layers;
-        int32_t* il = ids + pix;  // stride height * width between layers
-        if (!(d < dl[layers - 1])) continue;
-        int64_t k = layers - 1;
-        while (k > 0 && dl[k - 1] > d) {
-          dl[k] = dl[k - 1];
-          il[k * stride] = il[(k - 1) * stride];
-          --k;
-        }
-        dl[k] = d;
-        il[k * stride] = static_cast<int32_t>(f);
+        rd[i] = inside ? d : kInf;
       }
+      // Pass 2: the covered pixels' fragments into their sorted lists.
+      for (int64_t i = 0; i < span; ++i) Insert(rd[i], py * width + x0 + i, f, layers, stride, depth_buf, ids);
     }
   }
 }
