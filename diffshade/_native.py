@@ -22,7 +22,16 @@ import jax
 import jaxlib
 
 _SOURCE = Path(__file__).parent / "csrc" / "raster.cc"
-_FLAGS = ["-O3", "-std=c++17", "-shared", "-fPIC", "-ffp-contract=off", "-fno-fast-math", "-fno-trapping-math", "-pthread"]
+_FLAGS = [
+    "-O3",
+    "-std=c++17",
+    "-shared",
+    "-fPIC",
+    "-ffp-contract=off",
+    "-fno-fast-math",
+    "-fno-trapping-math",
+    "-pthread",
+]
 _TARGET = "diffshade_raster"
 _lock = threading.Lock()
 _state: dict = {}
