@@ -25,7 +25,7 @@ def brute_force(clip, faces, h, w, layers=1, chunk=512, tie_eps=1e-7, depth_eps=
     X, Y = np.meshgrid(xs, ys)
     p = np.stack([X.ravel(), Y.ravel(), np.ones(X.size)], axis=1)  # N 3
     n = p.shape[0]
-    depth_all = []
+    frags = []
     amb = np.zeros(n, bool)
     for f0 in range(0, len(faces), chunk):
         fc = faces[f0 : f0 + chunk]
@@ -49,9 +49,9 @@ def brute_force(clip, faces, h, w, layers=1, chunk=512, tie_eps=1e-7, depth_eps=
         near_clip = good[None] & np.all(b >= -tie_eps, -1) & (s > 0) & (np.abs(np.abs(z) - wv) < 1e-9 * np.abs(wv))
         amb |= np.any(near_edge | near_clip, axis=1)
         pix, col = np.nonzero(inside)  # the fragments, as (pixel, depth, id) triples
-        depth_all.append((pix, d[pix, col], f0 + col))
+        frags.append((pix, d[pix, col], f0 + col))
     # per pixel, the first K+1 fragments by (depth, id)
-    pix, D, I = (np.concatenate(x) for x in zip(*depth_all))
+    pix, D, I = (np.concatenate(x) for x in zip(*frags))
     order = np.lexsort((I, D, pix))
     pix, D, I = pix[order], D[order], I[order]
     rank = np.arange(len(pix)) - np.searchsorted(pix, pix)  # position within its pixel's list
