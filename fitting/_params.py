@@ -41,6 +41,7 @@ whose gains stay 1: the gauge of exposure and white balance (docs/model.md §9),
 from __future__ import annotations
 
 import dataclasses
+import functools
 import re
 from dataclasses import dataclass
 
@@ -519,8 +520,10 @@ class ParamSet:
         self.sizes = [p.size for p in self.params]
         self.offsets = np.cumsum([0] + self.sizes)
 
-    @property
+    @functools.cached_property
     def labels(self) -> list[str]:
+        """One label per scalar (``name[i]``, a map's ``name[row,col][channel]``), built once: a
+        256² colour map has 196,608, and a fit asks for them several times."""
         return [lab for p in self.params for lab in p.labels()]
 
     @property

@@ -147,3 +147,20 @@ def test_downsampling_keeps_what_was_clipped():
 
     with pytest.raises(FitError, match="clipped 0: shape"):
         Problem.build(scene, opts, Observations(target, clipped=[np.zeros((5, 5), bool)]), ["material.diffuse"])
+
+
+def test_the_reports_image_quality_is_scikit_images_psnr_and_ssim():
+    """The report's PSNR (its definition, written out) and SSIM (scikit-image's own module) are
+    scikit-image's public metrics over the target's range; an exact match gives PSNR inf."""
+    from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+    from fitting._report import image_quality
+
+    rng = np.random.default_rng(7)
+    target = rng.uniform(0.1, 0.8, (24, 20, 3))
+    fitted = target + rng.normal(0, 0.02, target.shape)
+    span = target.max() - target.min()
+    psnr, ssim = image_quality(fitted, target)
+    assert psnr == pytest.approx(peak_signal_noise_ratio(target, fitted, data_range=span), rel=1e-12)
+    assert ssim == pytest.approx(structural_similarity(target, fitted, channel_axis=-1, data_range=span), rel=1e-12)
+    assert image_quality(target, target) == (float("inf"), pytest.approx(1.0))
