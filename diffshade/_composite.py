@@ -15,6 +15,7 @@ from ._options import FogModel, Output, Transparency
 from ._raster import pixel_centres
 from ._scene import Scene
 from ._surface import Components, Surface
+from ._util import keep
 
 
 def composite(
@@ -51,7 +52,10 @@ def fog_and_clamp(color, scene: Scene, fog: FogModel | None, output: Output, dep
         color = tuple(jnp.clip(c, 0.0, 1.0) for c in color)
     if fog is not None:
         dist = depth if fog.distance == "depth" else S.distance(P, _rgb(scene.camera.eye))
-        f = S.fog_factor(dist, fog.mode, scene.fog.start, scene.fog.end, scene.fog.density)
+        # materialised: fused into each channel of the output, the distance, its square root and
+        # the exponential were recomputed per channel, in scalar code over the interleaved
+        # [H, W, 3] image (3.2 of 10.3 ms for the default scene's Gouraud render at 512²)
+        (f,) = keep(S.fog_factor(dist, fog.mode, scene.fog.start, scene.fog.end, scene.fog.density))
         color = S.apply_fog(color, f, _rgb(scene.fog.color))
     if output.clamp == "vertex":
         # OpenGL clamps the vertex colours, and then the final fragment colour (after the colour
