@@ -47,8 +47,13 @@ def keep(*xs: ArrayLike) -> tuple[Array, ...]:
     simplifies away other no-ops; a conditional's operands and results are always materialised.
     The predicate ``p == p or p != p`` is true for every value, NaN included, so the identity
     branch is always the one taken; the other exists only to make the conditional non-trivial.
+    ``p`` is floating point: for an integer or boolean ``p`` XLA folds the predicate to true and
+    removes the conditional (as it did for the silhouette walk's state, whose every hop was then
+    recomputed inside the next).
     """
     xs = tuple(jnp.asarray(x) for x in xs)
-    p = xs[0].reshape(-1)[0] if xs[0].size else jnp.zeros((), xs[0].dtype)
+    first = next((x for x in xs if x.size), xs[0])
+    p = first.reshape(-1)[0] if first.size else jnp.zeros((), first.dtype)
+    p = p if jnp.issubdtype(p.dtype, jnp.floating) else p.astype(jnp.float32)
     pred = (p == p) | (p != p)
     return jax.lax.cond(pred, lambda t: t, lambda t: tuple(jnp.zeros_like(a) for a in t), xs)

@@ -288,3 +288,27 @@ def test_the_gradient_check_with_shared_programs_catches_a_wrong_jvp_and_a_wrong
         check_grads(bad_jvp, x, modes=("fwd",), eps=1e-6, atol=1e-7, rtol=1e-7)
     with pytest.raises(AssertionError):
         check_grads(bad_vjp, x, modes=("rev",), eps=1e-6, atol=1e-7, rtol=1e-7)
+
+
+@pytest.mark.parametrize("first", ["float32", "int32", "bool"])
+def test_keep_materialises_whatever_its_first_operand(first):
+    """``keep`` is a fusion boundary: its conditional must survive XLA's optimisation whatever the
+    dtype of its first operand (led by an integer, XLA once folded its predicate and removed it,
+    and the silhouette walk recomputed every hop inside the next). It returns its operands
+    unchanged, in value and in tangent."""
+    from diffshade._util import keep
+
+    lead = {"float32": jnp.linspace(0.0, 1.0, 64), "int32": jnp.arange(64), "bool": jnp.arange(64) % 3 == 0}[first]
+
+    def f(a, x):
+        a2, y = keep(a, jnp.sin(x) * 2.0)
+        return a2, y + 1.0
+
+    x = jnp.linspace(-1.0, 1.0, 64, dtype=jnp.float32)
+    hlo = jax.jit(f).lower(lead, x).compile().as_text()
+    assert "conditional(" in hlo
+    a2, y = jax.jit(f)(lead, x)
+    np.testing.assert_array_equal(a2, lead)
+    np.testing.assert_array_equal(y, jnp.sin(x) * 2.0 + 1.0)
+    _, ty = jax.jvp(lambda x: f(lead, x)[1], (x,), (jnp.ones_like(x),))
+    np.testing.assert_allclose(ty, 2.0 * jnp.cos(x), rtol=1e-6)
