@@ -181,8 +181,7 @@ def sample_channels(tex: Texture, u, v, lod=None) -> tuple:
         w, h = _pick(level, [s[0] for s in sizes]), _pick(level, [s[1] for s in sizes])
         return _taps(u, v, w, h, _pick(level, [int(o) for o in offs]))
 
-    shared = (*taps(lo), *taps(hi), d - lo)
-    a, b, frac = _blend(columns, *shared[:4]), _blend(columns, *shared[4:8]), shared[8]
+    a, b, frac = _blend(columns, *taps(lo)), _blend(columns, *taps(hi)), d - lo
     return tuple(x + frac * (y - x) for x, y in zip(a, b))
 
 
