@@ -77,7 +77,9 @@ def composite_layers(color, scene: Scene, transparency: Transparency, surface: S
         view_z = _rgb(scene.camera.view_matrix()[2, :3])
         t_kay = S.kay_opacity(S.dot(n_px, view_z), pmat.kay_min, pmat.kay_max, pmat.kay_power)
         t = t_kay if all(kay) else jnp.where(jnp.asarray(kay)[pix_mid], t_kay, t)
-    t = jnp.where(valid, t, 0.0)
+    # materialised, as the layers' colours below: fused into each channel of the interleaved
+    # [H, W, 3] image, the opacity and the compositing were recomputed per channel, in scalar code
+    (t,) = keep(jnp.where(valid, t, 0.0))
     absorb = None
     if transparency.absorption:
         seg = S.distance(tuple(p[1:] for p in P), tuple(p[:-1] for p in P))  # [K-1, H, W]
@@ -93,8 +95,7 @@ def composite_layers(color, scene: Scene, transparency: Transparency, surface: S
             trans[c] = trans[c] * (1.0 - t[k])
             if absorb is not None and k < K - 1:
                 trans[c] = trans[c] * absorb[c][k]
-    out = [out[c] + trans[c] * scene.background[c] for c in range(3)]
-    return jnp.stack(out, axis=-1)
+    return jnp.stack(keep(*(out[c] + trans[c] * scene.background[c] for c in range(3))), axis=-1)
 
 
 def _antialiased(img, mesh, clip, frags, pixels, resolution):

@@ -155,6 +155,9 @@ def _light_sum(
             if post is not None:
                 d = post(d)
             if s_i is not None:  # S_i, or with coloured shadow rays its RGB transmittance
+                # materialised: fused into each channel, the lookup (a cube map's face, PCF's
+                # taps) was recomputed per channel of the interleaved image, in scalar code
+                (s_i,) = _keep(s_i)
                 d = [(s_i[..., c % 3] if shadow.rgb else s_i) * x for c, x in enumerate(d)]
             return d, a
 
