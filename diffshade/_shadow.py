@@ -249,8 +249,9 @@ def _lookup(vw: _Views, ids, planes, P, ng, bias, slope_bias, R: int, pcf: int, 
     # The receiver's plane (through P, face normal ng) in this view's frame.
     nd, na, nu, nv = S.dot(ng, d), S.dot(ng, a), S.dot(ng, u), S.dot(ng, v)
     # What every tap reads is left to fuse into the taps. A keep of it (led by an integer array)
-    # had been a no-op; made to materialise, it was faster with one tap (512² directional
-    # 18.2-18.4 -> 14.3-14.6 ms) and slower with PCF 3 (27.6-28.0 -> 32.1-32.7 ms): left as it was.
+    # had been a no-op. Materialised, with the lookup's result materialised too
+    # (diffshade._lighting), the 512² renders were slower: directional PCF 3 17.1 -> 20.5 ms,
+    # point 22 -> 26-29 ms.
     if eager:
         depth = _depth_maps(vw, ids, planes, R, dtype)
     else:
