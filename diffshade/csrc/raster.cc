@@ -16,15 +16,15 @@
 
 #include <algorithm>
 #include <atomic>
+#include <cmath>
 #include <condition_variable>
+#include <cstdint>
+#include <cstring>
+#include <limits>
 #include <memory>
 #include <mutex>
-#include <cmath>
-#include <cstdint>
-#include <limits>
 #include <thread>
 #include <vector>
-#include <cstring>
 
 #if defined(__SSE2__) || defined(__x86_64__)
 #include <xmmintrin.h>
