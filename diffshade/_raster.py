@@ -71,6 +71,7 @@ TILE = 8
 _BIG = jnp.iinfo(jnp.int32).max
 
 Backend = Literal["auto", "native", "jax"]
+Cull = Literal["none", "back", "front"]
 
 
 class Fragments(eqx.Module):
@@ -187,7 +188,7 @@ def _to_pixel_units(c, ax, ay, height: int, width: int):
     return _xmul((c - ax) + ay, wh), _xmul(ax, jnp.float32(height)), -_xmul(ay, jnp.float32(width))
 
 
-def _setup(clip: Float[Array, "V 4"], faces: Int[Array, "F 3"], height: int, width: int) -> _Setup:
+def _setup(clip: Float[Array, "V 4"], faces: Int[Array, "F 3"], height: int, width: int, cull: Cull = "none") -> _Setup:
     # Structure-of-arrays throughout: XLA's CPU backend vectorises [F] vectors far better than
     # arrays with a minor axis of 3 or 4. Same operations, in the same order, as raster.cc.
     ct = clip.astype(jnp.float32).T  # 4 V
@@ -262,6 +263,8 @@ def _setup(clip: Float[Array, "V 4"], faces: Int[Array, "F 3"], height: int, wid
     y1 = jnp.clip(jnp.ceil((1 - ymin) * (height / 2) - 0.5 + pad), -1, height - 1).astype(jnp.int32)
     finite = functools.reduce(jnp.logical_and, [jnp.isfinite(c) for c in x + y + z + w])
     valid = (inside[0] | inside[1] | inside[2]) & (det != 0) & finite & (y0 <= y1)
+    if cull != "none":  # det > 0: counter-clockwise on the screen, the front (module docstring)
+        valid = valid & ((det > 0) if cull == "back" else (det < 0))
     x0 = jnp.where(valid, x0, 1)
     x1 = jnp.where(valid, x1, 0)
     own = owns[0].astype(jnp.int32) | (owns[1].astype(jnp.int32) << 1) | (owns[2].astype(jnp.int32) << 2)
@@ -370,12 +373,12 @@ def _visibility_jax(setup: _Setup, height: int, width: int, layers: int, tile_ca
 # --------------------------------------------------------------------------------------------
 
 
-def _visibility_native(clip, faces, height: int, width: int, layers: int):
+def _visibility_native(clip, faces, height: int, width: int, layers: int, cull: Cull = "none"):
     target = _native.ensure_registered()
     call = jax.ffi.ffi_call(
         target, jax.ShapeDtypeStruct((layers, height, width), jnp.int32), vmap_method="broadcast_all"
     )
-    return call(clip.astype(jnp.float32), faces.astype(jnp.int32))
+    return call(clip.astype(jnp.float32), faces.astype(jnp.int32), cull=np.int32(_CULL_SIGN[cull]))
 
 
 def default_capacities(num_faces: int, height: int, width: int) -> tuple[int, int]:
@@ -402,7 +405,11 @@ def resolve_backend(backend: Backend) -> str:
     return backend
 
 
-def _check(clip, faces, resolution, layers):
+# The sign of det [x y w] a triangle must have to be drawn (0: either), for the native kernel.
+_CULL_SIGN = {"none": 0, "back": 1, "front": -1}
+
+
+def _check(clip, faces, resolution, layers, cull="none"):
     if clip.ndim < 2 or clip.shape[-1] != 4:
         raise ValueError(f"clip must have shape (V, 4), got {clip.shape}")
     if faces.ndim != 2 or faces.shape[-1] != 3:
@@ -419,6 +426,8 @@ def _check(clip, faces, resolution, layers):
         raise ValueError(f"resolution must be two integers (height, width) in [1, {MAX_SIDE}], got {resolution}")
     if not (isinstance(layers, (int, np.integer)) and layers >= 1):
         raise ValueError(f"layers must be a positive integer, got {layers}")
+    if cull not in _CULL_SIGN:
+        raise ValueError(f"cull must be one of {tuple(_CULL_SIGN)}, got {cull!r}")
 
 
 def visibility(
@@ -429,24 +438,27 @@ def visibility(
     backend: Backend = "auto",
     tile_capacity: int | None = None,
     pair_capacity: int | None = None,
+    cull: Cull = "none",
 ) -> Int[Array, "K H W"]:
-    """Triangle id of the ``layers`` nearest fragments per pixel (front to back; -1 = empty).
+    r"""Triangle id of the ``layers`` nearest fragments per pixel (front to back; -1 = empty).
 
     Discrete and not differentiated (inputs pass through ``stop_gradient``). ``resolution`` is
-    ``(height, width)``; ``layers``, ``backend`` and the capacities are static. Works under
-    ``jit``, ``vmap``, ``jvp`` and ``grad``.
+    ``(height, width)``; ``layers``, ``backend``, the capacities and ``cull`` are static.
+    ``cull``: ``"back"`` draws only triangles that are counter-clockwise on the screen
+    (:math:`\det[x_k\,y_k\,w_k] > 0`), ``"front"`` only clockwise ones (OpenGL's
+    ``GL_CULL_FACE``). Works under ``jit``, ``vmap``, ``jvp`` and ``grad``.
     """
     clip = jnp.asarray(clip)
     faces = jnp.asarray(faces)
-    _check(clip, faces, resolution, layers)
+    _check(clip, faces, resolution, layers, cull)
     h, w = int(resolution[0]), int(resolution[1])
     if faces.shape[0] == 0:
         return jnp.full((layers, h, w), -1, jnp.int32)
     backend = resolve_backend(backend)
     clip = jax.lax.stop_gradient(clip)
     if backend == "native":
-        return _visibility_native(clip, faces, h, w, layers)
-    setup = _setup(clip, faces, h, w)
+        return _visibility_native(clip, faces, h, w, layers, cull)
+    setup = _setup(clip, faces, h, w, cull)
     tc, pc = default_capacities(faces.shape[0], h, w)
     ids, _ = _visibility_jax(setup, h, w, layers, tile_capacity or tc, pair_capacity or pc)
     return ids
@@ -570,9 +582,10 @@ def rasterize(
     resolution: tuple[int, int],
     layers: int = 1,
     backend: Backend = "auto",
+    cull: Cull = "none",
 ) -> Fragments:
-    """``fragments(clip, faces, visibility(clip, faces, resolution, layers, backend))``."""
-    ids = visibility(clip, faces, resolution, layers, backend)
+    """``fragments(clip, faces, visibility(clip, faces, resolution, layers, backend, cull=cull))``."""
+    ids = visibility(clip, faces, resolution, layers, backend, cull=cull)
     return fragments(clip, faces, ids)
 
 

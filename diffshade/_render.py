@@ -23,7 +23,7 @@ from . import _shade as S
 from ._composite import composite
 from ._domains import check_scene, is_concrete
 from ._lighting import LightVisibility, illuminate
-from ._options import RenderOptions, ShadowMaps, ShadowRays
+from ._options import Raster, RenderOptions, ShadowMaps, ShadowRays
 from ._raster import fragments, visibility
 from ._scene import Scene
 from ._shadow import shadow_map_visibility
@@ -104,19 +104,19 @@ def render(
 
 def scene_visibility(scene: Scene, opts: RenderOptions = RenderOptions()) -> Int[Array, "K H W"]:
     """Visible triangle ids of ``scene`` (``opts.layers`` layers); not differentiated."""
-    return _ids(scene, opts.layers, opts.raster.backend)
+    return _ids(scene, opts.layers, opts.raster)
 
 
-def _ids(scene: Scene, layers: int, backend: str):
+def _ids(scene: Scene, layers: int, raster: Raster):
     cam = scene.camera
     clip = cam.world_to_clip(jax.lax.stop_gradient(scene.mesh.vertices))
-    return visibility(clip, scene.mesh.faces, cam.resolution, layers, backend)
+    return visibility(clip, scene.mesh.faces, cam.resolution, layers, raster.backend, cull=raster.cull)
 
 
 def truncated_pixels(scene: Scene, opts: RenderOptions = RenderOptions()) -> int:
     """How many pixels have more surfaces than ``opts.layers`` (their deeper surfaces are not
     composited: the light left after the last layer comes from the background)."""
-    ids = _ids(scene, opts.layers + 1, opts.raster.backend)
+    ids = _ids(scene, opts.layers + 1, opts.raster)
     return int(jnp.sum(ids[-1] >= 0))
 
 

@@ -201,7 +201,11 @@ def render(scene, opts):
     gl.glClear(gl.GL_COLOR_BUFFER_BIT | gl.GL_DEPTH_BUFFER_BIT)
     gl.glEnable(gl.GL_DEPTH_TEST)
     gl.glDepthFunc(gl.GL_LESS)
-    gl.glDisable(gl.GL_CULL_FACE)
+    if opts.cull == "none":
+        gl.glDisable(gl.GL_CULL_FACE)
+    else:  # counter-clockwise is the front (glFrontFace's default), as in diffshade
+        gl.glEnable(gl.GL_CULL_FACE)
+        gl.glCullFace(gl.GL_BACK if opts.cull == "back" else gl.GL_FRONT)
     gl.glMatrixMode(gl.GL_PROJECTION)
     gl.glLoadMatrixf(_f32(proj.T))
     gl.glMatrixMode(gl.GL_MODELVIEW)

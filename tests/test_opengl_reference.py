@@ -36,15 +36,26 @@ def _diffshade(scene, opts):
     return img, covered
 
 
-def _hard_box_scene(opts):
-    # a box whose 6 faces have their own vertices: hard edges, one normal per face
+def _hard_box_scene(opts, open_top=False):
+    # a box whose 6 faces have their own vertices: hard edges, one normal per face; open_top
+    # drops the top (+y) face and looks in from above, so that the walls' insides (back faces)
+    # show through the opening
     tm = ds.box((1.2, 0.8, 1.0))
     V, F = np.asarray(tm.vertices), np.asarray(tm.faces)
+    if open_top:
+        F = F[np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])[:, 1] <= 0]
     Vs = V[F.reshape(-1)]
     Fs = np.arange(len(Vs)).reshape(-1, 3)
     mesh = ds.mesh_from_arrays(Vs, Fs)
     cam = ds.Camera(
-        eye=[1.6, 1.3, 2.4], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.5, far=10.0, width=48, height=36
+        eye=[1.4, 1.9, 2.2] if open_top else [1.6, 1.3, 2.4],
+        target=[0, 0, 0],
+        up=[0, 1, 0],
+        fov_y=45.0,
+        near=0.5,
+        far=10.0,
+        width=64 if open_top else 48,
+        height=48 if open_top else 36,
     )
     scene = ds.Scene(
         mesh=mesh,
@@ -126,6 +137,11 @@ SCENES = {
     )(*make_scene("opengl-separate-specular", "gouraud")),
     "flat, hard-edged box": lambda: _hard_box_scene(ds.RenderOptions.opengl(shading="flat")),
     "gouraud, hard-edged box": lambda: _hard_box_scene(ds.RenderOptions.opengl()),
+    "gouraud, open box, back faces culled": lambda: _hard_box_scene(ds.RenderOptions.opengl(cull="back"), True),
+    "gouraud, open box, front faces culled": lambda: _hard_box_scene(ds.RenderOptions.opengl(cull="front"), True),
+    "gouraud, open box, two-sided, no culling": lambda: _hard_box_scene(
+        ds.RenderOptions.opengl(two_sided=True), True
+    ),
     "phong (GLSL), all lights, back material, exp2 fog": lambda: make_scene("all-lights-back-material-exp2", "phong"),
     "phong (GLSL), blinn, smooth spot, per-light ambient": lambda: (lambda s, o: (s, o.with_keys(fresnel="none")))(
         *make_scene("dielectric-spot-smooth-light-ambient", "phong")

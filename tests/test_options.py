@@ -51,6 +51,7 @@ def test_keys_round_trip():
 def test_groups_hold_the_keys():
     opts = ds.RenderOptions.from_keys(
         shading="gouraud",
+        cull="back",
         specular="blinn",
         fog="exp2",
         fog_distance="depth",
@@ -64,7 +65,8 @@ def test_groups_hold_the_keys():
         clamp_at="pixel",
         ray_backend="jax",
     )
-    assert opts.raster == ds.Raster(shading="gouraud")
+    assert opts.raster == ds.Raster(shading="gouraud", cull="back")
+    assert ds.RenderOptions.from_keys(opts.keys()) == opts
     assert opts.lighting == ds.Lighting(specular="blinn")
     assert opts.shadows == ds.ShadowMaps(resolution=128, pcf=3)
     assert opts.fog == ds.FogModel("exp2", "depth")

@@ -34,14 +34,16 @@ def camera(res=64, eye=(0.0, 0.0, 3.0), near=0.1, far=20.0):
 
 
 @functools.cache
-def _vis_fn(res_h, res_w, layers, backend, tile_capacity=None, pair_capacity=None):
-    return jax.jit(lambda c, f: ds.visibility(c, f, (res_h, res_w), layers, backend, tile_capacity, pair_capacity))
+def _vis_fn(res_h, res_w, layers, backend, tile_capacity=None, pair_capacity=None, cull="none"):
+    return jax.jit(
+        lambda c, f: ds.visibility(c, f, (res_h, res_w), layers, backend, tile_capacity, pair_capacity, cull)
+    )
 
 
 def vis(clip, faces, res, layers=1, backend="jax", **kw):
     h, w = (res, res) if isinstance(res, int) else res
     return np.asarray(
-        _vis_fn(h, w, layers, backend, kw.get("tile_capacity"), kw.get("pair_capacity"))(
+        _vis_fn(h, w, layers, backend, kw.get("tile_capacity"), kw.get("pair_capacity"), kw.get("cull", "none"))(
             jnp.asarray(clip, jnp.float32), jnp.asarray(faces, jnp.int32)
         )
     )
@@ -183,6 +185,40 @@ def test_watertight_closed_mesh_two_hits(backend):
     assert (ids[1][covered] >= 0).all() and (ids[2] < 0).all()
     front = np.asarray(frags.front)
     assert front[0][covered].all() and not front[1][covered].any()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_culling_a_closed_mesh_seen_from_outside(backend):
+    # cull="back" changes nothing in front and leaves no second surface; cull="front" sees the
+    # far side, which is the second layer of the unculled render
+    m = trimesh.creation.icosphere(subdivisions=3)
+    clip = np.asarray(camera(64, eye=(0.4, 0.5, 2.8)).world_to_clip(jnp.asarray(m.vertices)))
+    both = vis(clip, m.faces, 64, 2, backend)
+    back = vis(clip, m.faces, 64, 2, backend, cull="back")
+    front = vis(clip, m.faces, 64, 2, backend, cull="front")
+    assert (both[0] >= 0).sum() > 1000
+    np.testing.assert_array_equal(back[0], both[0])
+    np.testing.assert_array_equal(front[0], both[1])
+    assert (back[1] < 0).all() and (front[1] < 0).all()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_culling_keeps_the_triangles_of_one_orientation(backend, rng):
+    # A soup that crosses the near plane: the culled visibility is the visibility of the
+    # triangles of the kept orientation alone (det [x y w] in float64 here: > 0 front, < 0 back),
+    # in every layer, with their ids
+    v, f = random_soup(rng, 60, spread=1.5, size=0.8)
+    v[:, 2] += 1.2
+    clip = np.asarray(camera(40, near=0.5).world_to_clip(jnp.asarray(v)), np.float32)
+    assert (clip[:, 3] < 0.5).any()
+    det = np.linalg.det(clip[f][..., [0, 1, 3]].astype(np.float64))
+    for cull, kept in (("back", det > 0), ("front", det < 0)):
+        sub = np.flatnonzero(kept)
+        assert 10 < len(sub) < len(f) - 10
+        ids = vis(clip, f, 40, 2, backend, cull=cull)
+        alone = vis(clip, f[sub], 40, 2, backend)
+        assert (ids[0] >= 0).sum() > 200
+        np.testing.assert_array_equal(ids, np.where(alone >= 0, sub[np.maximum(alone, 0)], -1))
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -336,6 +372,10 @@ def test_bad_arguments_raise_clear_errors():
         ds.visibility(jnp.zeros((3, 4)), jnp.zeros((1, 3), int), (8, 8), layers=0)
     with pytest.raises(ValueError, match="backend"):
         ds.visibility(jnp.zeros((3, 4)), jnp.zeros((1, 3), int), (8, 8), backend="gpu")
+    with pytest.raises(ValueError, match="cull must be one of"):
+        ds.visibility(jnp.zeros((3, 4)), jnp.zeros((1, 3), int), (8, 8), cull="backs")
+    with pytest.raises(ValueError, match="Raster.cull must be one of"):
+        ds.Raster(cull=True)
 
 
 def test_native_backend_off_the_cpu_is_a_clear_error(monkeypatch):

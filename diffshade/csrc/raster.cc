@@ -278,8 +278,11 @@ void BoundingBox(const float* x, const float* y, const float* z, const float* w,
 // vectorises; the bounding box after, face by face.
 constexpr int64_t kBlock = 64;
 
+// cull: the sign det must have for the triangle to be drawn (1: counter-clockwise on the screen,
+// the front; -1: clockwise; 0: either), _raster.py's `cull`.
 void Setup(const float* clip, const int32_t* faces, int64_t num_verts, int64_t nf, int64_t f_begin,
-           int64_t f_end, int64_t height, int64_t width, float* coef, float* zw, int32_t* meta) {
+           int64_t f_end, int64_t height, int64_t width, int32_t cull, float* coef, float* zw,
+           int32_t* meta) {
   ScopedFlushDenormals ftz;
   float X[3][kBlock], Y[3][kBlock], Z[3][kBlock], W[3][kBlock], minor[3][kBlock], nat[3][kBlock];
   float ndc[9][kBlock], det[kBlock];
@@ -352,7 +355,8 @@ void Setup(const float* clip, const int32_t* faces, int64_t num_verts, int64_t n
       }
       float x[3], y[3], z[3], w[3];
       for (int k = 0; k < 3; ++k) { x[k] = X[k][j]; y[k] = Y[k][j]; z[k] = Z[k][j]; w[k] = W[k][j]; }
-      BoundingBox(x, y, z, w, bad[j], det[j], own, height, width, meta, nf, f);
+      const bool culled = (cull > 0 && !(det[j] > 0)) || (cull < 0 && !(det[j] < 0));
+      BoundingBox(x, y, z, w, bad[j] || culled, det[j], own, height, width, meta, nf, f);
     }
   }
 }
@@ -390,7 +394,7 @@ void ParallelFor(ffi::ThreadPool& pool, int64_t n, const Fn& fn) {
 }
 
 ffi::Error RasterImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> clip, ffi::Buffer<ffi::S32> faces,
-                      ffi::ResultBuffer<ffi::S32> out) {
+                      ffi::ResultBuffer<ffi::S32> out, int32_t cull) {
   // Shapes: clip [..., V, 4], faces [..., F, 3], out [..., K, H, W].
   // Leading dimensions are a batch (vmap with broadcast_all).
   auto odims = out->dimensions();
@@ -441,7 +445,7 @@ ffi::Error RasterImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> clip, ffi::Buf
     // Set-up over face ranges, then rasterization over row bands, on the same threads.
     ParallelFor(pool, nthreads, [&](int64_t t) {
       const int64_t f0 = num_faces * t / nthreads, f1 = num_faces * (t + 1) / nthreads;
-      Setup(bclip, bfaces, num_verts, num_faces, f0, f1, height, width, pc, pz, pm);
+      Setup(bclip, bfaces, num_verts, num_faces, f0, f1, height, width, cull, pc, pz, pm);
     });
     ParallelFor(pool, nthreads, [&](int64_t t) {
       const int64_t r0 = height * t / nthreads, r1 = height * (t + 1) / nthreads;
@@ -458,4 +462,5 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(DiffshadeRaster, RasterImpl,
                                   .Ctx<ffi::ThreadPool>()  // XLA's intra-op threads
                                   .Arg<ffi::Buffer<ffi::F32>>()  // clip
                                   .Arg<ffi::Buffer<ffi::S32>>()  // faces
-                                  .Ret<ffi::Buffer<ffi::S32>>());  // ids
+                                  .Ret<ffi::Buffer<ffi::S32>>()  // ids
+                                  .Attr<int32_t>("cull"));  // 1 back, -1 front, 0 none
