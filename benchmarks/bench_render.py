@@ -14,7 +14,9 @@ parameters of the jvp/vjp are k_a (RGB), k_d (RGB), k_s (RGB), m, a1, a2 of the 
 point light (or of nothing for ``diffuse``, whose Jacobian is then mostly zero columns — it is
 timed on the same 12-vector for comparability). Compile time is reported apart from the median
 steady-state time. DEODR (rasterize + Gouraud, optional ``.[bench]`` extra) is measured in the
-same run as the baseline for the full render.
+same run as the baseline for the full render; DEODR culls back faces by default, so the full render
+is also timed with ``Raster(cull="back")`` (the same image of this closed sphere: its largest
+difference is printed).
 
     python benchmarks/bench_render.py [--repeats N] [--quick] [--sizes 256,512] [--subdivisions 4,6]
 """
@@ -22,6 +24,7 @@ same run as the baseline for the full render.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 
@@ -140,6 +143,11 @@ def main():
                 vjp = jax.jit(lambda p: jax.vjp(img_of, p)[1](ct)[0])
                 r = {"faces": len(f), "res": res, "terms": terms, "deodr": ref}
                 r["full_c"], r["full"] = timed(full, scene, repeats=args.repeats)
+                # back faces culled, as DEODR does by default: the same image of this closed sphere
+                culled = opts.replace(raster=dataclasses.replace(opts.raster, cull="back"))
+                full_culled = jax.jit(lambda s: ds.render(s, culled))  # noqa: B023
+                r["culled"] = timed(full_culled, scene, repeats=args.repeats)[1]
+                r["culled_diff"] = float(jnp.max(jnp.abs(full_culled(scene) - full(scene))))
                 r["shade_c"], r["shade"] = timed(shade, scene, ids, repeats=args.repeats)
                 r["jvp_c"], r["jvp"] = timed(jac, p0, repeats=args.repeats)
                 r["jacfwd"] = timed(jacfwd, p0, repeats=args.repeats)[1]
@@ -152,24 +160,25 @@ def main():
                 rows.append(r)
                 print(
                     f"{len(f):6d} faces {res:4d}² {terms:8s} full {r['full']:8.2f} ms (compile {r['full_c']:.2f} s)  "
+                    f"culled {r['culled']:8.2f} ms (image ±{r['culled_diff']:.1e})  "
                     f"shade {r['shade']:8.2f} ms  jvp×12 {r['jvp']:8.2f} ms ({r['jvp_bytes']:.0f} B/px; "
                     f"jacfwd {r['jacfwd']:.2f} ms)  vjp {r['vjp']:8.2f} ms  "
                     f"program {r['hlo_lines']} HLO lines" + (f"  DEODR {ref:.2f} ms" if ref else ""),
                     flush=True,
                 )
     print(
-        "\n| faces | size | terms | full ms | compile s | shade-only ms | jvp×12 ms | jvp B/px | jacfwd ms | vjp ms "
-        "| HLO lines | DEODR ms | full/DEODR |"
+        "\n| faces | size | terms | full ms | culled ms | compile s | shade-only ms | jvp×12 ms | jvp B/px | jacfwd ms "
+        "| vjp ms | HLO lines | DEODR ms | full/DEODR | culled/DEODR |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         d = r["deodr"]
         ratio = f"{r['full'] / d:.2f}" if d else "-"
+        ratio_c = f"{r['culled'] / d:.2f}" if d else "-"
         print(
-            f"| {r['faces']} | {r['res']}² | {r['terms']} | {r['full']:.2f} | {r['full_c']:.2f} | {r['shade']:.2f} | "
-            f"{r['jvp']:.2f} | {r['jvp_bytes']:.0f} | {r['jacfwd']:.2f} | {r['vjp']:.2f} | {r['hlo_lines']} | "
-            f"{f'{d:.2f}' if d else '-'} | "
-            f"{ratio} |"
+            f"| {r['faces']} | {r['res']}² | {r['terms']} | {r['full']:.2f} | {r['culled']:.2f} | {r['full_c']:.2f} | "
+            f"{r['shade']:.2f} | {r['jvp']:.2f} | {r['jvp_bytes']:.0f} | {r['jacfwd']:.2f} | {r['vjp']:.2f} | "
+            f"{r['hlo_lines']} | {f'{d:.2f}' if d else '-'} | {ratio} | {ratio_c} |"
         )
 
 

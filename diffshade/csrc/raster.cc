@@ -143,9 +143,11 @@ inline bool Inside(float e, bool own) { return (e > 0.0f) | ((e == 0.0f) & own);
 // Bounding boxes at least this wide are tested a row at a time without branches (vectorised);
 // narrower ones pixel by pixel, each test stopping at the first edge that fails. Measured on an
 // icosphere: a row at a time, 5,120 faces take 15 % less at 256² and 23 % less at 512², while
-// 81,920 faces (boxes of a few pixels) took 4 % more with every box done so; from 8 pixels on,
-// no case is slower than pixel by pixel.
-constexpr int64_t kRowSpan = 8;
+// 81,920 faces (boxes of a few pixels) took 4 % more with every box done so (8 was the threshold
+// then). Since one layer's z-buffer is updated branch-free too, 4 is as fast or faster: one
+// layer, 5,120 faces at 256² 1.20 -> 1.10 ms, 81,920 at 512² 9.0 -> 8.8 ms; four layers within
+// noise.
+constexpr int64_t kRowSpan = 4;
 
 // Rasterize one image: rows [row_begin, row_end) only (row bands are independent).
 template <int kCount>
@@ -212,7 +214,19 @@ void RasterBand(const float* coef, const float* zw, const int32_t* meta, int64_t
         const float d = zz / ww;
         rd[i] = inside ? d : kInf;
       }
-      // Pass 2: the covered pixels' fragments into their sorted lists.
+      // Pass 2: the covered pixels' fragments into their sorted lists. One layer: a z-buffer,
+      // kept branch-free (vectorised) with Insert's test (a NaN or +inf depth is not below).
+      if (layers == 1) {
+        float* dz = depth_buf + py * width + x0;
+        int32_t* iz = ids + py * width + x0;
+        const int32_t fid = static_cast<int32_t>(f);
+        for (int32_t i = 0; i < n; ++i) {
+          const bool nearer = rd[i] < dz[i];
+          dz[i] = nearer ? rd[i] : dz[i];
+          iz[i] = nearer ? fid : iz[i];
+        }
+        continue;
+      }
       for (int64_t i = 0; i < span; ++i) Insert(rd[i], py * width + x0 + i, f, layers, stride, depth_buf, ids);
     }
   }
