@@ -83,7 +83,8 @@ class Raster:
     (``"back"``, OpenGL's ``GL_CULL_FACE`` with ``glCullFace(GL_BACK)``; counter-clockwise on the
     screen is the front) or towards it (``"front"``). A closed mesh seen from outside looks the
     same with ``"back"`` and rasterizes in about 40 % less time; an open one shows what is behind
-    its back faces. Shadow maps and rays always see both sides.
+    its back faces. With ``"back"`` only front faces are lit (two-sided lighting has nothing to
+    do). Shadow maps and rays always see both sides.
     """
 
     shading: Shading = "phong"

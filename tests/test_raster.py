@@ -202,6 +202,32 @@ def test_culling_a_closed_mesh_seen_from_outside(backend):
     assert (back[1] < 0).all() and (front[1] < 0).all()
 
 
+@pytest.mark.parametrize("shading", ["gouraud", "phong"])
+def test_culled_render_of_a_closed_mesh_is_the_same_image(shading):
+    # two-sided lighting with a back material: culled, the render lights only the front side
+    # (statically), and the image is the unculled one's
+    m = trimesh.creation.icosphere(subdivisions=2)
+    mat = ds.Material(ambient=0.1, diffuse=[0.7, 0.4, 0.2], specular=0.4, shininess=20.0)
+    scene = ds.Scene(
+        mesh=ds.Mesh(vertices=m.vertices, faces=m.faces),
+        camera=camera(24, eye=(0.4, 0.5, 2.8)),
+        material=mat,
+        back_material=ds.Material(ambient=0.3, diffuse=[0.1, 0.8, 0.1]),
+        point=ds.PointLights(
+            color=[[1.0, 1.0, 1.0]],
+            position=[[2.0, 2.0, 3.0]],
+            attenuation=[[1.0, 0.1, 0.0]],
+            ambient=[[0.0, 0.0, 0.0]],
+        ),
+    )
+    opts = ds.RenderOptions(raster=ds.Raster(shading=shading), lighting=ds.Lighting(two_sided=True))
+    culled = opts.replace(raster=ds.Raster(shading=shading, cull="back"))
+    a = np.asarray(ds.render(scene, opts))
+    b = np.asarray(ds.render(scene, culled))
+    assert (ds.scene_visibility(scene, culled)[0] >= 0).sum() > 200
+    np.testing.assert_allclose(b, a, rtol=0, atol=1e-6)
+
+
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_culling_keeps_the_triangles_of_one_orientation(backend, rng):
     # A soup that crosses the near plane: the culled visibility is the visibility of the
