@@ -1,10 +1,11 @@
-"""Build and register the native CPU visibility kernel (``csrc/raster.cc``) through ``jax.ffi``.
+"""Build and register the native CPU kernels (``csrc/raster.cc``: visibility; ``csrc/shade.cc``:
+shading, :mod:`diffshade._fast`) through ``jax.ffi``.
 
-The kernel is compiled on first use with the system C++ compiler against the XLA FFI headers
-that ship with jaxlib, and cached under ``$XDG_CACHE_HOME/diffshade`` (default
-``~/.cache/diffshade``), keyed by the source, the jaxlib version and the compiler flags. If no
+The kernels are compiled on first use, into one library, with the system C++ compiler against the
+XLA FFI headers that ship with jaxlib, and cached under ``$XDG_CACHE_HOME/diffshade`` (default
+``~/.cache/diffshade``), keyed by the sources, the jaxlib version and the compiler flags. If no
 compiler is available the renderer falls back to the pure-JAX path (``backend="jax"``), which
-computes exactly the same visibility.
+computes exactly the same visibility and the same shading (to float32 rounding).
 """
 
 from __future__ import annotations
@@ -21,7 +22,9 @@ from pathlib import Path
 import jax
 import jaxlib
 
-_SOURCE = Path(__file__).parent / "csrc" / "raster.cc"
+_CSRC = Path(__file__).parent / "csrc"
+_SOURCES = [_CSRC / "raster.cc", _CSRC / "shade.cc"]
+_HEADERS = [_CSRC / "parallel.h"]
 _FLAGS = [
     "-O3",
     "-std=c++17",
@@ -30,9 +33,11 @@ _FLAGS = [
     "-ffp-contract=off",
     "-fno-fast-math",
     "-fno-trapping-math",
+    "-fno-math-errno",
     "-pthread",
 ]
-_TARGET = "diffshade_raster"
+# FFI target name -> the symbol of its handler in the library
+_TARGETS = {"diffshade_raster": "DiffshadeRaster", "diffshade_shade": "DiffshadeShade"}
 _lock = threading.Lock()
 _state: dict = {}
 
@@ -47,39 +52,42 @@ def _cache_dir() -> Path:
 
 
 def _build() -> Path:
-    src = _SOURCE.read_bytes()
+    src = b"".join(p.read_bytes() for p in _SOURCES + _HEADERS)
     cxx = os.environ.get("CXX") or shutil.which("g++") or shutil.which("c++") or shutil.which("clang++")
     if cxx is None:
         raise NativeUnavailable("no C++ compiler found (set CXX or install g++)")
     key = hashlib.sha256(src + jaxlib.__version__.encode() + " ".join(_FLAGS + [cxx]).encode()).hexdigest()[:16]
-    out = _cache_dir() / f"raster-{key}.so"
+    out = _cache_dir() / f"kernels-{key}.so"
     if out.exists():
         return out
     out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=out.parent) as tmp:
         tmp_so = Path(tmp) / out.name
-        cmd = [cxx, *_FLAGS, "-I", jax.ffi.include_dir(), str(_SOURCE), "-o", str(tmp_so)]
+        cmd = [cxx, *_FLAGS, "-I", jax.ffi.include_dir(), *map(str, _SOURCES), "-o", str(tmp_so)]
         proc = subprocess.run(cmd, capture_output=True, text=True)
         if proc.returncode != 0:
-            raise NativeUnavailable(f"compiling {_SOURCE.name} failed:\n{proc.stderr[-2000:]}")
+            names = " and ".join(p.name for p in _SOURCES)
+            raise NativeUnavailable(f"compiling {names} failed:\n{proc.stderr[-2000:]}")
         os.replace(tmp_so, out)  # atomic: concurrent builders never see a half-written file
     return out
 
 
-def ensure_registered() -> str:
-    """Build (once) and register the kernel; returns the FFI target name or raises NativeUnavailable."""
+def ensure_registered(target: str = "diffshade_raster") -> str:
+    """Build (once) and register the kernels; returns ``target`` (an FFI target name: the
+    visibility kernel's by default, or ``"diffshade_shade"``) or raises NativeUnavailable."""
     with _lock:
         if "error" in _state:
             raise NativeUnavailable(_state["error"])
         if "lib" not in _state:
             try:
                 lib = ctypes.cdll.LoadLibrary(str(_build()))
-                jax.ffi.register_ffi_target(_TARGET, jax.ffi.pycapsule(lib.DiffshadeRaster), platform="cpu")
+                for name, symbol in _TARGETS.items():
+                    jax.ffi.register_ffi_target(name, jax.ffi.pycapsule(getattr(lib, symbol)), platform="cpu")
             except (OSError, NativeUnavailable, AttributeError) as exc:
                 _state["error"] = str(exc)
                 raise NativeUnavailable(str(exc)) from exc
             _state["lib"] = lib
-    return _TARGET
+    return target
 
 
 def available() -> bool:

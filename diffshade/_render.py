@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
+from . import _fast
 from . import _lighting as Lg
 from . import _shade as S
 from ._composite import composite
@@ -40,6 +41,13 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=No
     lower neighbour as a flat index into the subset (-1: none). Only layer 0 is shaded unless
     ``opts.transparency`` asks for layers (docs/model.md §5).
     """
+    if _fast.applies(scene, opts, pixels):  # the native kernel's value, the stages' derivatives
+        return _fast.shade(scene, ids, opts, pixels, _stages)
+    return _stages(scene, ids, opts, pixels)
+
+
+def _stages(scene: Scene, ids, opts: RenderOptions, pixels=None):
+    """:func:`shade` by the JAX stages (the reference, and every render's derivatives)."""
     clip = scene.camera.world_to_clip(scene.mesh.vertices)
     ids = ids if opts.layered else ids[:1]
     frags = fragments(clip, scene.mesh.faces, ids, None if pixels is None else pixels[:2])

@@ -243,13 +243,16 @@ def _program(opts, scene):
 
 
 def test_only_the_terms_a_scene_uses_are_compiled():
+    # the JAX stages' programs (the native shading kernel, which renders these on a CPU, takes the
+    # same static switches and branches on them outside its loops over the pixels)
     scene, _ = make_scene("all-lights-back-material-exp2", "phong", dtype=jnp.float32)
     diffuse = ds.RenderOptions(
-        raster=ds.Raster(shading="phong"), lighting=ds.Lighting(specular="none", ambient=False, two_sided=False)
+        raster=ds.Raster(shading="phong", backend="jax"),
+        lighting=ds.Lighting(specular="none", ambient=False, two_sided=False),
     )
     # (the scene's back material lights the back faces: two-sided lighting with a back material)
     every = ds.RenderOptions(
-        raster=ds.Raster(shading="phong"),
+        raster=ds.Raster(shading="phong", backend="jax"),
         lighting=ds.Lighting(
             specular="blinn", fresnel="dielectric", emission=True, per_light_ambient=True, spot_edge="smooth"
         ),

@@ -15,14 +15,10 @@
 // changes no result: IEEE operations round the same in vector registers).
 
 #include <algorithm>
-#include <atomic>
 #include <cmath>
-#include <condition_variable>
 #include <cstdint>
 #include <cstring>
 #include <limits>
-#include <memory>
-#include <mutex>
 #include <thread>
 #include <vector>
 
@@ -31,6 +27,7 @@
 #define DIFFSHADE_X86 1
 #endif
 
+#include "parallel.h"
 #include "xla/ffi/api/ffi.h"
 
 namespace ffi = xla::ffi;
@@ -375,38 +372,6 @@ void Setup(const float* clip, const int32_t* faces, int64_t num_verts, int64_t n
   }
 }
 
-// Run fn(0 .. n-1): the calling thread and up to n - 1 of XLA's intra-op threads take the
-// indices one at a time, so the call never waits on a pool thread that does not come (a busy
-// or missing pool: the caller does them all). A pool thread that starts after every index is
-// taken touches only the shared counters, which it owns a share of. (Before: n - 1 threads
-// spawned and joined per call, about 27 us each on this VM, twice per image.)
-template <typename Fn>
-void ParallelFor(ffi::ThreadPool& pool, int64_t n, const Fn& fn) {
-  if (n <= 1) {
-    fn(0);
-    return;
-  }
-  struct Shared {
-    std::atomic<int64_t> next{0}, done{0};
-    std::mutex mu;
-    std::condition_variable all_done;
-  };
-  auto shared = std::make_shared<Shared>();
-  auto run = [shared, n, &fn]() {
-    for (int64_t t; (t = shared->next.fetch_add(1)) < n;) {
-      fn(t);
-      if (shared->done.fetch_add(1) + 1 == n) {
-        std::lock_guard<std::mutex> lock(shared->mu);
-        shared->all_done.notify_all();
-      }
-    }
-  };
-  for (int64_t t = 1; t < n; ++t) pool.Schedule([run]() { run(); });
-  run();
-  std::unique_lock<std::mutex> lock(shared->mu);
-  shared->all_done.wait(lock, [&] { return shared->done.load() == n; });
-}
-
 ffi::Error RasterImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> clip, ffi::Buffer<ffi::S32> faces,
                       ffi::ResultBuffer<ffi::S32> out, int32_t cull) {
   // Shapes: clip [..., V, 4], faces [..., F, 3], out [..., K, H, W].
@@ -457,11 +422,11 @@ ffi::Error RasterImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> clip, ffi::Buf
     int32_t* pm = meta.data();
     float* pd = depth.data();  // (the threads below have thread_local scratch of their own)
     // Set-up over face ranges, then rasterization over row bands, on the same threads.
-    ParallelFor(pool, nthreads, [&](int64_t t) {
+    diffshade::ParallelFor(pool, nthreads, [&](int64_t t) {
       const int64_t f0 = num_faces * t / nthreads, f1 = num_faces * (t + 1) / nthreads;
       Setup(bclip, bfaces, num_verts, num_faces, f0, f1, height, width, cull, pc, pz, pm);
     });
-    ParallelFor(pool, nthreads, [&](int64_t t) {
+    diffshade::ParallelFor(pool, nthreads, [&](int64_t t) {
       const int64_t r0 = height * t / nthreads, r1 = height * (t + 1) / nthreads;
       band(pc, pz, pm, num_faces, height, width, layers, keep, r0, r1, pd, ids);
     });

@@ -1,0 +1,171 @@
+r"""The native shading kernel (``csrc/shade.cc``): a render's value in one pass over the pixels.
+
+For the renders most scenes ask for — Phong shading (per pixel), one material without texture
+maps, directional, point and spot lights, any specular model and Fresnel term, two-sided
+lighting, clamping per pixel and fog, one depth layer, no shadows, rays or antialiasing — the
+stages after visibility (fragments, surface, lighting, composite) are computed by one C++ loop
+instead of XLA's two dozen passes over the image (issue 34: at 512² the passes cost more than
+all of DEODR's render). Everything else, and every float64 render, takes the JAX stages.
+
+Only the value comes from the kernel: its ``custom_jvp`` rule is the JAX stages' own ``jvp``, so
+gradients, tangents, ``jax.linearize`` (a fit's Jacobian) and transposition are exactly those of
+the reference, and a differentiated render costs what it did. The kernel and the JAX stages
+agree to float32 rounding (tests/test_fast.py). ``Raster(backend="jax")`` turns the kernel off.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _native
+from . import _shade as S
+from ._options import RenderOptions
+from ._raster import pixel_centres, resolve_backend
+from ._scene import Scene
+
+_TARGET = "diffshade_shade"
+# The layout of a light's row in csrc/shade.cc (kLight): see there.
+_LIGHT = 24
+_SPECULAR = {"none": 0, "phong": 1, "blinn": 2}
+_FRESNEL = {"none": 0, "schlick": 1, "dielectric": 2}
+_FOG = {"linear": 1, "exp": 2, "exp2": 3}
+
+
+def applies(scene: Scene, opts: RenderOptions, pixels) -> bool:
+    """Whether the kernel renders ``scene`` with ``opts`` (static: shapes, dtypes, options)."""
+    r, lt, out = opts.raster, opts.lighting, opts.output
+    if r.backend == "jax" or resolve_backend(r.backend) != "native":
+        return False
+    if (r.shading, r.interpolation, r.vertex_color) != ("phong", "perspective", "none"):
+        return False
+    if opts.layered or opts.ray_traced or opts.shadows is not None or out.antialias or out.clamp == "vertex":
+        return False
+    if lt.transmission or scene.area.count or scene.multi_lobe.count:
+        return False
+    if pixels is not None and len(pixels) != 2:
+        return False
+    mats = [scene.material] + ([scene.back_material] if scene.back_material is not None else [])
+    if (scene.materials and scene.mesh.material_ids is not None) or any(m.maps() for m in mats):
+        return False
+    floats = [x for x in jax.tree.leaves(scene) if jnp.issubdtype(jnp.result_type(x), jnp.floating)]
+    return all(jnp.result_type(x) == jnp.float32 for x in floats)
+
+
+def shade(scene: Scene, ids, opts: RenderOptions, pixels, reference):
+    """The image of ``scene`` at the visibility ``ids`` by the kernel, differentiated as
+    ``reference(scene, ids, opts, pixels)`` (the JAX stages)."""
+
+    @jax.custom_jvp
+    def value(scene, ids, pixels):
+        return _kernel(scene, ids, opts, pixels)
+
+    @value.defjvp
+    def _jvp(primals, tangents):
+        return jax.jvp(lambda s, i, p: reference(s, i, opts, p), primals, tangents)
+
+    return value(scene, ids, pixels)
+
+
+def _material(m) -> jax.Array:
+    return jnp.concatenate([m.emission, m.ambient, m.diffuse, m.specular, m.shininess[None], m.ior[None]])
+
+
+def _lights(scene: Scene, opts: RenderOptions) -> jax.Array:
+    """Every light as a row of csrc/shade.cc's kLight floats."""
+    rows = []
+    smooth = 1.0 if opts.lighting.spot_edge == "smooth" else 0.0
+    for kind, code in (("directional", 0), ("point", 1), ("spot", 2)):
+        li = getattr(scene, kind)
+        if not li.count:
+            continue
+        n = li.count
+        z3 = jnp.zeros((n, 3), jnp.float32)
+        spec = li.specular
+        if kind == "directional":
+            where = jnp.stack(S.neg(S.normalize(S.vec(li.direction))), -1)
+            att = z3
+        else:
+            where, att = li.position, li.attenuation
+        if kind == "spot":
+            axis = jnp.stack(S.normalize(S.vec(li.axis)), -1)
+            cos_cut = jnp.cos(jnp.deg2rad(li.cutoff))
+            cos_in = jnp.cos(jnp.deg2rad(jnp.maximum(li.cutoff - li.edge, 0.0)))
+            spot = jnp.stack([cos_cut, cos_in, li.exponent, jnp.full((n,), smooth, jnp.float32)], -1)
+        else:
+            axis, spot = z3, jnp.zeros((n, 4), jnp.float32)
+        cols = [
+            jnp.full((n, 1), code, jnp.float32),
+            li.color,
+            li.ambient,
+            z3 if spec is None else spec,
+            jnp.full((n, 1), 0.0 if spec is None else 1.0, jnp.float32),
+            where,
+            att,
+            axis,
+            spot,
+        ]
+        rows.append(jnp.concatenate([jnp.asarray(c, jnp.float32) for c in cols], -1))
+    if not rows:
+        return jnp.zeros((0, _LIGHT), jnp.float32)
+    return jnp.concatenate(rows, 0)
+
+
+def _kernel(scene: Scene, ids, opts: RenderOptions, pixels):
+    target = _native.ensure_registered(_TARGET)
+    mesh, cam, lt = scene.mesh, scene.camera, opts.lighting
+    clip = cam.world_to_clip(mesh.vertices)
+    back = scene.back_material if scene.back_material is not None else scene.material
+    fog = scene.fog
+    params = jnp.concatenate(
+        [
+            _material(scene.material),
+            _material(back),
+            scene.ambient_light,
+            cam.eye,
+            cam.view_matrix()[2, :3],
+            fog.color,
+            jnp.stack([fog.start, fog.end, fog.density]),
+            scene.background,
+            cam.gain(),
+        ]
+    ).astype(jnp.float32)
+    bits = (
+        lt.emission,
+        lt.ambient,
+        lt.diffuse,
+        lt.per_light_ambient,
+        lt.two_sided,
+        lt.viewer == "infinite",
+        opts.output.clamp == "pixel",
+    )
+    flags = sum(int(b) << i for i, b in enumerate(bits))
+    fog_code = 0 if opts.fog is None else _FOG[opts.fog.mode] + (4 if opts.fog.distance == "depth" else 0)
+    if pixels is None:
+        h, w = ids.shape[-2:]
+        xs, ys = pixel_centres(h, w, jnp.float32)
+        shape = (h, w, 3)
+    else:
+        xs, ys = (jnp.asarray(c, jnp.float32).reshape(-1) for c in pixels[:2])
+        shape = tuple(ids.shape[1:]) + (3,)
+    call = jax.ffi.ffi_call(
+        target, jax.ShapeDtypeStruct((int(np.prod(shape[:-1])), 3), jnp.float32), vmap_method="sequential"
+    )
+    out = call(
+        ids[0].reshape(-1).astype(jnp.int32),
+        xs,
+        ys,
+        clip.astype(jnp.float32),
+        mesh.faces.astype(jnp.int32),
+        mesh.vertex_normals().astype(jnp.float32),
+        mesh.vertices.astype(jnp.float32),
+        params,
+        _lights(scene, opts),
+        specular=np.int32(_SPECULAR[lt.specular]),
+        fresnel=np.int32(_FRESNEL[lt.fresnel] if lt.specular != "none" else 0),
+        flags=np.int32(flags),
+        fog=np.int32(fog_code),
+        grid=np.int32(pixels is None),
+    )
+    return out.reshape(shape)

@@ -1,0 +1,440 @@
+// diffshade native shading kernel (CPU), registered with XLA through jax.ffi: the per-pixel
+// (Phong-shaded) local model of diffshade/_lighting.py for one layer and one material, from the
+// fragments to the final pixel (barycentrics, interpolated normal and position, every light's
+// terms, clamp, fog, background and the camera's gain) in one pass over the pixels. The pure-JAX
+// stages stay the reference and the differentiated path: diffshade/_fast.py calls this kernel
+// for a render's value only, and its tests hold the two equal to float32 rounding.
+//
+// The formulas follow diffshade/_shade.py term by term, with the same guards (double-where
+// cases: a zero normal, a light on the surface, 0^m, an empty pixel).
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <limits>
+#include <thread>
+#include <vector>
+
+#include "parallel.h"
+#include "xla/ffi/api/ffi.h"
+
+namespace ffi = xla::ffi;
+
+namespace {
+
+// Layouts shared with diffshade/_fast.py (kept in step by its constants).
+// Per face, kFace floats (built by FaceTable below): the 13 planes of _raster.py::_face_planes (E_i = c + a x + b y for
+// i = 0..2 at the pixel centre (x, y) in NDC, the depth plane, D), the corners' normals (3 x 3),
+// their positions (3 x 3), and whether the face is front-facing (D > 0; 1 or 0).
+constexpr int kFace = 32;
+// Per material, kMat floats: emission, ambient, diffuse, specular (3 each), shininess, ior.
+constexpr int kMat = 14;
+// The scene's numbers: two materials (front, back), the ambient light (3), the eye (3), the
+// eye-space +z axis in world coordinates (3), the fog's colour (3), start, end, density, the
+// background (3), the camera's gain (3).
+constexpr int kParams = 2 * kMat + 3 + 3 + 3 + 6 + 3 + 3;
+// Per light, kLight floats: kind (0 directional, 1 point, 2 spot), colour (3), ambient (3),
+// specular colour (3), whether it has one, the unit vector to it (directional) or its position
+// (3), attenuation (3), the spot's unit axis (3), cos of its cutoff, cos of the inner edge, its
+// exponent, whether the edge is smooth.
+constexpr int kLight = 24;
+
+struct V3 {
+  float x, y, z;
+};
+inline V3 operator+(V3 a, V3 b) { return {a.x + b.x, a.y + b.y, a.z + b.z}; }
+inline V3 operator-(V3 a, V3 b) { return {a.x - b.x, a.y - b.y, a.z - b.z}; }
+inline V3 operator*(V3 a, float s) { return {a.x * s, a.y * s, a.z * s}; }
+inline float Dot(V3 a, V3 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
+inline V3 Load(const float* p) { return {p[0], p[1], p[2]}; }
+
+inline V3 Normalize(V3 a) {  // the zero vector gives zeros (_shade.normalize)
+  const float sq = Dot(a, a);
+  return sq > 0 ? a * (1.0f / std::sqrt(sq)) : V3{0, 0, 0};
+}
+inline float Norm(V3 a) {
+  const float sq = Dot(a, a);
+  return sq > 0 ? std::sqrt(sq) : 0.0f;
+}
+
+// x^m with 0^m = 0 and 0 where m log x is below the log of the smallest normal float
+// (_shade.safe_pow).
+inline float SafePow(float x, float m) {
+  static const float kFloor = std::log(std::numeric_limits<float>::min());
+  if (!(x > 0)) return 0.0f;
+  const float t = m * std::log(x);
+  return t > kFloor ? std::exp(t) : 0.0f;
+}
+
+inline float Radial(float d, const float* a) {  // _shade.radial_attenuation
+  static const float kEps = std::cbrt(std::numeric_limits<float>::min());
+  const float den = a[0] + a[1] * d + a[2] * d * d;
+  return den > kEps ? 1.0f / den : 1.0f / kEps;
+}
+
+inline float Clip01(float x) { return std::min(std::max(x, 0.0f), 1.0f); }
+
+inline float Schlick(float c, float ior) {  // _shade.fresnel_schlick
+  const float r = (ior - 1.0f) / (ior + 1.0f), f0 = r * r;
+  const float q = 1.0f - Clip01(c);
+  return f0 + (1.0f - f0) * (q * q * q * q * q);
+}
+
+inline float Dielectric(float c, float ior) {  // _shade.fresnel_dielectric
+  const float ci = Clip01(c);
+  const float s2 = (1.0f - ci * ci) / (ior * ior);
+  if (s2 >= 1.0f) return 1.0f;
+  const float ct = std::sqrt(1.0f - s2);
+  const float rs_den = ci + ior * ct, rp_den = ior * ci + ct;
+  if (!(rs_den > 0) || !(rp_den > 0)) return 1.0f;
+  const float rs = (ci - ior * ct) / rs_den, rp = (ior * ci - ct) / rp_den;
+  return 0.5f * (rs * rs + rp * rp);
+}
+
+// Static configuration (the FFI attributes).
+struct Config {
+  int32_t specular;  // 0 none, 1 phong, 2 blinn
+  int32_t fresnel;   // 0 none, 1 schlick, 2 dielectric
+  int32_t flags;     // bits: emission, ambient, diffuse, per-light ambient, two-sided, infinite viewer, clamp
+  int32_t fog;       // 0 none, 1 linear, 2 exp, 3 exp2; +4: by eye-space depth
+  bool Flag(int bit) const { return (flags >> bit) & 1; }
+};
+
+// Pixels are shaded in blocks of kBlock: the covered ones' points are evaluated into arrays
+// (structure of arrays), and each step of the model is then a loop over the block without
+// branches or pointer selects, which the compiler vectorises (square roots and divisions four at
+// a time; one pixel at a time they were a chain of latencies, 25 ns per pixel).
+constexpr int kBlock = 64;
+
+struct Block {
+  int64_t pix[kBlock];
+  float nx[kBlock], ny[kBlock], nz[kBlock];  // unit normal (on the lit side)
+  float px[kBlock], py[kBlock], pz[kBlock];  // position
+  float vx[kBlock], vy[kBlock], vz[kBlock];  // unit vector to the viewer
+  float w[kBlock], back[kBlock];             // clip w; 1 where the back side (material) is lit
+  float lx[kBlock], ly[kBlock], lz[kBlock], att[kBlock], ndl[kBlock], spec[kBlock], fog[kBlock];
+  float col[3][kBlock], base[3][kBlock];
+};
+
+inline float Pick(float back, float b, float f) { return back > 0 ? b : f; }
+
+// One light's direct terms (and per-light ambient) added to the block's m pixels.
+void AddLight(const Config& cfg, const float* front, const float* backm, const float* li, Block& k, int m) {
+  const int kind = static_cast<int>(li[0]);
+  float* __restrict lx = k.lx;
+  float* __restrict ly = k.ly;
+  float* __restrict lz = k.lz;
+  float* __restrict att = k.att;
+  if (kind == 0) {
+    for (int q = 0; q < m; ++q) lx[q] = li[11], ly[q] = li[12], lz[q] = li[13], att[q] = 1.0f;
+  } else {
+    static const float kEps = std::cbrt(std::numeric_limits<float>::min());
+    const float a0 = li[14], a1 = li[15], a2 = li[16], ox = li[11], oy = li[12], oz = li[13];
+    for (int q = 0; q < m; ++q) {
+      const float Lx = ox - k.px[q], Ly = oy - k.py[q], Lz = oz - k.pz[q];
+      const float sq = Lx * Lx + Ly * Ly + Lz * Lz;
+      const float d = std::sqrt(sq);
+      const float inv = sq > 0 ? 1.0f / d : 0.0f;
+      lx[q] = Lx * inv, ly[q] = Ly * inv, lz[q] = Lz * inv;
+      const float den = a0 + a1 * d + a2 * d * d;
+      att[q] = den > kEps ? 1.0f / den : 1.0f / kEps;
+    }
+    if (kind == 2) {
+      const float cos_cut = li[20], cos_in = li[21], width = cos_in - cos_cut, e = li[22];
+      const bool smooth = li[23] > 0;
+      for (int q = 0; q < m; ++q) {
+        const float c = -(lx[q] * li[17] + ly[q] * li[18] + lz[q] * li[19]);
+        const float lobe = SafePow(c, e);
+        float f;
+        if (smooth) {
+          const float t = width > 0 ? Clip01((c - cos_cut) / width) : (c >= cos_cut ? 1.0f : 0.0f);
+          f = lobe * t * t * (3.0f - 2.0f * t);
+        } else {
+          f = c >= cos_cut ? lobe : 0.0f;
+        }
+        att[q] = att[q] * f;
+      }
+    }
+  }
+  float* __restrict ndl = k.ndl;
+  float* __restrict spec = k.spec;
+  for (int q = 0; q < m; ++q) ndl[q] = k.nx[q] * lx[q] + k.ny[q] * ly[q] + k.nz[q] * lz[q];
+  if (cfg.specular == 1) {  // v.r = 2 (n.l)(n.v) - v.l
+    for (int q = 0; q < m; ++q) {
+      const float ndv = k.nx[q] * k.vx[q] + k.ny[q] * k.vy[q] + k.nz[q] * k.vz[q];
+      const float vdl = k.vx[q] * lx[q] + k.vy[q] * ly[q] + k.vz[q] * lz[q];
+      spec[q] = 2.0f * ndl[q] * ndv - vdl;
+    }
+  } else if (cfg.specular == 2) {  // n.h
+    for (int q = 0; q < m; ++q) {
+      const float hx = lx[q] + k.vx[q], hy = ly[q] + k.vy[q], hz = lz[q] + k.vz[q];
+      const float sq = hx * hx + hy * hy + hz * hz;
+      const float inv = sq > 0 ? 1.0f / std::sqrt(sq) : 0.0f;
+      spec[q] = (k.nx[q] * hx + k.ny[q] * hy + k.nz[q] * hz) * inv;
+    }
+  }
+  if (cfg.specular != 0) {
+    for (int q = 0; q < m; ++q) {  // (log and exp: not vectorised)
+      const float sh = Pick(k.back[q], backm[12], front[12]), ior = Pick(k.back[q], backm[13], front[13]);
+      float sp = ndl[q] > 0 ? SafePow(spec[q], sh) : 0.0f;
+      if (cfg.fresnel == 1) sp = Schlick(ndl[q], ior) * sp;
+      if (cfg.fresnel == 2) sp = Dielectric(ndl[q], ior) * sp;
+      spec[q] = sp;
+    }
+  }
+  if (cfg.specular == 0) {
+    for (int q = 0; q < m; ++q) spec[q] = 0.0f;
+  }
+  // (flags as factors of 1 or 0 and separate loops: branch-free inner loops, vectorised)
+  const float dif_on = cfg.Flag(2) ? 1.0f : 0.0f;
+  const bool has_spec = li[10] > 0, fresnel = cfg.fresnel != 0;
+  const float* __restrict bk = k.back;
+  for (int c = 0; c < 3; ++c) {
+    const float color = li[1 + c], sc = li[7 + c];
+    const float kdf = front[6 + c], kdb = backm[6 + c], ksf = fresnel ? 1.0f : front[9 + c];
+    const float ksb = fresnel ? 1.0f : backm[9 + c];
+    float* __restrict out = k.col[c];
+    // the order of _lighting._terms: one colour, or the specular with its own
+    if (has_spec) {
+      for (int q = 0; q < m; ++q) {
+        const float acc = Pick(bk[q], kdb, kdf) * (std::max(ndl[q], 0.0f) * dif_on);
+        out[q] += att[q] * (acc * color) + att[q] * ((Pick(bk[q], ksb, ksf) * spec[q]) * sc);
+      }
+    } else {
+      for (int q = 0; q < m; ++q) {
+        const float acc = Pick(bk[q], kdb, kdf) * (std::max(ndl[q], 0.0f) * dif_on);
+        out[q] += att[q] * ((acc + Pick(bk[q], ksb, ksf) * spec[q]) * color);
+      }
+    }
+    if (cfg.Flag(3)) {  // per-light ambient
+      const float amb = li[4 + c], kaf = front[3 + c], kab = backm[3 + c];
+      float* __restrict base = k.base[c];
+      for (int q = 0; q < m; ++q) base[q] += att[q] * (Pick(bk[q], kab, kaf) * amb);
+    }
+  }
+}
+
+void ShadeRange(const Config& cfg, const int32_t* ids, const float* xs, const float* ys, bool grid, int64_t width,
+                const float* faces, const float* params, const float* lights, int64_t num_lights, int64_t p0,
+                int64_t p1, float* out) {
+  const float* front = params;
+  const float* backm = params + kMat;
+  const float* amb_light = params + 2 * kMat;
+  const float* eye = amb_light + 3;
+  const float* view_z = eye + 3;
+  const float* fog = view_z + 3;  // colour (3), start, end, density
+  const float* background = fog + 6;
+  const float* gain = background + 3;
+  const bool two_sided = cfg.Flag(4), infinite = cfg.Flag(5), clamp = cfg.Flag(6);
+  const bool emission = cfg.Flag(0), ambient = cfg.Flag(1);
+  const int fog_mode = cfg.fog & 3;
+  const bool fog_depth = (cfg.fog & 4) != 0;
+  Block k;
+  int64_t col = grid ? p0 % width : 0, row = grid ? p0 / width : 0;  // (no division per pixel)
+  for (int64_t b0 = p0; b0 < p1; b0 += kBlock) {
+    const int64_t b1 = std::min(b0 + kBlock, p1);
+    // the covered pixels' points (the empty ones drawn now): the barycentrics
+    // b_i = E_i / sum_k E_k of their face's edge functions, the corners' normals and positions
+    // interpolated with them (a plane per attribute, sum_i E_i a_i, would save work but lose
+    // accuracy: up to 2e-5 off the JAX stages, which this form holds to 6e-6)
+    int m = 0;
+    int32_t last = -1;  // neighbouring pixels mostly see the same face: its planes stay loaded
+    float g[kFace] = {};
+    for (int64_t p = b0; p < b1; ++p) {
+      const int32_t t = ids[p];
+      const float x = grid ? xs[col] : xs[p], y = grid ? ys[row] : ys[p];
+      if (grid && ++col == width) col = 0, ++row;
+      if (t < 0) {
+        for (int c = 0; c < 3; ++c) out[3 * p + c] = background[c] * gain[c];
+        continue;
+      }
+      if (t != last) {
+        std::memcpy(g, faces + static_cast<int64_t>(t) * kFace, sizeof(g));
+        last = t;
+      }
+      const float e0 = g[0] + x * g[1] + y * g[2], e1 = g[3] + x * g[4] + y * g[5];
+      const float e2 = g[6] + x * g[7] + y * g[8];
+      const float s = e0 + e1 + e2;
+      const bool ok = s != 0;
+      const float inv = ok ? 1.0f / s : 1.0f;
+      const float b0 = ok ? e0 * inv : 0.0f, b1 = ok ? e1 * inv : 0.0f, b2 = ok ? e2 * inv : 0.0f;
+      k.pix[m] = p;
+      k.nx[m] = (g[13] * b0 + g[16] * b1) + g[19] * b2;
+      k.ny[m] = (g[14] * b0 + g[17] * b1) + g[20] * b2;
+      k.nz[m] = (g[15] * b0 + g[18] * b1) + g[21] * b2;
+      k.px[m] = (g[22] * b0 + g[25] * b1) + g[28] * b2;
+      k.py[m] = (g[23] * b0 + g[26] * b1) + g[29] * b2;
+      k.pz[m] = (g[24] * b0 + g[27] * b1) + g[30] * b2;
+      k.w[m] = ok ? g[12] * inv : 0.0f;
+      k.back[m] = (two_sided && !(g[31] > 0)) ? 1.0f : 0.0f;
+      ++m;
+    }
+    {
+      float* __restrict nx = k.nx;
+      float* __restrict ny = k.ny;
+      float* __restrict nz = k.nz;
+      const float* __restrict bk = k.back;
+      for (int q = 0; q < m; ++q) {  // the unit normal, reversed where the back side is lit
+        const float sq = nx[q] * nx[q] + ny[q] * ny[q] + nz[q] * nz[q];
+        const float r = sq > 0 ? 1.0f / std::sqrt(sq) : 0.0f;
+        const float inv = r * (1.0f - 2.0f * bk[q]);
+        nx[q] *= inv, ny[q] *= inv, nz[q] *= inv;
+      }
+      float* __restrict vx = k.vx;
+      float* __restrict vy = k.vy;
+      float* __restrict vz = k.vz;
+      if (infinite) {
+        for (int q = 0; q < m; ++q) vx[q] = view_z[0], vy[q] = view_z[1], vz[q] = view_z[2];
+      } else {
+        for (int q = 0; q < m; ++q) {
+          const float dx = eye[0] - k.px[q], dy = eye[1] - k.py[q], dz = eye[2] - k.pz[q];
+          const float sq = dx * dx + dy * dy + dz * dz;
+          const float r = 1.0f / std::sqrt(sq);
+          const float inv = sq > 0 ? r : 0.0f;
+          vx[q] = dx * inv, vy[q] = dy * inv, vz[q] = dz * inv;
+        }
+      }
+    }
+    for (int c = 0; c < 3; ++c) {
+      for (int q = 0; q < m; ++q) k.col[c][q] = 0.0f, k.base[c][q] = 0.0f;
+    }
+    for (int64_t i = 0; i < num_lights; ++i) AddLight(cfg, front, backm, lights + i * kLight, k, m);
+    if (fog_mode != 0) {
+      float* __restrict f = k.fog;
+      for (int q = 0; q < m; ++q) {
+        const float dx = k.px[q] - eye[0], dy = k.py[q] - eye[1], dz = k.pz[q] - eye[2];
+        f[q] = fog_depth ? k.w[q] : std::sqrt(dx * dx + dy * dy + dz * dz);
+      }
+      if (fog_mode == 1) {
+        const float den = fog[4] - fog[3];
+        for (int q = 0; q < m; ++q) {
+          const float d = f[q];
+          f[q] = den > 0 ? Clip01((fog[4] - d) / den) : (d <= fog[4] ? 1.0f : 0.0f);
+        }
+      } else {
+        for (int q = 0; q < m; ++q) {  // (exp: not vectorised)
+          const float r = fog[5] * f[q];
+          f[q] = std::exp(fog_mode == 2 ? -r : -(r * r));
+        }
+      }
+    }
+    const float amb_on = ambient ? 1.0f : 0.0f, em_on = emission ? 1.0f : 0.0f;
+    for (int c = 0; c < 3; ++c) {
+      const float kaf = front[3 + c] * amb_light[c], kab = backm[3 + c] * amb_light[c];
+      const float kef = front[c], keb = backm[c];
+      float* __restrict colc = k.col[c];
+      const float* __restrict base = k.base[c];
+      const float* __restrict bk = k.back;
+      for (int q = 0; q < m; ++q) {  // base + direct (the ambient and emission terms where on)
+        const float b = (base[q] + Pick(bk[q], kab, kaf) * amb_on) + Pick(bk[q], keb, kef) * em_on;
+        colc[q] = b + colc[q];
+      }
+      if (clamp) {
+        for (int q = 0; q < m; ++q) colc[q] = Clip01(colc[q]);
+      }
+      if (fog_mode != 0) {
+        const float fc = fog[c];
+        const float* __restrict f = k.fog;
+        for (int q = 0; q < m; ++q) colc[q] = f[q] * colc[q] + (1.0f - f[q]) * fc;
+      }
+      const float gc = gain[c];
+      for (int q = 0; q < m; ++q) colc[q] = colc[q] * gc;
+    }
+    for (int q = 0; q < m; ++q) {
+      float* o = out + 3 * k.pix[q];
+      o[0] = k.col[0][q], o[1] = k.col[1][q], o[2] = k.col[2][q];
+    }
+  }
+}
+
+// The face table (kFace floats per face) of faces [f0, f1): the planes of
+// _raster.py::_face_planes from the clip-space vertices, and the corners' normals and positions.
+void FaceTable(const float* clip, const int32_t* tri, const float* normals, const float* points, int64_t num_verts,
+               int64_t f0, int64_t f1, float* table) {
+  for (int64_t f = f0; f < f1; ++f) {
+    float* g = table + f * kFace;
+    float X[3], Y[3], Z[3], W[3];
+    int64_t v[3];
+    for (int j = 0; j < 3; ++j) {
+      v[j] = std::min<int64_t>(std::max<int32_t>(tri[3 * f + j], 0), num_verts - 1);
+      const float* c = clip + 4 * v[j];
+      X[j] = c[0], Y[j] = c[1], Z[j] = c[2], W[j] = c[3];
+    }
+    for (int i = 0; i < 3; ++i) {
+      const int a = (i + 1) % 3, b = (i + 2) % 3;
+      g[3 * i] = X[a] * Y[b] - X[b] * Y[a];
+      g[3 * i + 1] = W[b] * Y[a] - W[a] * Y[b];
+      g[3 * i + 2] = X[b] * W[a] - X[a] * W[b];
+    }
+    for (int q = 0; q < 3; ++q) g[9 + q] = (g[q] * Z[0] + g[3 + q] * Z[1]) + g[6 + q] * Z[2];
+    const float det = (X[0] * (Y[1] * W[2] - Y[2] * W[1]) - Y[0] * (X[1] * W[2] - X[2] * W[1])) +
+                      W[0] * (X[1] * Y[2] - X[2] * Y[1]);
+    g[12] = det;
+    for (int j = 0; j < 3; ++j) {
+      for (int c = 0; c < 3; ++c) {
+        g[13 + 3 * j + c] = normals[3 * v[j] + c];
+        g[22 + 3 * j + c] = points[3 * v[j] + c];
+      }
+    }
+    g[31] = det > 0 ? 1.0f : 0.0f;
+  }
+}
+
+ffi::Error ShadeImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Buffer<ffi::F32> xs,
+                     ffi::Buffer<ffi::F32> ys, ffi::Buffer<ffi::F32> clip, ffi::Buffer<ffi::S32> tri,
+                     ffi::Buffer<ffi::F32> normals, ffi::Buffer<ffi::F32> points, ffi::Buffer<ffi::F32> params,
+                     ffi::Buffer<ffi::F32> lights, ffi::ResultBuffer<ffi::F32> out, int32_t specular,
+                     int32_t fresnel, int32_t flags, int32_t fog, int32_t grid) {
+  const int64_t n = ids.element_count();
+  const int64_t num_verts = clip.element_count() / 4, num_faces = tri.element_count() / 3;
+  if (out->element_count() != 3 * n || params.element_count() != kParams || lights.element_count() % kLight != 0 ||
+      normals.element_count() != 3 * num_verts || points.element_count() != 3 * num_verts || num_verts == 0) {
+    return ffi::Error::InvalidArgument("diffshade_shade: bad shapes");
+  }
+  const int64_t width = xs.element_count();
+  if (grid ? width * ys.element_count() != n : (width != n || ys.element_count() != n)) {
+    return ffi::Error::InvalidArgument("diffshade_shade: pixel centres do not match the ids");
+  }
+  const Config cfg{specular, fresnel, flags, fog};
+  const int64_t num_lights = lights.element_count() / kLight;
+  unsigned hw = std::thread::hardware_concurrency();
+  int64_t nthreads = std::min<int64_t>(hw == 0 ? 1 : hw, 8);
+  if (n < 16384) nthreads = 1;  // not worth a thread for small images
+  // the face table, in scratch kept per calling thread between calls (every entry is written)
+  thread_local std::vector<float> table;
+  table.resize(static_cast<size_t>(num_faces * kFace));
+  float* tab = table.data();
+  const int64_t ft = num_faces < 4096 ? 1 : nthreads;
+  diffshade::ParallelFor(pool, ft, [&](int64_t k) {
+    FaceTable(clip.typed_data(), tri.typed_data(), normals.typed_data(), points.typed_data(), num_verts,
+              num_faces * k / ft, num_faces * (k + 1) / ft, tab);
+  });
+  const int64_t chunks = nthreads * 4;
+  diffshade::ParallelFor(pool, chunks, [&](int64_t k) {
+    ShadeRange(cfg, ids.typed_data(), xs.typed_data(), ys.typed_data(), grid != 0, width, tab, params.typed_data(),
+               lights.typed_data(), num_lights, n * k / chunks, n * (k + 1) / chunks, out->typed_data());
+  });
+  return ffi::Error::Success();
+}
+
+}  // namespace
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(DiffshadeShade, ShadeImpl,
+                              ffi::Ffi::Bind()
+                                  .Ctx<ffi::ThreadPool>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()  // ids [N]
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // xs [W] (grid) or [N]
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // ys [H] (grid) or [N]
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // clip-space vertices [V, 4]
+                                  .Arg<ffi::Buffer<ffi::S32>>()  // faces [F, 3]
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // vertex normals [V, 3]
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // vertex positions [V, 3]
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // params [kParams]
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // lights [L, kLight]
+                                  .Ret<ffi::Buffer<ffi::F32>>()  // out [N, 3]
+                                  .Attr<int32_t>("specular")
+                                  .Attr<int32_t>("fresnel")
+                                  .Attr<int32_t>("flags")
+                                  .Attr<int32_t>("fog")
+                                  .Attr<int32_t>("grid"));
