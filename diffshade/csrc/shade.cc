@@ -58,13 +58,73 @@ inline float Norm(V3 a) {
   return sq > 0 ? std::sqrt(sq) : 0.0f;
 }
 
+// exp and log of floats as straight-line code (Cephes' expf and logf: a polynomial after range
+// reduction, within 2 ulp of the libm functions on their range here), so that the loops that
+// call them vectorise; libm's are calls, one value at a time (the all-terms render spent most
+// of its time in them).
+inline float Bits(int32_t i) {
+  float f;
+  std::memcpy(&f, &i, 4);
+  return f;
+}
+inline int32_t Int(float f) {
+  int32_t i;
+  std::memcpy(&i, &f, 4);
+  return i;
+}
+
+// e^x for x in [-87.3, 88.3] (clamped there: the callers need no more; 2^n stays a normal float).
+inline float Exp(float x) {
+  x = std::min(std::max(x, -87.3f), 88.3f);
+  const float v = x * 1.44269504088896341f + 0.5f;
+  int32_t n = static_cast<int32_t>(v);  // floor(v), by truncation and a step down below 0
+  n = n - (static_cast<float>(n) > v ? 1 : 0);
+  const float fn = static_cast<float>(n);
+  float r = x - fn * 0.693359375f;
+  r = r - fn * -2.12194440e-4f;
+  const float z = r * r;
+  float y = 1.9875691500e-4f;
+  y = y * r + 1.3981999507e-3f;
+  y = y * r + 8.3334519073e-3f;
+  y = y * r + 4.1665795894e-2f;
+  y = y * r + 1.6666665459e-1f;
+  y = y * r + 5.0000001201e-1f;
+  y = y * z + r + 1.0f;
+  return y * Bits((n + 127) << 23);  // times 2^n, n in [-126, 127]
+}
+
+// log x for a positive normal float x.
+inline float Log(float x) {
+  const int32_t i = Int(x);
+  int32_t e = ((i >> 23) & 0xff) - 126;
+  float m = Bits((i & 0x007fffff) | 0x3f000000);  // x = m 2^e, m in [0.5, 1)
+  const bool small = m < 0.707106781186547524f;
+  e = e - (small ? 1 : 0);
+  m = (small ? m + m : m) - 1.0f;
+  const float z = m * m;
+  float y = 7.0376836292e-2f;
+  y = y * m - 1.1514610310e-1f;
+  y = y * m + 1.1676998740e-1f;
+  y = y * m - 1.2420140846e-1f;
+  y = y * m + 1.4249322787e-1f;
+  y = y * m - 1.6668057665e-1f;
+  y = y * m + 2.0000714765e-1f;
+  y = y * m - 2.4999993993e-1f;
+  y = y * m + 3.3333331174e-1f;
+  const float fe = static_cast<float>(e);
+  y = y * m * z;
+  y = y + -2.12194440e-4f * fe;
+  y = y - 0.5f * z;
+  return (m + y) + 0.693359375f * fe;
+}
+
 // x^m with 0^m = 0 and 0 where m log x is below the log of the smallest normal float
-// (_shade.safe_pow).
+// (_shade.safe_pow): branch-free.
 inline float SafePow(float x, float m) {
-  static const float kFloor = std::log(std::numeric_limits<float>::min());
-  if (!(x > 0)) return 0.0f;
-  const float t = m * std::log(x);
-  return t > kFloor ? std::exp(t) : 0.0f;
+  const float kFloor = -87.3365447505531f;  // log(FLT_MIN)
+  const bool pos = x >= std::numeric_limits<float>::min();  // (flushed denormals: as XLA's 0)
+  const float t = m * Log(pos ? x : 1.0f);
+  return (pos && t > kFloor) ? Exp(t) : 0.0f;
 }
 
 inline float Radial(float d, const float* a) {  // _shade.radial_attenuation
@@ -81,15 +141,15 @@ inline float Schlick(float c, float ior) {  // _shade.fresnel_schlick
   return f0 + (1.0f - f0) * (q * q * q * q * q);
 }
 
-inline float Dielectric(float c, float ior) {  // _shade.fresnel_dielectric
+inline float Dielectric(float c, float ior) {  // _shade.fresnel_dielectric, branch-free
   const float ci = Clip01(c);
   const float s2 = (1.0f - ci * ci) / (ior * ior);
-  if (s2 >= 1.0f) return 1.0f;
-  const float ct = std::sqrt(1.0f - s2);
+  const bool tir = s2 >= 1.0f;
+  const float ct = std::sqrt(tir ? 0.0f : 1.0f - s2);
   const float rs_den = ci + ior * ct, rp_den = ior * ci + ct;
-  if (!(rs_den > 0) || !(rp_den > 0)) return 1.0f;
-  const float rs = (ci - ior * ct) / rs_den, rp = (ior * ci - ct) / rp_den;
-  return 0.5f * (rs * rs + rp * rp);
+  const bool ok = !tir && rs_den > 0 && rp_den > 0;
+  const float rs = (ci - ior * ct) / (ok ? rs_den : 1.0f), rp = (ior * ci - ct) / (ok ? rp_den : 1.0f);
+  return ok ? 0.5f * (rs * rs + rp * rp) : 1.0f;
 }
 
 // Static configuration (the FFI attributes).
@@ -143,12 +203,13 @@ void AddLight(const Config& cfg, const float* front, const float* backm, const f
     if (kind == 2) {
       const float cos_cut = li[20], cos_in = li[21], width = cos_in - cos_cut, e = li[22];
       const bool smooth = li[23] > 0;
+      const float ax = li[17], ay = li[18], az = li[19];
       for (int q = 0; q < m; ++q) {
-        const float c = -(lx[q] * li[17] + ly[q] * li[18] + lz[q] * li[19]);
+        const float c = -(lx[q] * ax + ly[q] * ay + lz[q] * az);
         const float lobe = SafePow(c, e);
         float f;
-        if (smooth) {
-          const float t = width > 0 ? Clip01((c - cos_cut) / width) : (c >= cos_cut ? 1.0f : 0.0f);
+        if (smooth) {  // (loop-invariant: the compiler takes it out of the loop)
+          const float t = width > 0 ? Clip01((c - cos_cut) / (width > 0 ? width : 1.0f)) : (c >= cos_cut ? 1.0f : 0.0f);
           f = lobe * t * t * (3.0f - 2.0f * t);
         } else {
           f = c >= cos_cut ? lobe : 0.0f;
@@ -175,12 +236,16 @@ void AddLight(const Config& cfg, const float* front, const float* backm, const f
     }
   }
   if (cfg.specular != 0) {
-    for (int q = 0; q < m; ++q) {  // (log and exp: not vectorised)
-      const float sh = Pick(k.back[q], backm[12], front[12]), ior = Pick(k.back[q], backm[13], front[13]);
-      float sp = ndl[q] > 0 ? SafePow(spec[q], sh) : 0.0f;
-      if (cfg.fresnel == 1) sp = Schlick(ndl[q], ior) * sp;
-      if (cfg.fresnel == 2) sp = Dielectric(ndl[q], ior) * sp;
-      spec[q] = sp;
+    const float* __restrict bk = k.back;
+    const float shf = front[12], shb = backm[12], iorf = front[13], iorb = backm[13];
+    for (int q = 0; q < m; ++q) {
+      const float sp = SafePow(spec[q], Pick(bk[q], shb, shf));
+      spec[q] = ndl[q] > 0 ? sp : 0.0f;
+    }
+    if (cfg.fresnel == 1) {
+      for (int q = 0; q < m; ++q) spec[q] = Schlick(ndl[q], Pick(bk[q], iorb, iorf)) * spec[q];
+    } else if (cfg.fresnel == 2) {
+      for (int q = 0; q < m; ++q) spec[q] = Dielectric(ndl[q], Pick(bk[q], iorb, iorf)) * spec[q];
     }
   }
   if (cfg.specular == 0) {
@@ -337,9 +402,9 @@ void ShadeRange(const Config& cfg, const int32_t* ids, const float* xs, const fl
           f[q] = den > 0 ? Clip01((fog[4] - d) / den) : (d <= fog[4] ? 1.0f : 0.0f);
         }
       } else {
-        for (int q = 0; q < m; ++q) {  // (exp: not vectorised)
+        for (int q = 0; q < m; ++q) {
           const float r = fog[5] * f[q];
-          f[q] = std::exp(fog_mode == 2 ? -r : -(r * r));
+          f[q] = Exp(fog_mode == 2 ? -r : -(r * r));
         }
       }
     }
