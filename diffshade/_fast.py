@@ -1,11 +1,12 @@
 r"""The native shading kernel (``csrc/shade.cc``): a render's value in one pass over the pixels.
 
-For the renders most scenes ask for — Phong shading (per pixel), one material without texture
+For the renders most scenes ask for — Phong or Gouraud shading, one material without texture
 maps, directional, point and spot lights, any specular model and Fresnel term, two-sided
-lighting, clamping per pixel and fog, one depth layer, no shadows, rays or antialiasing — the
-stages after visibility (fragments, surface, lighting, composite) are computed by one C++ loop
-instead of XLA's two dozen passes over the image (issue 34: at 512² the passes cost more than
-all of DEODR's render). Everything else, and every float64 render, takes the JAX stages.
+lighting, clamping and fog, one depth layer, no shadows, rays or antialiasing — the stages after
+visibility (fragments, surface, lighting, composite) are computed by one C++ loop instead of
+XLA's two dozen passes over the image (issue 34: at 512² the passes cost more than all of
+DEODR's render). Gouraud shading lights the vertices in JAX (as its stages do) and the kernel
+interpolates their colours. Everything else, and every float64 render, takes the JAX stages.
 
 Only the value comes from the kernel: its ``custom_jvp`` rule is the JAX stages' own ``jvp``, so
 gradients, tangents, ``jax.linearize`` (a fit's Jacobian) and transposition are exactly those of
@@ -15,12 +16,15 @@ agree to float32 rounding (tests/test_fast.py). ``Raster(backend="jax")`` turns 
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from . import _native
 from . import _shade as S
+from ._lighting import _vertex_clamp, shade_points
 from ._options import RenderOptions
 from ._raster import pixel_centres, resolve_backend
 from ._scene import Scene
@@ -38,9 +42,11 @@ def applies(scene: Scene, opts: RenderOptions, pixels) -> bool:
     r, lt, out = opts.raster, opts.lighting, opts.output
     if r.backend == "jax" or resolve_backend(r.backend) != "native":
         return False
-    if (r.shading, r.interpolation, r.vertex_color) != ("phong", "perspective", "none"):
+    if r.shading == "flat" or (r.interpolation, r.vertex_color) != ("perspective", "none"):
         return False
-    if opts.layered or opts.ray_traced or opts.shadows is not None or out.antialias or out.clamp == "vertex":
+    if opts.layered or opts.ray_traced or opts.shadows is not None or out.antialias:
+        return False
+    if out.clamp == "vertex" and out.color_sum == "separate":  # (two colours interpolated apart)
         return False
     if lt.transmission or scene.area.count or scene.multi_lobe.count:
         return False
@@ -112,10 +118,32 @@ def _lights(scene: Scene, opts: RenderOptions) -> jax.Array:
     return jnp.concatenate(rows, 0)
 
 
+def _vertex_colours(scene: Scene, opts: RenderOptions, lighting):
+    """Gouraud: the front and back colours at the vertices (clamped there where ``clamp =
+    "vertex"``), as the JAX stages light them (:func:`diffshade._surface._gouraud_sites`)."""
+    mesh = scene.mesh
+    P, n = S.vec(mesh.vertices), S.vec(mesh.vertex_normals())
+    back_mat = scene.back_material if scene.back_material is not None else scene.material
+
+    def lit(normal, mat, back):
+        col = _vertex_clamp(shade_points(P, normal, scene.camera.eye, mat, scene, lighting, back), opts.output)
+        return jnp.stack(col, -1)
+
+    front = lit(n, scene.material, False)
+    return front, (lit(S.neg(n), back_mat, True) if lighting.two_sided else front)
+
+
 def _kernel(scene: Scene, ids, opts: RenderOptions, pixels):
     target = _native.ensure_registered(_TARGET)
     mesh, cam, lt = scene.mesh, scene.camera, opts.lighting
+    if opts.raster.cull == "back":  # every pixel shows a front face
+        lt = dataclasses.replace(lt, two_sided=False)
     clip = cam.world_to_clip(mesh.vertices)
+    gouraud = opts.raster.shading == "gouraud"
+    if gouraud:
+        corner, back_corner = _vertex_colours(scene, opts, lt)
+    else:
+        corner = back_corner = mesh.vertex_normals()
     back = scene.back_material if scene.back_material is not None else scene.material
     fog = scene.fog
     params = jnp.concatenate(
@@ -131,6 +159,7 @@ def _kernel(scene: Scene, ids, opts: RenderOptions, pixels):
             cam.gain(),
         ]
     ).astype(jnp.float32)
+    clamp = opts.output.clamp
     bits = (
         lt.emission,
         lt.ambient,
@@ -138,7 +167,10 @@ def _kernel(scene: Scene, ids, opts: RenderOptions, pixels):
         lt.per_light_ambient,
         lt.two_sided,
         lt.viewer == "infinite",
-        opts.output.clamp == "pixel",
+        clamp == "pixel"
+        or (clamp == "vertex" and not gouraud),  # before fog (Phong: the clamp per vertex is per pixel)
+        clamp == "vertex",  # after fog
+        gouraud,
     )
     flags = sum(int(b) << i for i, b in enumerate(bits))
     fog_code = 0 if opts.fog is None else _FOG[opts.fog.mode] + (4 if opts.fog.distance == "depth" else 0)
@@ -158,8 +190,9 @@ def _kernel(scene: Scene, ids, opts: RenderOptions, pixels):
         ys,
         clip.astype(jnp.float32),
         mesh.faces.astype(jnp.int32),
-        mesh.vertex_normals().astype(jnp.float32),
+        corner.astype(jnp.float32),
         mesh.vertices.astype(jnp.float32),
+        back_corner.astype(jnp.float32),
         params,
         _lights(scene, opts),
         specular=np.int32(_SPECULAR[lt.specular]),

@@ -1,5 +1,5 @@
 """The native shading kernel (diffshade/_fast.py, csrc/shade.cc) against the JAX stages: every
-configuration of tests/test_shading.py it renders (Phong shading, float32), as accurate as the JAX
+configuration of tests/test_shading.py it renders (Phong and Gouraud shading, float32), as accurate as the JAX
 stages in float32 are (each measured against the JAX stages in float64, which test_shading holds
 to the independent reference), on a pixel subset too; its derivatives are the JAX stages' own;
 what it does not render falls back; vmap."""
@@ -41,26 +41,35 @@ def _uses_kernel(scene, opts, ids) -> bool:
     return "diffshade_shade" in str(jax.make_jaxpr(lambda s: ds.render(s, opts, ids=ids))(scene))
 
 
-# every Phong configuration the kernel renders (affine interpolation and OpenGL's clamp per vertex
-# are the JAX stages')
-NOT_KERNEL = (
-    "affine-interpolation",
-    "infinite-viewer-vertex-clamp",
+# every configuration the kernel renders (affine interpolation, and OpenGL's separate specular
+# colour with its clamp per vertex, are the JAX stages')
+NOT_KERNEL = ("affine-interpolation", "opengl-separate-specular")
+KERNEL_CONFIGS = [c for c in CONFIGS if c not in NOT_KERNEL] + ["infinite-viewer-clamped", "gain-and-cull"]
+
+
+# Gouraud: the kernel interpolates the vertices' colours; what differs between these is the
+# pixel's part (fog modes and distances, clamp before or after fog, back colours, gain)
+GOURAUD_CONFIGS = [
+    "all-lights-back-material-exp2",
+    "linear-fog-depth-clamped",
+    "linear-fog-start-equals-end",
+    "exp-fog-one-sided",
     "opengl-specular-colours",
-    "opengl-separate-specular",
+    "gain-and-cull",
+]
+
+
+@pytest.mark.parametrize(
+    "config, shading", [(c, "phong") for c in KERNEL_CONFIGS] + [(c, "gouraud") for c in GOURAUD_CONFIGS]
 )
-KERNEL_CONFIGS = [c for c in CONFIGS if c not in NOT_KERNEL]
-
-
-@pytest.mark.parametrize("config", KERNEL_CONFIGS + ["infinite-viewer", "gain-and-cull"])
-def test_kernel_is_as_accurate_as_the_jax_stages(config):
+def test_kernel_is_as_accurate_as_the_jax_stages(config, shading):
     keys = {}
-    if config == "infinite-viewer":
+    if config == "infinite-viewer-clamped":
         config, keys = "infinite-viewer-vertex-clamp", dict(clamp=True, clamp_at="pixel")
     gain = config == "gain-and-cull"
     if gain:
         config, keys = "all-lights-back-material-exp2", dict(cull="back")
-    scene64, opts = make_scene(config, "phong", **keys)
+    scene64, opts = make_scene(config, shading, **keys)
     if gain:
         cam = dataclasses.replace(scene64.camera, exposure=jnp.float64(1.7), white_balance=jnp.asarray([1.1, 1.0, 0.8]))
         scene64 = dataclasses.replace(scene64, camera=cam)
@@ -139,15 +148,15 @@ def test_vmap_over_scenes():
 
 @pytest.mark.parametrize(
     "why",
-    ["float64", "gouraud", "shadows", "transparency", "texture", "backend jax", "area light", "antialias"]
+    ["float64", "flat", "shadows", "transparency", "texture", "backend jax", "area light", "antialias"]
     + list(NOT_KERNEL),
 )
 def test_what_the_kernel_does_not_render_takes_the_jax_stages(why):
     scene, opts = make_scene(why if why in NOT_KERNEL else "phong-point", "phong", dtype=jnp.float32)
     if why == "float64":
         scene = jax.tree.map(lambda a: a.astype(jnp.float64) if jnp.issubdtype(a.dtype, jnp.floating) else a, scene)
-    elif why == "gouraud":
-        opts = opts.with_keys(shading="gouraud")
+    elif why == "flat":
+        opts = opts.with_keys(shading="flat")
     elif why == "shadows":
         opts = opts.with_keys(shadows=True)
     elif why == "transparency":

@@ -1,7 +1,8 @@
 // diffshade native shading kernel (CPU), registered with XLA through jax.ffi: the per-pixel
 // (Phong-shaded) local model of diffshade/_lighting.py for one layer and one material, from the
 // fragments to the final pixel (barycentrics, interpolated normal and position, every light's
-// terms, clamp, fog, background and the camera's gain) in one pass over the pixels. The pure-JAX
+// terms, clamp, fog, background and the camera's gain) in one pass over the pixels; or, for
+// Gouraud shading, the vertices' colours (lit by the JAX stages) interpolated, fogged and clamped. The pure-JAX
 // stages stay the reference and the differentiated path: diffshade/_fast.py calls this kernel
 // for a render's value only, and its tests hold the two equal to float32 rounding.
 //
@@ -24,10 +25,11 @@ namespace ffi = xla::ffi;
 namespace {
 
 // Layouts shared with diffshade/_fast.py (kept in step by its constants).
-// Per face, kFace floats (built by FaceTable below): the 13 planes of _raster.py::_face_planes (E_i = c + a x + b y for
-// i = 0..2 at the pixel centre (x, y) in NDC, the depth plane, D), the corners' normals (3 x 3),
-// their positions (3 x 3), and whether the face is front-facing (D > 0; 1 or 0).
-constexpr int kFace = 32;
+// Per face, kFace floats (built by FaceTable below): the 13 planes of _raster.py::_face_planes
+// (E_i = c + a x + b y for i = 0..2 at the pixel centre (x, y) in NDC, the depth plane, D), the
+// corners' normals (3 x 3; Gouraud: their front colours), their positions (3 x 3), whether the
+// face is front-facing (D > 0; 1 or 0), and (Gouraud) the corners' back colours (3 x 3).
+constexpr int kFace = 41;
 // Per material, kMat floats: emission, ambient, diffuse, specular (3 each), shininess, ior.
 constexpr int kMat = 14;
 // The scene's numbers: two materials (front, back), the ambient light (3), the eye (3), the
@@ -156,7 +158,8 @@ inline float Dielectric(float c, float ior) {  // _shade.fresnel_dielectric, bra
 struct Config {
   int32_t specular;  // 0 none, 1 phong, 2 blinn
   int32_t fresnel;   // 0 none, 1 schlick, 2 dielectric
-  int32_t flags;     // bits: emission, ambient, diffuse, per-light ambient, two-sided, infinite viewer, clamp
+  int32_t flags;     // bits: emission, ambient, diffuse, per-light ambient, two-sided, infinite viewer,
+                     // clamp before fog, clamp after fog, Gouraud (the colours are the vertices')
   int32_t fog;       // 0 none, 1 linear, 2 exp, 3 exp2; +4: by eye-space depth
   bool Flag(int bit) const { return (flags >> bit) & 1; }
 };
@@ -291,7 +294,8 @@ void ShadeRange(const Config& cfg, const int32_t* ids, const float* xs, const fl
   const float* fog = view_z + 3;  // colour (3), start, end, density
   const float* background = fog + 6;
   const float* gain = background + 3;
-  const bool two_sided = cfg.Flag(4), infinite = cfg.Flag(5), clamp = cfg.Flag(6);
+  const bool two_sided = cfg.Flag(4), infinite = cfg.Flag(5), clamp = cfg.Flag(6), clamp_after = cfg.Flag(7);
+  const bool gouraud = cfg.Flag(8);
   const bool emission = cfg.Flag(0), ambient = cfg.Flag(1);
   const int fog_mode = cfg.fog & 3;
   const bool fog_depth = (cfg.fog & 4) != 0;
@@ -321,6 +325,7 @@ void ShadeRange(const Config& cfg, const int32_t* ids, const float* xs, const fl
         float c[kFace];
         std::memcpy(c, g, sizeof(c));
         const float back = (two_sided && !(c[31] > 0)) ? 1.0f : 0.0f;
+        const int o = (gouraud && back > 0) ? 32 : 13;  // Gouraud: the back colours on a back face
         const float* __restrict xr = grid ? xs + col : xs + p;
         const float* __restrict yr = grid ? ys + row : ys + p;
         const int ystep = grid ? 0 : 1;
@@ -341,9 +346,9 @@ void ShadeRange(const Config& cfg, const int32_t* ids, const float* xs, const fl
           const bool ok = s != 0;
           const float inv = ok ? 1.0f / s : 1.0f;
           const float b0 = ok ? e0 * inv : 0.0f, b1 = ok ? e1 * inv : 0.0f, b2 = ok ? e2 * inv : 0.0f;
-          nx[i] = (c[13] * b0 + c[16] * b1) + c[19] * b2;
-          ny[i] = (c[14] * b0 + c[17] * b1) + c[20] * b2;
-          nz[i] = (c[15] * b0 + c[18] * b1) + c[21] * b2;
+          nx[i] = (c[o] * b0 + c[o + 3] * b1) + c[o + 6] * b2;
+          ny[i] = (c[o + 1] * b0 + c[o + 4] * b1) + c[o + 7] * b2;
+          nz[i] = (c[o + 2] * b0 + c[o + 5] * b1) + c[o + 8] * b2;
           px[i] = (c[22] * b0 + c[25] * b1) + c[28] * b2;
           py[i] = (c[23] * b0 + c[26] * b1) + c[29] * b2;
           pz[i] = (c[24] * b0 + c[27] * b1) + c[30] * b2;
@@ -359,7 +364,9 @@ void ShadeRange(const Config& cfg, const int32_t* ids, const float* xs, const fl
       }
       p = r;
     }
-    {
+    if (gouraud) {  // the interpolated colour is the pixel's (lit, and clamped if asked, at the vertices)
+      for (int q = 0; q < m; ++q) k.col[0][q] = k.nx[q], k.col[1][q] = k.ny[q], k.col[2][q] = k.nz[q];
+    } else {
       float* __restrict nx = k.nx;
       float* __restrict ny = k.ny;
       float* __restrict nz = k.nz;
@@ -385,10 +392,12 @@ void ShadeRange(const Config& cfg, const int32_t* ids, const float* xs, const fl
         }
       }
     }
-    for (int c = 0; c < 3; ++c) {
-      for (int q = 0; q < m; ++q) k.col[c][q] = 0.0f, k.base[c][q] = 0.0f;
+    if (!gouraud) {
+      for (int c = 0; c < 3; ++c) {
+        for (int q = 0; q < m; ++q) k.col[c][q] = 0.0f, k.base[c][q] = 0.0f;
+      }
+      for (int64_t i = 0; i < num_lights; ++i) AddLight(cfg, front, backm, lights + i * kLight, k, m);
     }
-    for (int64_t i = 0; i < num_lights; ++i) AddLight(cfg, front, backm, lights + i * kLight, k, m);
     if (fog_mode != 0) {
       float* __restrict f = k.fog;
       for (int q = 0; q < m; ++q) {
@@ -415,9 +424,11 @@ void ShadeRange(const Config& cfg, const int32_t* ids, const float* xs, const fl
       float* __restrict colc = k.col[c];
       const float* __restrict base = k.base[c];
       const float* __restrict bk = k.back;
-      for (int q = 0; q < m; ++q) {  // base + direct (the ambient and emission terms where on)
-        const float b = (base[q] + Pick(bk[q], kab, kaf) * amb_on) + Pick(bk[q], keb, kef) * em_on;
-        colc[q] = b + colc[q];
+      if (!gouraud) {
+        for (int q = 0; q < m; ++q) {  // base + direct (the ambient and emission terms where on)
+          const float b = (base[q] + Pick(bk[q], kab, kaf) * amb_on) + Pick(bk[q], keb, kef) * em_on;
+          colc[q] = b + colc[q];
+        }
       }
       if (clamp) {
         for (int q = 0; q < m; ++q) colc[q] = Clip01(colc[q]);
@@ -426,6 +437,9 @@ void ShadeRange(const Config& cfg, const int32_t* ids, const float* xs, const fl
         const float fc = fog[c];
         const float* __restrict f = k.fog;
         for (int q = 0; q < m; ++q) colc[q] = f[q] * colc[q] + (1.0f - f[q]) * fc;
+      }
+      if (clamp_after) {  // OpenGL: the vertex colours were clamped, and the fogged colour is
+        for (int q = 0; q < m; ++q) colc[q] = Clip01(colc[q]);
       }
       const float gc = gain[c];
       for (int q = 0; q < m; ++q) colc[q] = colc[q] * gc;
@@ -439,8 +453,8 @@ void ShadeRange(const Config& cfg, const int32_t* ids, const float* xs, const fl
 
 // The face table (kFace floats per face) of faces [f0, f1): the planes of
 // _raster.py::_face_planes from the clip-space vertices, and the corners' normals and positions.
-void FaceTable(const float* clip, const int32_t* tri, const float* normals, const float* points, int64_t num_verts,
-               int64_t f0, int64_t f1, float* table) {
+void FaceTable(const float* clip, const int32_t* tri, const float* normals, const float* points, const float* back,
+               int64_t num_verts, int64_t f0, int64_t f1, float* table) {
   for (int64_t f = f0; f < f1; ++f) {
     float* g = table + f * kFace;
     float X[3], Y[3], Z[3], W[3];
@@ -464,6 +478,7 @@ void FaceTable(const float* clip, const int32_t* tri, const float* normals, cons
       for (int c = 0; c < 3; ++c) {
         g[13 + 3 * j + c] = normals[3 * v[j] + c];
         g[22 + 3 * j + c] = points[3 * v[j] + c];
+        g[32 + 3 * j + c] = back[3 * v[j] + c];
       }
     }
     g[31] = det > 0 ? 1.0f : 0.0f;
@@ -472,13 +487,15 @@ void FaceTable(const float* clip, const int32_t* tri, const float* normals, cons
 
 ffi::Error ShadeImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Buffer<ffi::F32> xs,
                      ffi::Buffer<ffi::F32> ys, ffi::Buffer<ffi::F32> clip, ffi::Buffer<ffi::S32> tri,
-                     ffi::Buffer<ffi::F32> normals, ffi::Buffer<ffi::F32> points, ffi::Buffer<ffi::F32> params,
+                     ffi::Buffer<ffi::F32> normals, ffi::Buffer<ffi::F32> points, ffi::Buffer<ffi::F32> back,
+                     ffi::Buffer<ffi::F32> params,
                      ffi::Buffer<ffi::F32> lights, ffi::ResultBuffer<ffi::F32> out, int32_t specular,
                      int32_t fresnel, int32_t flags, int32_t fog, int32_t grid) {
   const int64_t n = ids.element_count();
   const int64_t num_verts = clip.element_count() / 4, num_faces = tri.element_count() / 3;
   if (out->element_count() != 3 * n || params.element_count() != kParams || lights.element_count() % kLight != 0 ||
-      normals.element_count() != 3 * num_verts || points.element_count() != 3 * num_verts || num_verts == 0) {
+      normals.element_count() != 3 * num_verts || points.element_count() != 3 * num_verts ||
+      back.element_count() != 3 * num_verts || num_verts == 0) {
     return ffi::Error::InvalidArgument("diffshade_shade: bad shapes");
   }
   const int64_t width = xs.element_count();
@@ -496,8 +513,8 @@ ffi::Error ShadeImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Buffe
   float* tab = table.data();
   const int64_t ft = num_faces < 4096 ? 1 : nthreads;
   diffshade::ParallelFor(pool, ft, [&](int64_t k) {
-    FaceTable(clip.typed_data(), tri.typed_data(), normals.typed_data(), points.typed_data(), num_verts,
-              num_faces * k / ft, num_faces * (k + 1) / ft, tab);
+    FaceTable(clip.typed_data(), tri.typed_data(), normals.typed_data(), points.typed_data(), back.typed_data(),
+              num_verts, num_faces * k / ft, num_faces * (k + 1) / ft, tab);
   });
   const int64_t chunks = nthreads * 4;
   diffshade::ParallelFor(pool, chunks, [&](int64_t k) {
@@ -519,6 +536,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(DiffshadeShade, ShadeImpl,
                                   .Arg<ffi::Buffer<ffi::S32>>()  // faces [F, 3]
                                   .Arg<ffi::Buffer<ffi::F32>>()  // vertex normals [V, 3]
                                   .Arg<ffi::Buffer<ffi::F32>>()  // vertex positions [V, 3]
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // Gouraud: back colours [V, 3]
                                   .Arg<ffi::Buffer<ffi::F32>>()  // params [kParams]
                                   .Arg<ffi::Buffer<ffi::F32>>()  // lights [L, kLight]
                                   .Ret<ffi::Buffer<ffi::F32>>()  // out [N, 3]
