@@ -154,12 +154,13 @@ def _piece_plan(height: int, width: int) -> tuple[int, int]:
 
 
 def _plane_eval(c0, cx, cy, qx, qy, keep: int, count: int):
-    """``c0 + cx qx + cy qy`` with exact partial products, in the fixed order shared with raster.cc."""
+    """``c0 + cy qy + cx qx`` with exact partial products, in the fixed order shared with
+    raster.cc: the y terms first, so that the native kernel adds them once per row."""
     e = c0
-    for p in _pieces(cx, keep, count):
-        e = e + p * qx
     for p in _pieces(cy, keep, count):
         e = e + p * qy
+    for p in _pieces(cx, keep, count):
+        e = e + p * qx
     return e
 
 

@@ -3,7 +3,7 @@
 // It implements the same set-up and per-pixel test as the pure-JAX tiled rasterizer
 // (diffshade/_raster.py), operation for operation: a pixel (column i, row j) with
 // qx = 2i + 1, qy = 2j + 1 is covered by triangle f when, for each edge k,
-//     E_k = c0 + cx qx + cy qy  >  0,  or  == 0 and the edge owns ties,
+//     E_k = c0 + cy qy + cx qx  >  0,  or  == 0 and the edge owns ties,
 // and the interpolated depth d = Z / W of the planes Z, W (same form) satisfies -W <= Z <= W.
 // Fragments are kept per pixel as the K nearest by (depth, triangle id).
 //
@@ -97,12 +97,22 @@ struct Plane {
   float c0;
   Pieces x, y;
 };
+// The y terms first, then the x terms (_raster.py::_plane_eval): along a row the first part is
+// one value (RowPart), and each pixel adds only its x terms (XPart).
 template <int kCount>
-inline float Eval(const Plane& pl, float qx, float qy) {
+inline float RowPart(const Plane& pl, float qy) {
   float e = pl.c0;
-  for (int k = 0; k < kCount; ++k) e = e + pl.x.p[k] * qx;
   for (int k = 0; k < kCount; ++k) e = e + pl.y.p[k] * qy;
   return e;
+}
+template <int kCount>
+inline float XPart(const Plane& pl, float e, float qx) {
+  for (int k = 0; k < kCount; ++k) e = e + pl.x.p[k] * qx;
+  return e;
+}
+template <int kCount>
+inline float Eval(const Plane& pl, float qx, float qy) {
+  return XPart<kCount>(pl, RowPart<kCount>(pl, qy), qx);
 }
 
 // Bits per piece and piece count (_raster.py::_piece_plan).
@@ -200,13 +210,15 @@ void RasterBand(const float* coef, const float* zw, const int32_t* meta, int64_t
       // depth if the triangle covers it there, +inf if not. The same operations in the same
       // order as a test pixel by pixel: only which results are looked at differs.
       const int32_t q0 = static_cast<int32_t>(2 * x0 + 1), n = static_cast<int32_t>(span);
+      float rp[5];
+      for (int k = 0; k < 5; ++k) rp[k] = RowPart<kCount>(pl[k], qy);
       for (int32_t i = 0; i < n; ++i) {
         const float qx = static_cast<float>(q0 + 2 * i);  // (int32: SSE2 converts it 4 at a time)
-        const float e0 = Eval<kCount>(pl[0], qx, qy);
-        const float e1 = Eval<kCount>(pl[1], qx, qy);
-        const float e2 = Eval<kCount>(pl[2], qx, qy);
-        const float zz = Eval<kCount>(pl[3], qx, qy);
-        const float ww = Eval<kCount>(pl[4], qx, qy);
+        const float e0 = XPart<kCount>(pl[0], rp[0], qx);
+        const float e1 = XPart<kCount>(pl[1], rp[1], qx);
+        const float e2 = XPart<kCount>(pl[2], rp[2], qx);
+        const float zz = XPart<kCount>(pl[3], rp[3], qx);
+        const float ww = XPart<kCount>(pl[4], rp[4], qx);
         const bool inside = Inside(e0, own0) & Inside(e1, own1) & Inside(e2, own2) & (zz >= -ww) & (zz <= ww);
         const float d = zz / ww;
         rd[i] = inside ? d : kInf;
