@@ -16,7 +16,8 @@ timed on the same 12-vector for comparability). Compile time is reported apart f
 steady-state time. DEODR (rasterize + Gouraud, optional ``.[bench]`` extra) is measured in the
 same run as the baseline for the full render; DEODR culls back faces by default, so the full render
 is also timed with ``Raster(cull="back")`` (the same image of this closed sphere: its largest
-difference is printed).
+difference is printed), and Gouraud-shaded with it (what DEODR computes: colours lit at the
+vertices and interpolated).
 
     python benchmarks/bench_render.py [--repeats N] [--quick] [--sizes 256,512] [--subdivisions 4,6]
 """
@@ -148,6 +149,9 @@ def main():
                 full_culled = jax.jit(lambda s: ds.render(s, culled))  # noqa: B023
                 r["culled"] = timed(full_culled, scene, repeats=args.repeats)[1]
                 r["culled_diff"] = float(jnp.max(jnp.abs(full_culled(scene) - full(scene))))
+                # and Gouraud-shaded, what DEODR computes (colours lit at the vertices, interpolated)
+                gouraud = culled.replace(raster=dataclasses.replace(culled.raster, shading="gouraud"))
+                r["gouraud"] = timed(jax.jit(lambda s: ds.render(s, gouraud)), scene, repeats=args.repeats)[1]  # noqa: B023
                 r["shade_c"], r["shade"] = timed(shade, scene, ids, repeats=args.repeats)
                 r["jvp_c"], r["jvp"] = timed(jac, p0, repeats=args.repeats)
                 r["jacfwd"] = timed(jacfwd, p0, repeats=args.repeats)[1]
@@ -160,25 +164,26 @@ def main():
                 rows.append(r)
                 print(
                     f"{len(f):6d} faces {res:4d}² {terms:8s} full {r['full']:8.2f} ms (compile {r['full_c']:.2f} s)  "
-                    f"culled {r['culled']:8.2f} ms (image ±{r['culled_diff']:.1e})  "
+                    f"culled {r['culled']:8.2f} ms (image ±{r['culled_diff']:.1e}), Gouraud {r['gouraud']:.2f} ms  "
                     f"shade {r['shade']:8.2f} ms  jvp×12 {r['jvp']:8.2f} ms ({r['jvp_bytes']:.0f} B/px; "
                     f"jacfwd {r['jacfwd']:.2f} ms)  vjp {r['vjp']:8.2f} ms  "
                     f"program {r['hlo_lines']} HLO lines" + (f"  DEODR {ref:.2f} ms" if ref else ""),
                     flush=True,
                 )
     print(
-        "\n| faces | size | terms | full ms | culled ms | compile s | shade-only ms | jvp×12 ms | jvp B/px | jacfwd ms "
-        "| vjp ms | HLO lines | DEODR ms | full/DEODR | culled/DEODR |"
+        "\n| faces | size | terms | full ms | culled ms | Gouraud culled ms | compile s | shade-only ms | jvp×12 ms "
+        "| jvp B/px | jacfwd ms | vjp ms | HLO lines | DEODR ms | full/DEODR | culled/DEODR | Gouraud culled/DEODR |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         d = r["deodr"]
         ratio = f"{r['full'] / d:.2f}" if d else "-"
         ratio_c = f"{r['culled'] / d:.2f}" if d else "-"
+        ratio_g = f"{r['gouraud'] / d:.2f}" if d else "-"
         print(
-            f"| {r['faces']} | {r['res']}² | {r['terms']} | {r['full']:.2f} | {r['culled']:.2f} | {r['full_c']:.2f} | "
-            f"{r['shade']:.2f} | {r['jvp']:.2f} | {r['jvp_bytes']:.0f} | {r['jacfwd']:.2f} | {r['vjp']:.2f} | "
-            f"{r['hlo_lines']} | {f'{d:.2f}' if d else '-'} | {ratio} | {ratio_c} |"
+            f"| {r['faces']} | {r['res']}² | {r['terms']} | {r['full']:.2f} | {r['culled']:.2f} | {r['gouraud']:.2f} | "
+            f"{r['full_c']:.2f} | {r['shade']:.2f} | {r['jvp']:.2f} | {r['jvp_bytes']:.0f} | {r['jacfwd']:.2f} | "
+            f"{r['vjp']:.2f} | {r['hlo_lines']} | {f'{d:.2f}' if d else '-'} | {ratio} | {ratio_c} | {ratio_g} |"
         )
 
 

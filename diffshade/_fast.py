@@ -50,7 +50,7 @@ def applies(scene: Scene, opts: RenderOptions, pixels) -> bool:
         return False
     if lt.transmission or scene.area.count or scene.multi_lobe.count:
         return False
-    if pixels is not None and len(pixels) != 2:
+    if (pixels is not None and len(pixels) != 2) or 0 in scene.mesh.faces.shape[:1] + scene.mesh.vertices.shape[:1]:
         return False
     mats = [scene.material] + ([scene.back_material] if scene.back_material is not None else [])
     if (scene.materials and scene.mesh.material_ids is not None) or any(m.maps() for m in mats):

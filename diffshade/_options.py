@@ -78,8 +78,9 @@ class Raster:
     screen-space ``"affine"``. ``vertex_color``: the mesh's per-vertex colours (linear) take the
     place of :math:`k_d` (``"diffuse"``) or of :math:`k_a` and :math:`k_d`
     (``"ambient_and_diffuse"``), as ``glColorMaterial``; ``"none"`` ignores them. ``backend``:
-    the visibility kernel (``"native"`` C++, ``"jax"`` portable, ``"auto"`` the native one where
-    it builds). ``cull``: the camera's visibility drops triangles that face away from it
+    the kernels (``"native"``: C++ visibility, and C++ shading where the render allows it,
+    :mod:`diffshade._fast`; ``"jax"``: portable; ``"auto"``: the native ones where they build).
+    ``cull``: the camera's visibility drops triangles that face away from it
     (``"back"``, OpenGL's ``GL_CULL_FACE`` with ``glCullFace(GL_BACK)``; counter-clockwise on the
     screen is the front) or towards it (``"front"``). A closed mesh seen from outside looks the
     same with ``"back"`` and rasterizes in about 40 % less time; an open one shows what is behind

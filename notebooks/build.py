@@ -176,7 +176,9 @@ show(out, names, cols=3)""",
         "md",
         "## Model only what a scene needs\n\nThe compiled program of a diffuse-only scene against the all-terms one (XLA HLO "
         "instructions, and which transcendental operations it holds: the specular power, Fresnel's and the fog's "
-        "exponentials are exp and log; a diffuse-only program computes none).",
+        "exponentials are exp and log; a diffuse-only program computes none). These are the JAX stages' programs "
+        '(`backend="jax"`): on a CPU the native shading kernel renders both scenes, and it takes the same '
+        "switches, branching on them outside its loops over the pixels.",
     ),
     (
         "code",
@@ -185,14 +187,17 @@ import re
 
 s, _ = scene_with(SIZE)
 s_all = eqx.tree_at(lambda x: x.back_material, s, s.material, is_leaf=lambda x: x is None)
-diffuse_only = ds.RenderOptions(lighting=ds.Lighting(specular="none", ambient=False))
-all_terms = ds.RenderOptions(lighting=ds.Lighting(specular="blinn", fresnel="dielectric", emission=True,
-                                                 per_light_ambient=True), fog=ds.FogModel("exp2"))
+stages = ds.Raster(backend="jax")
+diffuse_only = ds.RenderOptions(raster=stages, lighting=ds.Lighting(specular="none", ambient=False))
+all_terms = ds.RenderOptions(raster=stages, lighting=ds.Lighting(specular="blinn", fresnel="dielectric", emission=True,
+                                                                per_light_ambient=True), fog=ds.FogModel("exp2"))
 sizes, ops = {}, {}
 # the all-terms scene has a back material (two-sided lighting uses it); the diffuse-only one has none.
 # Instructions, not text lines: the text also carries metadata (source lines) that moves with the code.
+# Shading only, the visibility given (with backend="jax" the rasterizer's own program is large).
 for name, sc, o in (("diffuse only", s, diffuse_only), ("all terms", s_all, all_terms)):
-    text = render.lower(sc, o).compile().as_text()
+    ids = ds.scene_visibility(sc, o)
+    text = jax.jit(lambda s, i, o=o: ds.render(s, o, i)).lower(sc, ids).compile().as_text()
     sizes[name] = len(re.findall(r" = \\S+ [\\w-]+\\(", text))
     ops[name] = [op for op in ("exponential", "log") if re.search(rf" {op}\\(", text)]
 print(sizes, ops)

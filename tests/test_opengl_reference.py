@@ -139,9 +139,7 @@ SCENES = {
     "gouraud, hard-edged box": lambda: _hard_box_scene(ds.RenderOptions.opengl()),
     "gouraud, open box, back faces culled": lambda: _hard_box_scene(ds.RenderOptions.opengl(cull="back"), True),
     "gouraud, open box, front faces culled": lambda: _hard_box_scene(ds.RenderOptions.opengl(cull="front"), True),
-    "gouraud, open box, two-sided, no culling": lambda: _hard_box_scene(
-        ds.RenderOptions.opengl(two_sided=True), True
-    ),
+    "gouraud, open box, two-sided, no culling": lambda: _hard_box_scene(ds.RenderOptions.opengl(two_sided=True), True),
     "phong (GLSL), all lights, back material, exp2 fog": lambda: make_scene("all-lights-back-material-exp2", "phong"),
     "phong (GLSL), blinn, smooth spot, per-light ambient": lambda: (lambda s, o: (s, o.with_keys(fresnel="none")))(
         *make_scene("dielectric-spot-smooth-light-ambient", "phong")
