@@ -2,9 +2,10 @@
 // (Phong-shaded) local model of diffshade/_lighting.py for one layer and one material, from the
 // fragments to the final pixel (barycentrics, interpolated normal and position, every light's
 // terms, clamp, fog, background and the camera's gain) in one pass over the pixels; or, for
-// Gouraud shading, the vertices' colours (lit by the JAX stages) interpolated, fogged and clamped. The pure-JAX
-// stages stay the reference and the differentiated path: diffshade/_fast.py calls this kernel
-// for a render's value only, and its tests hold the two equal to float32 rounding.
+// Gouraud shading, the vertices' colours (lit by the JAX stages) interpolated, fogged and
+// clamped. The pure-JAX stages stay the reference and the differentiated path:
+// diffshade/_fast.py calls this kernel for a render's value only, and its tests hold the two
+// equal to float32 rounding.
 //
 // The formulas follow diffshade/_shade.py term by term, with the same guards (double-where
 // cases: a zero normal, a light on the surface, 0^m, an empty pixel).
@@ -41,24 +42,6 @@ constexpr int kParams = 2 * kMat + 3 + 3 + 3 + 6 + 3 + 3;
 // (3), attenuation (3), the spot's unit axis (3), cos of its cutoff, cos of the inner edge, its
 // exponent, whether the edge is smooth.
 constexpr int kLight = 24;
-
-struct V3 {
-  float x, y, z;
-};
-inline V3 operator+(V3 a, V3 b) { return {a.x + b.x, a.y + b.y, a.z + b.z}; }
-inline V3 operator-(V3 a, V3 b) { return {a.x - b.x, a.y - b.y, a.z - b.z}; }
-inline V3 operator*(V3 a, float s) { return {a.x * s, a.y * s, a.z * s}; }
-inline float Dot(V3 a, V3 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
-inline V3 Load(const float* p) { return {p[0], p[1], p[2]}; }
-
-inline V3 Normalize(V3 a) {  // the zero vector gives zeros (_shade.normalize)
-  const float sq = Dot(a, a);
-  return sq > 0 ? a * (1.0f / std::sqrt(sq)) : V3{0, 0, 0};
-}
-inline float Norm(V3 a) {
-  const float sq = Dot(a, a);
-  return sq > 0 ? std::sqrt(sq) : 0.0f;
-}
 
 // exp and log of floats as straight-line code (Cephes' expf and logf: a polynomial after range
 // reduction, within 2 ulp of the libm functions on their range here), so that the loops that
