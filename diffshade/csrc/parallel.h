@@ -10,6 +10,16 @@
 
 #include "xla/ffi/api/ffi.h"
 
+// The loops over pixels are compiled twice on x86-64 with GCC, for AVX2 and for any x86-64, and
+// the machine picks at load time (the same operations in the same order: no result changes,
+// contraction into FMA being off). Measured at 512², 5,120 faces, culled, interleaved twice:
+// diffuse render 3.38-3.42 -> 2.79-2.90 ms, Gouraud 3.10-3.11 -> 2.45-2.50 ms.
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && defined(__linux__)
+#define DIFFSHADE_CLONES __attribute__((target_clones("avx2", "default")))
+#else
+#define DIFFSHADE_CLONES
+#endif
+
 namespace diffshade {
 
 // Run fn(0 .. n-1): the calling thread and up to n - 1 of XLA's intra-op threads take the

@@ -166,7 +166,10 @@ struct Block {
 inline float Pick(float back, float b, float f) { return back > 0 ? b : f; }
 
 // One light's direct terms (and per-light ambient) added to the block's m pixels.
-void AddLight(const Config& cfg, const float* front, const float* backm, const float* li, Block& k, int m) {
+// Compiled for any x86-64 and not inlined: as an AVX2 clone inlined into ShadeRange, the
+// all-terms render at 512² took 8.8-9.0 ms against 6.9-7.0 ms (Phong 4.4-4.6 against 4.0).
+__attribute__((noinline)) void AddLight(const Config& cfg, const float* front, const float* backm, const float* li,
+                                        Block& k, int m) {
   const int kind = static_cast<int>(li[0]);
   float* __restrict lx = k.lx;
   float* __restrict ly = k.ly;
@@ -266,7 +269,7 @@ void AddLight(const Config& cfg, const float* front, const float* backm, const f
   }
 }
 
-void ShadeRange(const Config& cfg, const int32_t* ids, const float* xs, const float* ys, bool grid, int64_t width,
+DIFFSHADE_CLONES void ShadeRange(const Config& cfg, const int32_t* ids, const float* xs, const float* ys, bool grid, int64_t width,
                 const float* faces, const float* params, const float* lights, int64_t num_lights, int64_t p0,
                 int64_t p1, float* out) {
   const float* front = params;
