@@ -16,8 +16,6 @@ agree to float32 rounding (tests/test_fast.py). ``Raster(backend="jax")`` turns 
 
 from __future__ import annotations
 
-import dataclasses
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -183,9 +181,7 @@ def _switches(opts: RenderOptions, lt, gouraud: bool) -> dict:
 
 def _kernel(scene: Scene, ids, opts: RenderOptions, pixels):
     target = _native.ensure_registered(_TARGET)
-    mesh, lt = scene.mesh, opts.lighting
-    if opts.raster.cull == "back":  # every pixel shows a front face
-        lt = dataclasses.replace(lt, two_sided=False)
+    mesh, lt = scene.mesh, opts.camera_lighting
     gouraud = opts.raster.shading == "gouraud"
     if gouraud:
         corner, back_corner = _vertex_colours(scene, opts, lt)

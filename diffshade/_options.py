@@ -398,6 +398,14 @@ class RenderOptions:
         return self.transparency.layers if self.transparency is not None else 1
 
     @property
+    def camera_lighting(self) -> Lighting:
+        """The lighting of the pixels the camera sees: with back faces culled it shows none, so
+        two-sided lighting has nothing to do and is off (rays' hits keep :attr:`lighting`)."""
+        if self.raster.cull == "back" and self.lighting.two_sided:
+            return replace(self.lighting, two_sided=False)
+        return self.lighting
+
+    @property
     def ray_traced(self) -> bool:
         """Whether any ray is traced (secondary rays or shadow rays)."""
         return self.rays.depth > 0 or isinstance(self.shadows, ShadowRays)

@@ -55,10 +55,7 @@ def _stages(scene: Scene, ids, opts: RenderOptions, pixels=None):
     vis = light_visibility(
         scene, surface, opts.shadows, opts.lighting.area_grid, opts.raster.backend, opts.rays.backend
     )
-    lighting = opts.lighting
-    if opts.raster.cull == "back" and lighting.two_sided:  # every pixel shows a front face
-        lighting = dataclasses.replace(lighting, two_sided=False)
-    color = illuminate(scene, surface, lighting, vis, opts.output)
+    color = illuminate(scene, surface, opts.camera_lighting, vis, opts.output)
     color = secondary_rays(scene, surface, color, opts)
     return composite(scene, surface, color, opts.fog, opts.transparency, opts.output, pixels)
 

@@ -159,8 +159,8 @@ constexpr int64_t kRowSpan = 4;
 // Rasterize one image: rows [row_begin, row_end) only (row bands are independent).
 template <int kCount>
 DIFFSHADE_CLONES void RasterBand(const float* coef, const float* zw, const int32_t* meta, int64_t num_faces,
-                int64_t height, int64_t width, int64_t layers, int keep, int64_t row_begin,
-                int64_t row_end, float* depth_buf, int32_t* ids) {
+                                  int64_t height, int64_t width, int64_t layers, int keep, int64_t row_begin,
+                                  int64_t row_end, float* depth_buf, int32_t* ids) {
   ScopedFlushDenormals ftz;
   constexpr float kInf = std::numeric_limits<float>::infinity();
   thread_local std::vector<float> row;  // one row's depths (pass 1 below)

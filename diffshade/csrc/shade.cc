@@ -113,7 +113,7 @@ inline float SafePow(float x, float m) {
 }
 
 inline float Radial(float d, const float* a) {  // _shade.radial_attenuation
-  static const float kEps = std::cbrt(std::numeric_limits<float>::min());
+  const float kEps = 2.2737368e-13f;  // cbrt(FLT_MIN)
   const float den = a[0] + a[1] * d + a[2] * d * d;
   return den > kEps ? 1.0f / den : 1.0f / kEps;
 }
@@ -178,32 +178,31 @@ __attribute__((noinline)) void AddLight(const Config& cfg, const float* front, c
   if (kind == 0) {
     for (int q = 0; q < m; ++q) lx[q] = li[11], ly[q] = li[12], lz[q] = li[13], att[q] = 1.0f;
   } else {
-    static const float kEps = std::cbrt(std::numeric_limits<float>::min());
-    const float a0 = li[14], a1 = li[15], a2 = li[16], ox = li[11], oy = li[12], oz = li[13];
+    const float* a = li + 14;
+    const float ox = li[11], oy = li[12], oz = li[13];
     for (int q = 0; q < m; ++q) {
       const float Lx = ox - k.px[q], Ly = oy - k.py[q], Lz = oz - k.pz[q];
       const float sq = Lx * Lx + Ly * Ly + Lz * Lz;
       const float d = std::sqrt(sq);
       const float inv = sq > 0 ? 1.0f / d : 0.0f;
       lx[q] = Lx * inv, ly[q] = Ly * inv, lz[q] = Lz * inv;
-      const float den = a0 + a1 * d + a2 * d * d;
-      att[q] = den > kEps ? 1.0f / den : 1.0f / kEps;
+      att[q] = Radial(d, a);
     }
     if (kind == 2) {
-      const float cos_cut = li[20], cos_in = li[21], width = cos_in - cos_cut, e = li[22];
-      const bool smooth = li[23] > 0;
+      const float cos_cut = li[20], width = li[21] - cos_cut, e = li[22];
       const float ax = li[17], ay = li[18], az = li[19];
-      for (int q = 0; q < m; ++q) {
-        const float c = -(lx[q] * ax + ly[q] * ay + lz[q] * az);
-        const float lobe = SafePow(c, e);
-        float f;
-        if (smooth) {  // (loop-invariant: the compiler takes it out of the loop)
-          const float t = width > 0 ? Clip01((c - cos_cut) / (width > 0 ? width : 1.0f)) : (c >= cos_cut ? 1.0f : 0.0f);
-          f = lobe * t * t * (3.0f - 2.0f * t);
-        } else {
-          f = c >= cos_cut ? lobe : 0.0f;
+      if (li[23] > 0) {  // a smooth edge: smoothstep from the cutoff to the inner cone
+        const float safe = width > 0 ? width : 1.0f;
+        for (int q = 0; q < m; ++q) {
+          const float c = -(lx[q] * ax + ly[q] * ay + lz[q] * az);
+          const float t = width > 0 ? Clip01((c - cos_cut) / safe) : (c >= cos_cut ? 1.0f : 0.0f);
+          att[q] = att[q] * (SafePow(c, e) * t * t * (3.0f - 2.0f * t));
         }
-        att[q] = att[q] * f;
+      } else {
+        for (int q = 0; q < m; ++q) {
+          const float c = -(lx[q] * ax + ly[q] * ay + lz[q] * az);
+          att[q] = att[q] * (c >= cos_cut ? SafePow(c, e) : 0.0f);
+        }
       }
     }
   }
@@ -236,8 +235,7 @@ __attribute__((noinline)) void AddLight(const Config& cfg, const float* front, c
     } else if (cfg.fresnel == 2) {
       for (int q = 0; q < m; ++q) spec[q] = Dielectric(ndl[q], Pick(bk[q], iorb, iorf)) * spec[q];
     }
-  }
-  if (cfg.specular == 0) {
+  } else {
     for (int q = 0; q < m; ++q) spec[q] = 0.0f;
   }
   // (flags as factors of 1 or 0 and separate loops: branch-free inner loops, vectorised)
@@ -269,9 +267,9 @@ __attribute__((noinline)) void AddLight(const Config& cfg, const float* front, c
   }
 }
 
-DIFFSHADE_CLONES void ShadeRange(const Config& cfg, const int32_t* ids, const float* xs, const float* ys, bool grid, int64_t width,
-                const float* faces, const float* params, const float* lights, int64_t num_lights, int64_t p0,
-                int64_t p1, float* out) {
+DIFFSHADE_CLONES void ShadeRange(const Config& cfg, const int32_t* ids, const float* xs, const float* ys, bool grid,
+                                  int64_t width, const float* faces, const float* params, const float* lights,
+                                  int64_t num_lights, int64_t p0, int64_t p1, float* out) {
   const float* front = params;
   const float* backm = params + kMat;
   const float* amb_light = params + 2 * kMat;
@@ -372,13 +370,10 @@ DIFFSHADE_CLONES void ShadeRange(const Config& cfg, const int32_t* ids, const fl
         for (int q = 0; q < m; ++q) {
           const float dx = eye[0] - k.px[q], dy = eye[1] - k.py[q], dz = eye[2] - k.pz[q];
           const float sq = dx * dx + dy * dy + dz * dz;
-          const float r = 1.0f / std::sqrt(sq);
-          const float inv = sq > 0 ? r : 0.0f;
+          const float inv = sq > 0 ? 1.0f / std::sqrt(sq) : 0.0f;
           vx[q] = dx * inv, vy[q] = dy * inv, vz[q] = dz * inv;
         }
       }
-    }
-    if (!gouraud) {
       for (int c = 0; c < 3; ++c) {
         for (int q = 0; q < m; ++q) k.col[c][q] = 0.0f, k.base[c][q] = 0.0f;
       }
