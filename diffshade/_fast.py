@@ -23,10 +23,11 @@ from jax.custom_derivatives import SymbolicZero
 
 from . import _native
 from . import _shade as S
-from ._lighting import _vertex_clamp, shade_points
+from ._lighting import _COLOUR_FIELDS, _vertex_clamp, map_groups, only_fields, shade_points
 from ._options import RenderOptions
 from ._raster import pixel_centres, resolve_backend
 from ._scene import Scene
+from ._surface import needs
 
 _TARGET = "diffshade_shade"
 # The layout of a light's row in csrc/shade.cc (kLight): see there.
@@ -34,6 +35,9 @@ _LIGHT = 24
 _SPECULAR = {"none": 0, "phong": 1, "blinn": 2}
 _FRESNEL = {"none": 0, "schlick": 1, "dielectric": 2}
 _FOG = {"linear": 1, "exp": 2, "exp2": 3}
+# The maps' description (csrc/shade.cc: Maps, kMapsHeader, kMapInts)
+_MAP_FIELDS = ("emission", "ambient", "diffuse", "specular", "shininess")
+_MAX_PARTS = 4
 
 
 def applies(scene: Scene, opts: RenderOptions, pixels) -> bool:
@@ -51,8 +55,14 @@ def applies(scene: Scene, opts: RenderOptions, pixels) -> bool:
         return False
     if (pixels is not None and len(pixels) != 2) or 0 in scene.mesh.faces.shape[:1] + scene.mesh.vertices.shape[:1]:
         return False
-    mats = [scene.material] + ([scene.back_material] if scene.back_material is not None else [])
-    if (scene.materials and scene.mesh.material_ids is not None) or any(m.maps() for m in mats):
+    if scene.materials and scene.mesh.material_ids is not None:
+        return False
+    maps = _maps(scene, opts)
+    if scene.back_material is not None and (maps or scene.back_material.maps()):
+        return False  # (the JAX stages refuse it)
+    if maps and (scene.mesh.uv is None or "opacity" in maps):
+        return False
+    if "shininess" in maps and (r.shading != "phong" or maps["shininess"].channels != 1):
         return False
     floats = [x for x in jax.tree.leaves(scene) if jnp.issubdtype(jnp.result_type(x), jnp.floating)]
     return all(jnp.result_type(x) == jnp.float32 for x in floats)
@@ -86,6 +96,31 @@ def shade(scene: Scene, ids, opts: RenderOptions, pixels, reference):
 
     value.defjvp(_jvp, symbolic_zeros=True)
     return value(scene, ids, pixels)
+
+
+def _maps(scene: Scene, opts: RenderOptions) -> dict:
+    """The maps a render reads: ``{field: Texture}`` (the ambient under the diffuse map unless it has its own)."""
+    return scene.material.maps(needs(opts).fields)
+
+
+def _texture_inputs(scene: Scene, maps: dict, parts: list):
+    """csrc/shade.cc's texture inputs: the coordinates, every map's texels (row-major, channels
+    interleaved, one map after the other; the kernel builds the mipmap pyramids) and their
+    description (``parts``: the map of each Gouraud part)."""
+    if not maps:
+        return jnp.zeros((0,), jnp.float32), jnp.zeros((0,), jnp.float32), jnp.zeros((0,), jnp.int32)
+    distinct = list({id(t): t for t in maps.values()}.values())
+    index = {id(t): i for i, t in enumerate(distinct)}
+    cam = scene.camera
+    meta = [index[id(maps[f])] if f in maps else -1 for f in _MAP_FIELDS]
+    meta += [len(parts)] + [index[id(t)] for t in parts] + [0] * (_MAX_PARTS - len(parts))
+    meta += [int(cam.width), int(cam.height), len(distinct)]
+    for t in distinct:
+        h, w = (int(n) for n in t.texels.shape[:2])
+        meta += [t.channels, int(t.wrap == "clamp"), int(t.filter == "trilinear"), w, h]
+    texels = jnp.concatenate([jnp.asarray(t.texels, jnp.float32).reshape(-1) for t in distinct])
+    uv = jnp.asarray(scene.mesh.uv, jnp.float32).reshape(-1)
+    return uv, texels, jnp.asarray(meta, jnp.int32)
 
 
 def _material(m) -> jax.Array:
@@ -132,18 +167,23 @@ def _lights(scene: Scene, opts: RenderOptions) -> jax.Array:
     return jnp.concatenate(rows, 0)
 
 
-def _vertex_colours(scene: Scene, opts: RenderOptions, lighting):
+def _vertex_colours(scene: Scene, opts: RenderOptions, lighting, mat=None):
     """Gouraud: the front and back colours at the vertices (clamped there where ``clamp =
-    "vertex"``), as the JAX stages light them (:func:`diffshade._surface._gouraud_sites`)."""
+    "vertex"``), as the JAX stages light them (:func:`diffshade._surface._gouraud_sites`);
+    ``mat``: the material, for both sides (the scene's by default)."""
     mesh = scene.mesh
     P, n = S.vec(mesh.vertices), S.vec(mesh.vertex_normals())
-    back_mat = scene.back_material if scene.back_material is not None else scene.material
+    if mat is None:
+        mat = scene.material
+        back_mat = scene.back_material if scene.back_material is not None else scene.material
+    else:
+        back_mat = mat
 
     def lit(normal, mat, back):
         col = _vertex_clamp(shade_points(P, normal, scene.camera.eye, mat, scene, lighting, back), opts.output)
         return jnp.stack(col, -1)
 
-    front = lit(n, scene.material, False)
+    front = lit(n, mat, False)
     return front, (lit(S.neg(n), back_mat, True) if lighting.two_sided else front)
 
 
@@ -183,10 +223,19 @@ def _kernel(scene: Scene, ids, opts: RenderOptions, pixels):
     target = _native.ensure_registered(_TARGET)
     mesh, lt = scene.mesh, opts.camera_lighting
     gouraud = opts.raster.shading == "gouraud"
-    if gouraud:
+    maps, parts, groups = _maps(scene, opts), jnp.zeros((0,), jnp.float32), []
+    if gouraud and maps:  # each mapped colour field's terms lit apart (_lighting._modulated_side)
+        groups = map_groups({f: t for f, t in maps.items() if f in _COLOUR_FIELDS})
+        mapped = [f for _, fields in groups for f in fields]
+        rest = only_fields(scene.material, [f for f in _COLOUR_FIELDS if f not in mapped])
+        corner, back_corner = _vertex_colours(scene, opts, lt, rest)
+        lit = [_vertex_colours(scene, opts, lt, only_fields(scene.material, fields)) for _, fields in groups]
+        parts = jnp.stack([jnp.stack(fb) for fb in lit]).astype(jnp.float32).reshape(-1)
+    elif gouraud:
         corner, back_corner = _vertex_colours(scene, opts, lt)
     else:
         corner = back_corner = mesh.vertex_normals()
+    uv, texels, meta = _texture_inputs(scene, maps, [t for t, _ in groups])
     if pixels is None:
         h, w = ids.shape[-2:]
         xs, ys = pixel_centres(h, w, jnp.float32)
@@ -209,6 +258,10 @@ def _kernel(scene: Scene, ids, opts: RenderOptions, pixels):
         f32(back_corner),
         _numbers(scene),
         _lights(scene, opts),
+        uv,
+        texels,
+        meta,
+        parts,
         grid=np.int32(pixels is None),
         **_switches(opts, lt, gouraud),
     )

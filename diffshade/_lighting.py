@@ -362,16 +362,23 @@ def _modulated_side(side, modulate: dict, normal, mat: Material, back: bool):
     others zero), brought to the pixels, and multiplied there by the field's texels; the rest is
     lit once with the mapped fields zero. (With ``clamp = "vertex"`` each part is clamped apart.)"""
 
-    def only(keep_fields):
-        zero = {f: jnp.zeros_like(getattr(mat, f)) for f in _COLOUR_FIELDS if f not in keep_fields}
-        return eqx.tree_at(lambda m: tuple(getattr(m, f) for f in zero), mat, tuple(zero.values()))
-
-    rest = [f for f in _COLOUR_FIELDS if f not in modulate]
-    color = side(normal, only(rest), back)
-    groups: dict = {}  # fields under one map (the ambient under the diffuse map) lit together
-    for f, tex in modulate.items():
-        groups.setdefault(id(tex), (tex, []))[1].append(f)
-    for tex, fields in groups.values():
-        part = side(normal, only(fields), back)
+    color = side(normal, only_fields(mat, [f for f in _COLOUR_FIELDS if f not in modulate]), back)
+    for tex, fields in map_groups(modulate):
+        part = side(normal, only_fields(mat, fields), back)
         color = tuple(c + t * p for c, t, p in zip(color, tex, part))
     return color
+
+
+def only_fields(mat: Material, keep_fields) -> Material:
+    """``mat`` with every colour field but ``keep_fields`` zero."""
+    zero = {f: jnp.zeros_like(getattr(mat, f)) for f in _COLOUR_FIELDS if f not in keep_fields}
+    return eqx.tree_at(lambda m: tuple(getattr(m, f) for f in zero), mat, tuple(zero.values()))
+
+
+def map_groups(maps: dict) -> list:
+    """``{field: map}`` as ``[(map, fields)]``: the fields under one map (the ambient under the
+    diffuse map) lit together, in the order of their first field."""
+    groups: dict = {}
+    for f, tex in maps.items():
+        groups.setdefault(id(tex), (tex, []))[1].append(f)
+    return list(groups.values())

@@ -100,8 +100,79 @@ def test_kernel_is_as_accurate_as_the_jax_stages(config, shading):
     assert err <= max(4 * err_jax, 2e-6), (err, err_jax)
 
 
-def test_a_pixel_subset_is_the_image_at_those_pixels():
-    scene, opts = make_scene("all-lights-back-material-exp2", "phong")
+def _textured(shading, size=48, scale=2.0, rng=None, maps=None):
+    """The default sphere with texture coordinates ``scale`` times around it, and maps for every
+    colour field (and, Phong, the shininess): three channels and one, trilinear and bilinear,
+    repeating and clamped, a map many texels per pixel (minified) and one of few (magnified)."""
+    rng = rng or np.random.default_rng(5)
+    scene, opts = ds.default_scene()
+    m = scene.mesh
+    v = np.asarray(m.vertices)
+    uv = scale * np.stack([np.arctan2(v[:, 1], v[:, 0]) / (2 * np.pi) + 0.5, 0.5 + 0.5 * v[:, 2]], 1) - 0.3
+    if maps is None:
+        maps = {
+            "diffuse": ds.Texture(rng.uniform(0.2, 0.9, (96, 128, 3))),
+            "specular": ds.Texture(rng.uniform(0.2, 0.9, (16, 12, 1)), wrap="clamp"),
+            "emission": ds.Texture(rng.uniform(0.0, 0.3, (6, 8, 3)), filter="bilinear"),
+            "ambient": ds.Texture(rng.uniform(0.2, 0.9, (32, 32, 1)), wrap="clamp", filter="bilinear"),
+        }
+        if shading == "phong":
+            maps["shininess"] = ds.Texture(rng.uniform(0.5, 1.5, (20, 20)))
+    mat = dataclasses.replace(scene.material, emission=[0.1, 0.05, 0.0], **{f + "_map": t for f, t in maps.items()})
+    mesh = ds.Mesh(m.vertices, m.faces, normals=m.normals, uv=uv)
+    cam = dataclasses.replace(scene.camera, width=size, height=size)
+    scene = dataclasses.replace(scene, mesh=mesh, camera=cam, material=mat)
+    return scene, opts.with_keys(shading=shading, emission=True)
+
+
+@pytest.mark.parametrize(
+    "shading, scale",
+    [("phong", 2.0), ("gouraud", 2.0), pytest.param("phong", 1.0, marks=pytest.mark.slow)]
+    + [pytest.param("gouraud", 1.0, marks=pytest.mark.slow)],
+)
+def test_textured_kernel_is_as_accurate_as_the_jax_stages(shading, scale):
+    """Texture maps in the kernel (the mipmaps, the level of detail, bilinear taps, wrap and
+    clamp, Gouraud's mapped parts): as accurate as the JAX stages, against them in float64."""
+    scene64, opts = _textured(shading, scale=scale)
+    scene = _f32(scene64)
+    ids = ds.scene_visibility(scene, opts)
+    assert _fast.applies(scene, opts, None) and _uses_kernel(scene, opts, ids)
+    truth = np.asarray(_render(_jax(opts))(scene64, ids))
+    native = np.asarray(_render(opts)(scene, ids))
+    stages = np.asarray(_render(_jax(opts))(scene, ids))
+    err, err_jax = np.abs(native - truth).max(), np.abs(stages - truth).max()
+    assert np.isfinite(native).all() and (ids[0] >= 0).sum() > 500
+    assert err <= max(4 * err_jax, 2e-6), (err, err_jax)
+    # the maps matter: the image differs from the constant material's by far more than that
+    plain = dataclasses.replace(
+        scene, material=dataclasses.replace(scene.material, **{f + "_map": None for f in _fast._MAP_FIELDS})
+    )
+    assert np.abs(np.asarray(_render(opts)(plain, ids)) - native).max() > 0.05
+
+
+def test_textured_hard_cases_are_finite_and_agree():
+    """Every corner at one texture coordinate (a zero footprint: the level of detail -100),
+    coordinates far out of range (1e4 and 1e9: a repeated and a clamped map), 1 x 1 maps."""
+    maps = {
+        "diffuse": ds.Texture(np.full((1, 1, 3), 0.7), wrap="repeat"),
+        "specular": ds.Texture(np.random.default_rng(1).uniform(0, 1, (4, 4, 1)), wrap="clamp"),
+        "emission": ds.Texture(np.random.default_rng(2).uniform(0, 0.2, (5, 3, 3)), wrap="repeat"),
+    }
+    scene, opts = _textured("phong", size=16, maps=maps)
+    scene = _f32(scene)
+    ids = ds.scene_visibility(scene, opts)
+    n = scene.mesh.uv.shape[0]
+    for uv in (jnp.zeros((n, 2)), scene.mesh.uv * 1e4 - 3e3, scene.mesh.uv * 1e9 + 5e8):
+        s = dataclasses.replace(scene, mesh=dataclasses.replace(scene.mesh, uv=jnp.asarray(uv, jnp.float32)))
+        native, stages = np.asarray(_render(opts)(s, ids)), np.asarray(_render(_jax(opts))(s, ids))
+        assert np.isfinite(native).all()
+        np.testing.assert_allclose(native, stages, rtol=0, atol=2e-5 if float(jnp.abs(uv).max()) < 1e5 else 1e-3)
+
+
+@pytest.mark.parametrize("textured", [False, True])
+def test_a_pixel_subset_is_the_image_at_those_pixels(textured):
+    # (textured: the level of detail takes the camera's size, not the subset's)
+    scene, opts = _textured("phong") if textured else make_scene("all-lights-back-material-exp2", "phong")
     scene = _f32(scene)
     ids = ds.scene_visibility(scene, opts)
     full = np.asarray(_render(opts)(scene, ids))
@@ -170,7 +241,7 @@ def test_vmap_over_scenes():
 
 @pytest.mark.parametrize(
     "why",
-    ["float64", "flat", "shadows", "transparency", "texture", "backend jax", "area light", "antialias"]
+    ["float64", "flat", "shadows", "transparency", "shininess map, Gouraud", "backend jax", "area light", "antialias"]
     + list(NOT_KERNEL),
 )
 def test_what_the_kernel_does_not_render_takes_the_jax_stages(why):
@@ -183,14 +254,9 @@ def test_what_the_kernel_does_not_render_takes_the_jax_stages(why):
         opts = opts.with_keys(shadows=True)
     elif why == "transparency":
         opts = opts.with_keys(transparency=True, layers=2)
-    elif why == "texture":
-        tex = ds.Texture(np.full((4, 4, 3), 0.5, np.float32))
-        uv = jnp.zeros((scene.mesh.vertices.shape[0], 2), jnp.float32)
-        scene = dataclasses.replace(
-            scene,
-            mesh=ds.Mesh(vertices=scene.mesh.vertices, faces=scene.mesh.faces, uv=uv),
-            material=dataclasses.replace(scene.material, diffuse_map=tex),
-        )
+    elif why == "shininess map, Gouraud":  # (the JAX stages refuse it, and say why)
+        scene, opts = _textured("gouraud", size=8, maps={"shininess": ds.Texture(np.ones((2, 2)))})
+        scene = _f32(scene)
     elif why == "backend jax":
         opts = _jax(opts)
     elif why == "area light":

@@ -15,6 +15,7 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
+#include <string>
 #include <thread>
 #include <vector>
 
@@ -152,6 +153,44 @@ struct Config {
 // branches or pointer selects, which the compiler vectorises (square roots and divisions four at
 // a time; one pixel at a time they were a chain of latencies, 25 ns per pixel).
 constexpr int kBlock = 64;
+constexpr int kMaxMaps = 5;    // distinct maps (emission, ambient, diffuse, specular, shininess)
+constexpr int kMaxParts = 4;   // Gouraud: colour parts under a map (the ambient shares the diffuse map)
+constexpr int kMaxLevels = 32;
+
+// Texture maps (diffshade/_texture.py), described by the int32 "maps" input
+// (_fast.py::_texture_inputs): per material field (emission, ambient, diffuse, specular,
+// shininess) its map or -1; the number of Gouraud parts and each part's map; the camera's width
+// and height; the number of maps, and per map kMapInts ints: channels, clamp (1) or repeat (0),
+// trilinear (1) or bilinear (0), width, height. The "texels" input holds each map's texels (row
+// 0 at the top, channels interleaved), one map after the other; the kernel builds the mipmap
+// pyramids of the trilinear ones (_texture.mip_pyramid) in its own scratch.
+constexpr int kMapInts = 5;
+constexpr int kMapsHeader = 5 + 1 + kMaxParts + 2 + 1;
+
+struct Level {
+  int64_t off;
+  int w, h;
+};
+struct Map {
+  int channels, levels;
+  bool clamp, trilinear;
+  Level lv[kMaxLevels];
+  int32_t off[kMaxLevels], w[kMaxLevels], h[kMaxLevels];  // (lv, as tables a vectorised loop reads)
+};
+struct Maps {
+  int field[5] = {-1, -1, -1, -1, -1};
+  int parts = 0, part_map[kMaxParts] = {};
+  int count = 0;
+  bool derivatives = false;  // a trilinear map needs the coordinates' derivatives
+  float sx = 0, sy = 0;      // NDC per pixel step (2 / width, 2 / height)
+  Map map[kMaxMaps];
+  const float* texels = nullptr;
+  const float* uv = nullptr;       // [V, 2]
+  const int32_t* tri = nullptr;    // [F, 3]
+  const float* parts_at = nullptr;  // Gouraud: [parts, 2 (front, back), V, 3]
+  int64_t num_verts = 0;
+  bool any() const { return count > 0; }
+};
 
 struct Block {
   int64_t pix[kBlock];
@@ -161,9 +200,149 @@ struct Block {
   float w[kBlock], back[kBlock];             // clip w; 1 where the back side (material) is lit
   float lx[kBlock], ly[kBlock], lz[kBlock], att[kBlock], ndl[kBlock], spec[kBlock], fog[kBlock];
   float col[3][kBlock], base[3][kBlock];
+  // the material per pixel (emission, ambient, diffuse, specular, shininess): the side's
+  // constants, times the texels where a field has a map
+  float ke[3][kBlock], ka[3][kBlock], kd[3][kBlock], ks[3][kBlock], sh[kBlock];
+  // texture coordinates and (trilinear) their derivatives per pixel step; each map's sample
+  float u[kBlock], v[kBlock], dux[kBlock], dvx[kBlock], duy[kBlock], dvy[kBlock];
+  float su[kBlock], sv[kBlock], sd[kBlock];  // a map's wrapped coordinates and level of detail
+  // a sample's taps (SampleMap): the top-left texel's index and the steps to the right and down
+  // (in floats), the weights; the pixels that blend a second level (their entries, coordinates,
+  // levels, weights and samples)
+  int32_t ti[kBlock], tdx[kBlock], tdy[kBlock], lvl[kBlock], sel[kBlock];
+  float fx[kBlock], fy[kBlock], cu[kBlock], cv[kBlock], cf[kBlock], hi[3][kBlock];
+  float tex[kMaxMaps][3][kBlock];
+  float part[kMaxParts][3][kBlock];  // Gouraud: each mapped part's interpolated colour
 };
 
 inline float Pick(float back, float b, float f) { return back > 0 ? b : f; }
+
+// floor(x) for |x| < 2^31, as straight-line code (std::floor is a call into libm on a plain
+// x86-64); the callers bound x first, in loops of their own (in one loop with the bounds, GCC's
+// AVX2 clones would not vectorise it).
+inline float Floor(float x) {
+  const float t = static_cast<float>(static_cast<int32_t>(x));
+  return t > x ? t - 1.0f : t;
+}
+
+// A tap's texel along an axis of n texels, for i in [-1, n] (the border _texture._padded adds):
+// the edge (clamp), or the other side (repeat).
+template <bool clamp>
+inline int Wrap(int i, int n) {
+  return clamp ? std::min(std::max(i, 0), n - 1) : i + (i < 0 ? n : 0) - (i >= n ? n : 0);
+}
+
+// Where n bilinear samples of a map read (_texture._taps: the coordinates u, v wrapped into
+// [0, 1] already where repeating; level lv of the map, a tap outside it reading the border
+// _texture._padded adds).
+template <bool clamp>
+inline void TapsOf(const Map& t, const float* __restrict u, const float* __restrict v, const int32_t* __restrict lv,
+                   int n, Block& k) {
+  const int C = t.channels;
+  int32_t* __restrict ti = k.ti;
+  int32_t* __restrict tdx = k.tdx;
+  int32_t* __restrict tdy = k.tdy;
+  float* __restrict fx = k.fx;
+  float* __restrict fy = k.fy;
+  for (int j = 0; j < n; ++j) {
+    const int L = lv[j], W = t.w[L], H = t.h[L];
+    const float x = u[j] * static_cast<float>(W) - 0.5f, y = (1.0f - v[j]) * static_cast<float>(H) - 0.5f;
+    const float x0 = Floor(x), y0 = Floor(y);  // (|x| <= 2 W + 1: u, v in [-1, 2])
+    fx[j] = x - x0, fy[j] = y - y0;
+    const int ix = std::min(std::max(static_cast<int>(x0), -1), W - 1);
+    const int iy = std::min(std::max(static_cast<int>(y0), -1), H - 1);
+    const int c0 = Wrap<clamp>(ix, W), c1 = Wrap<clamp>(ix + 1, W);
+    const int r0 = Wrap<clamp>(iy, H), r1 = Wrap<clamp>(iy + 1, H);
+    ti[j] = t.off[L] + (r0 * W + c0) * C, tdx[j] = (c1 - c0) * C, tdy[j] = (r1 - r0) * W * C;
+  }
+}
+
+DIFFSHADE_CLONES void TapsAt(const Map& t, const float* u, const float* v, const int32_t* lv, int n, Block& k) {
+  if (t.clamp) {
+    TapsOf<true>(t, u, v, lv, n, k);
+  } else {
+    TapsOf<false>(t, u, v, lv, n, k);
+  }
+}
+
+// The n bilinear samples at the taps of TapsAt (_texture._blend, in its order), three channels
+// out (a one-channel map repeated: grey).
+DIFFSHADE_CLONES void Blend(const float* texels, int channels, const Block& k, int n, float (*out)[kBlock]) {
+  const int32_t* __restrict ti = k.ti;
+  const int32_t* __restrict dx = k.tdx;
+  const int32_t* __restrict dy = k.tdy;
+  const float* __restrict fx = k.fx;
+  const float* __restrict fy = k.fy;
+  for (int c = 0; c < channels; ++c) {
+    const float* __restrict t = texels + c;
+    float* __restrict o = out[c];
+    for (int j = 0; j < n; ++j) {
+      const float t00 = t[ti[j]], t01 = t[ti[j] + dx[j]], t10 = t[ti[j] + dy[j]], t11 = t[ti[j] + dx[j] + dy[j]];
+      const float top = t00 + fx[j] * (t01 - t00);
+      const float bottom = t10 + fx[j] * (t11 - t10);
+      o[j] = top + fy[j] * (bottom - top);
+    }
+  }
+  for (int c = channels; c < 3; ++c) std::memcpy(out[c], out[0], n * sizeof(float));
+}
+
+// A map sampled at the block's m pixels (_texture.sample_channels; trilinear with
+// level_of_detail). In passes without branches (vectorised): the wrapped coordinates and the
+// level of detail; every pixel's first level; then the second level of those that blend two.
+DIFFSHADE_CLONES void SampleMap(const float* texels, const Map& t, Block& k, int m, float (*out)[kBlock]) {
+  const float top = static_cast<float>(t.levels - 1);
+  const float w0 = static_cast<float>(t.lv[0].w), h0 = static_cast<float>(t.lv[0].h);
+  float* __restrict su = k.su;
+  float* __restrict sv = k.sv;
+  int32_t* __restrict lvl = k.lvl;
+  const float* __restrict u = k.u;
+  const float* __restrict v = k.v;
+  // (clamping: beyond [-1, 2] both taps read the edge texel, as at -1 or 2; repeating: beyond
+  // 2^23 a float is a whole number, as 2^23 is)
+  const float bound = t.clamp ? 2.0f : 8388608.0f;
+  for (int q = 0; q < m; ++q) {
+    su[q] = std::min(std::max(u[q], -bound + (t.clamp ? 1.0f : 0.0f)), bound);
+    sv[q] = std::min(std::max(v[q], -bound + (t.clamp ? 1.0f : 0.0f)), bound);
+  }
+  if (!t.clamp) {
+    for (int q = 0; q < m; ++q) su[q] = su[q] - Floor(su[q]), sv[q] = sv[q] - Floor(sv[q]);
+  }
+  const int last = t.levels - 1;
+  int blend = 0;
+  if (t.trilinear) {
+    float* __restrict sd = k.sd;
+    for (int q = 0; q < m; ++q) {
+      const float ax = k.dux[q] * w0, bx = k.dvx[q] * h0, ay = k.duy[q] * w0, by = k.dvy[q] * h0;
+      const float r2 = std::max(ax * ax + bx * bx, ay * ay + by * by);
+      const bool ok = r2 > 1e-30f;
+      const float lod = ok ? 0.5f * (Log(ok ? r2 : 1.0f) * 1.44269504088896341f) : -100.0f;
+      const float d = std::min(std::max(lod, 0.0f), top);
+      lvl[q] = std::min(static_cast<int32_t>(d), last);  // (d >= 0)
+      sd[q] = d - static_cast<float>(lvl[q]);
+    }
+    for (int q = 0; q < m; ++q) {  // (a + 0 (b - a) is a: the pixels with a fraction blend)
+      k.sel[blend] = q;
+      blend += sd[q] > 0 ? 1 : 0;
+    }
+  } else {
+    for (int q = 0; q < m; ++q) lvl[q] = 0;
+  }
+  TapsAt(t, su, sv, lvl, m, k);
+  Blend(texels, t.channels, k, m, out);
+  if (blend == 0) return;
+  for (int j = 0; j < blend; ++j) {
+    const int q = k.sel[j];
+    k.cu[j] = su[q], k.cv[j] = sv[q], k.cf[j] = k.sd[q], lvl[j] = std::min(lvl[q] + 1, last);
+  }
+  TapsAt(t, k.cu, k.cv, lvl, blend, k);
+  Blend(texels, t.channels, k, blend, k.hi);
+  for (int c = 0; c < 3; ++c) {
+    for (int j = 0; j < blend; ++j) {
+      const int q = k.sel[j];
+      out[c][q] = out[c][q] + k.cf[j] * (k.hi[c][j] - out[c][q]);
+    }
+  }
+}
 
 // One light's direct terms (and per-light ambient) added to the block's m pixels.
 // Compiled for any x86-64 and not inlined: as an AVX2 clone inlined into ShadeRange, the
@@ -225,9 +404,10 @@ __attribute__((noinline)) void AddLight(const Config& cfg, const float* front, c
   }
   if (cfg.specular != 0) {
     const float* __restrict bk = k.back;
-    const float shf = front[12], shb = backm[12], iorf = front[13], iorb = backm[13];
+    const float* __restrict sh = k.sh;
+    const float iorf = front[13], iorb = backm[13];
     for (int q = 0; q < m; ++q) {
-      const float sp = SafePow(spec[q], Pick(bk[q], shb, shf));
+      const float sp = SafePow(spec[q], sh[q]);
       spec[q] = ndl[q] > 0 ? sp : 0.0f;
     }
     if (cfg.fresnel == 1) {
@@ -240,36 +420,116 @@ __attribute__((noinline)) void AddLight(const Config& cfg, const float* front, c
   }
   // (flags as factors of 1 or 0 and separate loops: branch-free inner loops, vectorised)
   const float dif_on = cfg.Flag(2) ? 1.0f : 0.0f;
-  const bool has_spec = li[10] > 0, fresnel = cfg.fresnel != 0;
-  const float* __restrict bk = k.back;
+  const bool has_spec = li[10] > 0;
   for (int c = 0; c < 3; ++c) {
     const float color = li[1 + c], sc = li[7 + c];
-    const float kdf = front[6 + c], kdb = backm[6 + c], ksf = fresnel ? 1.0f : front[9 + c];
-    const float ksb = fresnel ? 1.0f : backm[9 + c];
+    const float* __restrict kd = k.kd[c];
+    const float* __restrict ks = k.ks[c];
     float* __restrict out = k.col[c];
     // the order of _lighting._terms: one colour, or the specular with its own
     if (has_spec) {
       for (int q = 0; q < m; ++q) {
-        const float acc = Pick(bk[q], kdb, kdf) * (std::max(ndl[q], 0.0f) * dif_on);
-        out[q] += att[q] * (acc * color) + att[q] * ((Pick(bk[q], ksb, ksf) * spec[q]) * sc);
+        const float acc = kd[q] * (std::max(ndl[q], 0.0f) * dif_on);
+        out[q] += att[q] * (acc * color) + att[q] * ((ks[q] * spec[q]) * sc);
       }
     } else {
       for (int q = 0; q < m; ++q) {
-        const float acc = Pick(bk[q], kdb, kdf) * (std::max(ndl[q], 0.0f) * dif_on);
-        out[q] += att[q] * ((acc + Pick(bk[q], ksb, ksf) * spec[q]) * color);
+        const float acc = kd[q] * (std::max(ndl[q], 0.0f) * dif_on);
+        out[q] += att[q] * ((acc + ks[q] * spec[q]) * color);
       }
     }
     if (cfg.Flag(3)) {  // per-light ambient
-      const float amb = li[4 + c], kaf = front[3 + c], kab = backm[3 + c];
+      const float amb = li[4 + c];
+      const float* __restrict ka = k.ka[c];
       float* __restrict base = k.base[c];
-      for (int q = 0; q < m; ++q) base[q] += att[q] * (Pick(bk[q], kab, kaf) * amb);
+      for (int q = 0; q < m; ++q) base[q] += att[q] * (ka[q] * amb);
     }
+  }
+}
+
+// The texture coordinates at a run of n pixels of face t (starting at the block's entry m),
+// perspective-correct with the barycentrics E_i / sum E (the face's planes c), and for trilinear
+// maps their derivatives per pixel step (_texture.pixel_derivatives: with the planes' x and y
+// slopes a_i, b_i, du/dx = (sum a_i u_i - u sum a_i) / sum E); Gouraud: each mapped part's colour,
+// interpolated.
+void Coordinates(const Maps& mp, int32_t t, const float* c, bool back, const float* xr, const float* yr, int ystep,
+                 Block& k, int m, int n) {
+  int64_t vid[3];
+  float U[3], V[3];
+  for (int j = 0; j < 3; ++j) {
+    vid[j] = std::min<int64_t>(std::max<int32_t>(mp.tri[3 * static_cast<int64_t>(t) + j], 0), mp.num_verts - 1);
+    U[j] = mp.uv[2 * vid[j]], V[j] = mp.uv[2 * vid[j] + 1];
+  }
+  const float axu = (c[1] * U[0] + c[4] * U[1]) + c[7] * U[2], axv = (c[1] * V[0] + c[4] * V[1]) + c[7] * V[2];
+  const float ayu = (c[2] * U[0] + c[5] * U[1]) + c[8] * U[2], ayv = (c[2] * V[0] + c[5] * V[1]) + c[8] * V[2];
+  const float sx = (c[1] + c[4]) + c[7], sy = (c[2] + c[5]) + c[8], det = c[12];
+  float pc[kMaxParts][9];  // the parts' corner colours on the side lit
+  for (int g = 0; g < mp.parts; ++g) {
+    const float* at = mp.parts_at + (2 * g + (back ? 1 : 0)) * mp.num_verts * 3;
+    for (int j = 0; j < 3; ++j) {
+      for (int ch = 0; ch < 3; ++ch) pc[g][3 * j + ch] = at[3 * vid[j] + ch];
+    }
+  }
+  for (int i = 0; i < n; ++i) {
+    const float x = xr[i], y = yr[i * ystep];
+    const float e0 = c[0] + x * c[1] + y * c[2], e1 = c[3] + x * c[4] + y * c[5];
+    const float e2 = c[6] + x * c[7] + y * c[8];
+    const float s = e0 + e1 + e2;
+    const bool ok = s != 0;
+    const float inv = ok ? 1.0f / s : 1.0f;
+    const float b0 = ok ? e0 * inv : 0.0f, b1 = ok ? e1 * inv : 0.0f, b2 = ok ? e2 * inv : 0.0f;
+    const int q = m + i;
+    const float u = (U[0] * b0 + U[1] * b1) + U[2] * b2, v = (V[0] * b0 + V[1] * b1) + V[2] * b2;
+    k.u[q] = u, k.v[q] = v;
+    if (mp.derivatives) {
+      const float wp = ok ? c[12] * inv : 0.0f;
+      const bool good = ok && det != 0;
+      const float scale = good ? wp / (good ? det : 1.0f) : 0.0f;
+      const float fx = scale * mp.sx, fy = scale * mp.sy;
+      k.dux[q] = (axu - u * sx) * fx, k.dvx[q] = (axv - v * sx) * fx;
+      k.duy[q] = (ayu - u * sy) * fy, k.dvy[q] = (ayv - v * sy) * fy;
+    }
+    for (int g = 0; g < mp.parts; ++g) {
+      for (int ch = 0; ch < 3; ++ch) {
+        k.part[g][ch][q] = (pc[g][ch] * b0 + pc[g][3 + ch] * b1) + pc[g][6 + ch] * b2;
+      }
+    }
+  }
+}
+
+// Phong: the material at the block's pixels, the lit side's constants (the back material on the
+// back side), each mapped field times its map (maps come with one material: no back material).
+void PixelMaterial(const Config& cfg, const Maps& mp, const float* front, const float* backm, Block& k, int m) {
+  const float* __restrict bk = k.back;
+  float(*fields[4])[kBlock] = {k.ke, k.ka, k.kd, k.ks};
+  const bool used[5] = {cfg.Flag(0), cfg.Flag(1) || cfg.Flag(3), cfg.Flag(2), cfg.specular != 0, cfg.specular != 0};
+  for (int f = 0; f < 4; ++f) {
+    if (!used[f]) continue;  // (zero from ShadeRange's start: a term that is off multiplies it by 0)
+    for (int c = 0; c < 3; ++c) {
+      float* __restrict dst = fields[f][c];
+      const bool one = f == 3 && cfg.fresnel != 0;  // the Fresnel term is the specular weight
+      const float kf = one ? 1.0f : front[3 * f + c], kb = one ? 1.0f : backm[3 * f + c];
+      if (mp.field[f] >= 0 && !one) {
+        const float* __restrict t = k.tex[mp.field[f]][c];
+        for (int q = 0; q < m; ++q) dst[q] = kf * t[q];
+      } else {
+        for (int q = 0; q < m; ++q) dst[q] = Pick(bk[q], kb, kf);
+      }
+    }
+  }
+  const float shf = front[12], shb = backm[12];
+  if (!used[4]) return;
+  if (mp.field[4] >= 0) {
+    const float* __restrict t = k.tex[mp.field[4]][0];
+    for (int q = 0; q < m; ++q) k.sh[q] = shf * t[q];
+  } else {
+    for (int q = 0; q < m; ++q) k.sh[q] = Pick(bk[q], shb, shf);
   }
 }
 
 DIFFSHADE_CLONES void ShadeRange(const Config& cfg, const int32_t* ids, const float* xs, const float* ys, bool grid,
                                   int64_t width, const float* faces, const float* params, const float* lights,
-                                  int64_t num_lights, int64_t p0, int64_t p1, float* out) {
+                                  int64_t num_lights, const Maps& mp, int64_t p0, int64_t p1, float* out) {
   const float* front = params;
   const float* backm = params + kMat;
   const float* amb_light = params + 2 * kMat;
@@ -284,6 +544,9 @@ DIFFSHADE_CLONES void ShadeRange(const Config& cfg, const int32_t* ids, const fl
   const int fog_mode = cfg.fog & 3;
   const bool fog_depth = (cfg.fog & 4) != 0;
   Block k;
+  // the fields of the terms that are off stay 0 (PixelMaterial does not write them)
+  std::memset(k.ke, 0, sizeof(k.ke)), std::memset(k.ka, 0, sizeof(k.ka)), std::memset(k.kd, 0, sizeof(k.kd));
+  std::memset(k.ks, 0, sizeof(k.ks)), std::memset(k.sh, 0, sizeof(k.sh));
   int64_t col = grid ? p0 % width : 0, row = grid ? p0 / width : 0;  // (no division per pixel)
   for (int64_t b0 = p0; b0 < p1; b0 += kBlock) {
     const int64_t b1 = std::min(b0 + kBlock, p1);
@@ -340,6 +603,7 @@ DIFFSHADE_CLONES void ShadeRange(const Config& cfg, const int32_t* ids, const fl
           bk[i] = back;
           pix[i] = p + i;
         }
+        if (mp.any()) Coordinates(mp, t, c, back > 0, xr, yr, ystep, k, m, n);
         m += n;
       }
       if (grid) {
@@ -348,9 +612,19 @@ DIFFSHADE_CLONES void ShadeRange(const Config& cfg, const int32_t* ids, const fl
       }
       p = r;
     }
+    for (int i = 0; i < mp.count; ++i) SampleMap(mp.texels, mp.map[i], k, m, k.tex[i]);
     if (gouraud) {  // the interpolated colour is the pixel's (lit, and clamped if asked, at the vertices)
       for (int q = 0; q < m; ++q) k.col[0][q] = k.nx[q], k.col[1][q] = k.ny[q], k.col[2][q] = k.nz[q];
+      for (int g = 0; g < mp.parts; ++g) {  // each mapped part times its map (_lighting._modulated_side)
+        for (int c = 0; c < 3; ++c) {
+          const float* __restrict t = k.tex[mp.part_map[g]][c];
+          const float* __restrict part = k.part[g][c];
+          float* __restrict colc = k.col[c];
+          for (int q = 0; q < m; ++q) colc[q] = colc[q] + t[q] * part[q];
+        }
+      }
     } else {
+      PixelMaterial(cfg, mp, front, backm, k, m);
       float* __restrict nx = k.nx;
       float* __restrict ny = k.ny;
       float* __restrict nz = k.nz;
@@ -400,14 +674,14 @@ DIFFSHADE_CLONES void ShadeRange(const Config& cfg, const int32_t* ids, const fl
     }
     const float amb_on = ambient ? 1.0f : 0.0f, em_on = emission ? 1.0f : 0.0f;
     for (int c = 0; c < 3; ++c) {
-      const float kaf = front[3 + c] * amb_light[c], kab = backm[3 + c] * amb_light[c];
-      const float kef = front[c], keb = backm[c];
+      const float ia = amb_light[c];
       float* __restrict colc = k.col[c];
       const float* __restrict base = k.base[c];
-      const float* __restrict bk = k.back;
+      const float* __restrict ka = k.ka[c];
+      const float* __restrict ke = k.ke[c];
       if (!gouraud) {
         for (int q = 0; q < m; ++q) {  // base + direct (the ambient and emission terms where on)
-          const float b = (base[q] + Pick(bk[q], kab, kaf) * amb_on) + Pick(bk[q], keb, kef) * em_on;
+          const float b = (base[q] + (ka[q] * ia) * amb_on) + ke[q] * em_on;
           colc[q] = b + colc[q];
         }
       }
@@ -466,11 +740,85 @@ void FaceTable(const float* clip, const int32_t* tri, const float* normals, cons
   }
 }
 
+// The maps' description (layout above Maps), checked against the texels' size: nullptr, or what
+// is wrong. The levels' offsets are into the packed pyramids (PackMaps); their size in *packed.
+const char* ReadMaps(const int32_t* a, int64_t n, int64_t num_texels, Maps& mp, int64_t* packed) {
+  *packed = 0;
+  if (n == 0) return nullptr;
+  if (n < kMapsHeader) return "maps: too short";
+  for (int f = 0; f < 5; ++f) mp.field[f] = a[f];
+  mp.parts = a[5];
+  for (int g = 0; g < kMaxParts; ++g) mp.part_map[g] = a[6 + g];
+  if (a[10] <= 0 || a[11] <= 0) return "maps: bad camera size";
+  mp.sx = 2.0f / static_cast<float>(a[10]), mp.sy = 2.0f / static_cast<float>(a[11]);
+  mp.count = a[12];
+  if (mp.count < 1 || mp.count > kMaxMaps || mp.parts < 0 || mp.parts > kMaxParts) return "maps: bad counts";
+  if (n != kMapsHeader + mp.count * kMapInts) return "maps: bad length";
+  for (int f = 0; f < 5; ++f) {
+    if (mp.field[f] < -1 || mp.field[f] >= mp.count) return "maps: bad field";
+  }
+  for (int g = 0; g < mp.parts; ++g) {
+    if (mp.part_map[g] < 0 || mp.part_map[g] >= mp.count) return "maps: bad part";
+  }
+  int64_t given = 0;
+  for (int i = 0; i < mp.count; ++i) {
+    const int32_t* d = a + kMapsHeader + i * kMapInts;
+    Map& t = mp.map[i];
+    t.channels = d[0], t.clamp = d[1] != 0, t.trilinear = d[2] != 0;
+    int w = d[3], h = d[4];
+    if ((t.channels != 1 && t.channels != 3) || w < 1 || h < 1) return "maps: bad map";
+    mp.derivatives = mp.derivatives || t.trilinear;
+    given += int64_t{w} * h * t.channels;
+    t.levels = 0;
+    while (true) {  // _texture.mip_pyramid's sizes: halved (rounding up) down to 1 x 1
+      if (t.levels == kMaxLevels) return "maps: too many levels";
+      t.off[t.levels] = static_cast<int32_t>(*packed), t.w[t.levels] = w, t.h[t.levels] = h;
+      t.lv[t.levels++] = Level{*packed, w, h};
+      *packed += int64_t{w} * h * t.channels;
+      if (!t.trilinear || (w == 1 && h == 1)) break;
+      w = (w + 1) / 2, h = (h + 1) / 2;
+    }
+  }
+  if (*packed >= (int64_t{1} << 31)) return "maps: more than 2^31 texels with their mipmaps";
+  return given == num_texels ? nullptr : "maps: the texels do not match the maps' sizes";
+}
+
+// Each map's levels into packed (laid out by ReadMaps): level 0 the given texels, and each next
+// level the 2 x 2 box averages of the one before (_texture.mip_pyramid: rows first, then
+// columns, an odd last row or column averaged with itself; the same sums in the same order).
+void PackMaps(const Maps& mp, const float* texels, float* packed) {
+  for (int i = 0; i < mp.count; ++i) {
+    const Map& t = mp.map[i];
+    const int C = t.channels;
+    const int64_t n0 = int64_t{t.lv[0].w} * t.lv[0].h * C;
+    std::memcpy(packed + t.lv[0].off, texels, n0 * sizeof(float));
+    texels += n0;
+    for (int j = 1; j < t.levels; ++j) {
+      const Level &a = t.lv[j - 1], &b = t.lv[j];
+      const float* src = packed + a.off;
+      float* dst = packed + b.off;
+      for (int y = 0; y < b.h; ++y) {
+        const int y0 = a.h > 1 ? 2 * y : 0, y1 = a.h > 1 ? std::min(2 * y + 1, a.h - 1) : 0;
+        for (int x = 0; x < b.w; ++x) {
+          const int x0 = a.w > 1 ? 2 * x : 0, x1 = a.w > 1 ? std::min(2 * x + 1, a.w - 1) : 0;
+          for (int c = 0; c < C; ++c) {
+            auto at = [&](int yy, int xx) { return src[(int64_t{yy} * a.w + xx) * C + c]; };
+            const float l = a.h > 1 ? 0.5f * (at(y0, x0) + at(y1, x0)) : at(y0, x0);
+            const float r = a.h > 1 ? 0.5f * (at(y0, x1) + at(y1, x1)) : at(y0, x1);
+            dst[(int64_t{y} * b.w + x) * C + c] = a.w > 1 ? 0.5f * (l + r) : l;
+          }
+        }
+      }
+    }
+  }
+}
+
 ffi::Error ShadeImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Buffer<ffi::F32> xs,
                      ffi::Buffer<ffi::F32> ys, ffi::Buffer<ffi::F32> clip, ffi::Buffer<ffi::S32> tri,
                      ffi::Buffer<ffi::F32> normals, ffi::Buffer<ffi::F32> points, ffi::Buffer<ffi::F32> back,
-                     ffi::Buffer<ffi::F32> params,
-                     ffi::Buffer<ffi::F32> lights, ffi::ResultBuffer<ffi::F32> out, int32_t specular,
+                     ffi::Buffer<ffi::F32> params, ffi::Buffer<ffi::F32> lights, ffi::Buffer<ffi::F32> uv,
+                     ffi::Buffer<ffi::F32> texels, ffi::Buffer<ffi::S32> maps, ffi::Buffer<ffi::F32> parts,
+                     ffi::ResultBuffer<ffi::F32> out, int32_t specular,
                      int32_t fresnel, int32_t flags, int32_t fog, int32_t grid) {
   const int64_t n = ids.element_count();
   const int64_t num_verts = clip.element_count() / 4, num_faces = tri.element_count() / 3;
@@ -484,6 +832,21 @@ ffi::Error ShadeImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Buffe
     return ffi::Error::InvalidArgument("diffshade_shade: pixel centres do not match the ids");
   }
   const Config cfg{specular, fresnel, flags, fog};
+  Maps mp;
+  int64_t packed = 0;
+  if (const char* bad = ReadMaps(maps.typed_data(), maps.element_count(), texels.element_count(), mp, &packed)) {
+    return ffi::Error::InvalidArgument(std::string("diffshade_shade: ") + bad);
+  }
+  thread_local std::vector<float> pyramids;  // (scratch kept per calling thread, as the face table)
+  if (mp.any()) {
+    if (uv.element_count() != 2 * num_verts || parts.element_count() != mp.parts * 2 * num_verts * 3) {
+      return ffi::Error::InvalidArgument("diffshade_shade: texture coordinates or parts do not match the mesh");
+    }
+    pyramids.resize(static_cast<size_t>(packed));
+    PackMaps(mp, texels.typed_data(), pyramids.data());
+    mp.texels = pyramids.data(), mp.uv = uv.typed_data(), mp.tri = tri.typed_data();
+    mp.parts_at = parts.typed_data(), mp.num_verts = num_verts;
+  }
   const int64_t num_lights = lights.element_count() / kLight;
   unsigned hw = std::thread::hardware_concurrency();
   int64_t nthreads = std::min<int64_t>(hw == 0 ? 1 : hw, 8);
@@ -500,7 +863,7 @@ ffi::Error ShadeImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Buffe
   const int64_t chunks = nthreads * 4;
   diffshade::ParallelFor(pool, chunks, [&](int64_t k) {
     ShadeRange(cfg, ids.typed_data(), xs.typed_data(), ys.typed_data(), grid != 0, width, tab, params.typed_data(),
-               lights.typed_data(), num_lights, n * k / chunks, n * (k + 1) / chunks, out->typed_data());
+               lights.typed_data(), num_lights, mp, n * k / chunks, n * (k + 1) / chunks, out->typed_data());
   });
   return ffi::Error::Success();
 }
@@ -520,6 +883,10 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(DiffshadeShade, ShadeImpl,
                                   .Arg<ffi::Buffer<ffi::F32>>()  // Gouraud: back colours [V, 3]
                                   .Arg<ffi::Buffer<ffi::F32>>()  // params [kParams]
                                   .Arg<ffi::Buffer<ffi::F32>>()  // lights [L, kLight]
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // texture coordinates [V, 2] (or none)
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // the maps' texels, one after the other
+                                  .Arg<ffi::Buffer<ffi::S32>>()  // the maps' description (Maps)
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // Gouraud: mapped parts [G, 2, V, 3]
                                   .Ret<ffi::Buffer<ffi::F32>>()  // out [N, 3]
                                   .Attr<int32_t>("specular")
                                   .Attr<int32_t>("fresnel")
