@@ -175,7 +175,8 @@ struct Map {
   int channels, levels;
   bool clamp, trilinear;
   Level lv[kMaxLevels];
-  int32_t off[kMaxLevels], w[kMaxLevels], h[kMaxLevels];  // (lv, as tables a vectorised loop reads)
+  int32_t w[kMaxLevels], h[kMaxLevels];  // (lv's sizes, as tables)
+  const float* base[kMaxLevels];         // each level's first texel (level 0: the input's)
 };
 struct Maps {
   int field[5] = {-1, -1, -1, -1, -1};
@@ -184,7 +185,6 @@ struct Maps {
   bool derivatives = false;  // a trilinear map needs the coordinates' derivatives
   float sx = 0, sy = 0;      // NDC per pixel step (2 / width, 2 / height)
   Map map[kMaxMaps];
-  const float* texels = nullptr;
   const float* uv = nullptr;       // [V, 2]
   const int32_t* tri = nullptr;    // [F, 3]
   const float* parts_at = nullptr;  // Gouraud: [parts, 2 (front, back), V, 3]
@@ -206,6 +206,7 @@ struct Block {
   // texture coordinates and (trilinear) their derivatives per pixel step; each map's sample
   float u[kBlock], v[kBlock], dux[kBlock], dvx[kBlock], duy[kBlock], dvy[kBlock];
   float su[kBlock], sv[kBlock], sd[kBlock];  // a map's wrapped coordinates and level of detail
+  float b0[kBlock], b1[kBlock], b2[kBlock];  // the barycentrics
   // a sample's taps (SampleMap): the top-left texel's index and the steps to the right and down
   // (in floats), the weights; the pixels that blend a second level (their entries, coordinates,
   // levels, weights and samples)
@@ -234,18 +235,18 @@ inline int Wrap(int i, int n) {
 
 // Where n bilinear samples of a map read (_texture._taps: the coordinates u, v wrapped into
 // [0, 1] already where repeating; level lv of the map, a tap outside it reading the border
-// _texture._padded adds).
+// _texture._padded adds): the top-left tap's index in its level (without gathers: vectorised).
 template <bool clamp>
 inline void TapsOf(const Map& t, const float* __restrict u, const float* __restrict v, const int32_t* __restrict lv,
                    int n, Block& k) {
-  const int C = t.channels;
+  const int C = t.channels, w0 = t.w[0] - 1, h0 = t.h[0] - 1;
   int32_t* __restrict ti = k.ti;
   int32_t* __restrict tdx = k.tdx;
   int32_t* __restrict tdy = k.tdy;
   float* __restrict fx = k.fx;
   float* __restrict fy = k.fy;
   for (int j = 0; j < n; ++j) {
-    const int L = lv[j], W = t.w[L], H = t.h[L];
+    const int L = lv[j], W = (w0 >> L) + 1, H = (h0 >> L) + 1;  // (the levels' sizes: w halved, rounding up)
     const float x = u[j] * static_cast<float>(W) - 0.5f, y = (1.0f - v[j]) * static_cast<float>(H) - 0.5f;
     const float x0 = Floor(x), y0 = Floor(y);  // (|x| <= 2 W + 1: u, v in [-1, 2])
     fx[j] = x - x0, fy[j] = y - y0;
@@ -253,7 +254,7 @@ inline void TapsOf(const Map& t, const float* __restrict u, const float* __restr
     const int iy = std::min(std::max(static_cast<int>(y0), -1), H - 1);
     const int c0 = Wrap<clamp>(ix, W), c1 = Wrap<clamp>(ix + 1, W);
     const int r0 = Wrap<clamp>(iy, H), r1 = Wrap<clamp>(iy + 1, H);
-    ti[j] = t.off[L] + (r0 * W + c0) * C, tdx[j] = (c1 - c0) * C, tdy[j] = (r1 - r0) * W * C;
+    ti[j] = (r0 * W + c0) * C, tdx[j] = (c1 - c0) * C, tdy[j] = (r1 - r0) * W * C;  // (in the level)
   }
 }
 
@@ -267,29 +268,33 @@ DIFFSHADE_CLONES void TapsAt(const Map& t, const float* u, const float* v, const
 
 // The n bilinear samples at the taps of TapsAt (_texture._blend, in its order), three channels
 // out (a one-channel map repeated: grey).
-DIFFSHADE_CLONES void Blend(const float* texels, int channels, const Block& k, int n, float (*out)[kBlock]) {
-  const int32_t* __restrict ti = k.ti;
-  const int32_t* __restrict dx = k.tdx;
-  const int32_t* __restrict dy = k.tdy;
-  const float* __restrict fx = k.fx;
-  const float* __restrict fy = k.fy;
-  for (int c = 0; c < channels; ++c) {
-    const float* __restrict t = texels + c;
-    float* __restrict o = out[c];
-    for (int j = 0; j < n; ++j) {
-      const float t00 = t[ti[j]], t01 = t[ti[j] + dx[j]], t10 = t[ti[j] + dy[j]], t11 = t[ti[j] + dx[j] + dy[j]];
-      const float top = t00 + fx[j] * (t01 - t00);
-      const float bottom = t10 + fx[j] * (t11 - t10);
-      o[j] = top + fy[j] * (bottom - top);
+template <int channels>
+inline void BlendOf(const Map& map, const int32_t* __restrict lv, const Block& k, int n, float (*out)[kBlock]) {
+  for (int j = 0; j < n; ++j) {
+    const float* t00 = map.base[lv[j]] + k.ti[j];
+    const float *t01 = t00 + k.tdx[j], *t10 = t00 + k.tdy[j], *t11 = t10 + k.tdx[j];
+    const float fx = k.fx[j], fy = k.fy[j];
+    for (int c = 0; c < channels; ++c) {
+      const float top = t00[c] + fx * (t01[c] - t00[c]);
+      const float bottom = t10[c] + fx * (t11[c] - t10[c]);
+      out[c][j] = top + fy * (bottom - top);
     }
   }
-  for (int c = channels; c < 3; ++c) std::memcpy(out[c], out[0], n * sizeof(float));
+}
+
+DIFFSHADE_CLONES void Blend(const Map& map, const int32_t* lv, const Block& k, int n, float (*out)[kBlock]) {
+  if (map.channels == 3) {
+    BlendOf<3>(map, lv, k, n, out);
+  } else {
+    BlendOf<1>(map, lv, k, n, out);
+    for (int c = 1; c < 3; ++c) std::memcpy(out[c], out[0], n * sizeof(float));
+  }
 }
 
 // A map sampled at the block's m pixels (_texture.sample_channels; trilinear with
 // level_of_detail). In passes without branches (vectorised): the wrapped coordinates and the
 // level of detail; every pixel's first level; then the second level of those that blend two.
-DIFFSHADE_CLONES void SampleMap(const float* texels, const Map& t, Block& k, int m, float (*out)[kBlock]) {
+DIFFSHADE_CLONES void SampleMap(const Map& t, Block& k, int m, float (*out)[kBlock]) {
   const float top = static_cast<float>(t.levels - 1);
   const float w0 = static_cast<float>(t.lv[0].w), h0 = static_cast<float>(t.lv[0].h);
   float* __restrict su = k.su;
@@ -328,14 +333,14 @@ DIFFSHADE_CLONES void SampleMap(const float* texels, const Map& t, Block& k, int
     for (int q = 0; q < m; ++q) lvl[q] = 0;
   }
   TapsAt(t, su, sv, lvl, m, k);
-  Blend(texels, t.channels, k, m, out);
+  Blend(t, lvl, k, m, out);
   if (blend == 0) return;
   for (int j = 0; j < blend; ++j) {
     const int q = k.sel[j];
     k.cu[j] = su[q], k.cv[j] = sv[q], k.cf[j] = k.sd[q], lvl[j] = std::min(lvl[q] + 1, last);
   }
   TapsAt(t, k.cu, k.cv, lvl, blend, k);
-  Blend(texels, t.channels, k, blend, k.hi);
+  Blend(t, lvl, k, blend, k.hi);
   for (int c = 0; c < 3; ++c) {
     for (int j = 0; j < blend; ++j) {
       const int q = k.sel[j];
@@ -447,52 +452,48 @@ __attribute__((noinline)) void AddLight(const Config& cfg, const float* front, c
   }
 }
 
-// The texture coordinates at a run of n pixels of face t (starting at the block's entry m),
-// perspective-correct with the barycentrics E_i / sum E (the face's planes c), and for trilinear
-// maps their derivatives per pixel step (_texture.pixel_derivatives: with the planes' x and y
-// slopes a_i, b_i, du/dx = (sum a_i u_i - u sum a_i) / sum E); Gouraud: each mapped part's colour,
-// interpolated.
-void Coordinates(const Maps& mp, int32_t t, const float* c, bool back, const float* xr, const float* yr, int ystep,
-                 Block& k, int m, int n) {
+// The texture coordinates at a run of n pixels of face t (from the block's entry m: their
+// barycentrics b_i = E_i / sum E with the face's planes c, and clip w), perspective-correct, and
+// for trilinear maps their derivatives per pixel step (_texture.pixel_derivatives: with the
+// planes' x and y slopes a_i, b_i, du/dx = (sum a_i u_i - u sum a_i) w / det); Gouraud: each
+// mapped part's colour, interpolated.
+void Coordinates(const Maps& mp, int32_t t, const float* c, bool back, Block& k, int m, int n) {
   int64_t vid[3];
   float U[3], V[3];
   for (int j = 0; j < 3; ++j) {
     vid[j] = std::min<int64_t>(std::max<int32_t>(mp.tri[3 * static_cast<int64_t>(t) + j], 0), mp.num_verts - 1);
     U[j] = mp.uv[2 * vid[j]], V[j] = mp.uv[2 * vid[j] + 1];
   }
-  const float axu = (c[1] * U[0] + c[4] * U[1]) + c[7] * U[2], axv = (c[1] * V[0] + c[4] * V[1]) + c[7] * V[2];
-  const float ayu = (c[2] * U[0] + c[5] * U[1]) + c[8] * U[2], ayv = (c[2] * V[0] + c[5] * V[1]) + c[8] * V[2];
-  const float sx = (c[1] + c[4]) + c[7], sy = (c[2] + c[5]) + c[8], det = c[12];
-  float pc[kMaxParts][9];  // the parts' corner colours on the side lit
-  for (int g = 0; g < mp.parts; ++g) {
-    const float* at = mp.parts_at + (2 * g + (back ? 1 : 0)) * mp.num_verts * 3;
-    for (int j = 0; j < 3; ++j) {
-      for (int ch = 0; ch < 3; ++ch) pc[g][3 * j + ch] = at[3 * vid[j] + ch];
+  const float* __restrict b0 = k.b0 + m;
+  const float* __restrict b1 = k.b1 + m;
+  const float* __restrict b2 = k.b2 + m;
+  float* __restrict u = k.u + m;
+  float* __restrict v = k.v + m;
+  for (int i = 0; i < n; ++i) {
+    u[i] = (U[0] * b0[i] + U[1] * b1[i]) + U[2] * b2[i], v[i] = (V[0] * b0[i] + V[1] * b1[i]) + V[2] * b2[i];
+  }
+  if (mp.derivatives) {
+    const float axu = (c[1] * U[0] + c[4] * U[1]) + c[7] * U[2], axv = (c[1] * V[0] + c[4] * V[1]) + c[7] * V[2];
+    const float ayu = (c[2] * U[0] + c[5] * U[1]) + c[8] * U[2], ayv = (c[2] * V[0] + c[5] * V[1]) + c[8] * V[2];
+    const float sx = (c[1] + c[4]) + c[7], sy = (c[2] + c[5]) + c[8], det = c[12];
+    const float* __restrict w = k.w + m;
+    float* __restrict dux = k.dux + m;
+    float* __restrict dvx = k.dvx + m;
+    float* __restrict duy = k.duy + m;
+    float* __restrict dvy = k.dvy + m;
+    for (int i = 0; i < n; ++i) {
+      const float scale = det != 0 ? w[i] / (det != 0 ? det : 1.0f) : 0.0f;  // (w is 0 on an empty face)
+      const float fx = scale * mp.sx, fy = scale * mp.sy;
+      dux[i] = (axu - u[i] * sx) * fx, dvx[i] = (axv - v[i] * sx) * fx;
+      duy[i] = (ayu - u[i] * sy) * fy, dvy[i] = (ayv - v[i] * sy) * fy;
     }
   }
-  for (int i = 0; i < n; ++i) {
-    const float x = xr[i], y = yr[i * ystep];
-    const float e0 = c[0] + x * c[1] + y * c[2], e1 = c[3] + x * c[4] + y * c[5];
-    const float e2 = c[6] + x * c[7] + y * c[8];
-    const float s = e0 + e1 + e2;
-    const bool ok = s != 0;
-    const float inv = ok ? 1.0f / s : 1.0f;
-    const float b0 = ok ? e0 * inv : 0.0f, b1 = ok ? e1 * inv : 0.0f, b2 = ok ? e2 * inv : 0.0f;
-    const int q = m + i;
-    const float u = (U[0] * b0 + U[1] * b1) + U[2] * b2, v = (V[0] * b0 + V[1] * b1) + V[2] * b2;
-    k.u[q] = u, k.v[q] = v;
-    if (mp.derivatives) {
-      const float wp = ok ? c[12] * inv : 0.0f;
-      const bool good = ok && det != 0;
-      const float scale = good ? wp / (good ? det : 1.0f) : 0.0f;
-      const float fx = scale * mp.sx, fy = scale * mp.sy;
-      k.dux[q] = (axu - u * sx) * fx, k.dvx[q] = (axv - v * sx) * fx;
-      k.duy[q] = (ayu - u * sy) * fy, k.dvy[q] = (ayv - v * sy) * fy;
-    }
-    for (int g = 0; g < mp.parts; ++g) {
-      for (int ch = 0; ch < 3; ++ch) {
-        k.part[g][ch][q] = (pc[g][ch] * b0 + pc[g][3 + ch] * b1) + pc[g][6 + ch] * b2;
-      }
+  for (int g = 0; g < mp.parts; ++g) {  // the part's corner colours on the side lit
+    const float* at = mp.parts_at + (2 * g + (back ? 1 : 0)) * mp.num_verts * 3;
+    for (int ch = 0; ch < 3; ++ch) {
+      const float p0 = at[3 * vid[0] + ch], p1 = at[3 * vid[1] + ch], p2 = at[3 * vid[2] + ch];
+      float* __restrict part = k.part[g][ch] + m;
+      for (int i = 0; i < n; ++i) part[i] = (p0 * b0[i] + p1 * b1[i]) + p2 * b2[i];
     }
   }
 }
@@ -584,6 +585,9 @@ DIFFSHADE_CLONES void ShadeRange(const Config& cfg, const int32_t* ids, const fl
         float* __restrict pz = k.pz + m;
         float* __restrict w = k.w + m;
         float* __restrict bk = k.back + m;
+        float* __restrict ba = k.b0 + m;
+        float* __restrict bb = k.b1 + m;
+        float* __restrict bc = k.b2 + m;
         int64_t* __restrict pix = k.pix + m;
         for (int i = 0; i < n; ++i) {
           const float x = xr[i], y = yr[i * ystep];
@@ -601,9 +605,10 @@ DIFFSHADE_CLONES void ShadeRange(const Config& cfg, const int32_t* ids, const fl
           pz[i] = (c[24] * b0 + c[27] * b1) + c[30] * b2;
           w[i] = ok ? c[12] * inv : 0.0f;
           bk[i] = back;
+          ba[i] = b0, bb[i] = b1, bc[i] = b2;
           pix[i] = p + i;
         }
-        if (mp.any()) Coordinates(mp, t, c, back > 0, xr, yr, ystep, k, m, n);
+        if (mp.any()) Coordinates(mp, t, c, back > 0, k, m, n);
         m += n;
       }
       if (grid) {
@@ -612,7 +617,7 @@ DIFFSHADE_CLONES void ShadeRange(const Config& cfg, const int32_t* ids, const fl
       }
       p = r;
     }
-    for (int i = 0; i < mp.count; ++i) SampleMap(mp.texels, mp.map[i], k, m, k.tex[i]);
+    for (int i = 0; i < mp.count; ++i) SampleMap(mp.map[i], k, m, k.tex[i]);
     if (gouraud) {  // the interpolated colour is the pixel's (lit, and clamped if asked, at the vertices)
       for (int q = 0; q < m; ++q) k.col[0][q] = k.nx[q], k.col[1][q] = k.ny[q], k.col[2][q] = k.nz[q];
       for (int g = 0; g < mp.parts; ++g) {  // each mapped part times its map (_lighting._modulated_side)
@@ -741,7 +746,8 @@ void FaceTable(const float* clip, const int32_t* tri, const float* normals, cons
 }
 
 // The maps' description (layout above Maps), checked against the texels' size: nullptr, or what
-// is wrong. The levels' offsets are into the packed pyramids (PackMaps); their size in *packed.
+// is wrong. Level 0's offsets are into the texels, the other levels' into the mipmaps built by
+// PackMaps (their size in *packed).
 const char* ReadMaps(const int32_t* a, int64_t n, int64_t num_texels, Maps& mp, int64_t* packed) {
   *packed = 0;
   if (n == 0) return nullptr;
@@ -768,35 +774,33 @@ const char* ReadMaps(const int32_t* a, int64_t n, int64_t num_texels, Maps& mp, 
     int w = d[3], h = d[4];
     if ((t.channels != 1 && t.channels != 3) || w < 1 || h < 1) return "maps: bad map";
     mp.derivatives = mp.derivatives || t.trilinear;
+    if (int64_t{w} * h * t.channels >= (int64_t{1} << 31)) return "maps: a map of more than 2^31 values";
+    t.lv[0] = Level{given, w, h}, t.w[0] = w, t.h[0] = h, t.levels = 1;
     given += int64_t{w} * h * t.channels;
-    t.levels = 0;
-    while (true) {  // _texture.mip_pyramid's sizes: halved (rounding up) down to 1 x 1
+    while (t.trilinear && (w > 1 || h > 1)) {  // _texture.mip_pyramid's sizes: halved (rounding up) to 1 x 1
       if (t.levels == kMaxLevels) return "maps: too many levels";
-      t.off[t.levels] = static_cast<int32_t>(*packed), t.w[t.levels] = w, t.h[t.levels] = h;
-      t.lv[t.levels++] = Level{*packed, w, h};
-      *packed += int64_t{w} * h * t.channels;
-      if (!t.trilinear || (w == 1 && h == 1)) break;
       w = (w + 1) / 2, h = (h + 1) / 2;
+      t.lv[t.levels] = Level{*packed, w, h}, t.w[t.levels] = w, t.h[t.levels] = h, ++t.levels;
+      *packed += int64_t{w} * h * t.channels;
     }
   }
-  if (*packed >= (int64_t{1} << 31)) return "maps: more than 2^31 texels with their mipmaps";
   return given == num_texels ? nullptr : "maps: the texels do not match the maps' sizes";
 }
 
-// Each map's levels into packed (laid out by ReadMaps): level 0 the given texels, and each next
-// level the 2 x 2 box averages of the one before (_texture.mip_pyramid: rows first, then
-// columns, an odd last row or column averaged with itself; the same sums in the same order).
-void PackMaps(const Maps& mp, const float* texels, float* packed) {
+// Each map's level pointers (level 0 in the texels, the others in packed, laid out by
+// ReadMaps), and its levels after the first: the 2 x 2 box averages of the one before
+// (_texture.mip_pyramid: rows first, then columns, an odd last row or column averaged with
+// itself; the same sums in the same order).
+void PackMaps(Maps& mp, const float* texels, float* packed) {
   for (int i = 0; i < mp.count; ++i) {
-    const Map& t = mp.map[i];
+    Map& t = mp.map[i];
     const int C = t.channels;
-    const int64_t n0 = int64_t{t.lv[0].w} * t.lv[0].h * C;
-    std::memcpy(packed + t.lv[0].off, texels, n0 * sizeof(float));
-    texels += n0;
+    t.base[0] = texels + t.lv[0].off;
     for (int j = 1; j < t.levels; ++j) {
       const Level &a = t.lv[j - 1], &b = t.lv[j];
-      const float* src = packed + a.off;
+      const float* src = t.base[j - 1];
       float* dst = packed + b.off;
+      t.base[j] = dst;
       for (int y = 0; y < b.h; ++y) {
         const int y0 = a.h > 1 ? 2 * y : 0, y1 = a.h > 1 ? std::min(2 * y + 1, a.h - 1) : 0;
         for (int x = 0; x < b.w; ++x) {
@@ -844,7 +848,7 @@ ffi::Error ShadeImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Buffe
     }
     pyramids.resize(static_cast<size_t>(packed));
     PackMaps(mp, texels.typed_data(), pyramids.data());
-    mp.texels = pyramids.data(), mp.uv = uv.typed_data(), mp.tri = tri.typed_data();
+    mp.uv = uv.typed_data(), mp.tri = tri.typed_data();
     mp.parts_at = parts.typed_data(), mp.num_verts = num_verts;
   }
   const int64_t num_lights = lights.element_count() / kLight;
