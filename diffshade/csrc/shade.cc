@@ -457,7 +457,7 @@ __attribute__((noinline)) void AddLight(const Config& cfg, const float* front, c
 // for trilinear maps their derivatives per pixel step (_texture.pixel_derivatives: with the
 // planes' x and y slopes a_i, b_i, du/dx = (sum a_i u_i - u sum a_i) w / det); Gouraud: each
 // mapped part's colour, interpolated.
-void Coordinates(const Maps& mp, int32_t t, const float* c, bool back, Block& k, int m, int n) {
+__attribute__((always_inline)) inline void Coordinates(const Maps& mp, int32_t t, const float* c, bool back, Block& k, int m, int n) {
   int64_t vid[3];
   float U[3], V[3];
   for (int j = 0; j < 3; ++j) {
@@ -500,7 +500,7 @@ void Coordinates(const Maps& mp, int32_t t, const float* c, bool back, Block& k,
 
 // Phong: the material at the block's pixels, the lit side's constants (the back material on the
 // back side), each mapped field times its map (maps come with one material: no back material).
-void PixelMaterial(const Config& cfg, const Maps& mp, const float* front, const float* backm, Block& k, int m) {
+__attribute__((always_inline)) inline void PixelMaterial(const Config& cfg, const Maps& mp, const float* front, const float* backm, Block& k, int m) {
   const float* __restrict bk = k.back;
   float(*fields[4])[kBlock] = {k.ke, k.ka, k.kd, k.ks};
   const bool used[5] = {cfg.Flag(0), cfg.Flag(1) || cfg.Flag(3), cfg.Flag(2), cfg.specular != 0, cfg.specular != 0};
@@ -787,32 +787,47 @@ const char* ReadMaps(const int32_t* a, int64_t n, int64_t num_texels, Maps& mp, 
   return given == num_texels ? nullptr : "maps: the texels do not match the maps' sizes";
 }
 
-// Each map's level pointers (level 0 in the texels, the others in packed, laid out by
-// ReadMaps), and its levels after the first: the 2 x 2 box averages of the one before
+// Rows [y0, y1) of a level from the one before (a, C channels): 2 x 2 box averages
 // (_texture.mip_pyramid: rows first, then columns, an odd last row or column averaged with
 // itself; the same sums in the same order).
-void PackMaps(Maps& mp, const float* texels, float* packed) {
+void Downsample(const float* src, const Level& a, float* dst, const Level& b, int C, int y0, int y1) {
+  for (int y = y0; y < y1; ++y) {
+    const float* r0 = src + int64_t{a.h > 1 ? 2 * y : 0} * a.w * C;
+    const float* r1 = src + int64_t{a.h > 1 ? std::min(2 * y + 1, a.h - 1) : 0} * a.w * C;
+    float* out = dst + int64_t{y} * b.w * C;
+    if (a.h > 1 && a.w > 1) {
+      for (int x = 0; x < b.w; ++x) {
+        const int i0 = 2 * x * C, i1 = std::min(2 * x + 1, a.w - 1) * C;
+        for (int c = 0; c < C; ++c) {
+          const float l = 0.5f * (r0[i0 + c] + r1[i0 + c]), r = 0.5f * (r0[i1 + c] + r1[i1 + c]);
+          out[x * C + c] = 0.5f * (l + r);
+        }
+      }
+    } else if (a.h > 1) {  // one column
+      for (int c = 0; c < C; ++c) out[c] = 0.5f * (r0[c] + r1[c]);
+    } else {  // one row
+      for (int x = 0; x < b.w; ++x) {
+        const int i0 = 2 * x * C, i1 = std::min(2 * x + 1, a.w - 1) * C;
+        for (int c = 0; c < C; ++c) out[x * C + c] = 0.5f * (r0[i0 + c] + r0[i1 + c]);
+      }
+    }
+  }
+}
+
+// Each map's level pointers (level 0 in the texels, the others in packed, laid out by
+// ReadMaps), and its levels after the first (Downsample; a large level's rows in threads).
+void PackMaps(ffi::ThreadPool& pool, int64_t nthreads, Maps& mp, const float* texels, float* packed) {
   for (int i = 0; i < mp.count; ++i) {
     Map& t = mp.map[i];
-    const int C = t.channels;
     t.base[0] = texels + t.lv[0].off;
     for (int j = 1; j < t.levels; ++j) {
       const Level &a = t.lv[j - 1], &b = t.lv[j];
-      const float* src = t.base[j - 1];
-      float* dst = packed + b.off;
-      t.base[j] = dst;
-      for (int y = 0; y < b.h; ++y) {
-        const int y0 = a.h > 1 ? 2 * y : 0, y1 = a.h > 1 ? std::min(2 * y + 1, a.h - 1) : 0;
-        for (int x = 0; x < b.w; ++x) {
-          const int x0 = a.w > 1 ? 2 * x : 0, x1 = a.w > 1 ? std::min(2 * x + 1, a.w - 1) : 0;
-          for (int c = 0; c < C; ++c) {
-            auto at = [&](int yy, int xx) { return src[(int64_t{yy} * a.w + xx) * C + c]; };
-            const float l = a.h > 1 ? 0.5f * (at(y0, x0) + at(y1, x0)) : at(y0, x0);
-            const float r = a.h > 1 ? 0.5f * (at(y0, x1) + at(y1, x1)) : at(y0, x1);
-            dst[(int64_t{y} * b.w + x) * C + c] = a.w > 1 ? 0.5f * (l + r) : l;
-          }
-        }
-      }
+      t.base[j] = packed + b.off;
+      const int64_t parts = int64_t{b.w} * b.h < 16384 ? 1 : std::min<int64_t>(nthreads, b.h);
+      diffshade::ParallelFor(pool, parts, [&](int64_t q) {
+        Downsample(t.base[j - 1], a, packed + b.off, b, t.channels, static_cast<int>(b.h * q / parts),
+                   static_cast<int>(b.h * (q + 1) / parts));
+      });
     }
   }
 }
@@ -836,6 +851,10 @@ ffi::Error ShadeImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Buffe
     return ffi::Error::InvalidArgument("diffshade_shade: pixel centres do not match the ids");
   }
   const Config cfg{specular, fresnel, flags, fog};
+  const int64_t num_lights = lights.element_count() / kLight;
+  unsigned hw = std::thread::hardware_concurrency();
+  int64_t nthreads = std::min<int64_t>(hw == 0 ? 1 : hw, 8);
+  if (n < 16384) nthreads = 1;  // not worth a thread for small images
   Maps mp;
   int64_t packed = 0;
   if (const char* bad = ReadMaps(maps.typed_data(), maps.element_count(), texels.element_count(), mp, &packed)) {
@@ -847,14 +866,10 @@ ffi::Error ShadeImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Buffe
       return ffi::Error::InvalidArgument("diffshade_shade: texture coordinates or parts do not match the mesh");
     }
     pyramids.resize(static_cast<size_t>(packed));
-    PackMaps(mp, texels.typed_data(), pyramids.data());
+    PackMaps(pool, nthreads, mp, texels.typed_data(), pyramids.data());
     mp.uv = uv.typed_data(), mp.tri = tri.typed_data();
     mp.parts_at = parts.typed_data(), mp.num_verts = num_verts;
   }
-  const int64_t num_lights = lights.element_count() / kLight;
-  unsigned hw = std::thread::hardware_concurrency();
-  int64_t nthreads = std::min<int64_t>(hw == 0 ? 1 : hw, 8);
-  if (n < 16384) nthreads = 1;  // not worth a thread for small images
   // the face table, in scratch kept per calling thread between calls (every entry is written)
   thread_local std::vector<float> table;
   table.resize(static_cast<size_t>(num_faces * kFace));
