@@ -2,8 +2,8 @@
 coordinates) rendered with a constant k_d and with a k_d map (256², trilinear and bilinear),
 Phong and Gouraud shading, at 256² and 512². Medians over interleaved repeats, compile apart;
 the ratio is to the constant-material render measured in the same run (on a CPU the native
-shading kernel renders it; a textured one takes the JAX stages), and to the same render by the
-JAX stages (``backend="jax"``).
+shading kernel renders both, with and without the map), and to the constant render by the JAX
+stages (``backend="jax"``).
 
     GLIBC_TUNABLES=glibc.malloc.hugetlb=1 python benchmarks/bench_textures.py [--repeats 30]
 """

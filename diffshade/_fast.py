@@ -1,12 +1,17 @@
 r"""The native shading kernel (``csrc/shade.cc``): a render's value in one pass over the pixels.
 
-For the renders most scenes ask for — Phong or Gouraud shading, one material without texture
-maps, directional, point and spot lights, any specular model and Fresnel term, two-sided
-lighting, clamping and fog, one depth layer, no shadows, rays or antialiasing — the stages after
+For the renders most scenes ask for — Phong or Gouraud shading, one material (with or without
+texture maps for its emission, ambient, diffuse and specular colours and, Phong, its shininess),
+directional, point and spot lights, any specular model and Fresnel term, two-sided lighting,
+clamping and fog, one depth layer, no shadows, rays or antialiasing — the stages after
 visibility (fragments, surface, lighting, composite) are computed by one C++ loop instead of
 XLA's two dozen passes over the image (issue 34: at 512² the passes cost more than all of
-DEODR's render). Gouraud shading lights the vertices in JAX (as its stages do) and the kernel
-interpolates their colours. Everything else, and every float64 render, takes the JAX stages.
+DEODR's render). Gouraud shading lights the vertices in JAX (as its stages do; with maps, each
+mapped colour field's terms apart) and the kernel interpolates their colours and multiplies the
+mapped parts by the maps per pixel. The kernel samples maps as ``_texture.sample_channels`` does
+(bilinear or trilinear, the mipmaps built in the kernel by the same box sums, the level of detail
+from the exact derivatives of the coordinates). Everything else, and every float64 render,
+takes the JAX stages.
 
 Only the value comes from the kernel: its ``custom_jvp`` rule is the JAX stages' own ``jvp``, so
 gradients, tangents, ``jax.linearize`` (a fit's Jacobian) and transposition are exactly those of

@@ -3,7 +3,8 @@
 // fragments to the final pixel (barycentrics, interpolated normal and position, every light's
 // terms, clamp, fog, background and the camera's gain) in one pass over the pixels; or, for
 // Gouraud shading, the vertices' colours (lit by the JAX stages) interpolated, fogged and
-// clamped. The pure-JAX stages stay the reference and the differentiated path:
+// clamped; with texture maps of the material's colours (and, Phong, its shininess), sampled as
+// diffshade/_texture.py samples them. The pure-JAX stages stay the reference and the differentiated path:
 // diffshade/_fast.py calls this kernel for a render's value only, and its tests hold the two
 // equal to float32 rounding.
 //
