@@ -54,8 +54,8 @@ def needs(opts: RenderOptions) -> Needs:
         used.add("ambient")
     if lt.diffuse:
         used.add("diffuse")
-    if lt.specular != "none":
-        used |= {"specular", "shininess"} | ({"ior"} if lt.fresnel != "none" else set())
+    if lt.specular != "none":  # (a Fresnel term replaces k_s: then k_s, and a map of it, are unread)
+        used |= {"shininess"} | ({"ior"} if lt.fresnel != "none" else {"specular"})
     if lt.transmission:
         used |= {"transmission", "shininess", "ior"}
     if tr is not None:

@@ -226,6 +226,23 @@ def test_gradients_by_texels_coordinates_and_vertices_match_finite_differences(s
     check_grads(f, args, modes=("fwd", "rev"), eps=1e-6, atol=2e-5, rtol=2e-5)
 
 
+@pytest.mark.parametrize(
+    "shading", ["gouraud", pytest.param("flat", marks=pytest.mark.slow), pytest.param("phong", marks=pytest.mark.slow)]
+)
+def test_a_fresnel_term_leaves_a_specular_map_unread(shading):
+    """Under a Fresnel term F replaces k_s (docs/model.md), so a map of k_s changes nothing in any
+    shading mode. (Gouraud and flat shading once lit the specular terms with the map's field
+    again, counting them twice: a map of ones added 0.02 to the image.)"""
+    rng = np.random.default_rng(4)
+    smap = ds.Texture(rng.uniform(0.0, 1.0, (4, 4, 3)))
+    scene, opts = _textured_default(shading, {"specular": smap}, size=12)
+    opts = opts.with_keys(fresnel="schlick")
+    plain = dataclasses.replace(scene, material=dataclasses.replace(scene.material, specular_map=None))
+    a, b = np.asarray(ds.render(scene, opts)), np.asarray(ds.render(plain, opts))
+    np.testing.assert_array_equal(a, b)
+    assert np.abs(b - np.asarray(ds.render(plain, opts.with_keys(fresnel="none")))).max() > 1e-3
+
+
 def test_hard_cases_are_finite():
     """A zero footprint (every vertex at one texture coordinate: lod -inf), coordinates far out
     of range (a repeated map and a clamped one), texel values of 0: values, a JVP and a gradient
