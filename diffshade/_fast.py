@@ -123,7 +123,8 @@ def _texture_inputs(scene: Scene, maps: dict, parts: list):
     for t in distinct:
         h, w = (int(n) for n in t.texels.shape[:2])
         meta += [t.channels, int(t.wrap == "clamp"), int(t.filter == "trilinear"), w, h]
-    texels = jnp.concatenate([jnp.asarray(t.texels, jnp.float32).reshape(-1) for t in distinct])
+    flat = [jnp.asarray(t.texels, jnp.float32).reshape(-1) for t in distinct]
+    texels = flat[0] if len(flat) == 1 else jnp.concatenate(flat)  # (one map: no copy)
     uv = jnp.asarray(scene.mesh.uv, jnp.float32).reshape(-1)
     return uv, texels, jnp.asarray(meta, jnp.int32)
 

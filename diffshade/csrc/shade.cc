@@ -792,25 +792,25 @@ const char* ReadMaps(const int32_t* a, int64_t n, int64_t num_texels, Maps& mp, 
 // (_texture.mip_pyramid: rows first, then columns, an odd last row or column averaged with
 // itself; the same sums in the same order).
 void Downsample(const float* src, const Level& a, float* dst, const Level& b, int C, int y0, int y1) {
+  const int64_t row = int64_t{a.w} * C;
+  std::vector<float> sum(static_cast<size_t>(row));  // a pair of rows averaged (a loop that vectorises)
   for (int y = y0; y < y1; ++y) {
-    const float* r0 = src + int64_t{a.h > 1 ? 2 * y : 0} * a.w * C;
-    const float* r1 = src + int64_t{a.h > 1 ? std::min(2 * y + 1, a.h - 1) : 0} * a.w * C;
+    const float* r0 = src + int64_t{a.h > 1 ? 2 * y : 0} * row;
+    const float* r1 = src + int64_t{a.h > 1 ? std::min(2 * y + 1, a.h - 1) : 0} * row;
+    const float* l = r0;
+    if (a.h > 1) {
+      float* __restrict t = sum.data();
+      for (int64_t i = 0; i < row; ++i) t[i] = 0.5f * (r0[i] + r1[i]);
+      l = t;
+    }
     float* out = dst + int64_t{y} * b.w * C;
-    if (a.h > 1 && a.w > 1) {
-      for (int x = 0; x < b.w; ++x) {
-        const int i0 = 2 * x * C, i1 = std::min(2 * x + 1, a.w - 1) * C;
-        for (int c = 0; c < C; ++c) {
-          const float l = 0.5f * (r0[i0 + c] + r1[i0 + c]), r = 0.5f * (r0[i1 + c] + r1[i1 + c]);
-          out[x * C + c] = 0.5f * (l + r);
-        }
-      }
-    } else if (a.h > 1) {  // one column
-      for (int c = 0; c < C; ++c) out[c] = 0.5f * (r0[c] + r1[c]);
-    } else {  // one row
-      for (int x = 0; x < b.w; ++x) {
-        const int i0 = 2 * x * C, i1 = std::min(2 * x + 1, a.w - 1) * C;
-        for (int c = 0; c < C; ++c) out[x * C + c] = 0.5f * (r0[i0 + c] + r0[i1 + c]);
-      }
+    if (a.w == 1) {
+      for (int c = 0; c < C; ++c) out[c] = l[c];
+      continue;
+    }
+    for (int x = 0; x < b.w; ++x) {
+      const int i0 = 2 * x * C, i1 = std::min(2 * x + 1, a.w - 1) * C;
+      for (int c = 0; c < C; ++c) out[x * C + c] = 0.5f * (l[i0 + c] + l[i1 + c]);
     }
   }
 }
