@@ -3,7 +3,8 @@ r"""The native shading kernel (``csrc/shade.cc``): a render's value in one pass 
 For the renders most scenes ask for — Phong or Gouraud shading, one material (with or without
 texture maps for its emission, ambient, diffuse and specular colours and, Phong, its shininess),
 directional, point and spot lights, any specular model and Fresnel term, two-sided lighting,
-clamping and fog, one depth layer, no shadows, rays or antialiasing — the stages after
+clamping and fog (in Gouraud shading OpenGL's separate specular colour too), one depth layer,
+no shadows, rays or antialiasing — the stages after
 visibility (fragments, surface, lighting, composite) are computed by one C++ loop instead of
 XLA's two dozen passes over the image (issue 34: at 512² the passes cost more than all of
 DEODR's render). Gouraud shading lights the vertices in JAX (as its stages do; with maps, each
@@ -28,7 +29,7 @@ from jax.custom_derivatives import SymbolicZero
 
 from . import _native
 from . import _shade as S
-from ._lighting import _COLOUR_FIELDS, _vertex_clamp, map_groups, only_fields, shade_points
+from ._lighting import _COLOUR_FIELDS, _color_sum, _vertex_clamp, map_groups, only_fields, shade_points
 from ._options import RenderOptions
 from ._raster import pixel_centres, resolve_backend
 from ._scene import Scene
@@ -54,8 +55,8 @@ def applies(scene: Scene, opts: RenderOptions, pixels) -> bool:
         return False
     if opts.layered or opts.ray_traced or opts.shadows is not None or out.antialias:
         return False
-    if out.clamp == "vertex" and out.color_sum == "separate":  # (two colours interpolated apart)
-        return False
+    if out.clamp == "vertex" and out.color_sum == "separate" and r.shading != "gouraud":
+        return False  # (Phong: the specular sum clamped apart per pixel)
     if lt.transmission or scene.area.count or scene.multi_lobe.count:
         return False
     if (pixels is not None and len(pixels) != 2) or 0 in scene.mesh.faces.shape[:1] + scene.mesh.vertices.shape[:1]:
@@ -185,9 +186,13 @@ def _vertex_colours(scene: Scene, opts: RenderOptions, lighting, mat=None):
     else:
         back_mat = mat
 
+    # OpenGL's separate specular colour: the primary and secondary colours clamped apart and
+    # summed at the vertices (interpolating the sum is interpolating each: the stages do the latter)
+    separate = opts.output.clamp == "vertex" and opts.output.color_sum == "separate"
+
     def lit(normal, mat, back):
-        col = _vertex_clamp(shade_points(P, normal, scene.camera.eye, mat, scene, lighting, back), opts.output)
-        return jnp.stack(col, -1)
+        col = shade_points(P, normal, scene.camera.eye, mat, scene, lighting, back, separate=separate)
+        return jnp.stack(_color_sum(_vertex_clamp(col, opts.output)), -1)
 
     front = lit(n, mat, False)
     return front, (lit(S.neg(n), back_mat, True) if lighting.two_sided else front)

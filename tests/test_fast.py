@@ -41,8 +41,8 @@ def _uses_kernel(scene, opts, ids) -> bool:
     return "diffshade_shade" in str(jax.make_jaxpr(lambda s: ds.render(s, opts, ids=ids))(scene))
 
 
-# every configuration the kernel renders (affine interpolation, and OpenGL's separate specular
-# colour with its clamp per vertex, are the JAX stages')
+# every configuration the kernel renders (affine interpolation, and in Phong shading OpenGL's
+# separate specular colour with its clamp per vertex, are the JAX stages')
 NOT_KERNEL = ("affine-interpolation", "opengl-separate-specular")
 # (the kernel's switches each at least once: "diffuse-directional" and "infinite-viewer-vertex-clamp"
 # are covered by "all-lights-back-material-exp2" and "opengl-specular-colours")
@@ -58,6 +58,7 @@ GOURAUD_CONFIGS = [
     "linear-fog-depth-clamped",
     "opengl-specular-colours",
     "gain-and-cull",
+    "opengl-separate-specular",  # (clamped apart and summed at the vertices)
 ]
 
 
@@ -70,6 +71,7 @@ DEFAULT_RUN = {
     ("emission+ambient", "phong"),
     ("opengl-specular-colours", "gouraud"),
     ("gain-and-cull", "gouraud"),
+    ("opengl-separate-specular", "gouraud"),
 }
 
 
