@@ -14,10 +14,12 @@ mapped parts by the maps per pixel. The kernel samples maps as ``_texture.sample
 from the exact derivatives of the coordinates). Everything else, and every float64 render,
 takes the JAX stages.
 
-Only the value comes from the kernel: its ``custom_jvp`` rule is the JAX stages' own ``jvp``, so
+Only the value comes from the kernel: its ``custom_jvp`` rule returns the kernel's value (the
+same with a Jacobian as without: a fit compares the two) and the JAX stages' own tangents, so
 gradients, tangents, ``jax.linearize`` (a fit's Jacobian) and transposition are exactly those of
-the reference, and a differentiated render costs what it did. The kernel and the JAX stages
-agree to float32 rounding (tests/test_fast.py). ``Raster(backend="jax")`` turns the kernel off.
+the reference, and a differentiated render costs what it did, plus one forward render. The
+kernel and the JAX stages agree to float32 rounding (tests/test_fast.py).
+``Raster(backend="jax")`` turns the kernel off.
 """
 
 from __future__ import annotations
@@ -98,7 +100,10 @@ def shade(scene: Scene, ids, opts: RenderOptions, pixels, reference):
             s, i, p = jax.tree.unflatten(tree, full)
             return reference(s, i, opts, p)
 
-        return jax.jvp(stages, tuple(leaves[k] for k in live), tuple(dots[k] for k in live))
+        # The value is the kernel's here too: a fit compares the costs of renders with and
+        # without their Jacobian, and the two must be one function (float32 rounding differs).
+        _, tangent = jax.jvp(stages, tuple(leaves[k] for k in live), tuple(dots[k] for k in live))
+        return _kernel(*primals[:2], opts, primals[2]), tangent
 
     value.defjvp(_jvp, symbolic_zeros=True)
     return value(scene, ids, pixels)
