@@ -103,7 +103,8 @@ def shade(scene: Scene, ids, opts: RenderOptions, pixels, reference):
         # The value is the kernel's here too: a fit compares the costs of renders with and
         # without their Jacobian, and the two must be one function (float32 rounding differs).
         _, tangent = jax.jvp(stages, tuple(leaves[k] for k in live), tuple(dots[k] for k in live))
-        return _kernel(*primals[:2], opts, primals[2]), tangent
+        # (through `value`: under a second derivative the primals carry tangents of their own)
+        return value(*primals), tangent
 
     value.defjvp(_jvp, symbolic_zeros=True)
     return value(scene, ids, pixels)

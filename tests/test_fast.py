@@ -128,14 +128,23 @@ def _textured(shading, size=48, scale=2.0, rng=None, maps=None):
 
 
 @pytest.mark.parametrize(
-    "shading, scale",
-    [("phong", 2.0), ("gouraud", 2.0), pytest.param("phong", 1.0, marks=pytest.mark.slow)]
-    + [pytest.param("gouraud", 1.0, marks=pytest.mark.slow)],
+    "shading, scale, every_map",
+    [("phong", 2.0, True), ("gouraud", 2.0, False), pytest.param("phong", 1.0, True, marks=pytest.mark.slow)]
+    + [pytest.param("gouraud", 1.0, True, marks=pytest.mark.slow)],
 )
-def test_textured_kernel_is_as_accurate_as_the_jax_stages(shading, scale):
+def test_textured_kernel_is_as_accurate_as_the_jax_stages(shading, scale, every_map):
     """Texture maps in the kernel (the mipmaps, the level of detail, bilinear taps, wrap and
-    clamp, Gouraud's mapped parts): as accurate as the JAX stages, against them in float64."""
-    scene64, opts = _textured(shading, scale=scale)
+    clamp, Gouraud's mapped parts): as accurate as the JAX stages, against them in float64.
+    (Gouraud with two maps in the default run, a part each: every map lights four parts, a
+    program twice the size.)"""
+    maps = None
+    if not every_map:
+        rng = np.random.default_rng(6)
+        maps = {
+            "diffuse": ds.Texture(rng.uniform(0.2, 0.9, (96, 128, 3))),
+            "specular": ds.Texture(rng.uniform(0.2, 0.9, (16, 12, 1)), wrap="clamp", filter="bilinear"),
+        }
+    scene64, opts = _textured(shading, scale=scale, maps=maps)
     scene = _f32(scene64)
     ids = ds.scene_visibility(scene, opts)
     assert _fast.applies(scene, opts, None) and _uses_kernel(scene, opts, ids)
@@ -233,6 +242,26 @@ def test_derivatives_are_the_jax_stages():
     kernel, stages, forward = program(jvp, opts), program(jvp, _jax(opts)), program(lambda f, a: f(*a), opts)
     assert sum("diffshade_shade" in line for line in kernel) == 1
     assert len(kernel) <= 1.02 * len(stages) + len(forward), (len(kernel), len(stages), len(forward))
+
+
+def test_second_derivatives_are_the_jax_stages():
+    # forward over reverse (a Hessian-vector product): the rule's value is itself differentiated
+    scene, opts = make_scene("phong-point", "phong")
+    scene = _f32(scene)
+    ids = ds.scene_visibility(scene, opts)
+
+    def loss(o, m):
+        return jnp.sum(ds.render(eqx.tree_at(lambda s: s.material.shininess, scene, m), o, ids=ids) ** 2)
+
+    m = scene.material.shininess
+    hvp = {
+        o is opts: jax.jit(lambda m, o=o: jax.jvp(jax.grad(functools.partial(loss, o)), (m,), (jnp.ones_like(m),)))(m)
+        for o in (opts, _jax(opts))
+    }
+    assert _uses_kernel(scene, opts, ids)
+    np.testing.assert_allclose(np.asarray(hvp[True][0]), np.asarray(hvp[False][0]), rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(hvp[True][1]), np.asarray(hvp[False][1]), rtol=1e-5)
+    assert float(jnp.abs(hvp[True][1])) > 0
 
 
 def test_vmap_over_scenes():
