@@ -176,7 +176,6 @@ struct Map {
   int channels, levels;
   bool clamp, trilinear;
   Level lv[kMaxLevels];
-  int32_t w[kMaxLevels], h[kMaxLevels];  // (lv's sizes, as tables)
   const float* base[kMaxLevels];         // each level's first texel (level 0: the input's)
 };
 struct Maps {
@@ -240,7 +239,7 @@ inline int Wrap(int i, int n) {
 template <bool clamp>
 inline void TapsOf(const Map& t, const float* __restrict u, const float* __restrict v, const int32_t* __restrict lv,
                    int n, Block& k) {
-  const int C = t.channels, w0 = t.w[0] - 1, h0 = t.h[0] - 1;
+  const int C = t.channels, w0 = t.lv[0].w - 1, h0 = t.lv[0].h - 1;
   int32_t* __restrict ti = k.ti;
   int32_t* __restrict tdx = k.tdx;
   int32_t* __restrict tdy = k.tdy;
@@ -776,12 +775,12 @@ const char* ReadMaps(const int32_t* a, int64_t n, int64_t num_texels, Maps& mp, 
     if ((t.channels != 1 && t.channels != 3) || w < 1 || h < 1) return "maps: bad map";
     mp.derivatives = mp.derivatives || t.trilinear;
     if (int64_t{w} * h * t.channels >= (int64_t{1} << 31)) return "maps: a map of more than 2^31 values";
-    t.lv[0] = Level{given, w, h}, t.w[0] = w, t.h[0] = h, t.levels = 1;
+    t.lv[0] = Level{given, w, h}, t.levels = 1;
     given += int64_t{w} * h * t.channels;
     while (t.trilinear && (w > 1 || h > 1)) {  // _texture.mip_pyramid's sizes: halved (rounding up) to 1 x 1
       if (t.levels == kMaxLevels) return "maps: too many levels";
       w = (w + 1) / 2, h = (h + 1) / 2;
-      t.lv[t.levels] = Level{*packed, w, h}, t.w[t.levels] = w, t.h[t.levels] = h, ++t.levels;
+      t.lv[t.levels++] = Level{*packed, w, h};
       *packed += int64_t{w} * h * t.channels;
     }
   }
