@@ -528,6 +528,108 @@ __attribute__((always_inline)) inline void PixelMaterial(const Config& cfg, cons
   }
 }
 
+// The points of the block of pixels [b0, b1) (col, row: the first one's, in a grid; advanced).
+  // The covered pixels' points (each empty one handed to empty(pixel)): the barycentrics
+  // b_i = E_i / sum_k E_k of their face's edge functions, the corners' normals and positions
+  // interpolated with them (a plane per attribute, sum_i E_i a_i, would save work but lose
+  // accuracy: up to 2e-5 off the JAX stages, which this form holds to 6e-6).
+  // A row's pixels come in runs that see one face: each run is one loop over its pixels with
+  // the face's coefficients held (vectorised; pixel by pixel, this took two thirds of the time).
+template <class Empty>
+__attribute__((always_inline)) inline int Points(const int32_t* ids, const float* xs, const float* ys, bool grid,
+                                          int64_t width, const float* faces, bool two_sided, bool gouraud,
+                                          const Maps& mp, int64_t b0, int64_t b1, int64_t& col, int64_t& row,
+                                          Block& k, Empty empty) {
+  int m = 0;
+  for (int64_t p = b0; p < b1;) {
+    const int32_t t = ids[p];
+    const int64_t lim = grid ? std::min(b1, p + (width - col)) : b1;  // (a run stays in its row)
+    int64_t r = p + 1;
+    while (r < lim && ids[r] == t) ++r;
+    const int n = static_cast<int>(r - p);
+    if (t < 0) {
+      for (int64_t q = p; q < r; ++q) empty(q);
+    } else {
+      const float* g = faces + static_cast<int64_t>(t) * kFace;
+      float c[kFace];
+      std::memcpy(c, g, sizeof(c));
+      const float back = (two_sided && !(c[31] > 0)) ? 1.0f : 0.0f;
+      const int o = (gouraud && back > 0) ? 32 : 13;  // Gouraud: the back colours on a back face
+      const float* __restrict xr = grid ? xs + col : xs + p;
+      const float* __restrict yr = grid ? ys + row : ys + p;
+      const int ystep = grid ? 0 : 1;
+      float* __restrict nx = k.nx + m;
+      float* __restrict ny = k.ny + m;
+      float* __restrict nz = k.nz + m;
+      float* __restrict px = k.px + m;
+      float* __restrict py = k.py + m;
+      float* __restrict pz = k.pz + m;
+      float* __restrict w = k.w + m;
+      float* __restrict bk = k.back + m;
+      float* __restrict ba = k.b0 + m;
+      float* __restrict bb = k.b1 + m;
+      float* __restrict bc = k.b2 + m;
+      int64_t* __restrict pix = k.pix + m;
+      for (int i = 0; i < n; ++i) {
+        const float x = xr[i], y = yr[i * ystep];
+        const float e0 = c[0] + x * c[1] + y * c[2], e1 = c[3] + x * c[4] + y * c[5];
+        const float e2 = c[6] + x * c[7] + y * c[8];
+        const float s = e0 + e1 + e2;
+        const bool ok = s != 0;
+        const float inv = ok ? 1.0f / s : 1.0f;
+        const float b0 = ok ? e0 * inv : 0.0f, b1 = ok ? e1 * inv : 0.0f, b2 = ok ? e2 * inv : 0.0f;
+        nx[i] = (c[o] * b0 + c[o + 3] * b1) + c[o + 6] * b2;
+        ny[i] = (c[o + 1] * b0 + c[o + 4] * b1) + c[o + 7] * b2;
+        nz[i] = (c[o + 2] * b0 + c[o + 5] * b1) + c[o + 8] * b2;
+        px[i] = (c[22] * b0 + c[25] * b1) + c[28] * b2;
+        py[i] = (c[23] * b0 + c[26] * b1) + c[29] * b2;
+        pz[i] = (c[24] * b0 + c[27] * b1) + c[30] * b2;
+        w[i] = ok ? c[12] * inv : 0.0f;
+        bk[i] = back;
+        ba[i] = b0, bb[i] = b1, bc[i] = b2;
+        pix[i] = p + i;
+      }
+      if (mp.any()) Coordinates(mp, t, c, back > 0, k, m, n);
+      m += n;
+    }
+    if (grid) {
+      col += n;
+      if (col == width) col = 0, ++row;
+    }
+    p = r;
+  }
+  return m;
+}
+
+// The unit normal at the block's m points (reversed where the back side is lit) and the unit
+// vector to the viewer.
+__attribute__((always_inline)) inline void Surface(bool infinite, const float* eye, const float* view_z, Block& k,
+                                                   int m) {
+  float* __restrict nx = k.nx;
+  float* __restrict ny = k.ny;
+  float* __restrict nz = k.nz;
+  const float* __restrict bk = k.back;
+  for (int q = 0; q < m; ++q) {  // the unit normal, reversed where the back side is lit
+    const float sq = nx[q] * nx[q] + ny[q] * ny[q] + nz[q] * nz[q];
+    const float r = sq > 0 ? 1.0f / std::sqrt(sq) : 0.0f;
+    const float inv = r * (1.0f - 2.0f * bk[q]);
+    nx[q] *= inv, ny[q] *= inv, nz[q] *= inv;
+  }
+  float* __restrict vx = k.vx;
+  float* __restrict vy = k.vy;
+  float* __restrict vz = k.vz;
+  if (infinite) {
+    for (int q = 0; q < m; ++q) vx[q] = view_z[0], vy[q] = view_z[1], vz[q] = view_z[2];
+  } else {
+    for (int q = 0; q < m; ++q) {
+      const float dx = eye[0] - k.px[q], dy = eye[1] - k.py[q], dz = eye[2] - k.pz[q];
+      const float sq = dx * dx + dy * dy + dz * dz;
+      const float inv = sq > 0 ? 1.0f / std::sqrt(sq) : 0.0f;
+      vx[q] = dx * inv, vy[q] = dy * inv, vz[q] = dz * inv;
+    }
+  }
+}
+
 DIFFSHADE_CLONES void ShadeRange(const Config& cfg, const int32_t* ids, const float* xs, const float* ys, bool grid,
                                   int64_t width, const float* faces, const float* params, const float* lights,
                                   int64_t num_lights, const Maps& mp, int64_t p0, int64_t p1, float* out) {
@@ -551,72 +653,9 @@ DIFFSHADE_CLONES void ShadeRange(const Config& cfg, const int32_t* ids, const fl
   int64_t col = grid ? p0 % width : 0, row = grid ? p0 / width : 0;  // (no division per pixel)
   for (int64_t b0 = p0; b0 < p1; b0 += kBlock) {
     const int64_t b1 = std::min(b0 + kBlock, p1);
-    // The covered pixels' points (the empty ones drawn now): the barycentrics
-    // b_i = E_i / sum_k E_k of their face's edge functions, the corners' normals and positions
-    // interpolated with them (a plane per attribute, sum_i E_i a_i, would save work but lose
-    // accuracy: up to 2e-5 off the JAX stages, which this form holds to 6e-6).
-    // A row's pixels come in runs that see one face: each run is one loop over its pixels with
-    // the face's coefficients held (vectorised; pixel by pixel, this took two thirds of the time).
-    int m = 0;
-    for (int64_t p = b0; p < b1;) {
-      const int32_t t = ids[p];
-      const int64_t lim = grid ? std::min(b1, p + (width - col)) : b1;  // (a run stays in its row)
-      int64_t r = p + 1;
-      while (r < lim && ids[r] == t) ++r;
-      const int n = static_cast<int>(r - p);
-      if (t < 0) {
-        for (int64_t q = p; q < r; ++q) {
-          for (int c = 0; c < 3; ++c) out[3 * q + c] = background[c] * gain[c];
-        }
-      } else {
-        const float* g = faces + static_cast<int64_t>(t) * kFace;
-        float c[kFace];
-        std::memcpy(c, g, sizeof(c));
-        const float back = (two_sided && !(c[31] > 0)) ? 1.0f : 0.0f;
-        const int o = (gouraud && back > 0) ? 32 : 13;  // Gouraud: the back colours on a back face
-        const float* __restrict xr = grid ? xs + col : xs + p;
-        const float* __restrict yr = grid ? ys + row : ys + p;
-        const int ystep = grid ? 0 : 1;
-        float* __restrict nx = k.nx + m;
-        float* __restrict ny = k.ny + m;
-        float* __restrict nz = k.nz + m;
-        float* __restrict px = k.px + m;
-        float* __restrict py = k.py + m;
-        float* __restrict pz = k.pz + m;
-        float* __restrict w = k.w + m;
-        float* __restrict bk = k.back + m;
-        float* __restrict ba = k.b0 + m;
-        float* __restrict bb = k.b1 + m;
-        float* __restrict bc = k.b2 + m;
-        int64_t* __restrict pix = k.pix + m;
-        for (int i = 0; i < n; ++i) {
-          const float x = xr[i], y = yr[i * ystep];
-          const float e0 = c[0] + x * c[1] + y * c[2], e1 = c[3] + x * c[4] + y * c[5];
-          const float e2 = c[6] + x * c[7] + y * c[8];
-          const float s = e0 + e1 + e2;
-          const bool ok = s != 0;
-          const float inv = ok ? 1.0f / s : 1.0f;
-          const float b0 = ok ? e0 * inv : 0.0f, b1 = ok ? e1 * inv : 0.0f, b2 = ok ? e2 * inv : 0.0f;
-          nx[i] = (c[o] * b0 + c[o + 3] * b1) + c[o + 6] * b2;
-          ny[i] = (c[o + 1] * b0 + c[o + 4] * b1) + c[o + 7] * b2;
-          nz[i] = (c[o + 2] * b0 + c[o + 5] * b1) + c[o + 8] * b2;
-          px[i] = (c[22] * b0 + c[25] * b1) + c[28] * b2;
-          py[i] = (c[23] * b0 + c[26] * b1) + c[29] * b2;
-          pz[i] = (c[24] * b0 + c[27] * b1) + c[30] * b2;
-          w[i] = ok ? c[12] * inv : 0.0f;
-          bk[i] = back;
-          ba[i] = b0, bb[i] = b1, bc[i] = b2;
-          pix[i] = p + i;
-        }
-        if (mp.any()) Coordinates(mp, t, c, back > 0, k, m, n);
-        m += n;
-      }
-      if (grid) {
-        col += n;
-        if (col == width) col = 0, ++row;
-      }
-      p = r;
-    }
+    const int m = Points(ids, xs, ys, grid, width, faces, two_sided, gouraud, mp, b0, b1, col, row, k, [&](int64_t q) {
+      for (int c = 0; c < 3; ++c) out[3 * q + c] = background[c] * gain[c];
+    });
     for (int i = 0; i < mp.count; ++i) SampleMap(mp.map[i], k, m, k.tex[i]);
     if (gouraud) {  // the interpolated colour is the pixel's (lit, and clamped if asked, at the vertices)
       for (int q = 0; q < m; ++q) k.col[0][q] = k.nx[q], k.col[1][q] = k.ny[q], k.col[2][q] = k.nz[q];
@@ -630,29 +669,7 @@ DIFFSHADE_CLONES void ShadeRange(const Config& cfg, const int32_t* ids, const fl
       }
     } else {
       PixelMaterial(cfg, mp, front, backm, k, m);
-      float* __restrict nx = k.nx;
-      float* __restrict ny = k.ny;
-      float* __restrict nz = k.nz;
-      const float* __restrict bk = k.back;
-      for (int q = 0; q < m; ++q) {  // the unit normal, reversed where the back side is lit
-        const float sq = nx[q] * nx[q] + ny[q] * ny[q] + nz[q] * nz[q];
-        const float r = sq > 0 ? 1.0f / std::sqrt(sq) : 0.0f;
-        const float inv = r * (1.0f - 2.0f * bk[q]);
-        nx[q] *= inv, ny[q] *= inv, nz[q] *= inv;
-      }
-      float* __restrict vx = k.vx;
-      float* __restrict vy = k.vy;
-      float* __restrict vz = k.vz;
-      if (infinite) {
-        for (int q = 0; q < m; ++q) vx[q] = view_z[0], vy[q] = view_z[1], vz[q] = view_z[2];
-      } else {
-        for (int q = 0; q < m; ++q) {
-          const float dx = eye[0] - k.px[q], dy = eye[1] - k.py[q], dz = eye[2] - k.pz[q];
-          const float sq = dx * dx + dy * dy + dz * dz;
-          const float inv = sq > 0 ? 1.0f / std::sqrt(sq) : 0.0f;
-          vx[q] = dx * inv, vy[q] = dy * inv, vz[q] = dz * inv;
-        }
-      }
+      Surface(infinite, eye, view_z, k, m);
       for (int c = 0; c < 3; ++c) {
         for (int q = 0; q < m; ++q) k.col[c][q] = 0.0f, k.base[c][q] = 0.0f;
       }
