@@ -17,6 +17,7 @@ from ._antialias import antialias, face_adjacency, pixel_neighbours, silhouette_
 from ._camera import Camera, OpenCVCamera, rodrigues, undistort
 from ._composite import composite
 from ._domains import Domain, check_scene
+from ._fast import kernel_partials
 from ._io import DEFAULT_SCENE, SceneError, default_scene, load_camera, load_scene, scene_from_dict
 from ._lighting import LightVisibility, illuminate
 from ._mesh import Mesh, MeshError, box, combine, icosphere, load_mesh, mesh_from_arrays, quad
@@ -47,6 +48,7 @@ from ._util import keep
 from .images import Image, ImageError, read_image, write_image
 
 __all__ = [
+    "kernel_partials",
     "AreaLights",
     "no_area",
     "Camera",

@@ -24,10 +24,14 @@ kernel and the JAX stages agree to float32 rounding (tests/test_fast.py).
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.custom_derivatives import SymbolicZero
+from jax.flatten_util import ravel_pytree
 
 from . import _native
 from . import _shade as S
@@ -46,6 +50,23 @@ _FOG = {"linear": 1, "exp": 2, "exp2": 3}
 # The maps' description (csrc/shade.cc: Maps, kMapsHeader, kMapInts)
 _MAP_FIELDS = ("emission", "ambient", "diffuse", "specular", "shininess")
 _MAX_PARTS = 4
+
+
+_PARTIALS = contextvars.ContextVar("diffshade_kernel_partials", default=False)
+
+
+@contextlib.contextmanager
+def kernel_partials():
+    """Within (at trace time), a differentiated Phong render takes its tangents along the scene's
+    shading numbers (:func:`_shading_leaf`) from the kernel's partials, with its value: forward
+    mode, several tangents at once (a fit's Jacobian) costs a fraction of the stages' jvp.
+    Outside, the stages' jvp, whose transpose (reverse mode, a gradient) costs less than
+    transposing the partials. Tangents agree to float32 rounding either way."""
+    token = _PARTIALS.set(True)
+    try:
+        yield
+    finally:
+        _PARTIALS.reset(token)
 
 
 def applies(scene: Scene, opts: RenderOptions, pixels) -> bool:
@@ -78,7 +99,9 @@ def applies(scene: Scene, opts: RenderOptions, pixels) -> bool:
 
 def shade(scene: Scene, ids, opts: RenderOptions, pixels, reference):
     """The image of ``scene`` at the visibility ``ids`` by the kernel, differentiated as
-    ``reference(scene, ids, opts, pixels)`` (the JAX stages)."""
+    ``reference(scene, ids, opts, pixels)`` (the JAX stages): in Phong shading by the kernel's
+    partials along the scene's shading leaves (:func:`_partials`), the stages' jvp for the rest."""
+    gouraud = opts.raster.shading == "gouraud"
 
     @jax.custom_jvp
     def value(scene, ids, pixels):
@@ -89,25 +112,88 @@ def shade(scene: Scene, ids, opts: RenderOptions, pixels, reference):
         # rule dense zeros for every other leaf of the scene (the vertices, the camera, every
         # light), and the stages' jvp would carry them all (the all-terms Jacobian at 512² took
         # 139 ms instead of 46).
-        leaves, tree = jax.tree.flatten(primals)
+        flat, tree = jax.tree_util.tree_flatten_with_path(primals)
+        leaves = [x for _, x in flat]
         dots = jax.tree.leaves(tangents, is_leaf=lambda t: isinstance(t, SymbolicZero))
         live = [k for k, t in enumerate(dots) if not isinstance(t, SymbolicZero)]
+        # Phong, within kernel_partials(): the leaves that reach the kernel through its numbers and
+        # lights only are differentiated by the kernel's partials; the others (geometry, camera,
+        # texels) by the stages
+        on = _PARTIALS.get() and not gouraud
+        fast = [k for k in live if on and _shading_leaf(jax.tree_util.keystr(flat[k][0]))]
+        slow = [k for k in live if k not in fast]
 
-        def stages(*xs):
+        def with_leaves(ks, xs):
             full = list(leaves)
-            for k, x in zip(live, xs):
+            for k, x in zip(ks, xs):
                 full[k] = x
-            s, i, p = jax.tree.unflatten(tree, full)
-            return reference(s, i, opts, p)
+            return jax.tree.unflatten(tree, full)
 
+        out, tangent = None, None
+        if fast:  # (the kernel's value with them: the forward render's, operation for operation)
+            out, part = _partials(with_leaves, leaves, fast, opts, reference)
+            d = jnp.concatenate([jnp.asarray(dots[k], jnp.float32).reshape(-1) for k in fast])
+            tangent = jnp.tensordot(d, part, 1)
+        if slow:
+            stages = lambda *xs: reference(*with_leaves(slow, xs)[:2], opts, with_leaves(slow, xs)[2])  # noqa: E731
+            _, t = jax.jvp(stages, tuple(leaves[k] for k in slow), tuple(dots[k] for k in slow))
+            tangent = t if tangent is None else tangent + t
         # The value is the kernel's here too: a fit compares the costs of renders with and
         # without their Jacobian, and the two must be one function (float32 rounding differs).
-        _, tangent = jax.jvp(stages, tuple(leaves[k] for k in live), tuple(dots[k] for k in live))
         # (through `value`: under a second derivative the primals carry tangents of their own)
-        return value(*primals), tangent
+        return (value(*primals) if out is None else out), tangent
 
     value.defjvp(_jvp, symbolic_zeros=True)
     return value(scene, ids, pixels)
+
+
+# The scene's leaves the kernel's partials differentiate by (csrc/shade.cc: Supported): those that
+# reach it through its numbers and lights only (_numbers, _lights), and in which the render is
+# linear or nearly so. The others (the geometry, camera pose, maps' texels, the lights' positions,
+# directions and cones, the index of refraction) are the stages'.
+_LIGHT_FIELDS = ("color", "ambient", "specular", "attenuation")
+_SCENE_FIELDS = ("[0].ambient_light", "[0].background", "[0].camera.exposure", "[0].camera.white_balance")
+
+
+def _shading_leaf(path: str) -> bool:
+    head, _, field = path.rpartition(".")
+    if "_map" in path:
+        return False
+    if head in ("[0].material", "[0].back_material"):
+        return field != "ior"
+    if head in ("[0].directional", "[0].point", "[0].spot"):
+        return field in _LIGHT_FIELDS
+    return head == "[0].fog" or path in _SCENE_FIELDS
+
+
+def _partials(with_leaves, leaves, fast, opts, reference):
+    """The render and its derivatives along every scalar of the leaves ``fast`` (indices into
+    ``leaves``, the flattened ``(scene, ids, pixels)``): ``[n, *image]``, by the kernel
+    (csrc/shade.cc: PartialsRange) along the directions the scalars move its numbers and lights
+    in (their Jacobian, a few dozen floats each, by JAX). Its own derivative (a second
+    derivative) is the stages'."""
+    x0, unravel = ravel_pytree(tuple(leaves[k] for k in fast))
+    others = [k for k in range(len(leaves)) if k not in fast]
+
+    def unpack(x, rest):
+        return with_leaves(fast + others, list(unravel(x)) + list(rest))
+
+    def numbers(x, rest):
+        s = unpack(x, rest)[0]
+        return jnp.concatenate([_numbers(s), _lights(s, opts).reshape(-1)])
+
+    @jax.custom_jvp
+    def by_kernel(x, rest):
+        s, ids, pixels = unpack(x, rest)
+        dirs = jax.jacfwd(numbers)(x, rest).T.astype(jnp.float32)  # [n, kParams + L kLight]
+        return _kernel(s, ids, opts, pixels, dirs)
+
+    def by_stages(x, rest):
+        image = lambda y: reference(*unpack(y, rest)[:2], opts, unpack(y, rest)[2])  # noqa: E731
+        return image(x), jnp.moveaxis(jax.jacfwd(image)(x), -1, 0)
+
+    by_kernel.defjvp(lambda p, t: jax.jvp(by_stages, p, t))
+    return by_kernel(x0, tuple(leaves[k] for k in others))
 
 
 def _maps(scene: Scene, opts: RenderOptions) -> dict:
@@ -236,8 +322,10 @@ def _switches(opts: RenderOptions, lt, gouraud: bool) -> dict:
     )
 
 
-def _kernel(scene: Scene, ids, opts: RenderOptions, pixels):
-    target = _native.ensure_registered(_TARGET)
+def _kernel(scene: Scene, ids, opts: RenderOptions, pixels, dirs=None):
+    """The render (``dirs`` None), or the render and its partials ``[K, *image]`` along the
+    directions ``dirs`` ``[K, kParams + L kLight]`` of its numbers and lights (Phong)."""
+    target = _native.ensure_registered(_TARGET if dirs is None else _TARGET + "_partials")
     mesh, lt = scene.mesh, opts.camera_lighting
     gouraud = opts.raster.shading == "gouraud"
     maps, parts, groups = _maps(scene, opts), jnp.zeros((0,), jnp.float32), []
@@ -260,9 +348,12 @@ def _kernel(scene: Scene, ids, opts: RenderOptions, pixels):
     else:
         xs, ys = (jnp.asarray(c, jnp.float32).reshape(-1) for c in pixels[:2])
         shape = tuple(ids.shape[1:]) + (3,)
-    call = jax.ffi.ffi_call(
-        target, jax.ShapeDtypeStruct((int(np.prod(shape[:-1])), 3), jnp.float32), vmap_method="sequential"
-    )
+    n = int(np.prod(shape[:-1]))
+    result = jax.ShapeDtypeStruct((n, 3), jnp.float32)
+    if dirs is not None:
+        result = (result, jax.ShapeDtypeStruct((dirs.shape[0], n, 3), jnp.float32))
+    call = jax.ffi.ffi_call(target, result, vmap_method="sequential")
+    extra = () if dirs is None else (dirs,)
     f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
     out = call(
         ids[0].reshape(-1).astype(jnp.int32),
@@ -279,7 +370,10 @@ def _kernel(scene: Scene, ids, opts: RenderOptions, pixels):
         texels,
         meta,
         parts,
+        *extra,
         grid=np.int32(pixels is None),
         **_switches(opts, lt, gouraud),
     )
-    return out.reshape(shape)
+    if dirs is None:
+        return out.reshape(shape)
+    return out[0].reshape(shape), out[1].reshape((dirs.shape[0],) + shape)

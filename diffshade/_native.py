@@ -37,7 +37,11 @@ _FLAGS = [
     "-pthread",
 ]
 # FFI target name -> the symbol of its handler in the library
-_TARGETS = {"diffshade_raster": "DiffshadeRaster", "diffshade_shade": "DiffshadeShade"}
+_TARGETS = {
+    "diffshade_raster": "DiffshadeRaster",
+    "diffshade_shade": "DiffshadeShade",
+    "diffshade_shade_partials": "DiffshadeShadePartials",
+}
 _lock = threading.Lock()
 _state: dict = {}
 

@@ -36,14 +36,13 @@ from __future__ import annotations
 import time
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from . import _options
 from ._cache import compiled
 from ._polish import RELINEARISE_PASSES
-from ._problem import FitError, Problem
+from ._problem import FitError, Problem, tangent_images
 from ._report import (
     Diagnostics,
     FitResult,
@@ -131,7 +130,7 @@ class AlbedoProblem:
             outs = []
             for vd in data:
                 f = lambda t: prob.image(vd, t)  # noqa: B023,E731
-                img, T = jax.vmap(lambda e: jax.jvp(f, (th,), (e,)), out_axes=(None, 0))(E)
+                img, T = tangent_images(f, th, E)
                 outs.append((img, T))
             return outs
 

@@ -28,7 +28,7 @@ import numpy as np
 from diffshade import keep
 
 from . import _options
-from ._problem import Problem, view_list
+from ._problem import Problem, tangent_images, view_list
 
 _LINEAR_MATERIAL = {"emission", "ambient", "diffuse", "specular", "transmission"}
 # which material fields a light field multiplies (both free: the light's side is nonlinear)
@@ -315,7 +315,7 @@ class Reduced:
         z = jnp.zeros(len(self.idx_l), theta.dtype)
         # vmap of jvp: the primal once, the tangents batched (10x faster than vmap of linearize's
         # linear function on XLA's CPU backend)
-        b, T = jax.vmap(lambda e: jax.jvp(f, (z,), (e,)), out_axes=(None, 0))(jnp.asarray(E, theta.dtype))
+        b, T = tangent_images(f, z, jnp.asarray(E, theta.dtype))
         T, b = keep(T, b)  # materialised: XLA would otherwise recompute the render inside the gather below
         w = vd.weight * ~(vd.hi | vd.lo)
         mine = in_view(self.view_l, jnp.reshape(vd.index, (1,)), T.dtype)  # [n_lin, 1]: this view's scalars

@@ -29,7 +29,6 @@ which decays with their distance (measured in the randomised suite, benchmarks/b
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -38,7 +37,7 @@ import diffshade as ds
 from . import _options
 from ._cache import compiled
 from ._params import LINEAR_MAPS, is_map
-from ._problem import FitError, Problem
+from ._problem import FitError, Problem, tangent_images
 from ._sparse import factorise, in_threads
 
 PROBE_DISTANCE = 8  # texels between the texels of one probing class
@@ -91,7 +90,7 @@ class MapProblem:
     def _view(self, vd, th, E):
         """``[1 + tangents + maps, N, 3]``: the image, its tangents, and per map ``(u, v, λ)``."""
         prob = self.prob
-        img, T = jax.vmap(lambda e: jax.jvp(lambda t: prob.image(vd, t), (th,), (e,)), out_axes=(None, 0))(E)
+        img, T = tangent_images(lambda t: prob.image(vd, t), th, E)
         scene = prob.pset.apply(vd.scene, th, vd.index)
         u, v, deriv = ds.texture_coordinates(scene, vd.ids, prob.opts.raster, (vd.px, vd.py))
         coords = []

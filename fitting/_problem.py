@@ -33,6 +33,14 @@ from ._params import ParamSet
 PAD = 1024  # covered-pixel counts are padded up to a multiple of this
 
 
+def tangent_images(f, x, tangents):
+    """``(f(x), [jvp of f along each tangent])``: the primal once, the tangents batched, a
+    render's tangents along its shading numbers from the shading kernel's partials
+    (:func:`diffshade.kernel_partials`: a Jacobian in forward mode)."""
+    with ds.kernel_partials():
+        return jax.vmap(lambda e: jax.jvp(f, (x,), (e,)), out_axes=(None, 0))(tangents)
+
+
 def check_target(t, scene, k):
     t = np.asarray(t)
     h, w = scene.camera.resolution
@@ -540,7 +548,7 @@ class Problem:
         a fixed point, a loop of the transformed body once)."""
 
         def one(vd, th, tans):
-            return jax.vmap(lambda e: jax.jvp(lambda t: self.image(vd, t), (th,), (e,)), out_axes=(None, 0))(tans)
+            return tangent_images(lambda t: self.image(vd, t), th, tans)
 
         if isinstance(data, ViewData):
             img, T = self.map_views(one, data, theta, tangents)  # [views, N, 3], [views, T, N, 3]

@@ -728,6 +728,296 @@ DIFFSHADE_CLONES void ShadeRange(const Config& cfg, const int32_t* ids, const fl
   }
 }
 
+// ---------------------------------------------------------------------------------------------
+// Forward-mode partials (diffshade/_fast.py: the kernel's jvp rule): the derivatives of the Phong
+// render along K directions of the scene's numbers and lights (dirs [K, kParams + L kLight]),
+// for the numbers the render is linear or nearly so in: the materials' colours and shininess,
+// the lights' colours, ambient colours and attenuation, the ambient light, the fog, background
+// and gain (Supported; the others are the stages'). The render's own quantities per light (its
+// attenuation, n.l, specular term: AddLight's) are computed as for the value, and each
+// direction's derivative is accumulated from them in closed form, one loop over the block's
+// pixels per nonzero (number, direction) pair.
+
+struct Entry {
+  int slot, j;  // the number (index into params, then lights) and the direction
+  float w;      // dirs[j][slot]
+};
+
+// Whether the partials kernel differentiates by params[slot] (slot < kParams) or by a light's
+// number (slot - kParams modulo kLight).
+inline bool Supported(int64_t slot) {
+  if (slot < kParams) {
+    const int64_t s = slot < 2 * kMat ? slot % kMat : slot;
+    return slot < 2 * kMat ? s <= 12 : (s < 2 * kMat + 3 || s >= 2 * kMat + 9);  // (not ior, eye, view axis)
+  }
+  const int64_t f = (slot - kParams) % kLight;
+  return (f >= 1 && f <= 9) || (f >= 14 && f <= 16);
+}
+
+// dcol[j][c] += w g (the block's m pixels).
+inline void Accumulate(float* __restrict dst, float w, const float* __restrict g, int m) {
+  for (int q = 0; q < m; ++q) dst[q] += w * g[q];
+}
+
+// The weight per pixel of a material number (front: the front side's pixels, or every pixel
+// times the map where the field has one; back: the back side's).
+inline void Side(const Maps& mp, const Block& k, int field, int channel, bool back_slot, int m, float* __restrict sel) {
+  const float* __restrict bk = k.back;
+  if (mp.field[field] >= 0) {
+    const float* __restrict t = k.tex[mp.field[field]][field == 4 ? 0 : channel];
+    for (int q = 0; q < m; ++q) sel[q] = back_slot ? 0.0f : t[q];
+  } else {
+    for (int q = 0; q < m; ++q) sel[q] = back_slot ? bk[q] : 1.0f - bk[q];
+  }
+}
+
+// One light's part of every direction's derivative of the (unclamped, unfogged) colour, after
+// AddLight filled the block's att, ndl, spec (and l) for it.
+DIFFSHADE_CLONES void LightPartials(const Config& cfg, const Maps& mp, const float* li, int64_t light, const std::vector<Entry>& es,
+                   int64_t m_pixels, Block& k, float* dcol, float* g, float* h) {
+  const int m = static_cast<int>(m_pixels);
+  const int kind = static_cast<int>(li[0]);
+  const bool has_spec = li[10] > 0, per_light_ambient = cfg.Flag(3);
+  const float dif_on = cfg.Flag(2) ? 1.0f : 0.0f;
+  const int64_t first = kParams + light * kLight;
+  float* __restrict sel = h;
+  float* __restrict gg = g;
+  for (const Entry& e : es) {
+    const bool mat = e.slot < 2 * kMat;
+    if (!mat && (e.slot < first || e.slot >= first + kLight)) continue;
+    const int f = mat ? static_cast<int>(e.slot % kMat) : static_cast<int>(e.slot - first);
+    if (mat && f == 12) {  // shininess: d spec / d m = spec log(the specular base) where spec is on
+      if (cfg.specular == 0) continue;
+      Side(mp, k, 4, 0, e.slot >= kMat, m, sel);
+      if (cfg.specular == 1) {  // the specular base, as AddLight's
+        for (int q = 0; q < m; ++q) {
+          const float ndv = k.nx[q] * k.vx[q] + k.ny[q] * k.vy[q] + k.nz[q] * k.vz[q];
+          const float vdl = k.vx[q] * k.lx[q] + k.vy[q] * k.ly[q] + k.vz[q] * k.lz[q];
+          gg[q] = 2.0f * k.ndl[q] * ndv - vdl;
+        }
+      } else {
+        for (int q = 0; q < m; ++q) {
+          const float hx = k.lx[q] + k.vx[q], hy = k.ly[q] + k.vy[q], hz = k.lz[q] + k.vz[q];
+          const float sq = hx * hx + hy * hy + hz * hz;
+          const float inv = sq > 0 ? 1.0f / std::sqrt(sq) : 0.0f;
+          gg[q] = (k.nx[q] * hx + k.ny[q] * hy + k.nz[q] * hz) * inv;
+        }
+      }
+      for (int q = 0; q < m; ++q) {
+        const bool on = k.spec[q] != 0.0f;
+        gg[q] = on ? k.att[q] * k.spec[q] * Log(on ? gg[q] : 1.0f) * sel[q] : 0.0f;
+      }
+      for (int c = 0; c < 3; ++c) {
+        const float lc = has_spec ? li[7 + c] : li[1 + c];
+        float* __restrict d = dcol + (int64_t{e.j} * 3 + c) * kBlock;
+        const float* __restrict ks = k.ks[c];
+        for (int q = 0; q < m; ++q) d[q] += e.w * (gg[q] * ks[q] * lc);
+      }
+      continue;
+    }
+    if (mat) {  // a colour of the material: the term it weighs, on its side
+      const int field = f / 3, c = f % 3;
+      if (field == 0 || (field == 3 && cfg.fresnel != 0)) continue;  // (emission: ShadePartials; F replaces k_s)
+      if (field == 1 && !per_light_ambient) continue;
+      Side(mp, k, field, c, e.slot >= kMat, m, sel);
+      const float lc = field == 1 ? li[4 + c] : (field == 3 && has_spec) ? li[7 + c] : li[1 + c];
+      float* __restrict d = dcol + (int64_t{e.j} * 3 + c) * kBlock;
+      if (field == 1) {
+        for (int q = 0; q < m; ++q) d[q] += e.w * (k.att[q] * lc * sel[q]);
+      } else if (field == 2) {
+        for (int q = 0; q < m; ++q) d[q] += e.w * (k.att[q] * (std::max(k.ndl[q], 0.0f) * dif_on) * lc * sel[q]);
+      } else {
+        for (int q = 0; q < m; ++q) d[q] += e.w * (k.att[q] * k.spec[q] * lc * sel[q]);
+      }
+      continue;
+    }
+    if (f >= 1 && f <= 9) {  // the light's colour, ambient colour or specular colour
+      const int c = (f - 1) % 3, which = (f - 1) / 3;
+      float* __restrict d = dcol + (int64_t{e.j} * 3 + c) * kBlock;
+      const float* __restrict kd = k.kd[c];
+      const float* __restrict ks = k.ks[c];
+      const float* __restrict ka = k.ka[c];
+      if (which == 0) {  // colour
+        for (int q = 0; q < m; ++q) {
+          const float dif = kd[q] * (std::max(k.ndl[q], 0.0f) * dif_on);
+          d[q] += e.w * (k.att[q] * (has_spec ? dif : dif + ks[q] * k.spec[q]));
+        }
+      } else if (which == 1 && per_light_ambient) {
+        for (int q = 0; q < m; ++q) d[q] += e.w * (k.att[q] * ka[q]);
+      } else if (which == 2 && has_spec) {
+        for (int q = 0; q < m; ++q) d[q] += e.w * (k.att[q] * (ks[q] * k.spec[q]));
+      }
+      continue;
+    }
+    if (kind == 0) continue;  // attenuation (a directional light has none)
+    const int i = f - 14;
+    const float* a = li + 14;
+    for (int q = 0; q < m; ++q) {  // d att / d a_i = -att d^i / (a0 + a1 d + a2 d^2) where it is not floored
+      const float dx = li[11] - k.px[q], dy = li[12] - k.py[q], dz = li[13] - k.pz[q];
+      const float dist = std::sqrt(dx * dx + dy * dy + dz * dz);
+      const float den = a[0] + a[1] * dist + a[2] * dist * dist;
+      const float pw = i == 0 ? 1.0f : (i == 1 ? dist : dist * dist);
+      gg[q] = den > 2.2737368e-13f ? -k.att[q] * pw / den : 0.0f;
+    }
+    for (int c = 0; c < 3; ++c) {  // times the light's unattenuated terms
+      float* __restrict d = dcol + (int64_t{e.j} * 3 + c) * kBlock;
+      const float* __restrict kd = k.kd[c];
+      const float* __restrict ks = k.ks[c];
+      const float* __restrict ka = k.ka[c];
+      const float color = li[1 + c], sc = has_spec ? li[7 + c] : li[1 + c], amb = per_light_ambient ? li[4 + c] : 0.0f;
+      for (int q = 0; q < m; ++q) {
+        const float u = kd[q] * (std::max(k.ndl[q], 0.0f) * dif_on) * color + ks[q] * k.spec[q] * sc + ka[q] * amb;
+        d[q] += e.w * (gg[q] * u);
+      }
+    }
+  }
+}
+
+// Pixels [p0, p1) of the partials out [K, n, 3] (entries: the nonzero directions' numbers).
+DIFFSHADE_CLONES void PartialsRange(const Config& cfg, const int32_t* ids, const float* xs, const float* ys, bool grid,
+                                     int64_t width, const float* faces, const float* params, const float* lights,
+                                     int64_t num_lights, const Maps& mp, const std::vector<Entry>& es, int64_t K,
+                                     int64_t n, int64_t p0, int64_t p1, float* value, float* out) {
+  const float* front = params;
+  const float* backm = params + kMat;
+  const float* amb_light = params + 2 * kMat;
+  const float* eye = amb_light + 3;
+  const float* view_z = eye + 3;
+  const float* fog = view_z + 3;
+  const float* background = fog + 6;
+  const float* gain = background + 3;
+  const int fog_mode = cfg.fog & 3;
+  const bool fog_depth = (cfg.fog & 4) != 0;
+  const float amb_on = cfg.Flag(1) ? 1.0f : 0.0f, em_on = cfg.Flag(0) ? 1.0f : 0.0f;
+  std::vector<float> empty(static_cast<size_t>(K * 3), 0.0f);  // an empty pixel's: background times gain
+  for (const Entry& e : es) {
+    const int64_t s = e.slot - (2 * kMat + 15);
+    if (s >= 0 && s < 3) empty[e.j * 3 + s] += e.w * gain[s];
+    if (s >= 3 && s < 6) empty[e.j * 3 + s - 3] += e.w * background[s - 3];
+  }
+  std::vector<float> dcol(static_cast<size_t>(K * 3 * kBlock)), dfog(static_cast<size_t>(K * kBlock));
+  float g[kBlock], h[kBlock], c0[3][kBlock], ca[3][kBlock], cb[3][kBlock], cc[3][kBlock], ho[3][kBlock];
+  Block k;
+  std::memset(k.ke, 0, sizeof(k.ke)), std::memset(k.ka, 0, sizeof(k.ka)), std::memset(k.kd, 0, sizeof(k.kd));
+  std::memset(k.ks, 0, sizeof(k.ks)), std::memset(k.sh, 0, sizeof(k.sh));
+  int64_t col = grid ? p0 % width : 0, row = grid ? p0 / width : 0;
+  for (int64_t b0 = p0; b0 < p1; b0 += kBlock) {
+    const int64_t b1 = std::min(b0 + kBlock, p1);
+    const int m = Points(ids, xs, ys, grid, width, faces, cfg.Flag(4), false, mp, b0, b1, col, row, k, [&](int64_t q) {
+      for (int c = 0; c < 3; ++c) value[3 * q + c] = background[c] * gain[c];
+      for (int64_t j = 0; j < K; ++j) {
+        for (int c = 0; c < 3; ++c) out[(j * n + q) * 3 + c] = empty[j * 3 + c];
+      }
+    });
+    for (int i = 0; i < mp.count; ++i) SampleMap(mp.map[i], k, m, k.tex[i]);
+    PixelMaterial(cfg, mp, front, backm, k, m);
+    Surface(cfg.Flag(5), eye, view_z, k, m);
+    std::fill(dcol.begin(), dcol.end(), 0.0f);
+    for (int c = 0; c < 3; ++c) {
+      for (int q = 0; q < m; ++q) k.col[c][q] = 0.0f, k.base[c][q] = 0.0f;
+    }
+    for (int64_t i = 0; i < num_lights; ++i) {
+      AddLight(cfg, front, backm, lights + i * kLight, k, m);
+      LightPartials(cfg, mp, lights + i * kLight, i, es, m, k, dcol.data(), g, h);
+    }
+    // the ambient and emission terms: k_a I_a and k_e, and the ambient light I_a
+    for (const Entry& e : es) {
+      const int64_t s = e.slot;
+      if (s < 2 * kMat && (s % kMat) < 6) {
+        const int field = static_cast<int>(s % kMat) / 3, c = static_cast<int>(s % kMat) % 3;
+        const float on = field == 0 ? em_on : amb_on * amb_light[c];
+        if (on == 0.0f) continue;
+        Side(mp, k, field, c, s >= kMat, m, h);
+        Accumulate(dcol.data() + (int64_t{e.j} * 3 + c) * kBlock, e.w * on, h, m);
+      } else if (s >= 2 * kMat && s < 2 * kMat + 3 && amb_on != 0.0f) {
+        const int c = static_cast<int>(s - 2 * kMat);
+        Accumulate(dcol.data() + (int64_t{e.j} * 3 + c) * kBlock, e.w, k.ka[c], m);
+      }
+    }
+    // the colour before the clamp, fog and gain (ShadeRange's sum), and the fog factor
+    for (int c = 0; c < 3; ++c) {
+      for (int q = 0; q < m; ++q) {
+        c0[c][q] = ((k.base[c][q] + (k.ka[c][q] * amb_light[c]) * amb_on) + k.ke[c][q] * em_on) + k.col[c][q];
+      }
+    }
+    std::fill(dfog.begin(), dfog.end(), 0.0f);
+    float* __restrict f = k.fog;
+    for (int q = 0; q < m; ++q) f[q] = 1.0f;
+    if (fog_mode != 0) {
+      for (int q = 0; q < m; ++q) {
+        const float dx = k.px[q] - eye[0], dy = k.py[q] - eye[1], dz = k.pz[q] - eye[2];
+        h[q] = fog_depth ? k.w[q] : std::sqrt(dx * dx + dy * dy + dz * dz);  // the fog's distance
+      }
+      const float start = fog[3], end = fog[4], rho = fog[5], den = end - start;
+      for (int q = 0; q < m; ++q) {
+        const float d = h[q];
+        if (fog_mode == 1) {
+          const float t = den > 0 ? (end - d) / den : 0.0f;
+          f[q] = den > 0 ? Clip01(t) : (d <= end ? 1.0f : 0.0f);
+        } else {
+          const float r = rho * d;
+          f[q] = Exp(fog_mode == 2 ? -r : -(r * r));
+        }
+      }
+      for (const Entry& e : es) {  // d f / d (start, end, density)
+        const int64_t s = e.slot - (2 * kMat + 12);
+        if (s < 0 || s >= 3) continue;
+        float* __restrict df = dfog.data() + int64_t{e.j} * kBlock;
+        for (int q = 0; q < m; ++q) {
+          const float d = h[q];
+          float v = 0.0f;
+          if (fog_mode == 1) {
+            const float t = den > 0 ? (end - d) / den : 0.0f;
+            const bool in = den > 0 && t > 0 && t < 1;
+            v = !in ? 0.0f : s == 0 ? t / den : s == 1 ? (d - start) / (den * den) : 0.0f;
+          } else if (s == 2) {
+            v = fog_mode == 2 ? -d * f[q] : -2.0f * rho * d * d * f[q];
+          }
+          df[q] += e.w * v;
+        }
+      }
+    }
+    // through the clamp, fog, clamp after and gain: out = A dcol + B dfog + C dfog_colour + x3 dgain
+    for (int c = 0; c < 3; ++c) {
+      const float fc = fog[c], gc = gain[c];
+      for (int q = 0; q < m; ++q) {
+        const float x = c0[c][q];
+        const float p1 = cfg.Flag(6) ? ((x > 0 && x < 1) ? 1.0f : 0.0f) : 1.0f;
+        const float x1 = cfg.Flag(6) ? Clip01(x) : x;
+        const float x2 = fog_mode != 0 ? f[q] * x1 + (1.0f - f[q]) * fc : x1;
+        const float p3 = gc * (cfg.Flag(7) ? ((x2 > 0 && x2 < 1) ? 1.0f : 0.0f) : 1.0f);
+        ca[c][q] = p3 * f[q] * p1;
+        cb[c][q] = fog_mode != 0 ? p3 * (x1 - fc) : 0.0f;
+        cc[c][q] = fog_mode != 0 ? p3 * (1.0f - f[q]) : 0.0f;
+        c0[c][q] = cfg.Flag(7) ? Clip01(x2) : x2;
+      }
+    }
+    for (int q = 0; q < m; ++q) {  // the value (ShadeRange's, operation for operation)
+      float* v = value + 3 * k.pix[q];
+      v[0] = c0[0][q] * gain[0], v[1] = c0[1][q] * gain[1], v[2] = c0[2][q] * gain[2];
+    }
+    for (int64_t j = 0; j < K; ++j) {
+      float dfc[3] = {0.0f, 0.0f, 0.0f}, dgain[3] = {0.0f, 0.0f, 0.0f};
+      for (const Entry& e : es) {
+        const int64_t s = e.slot - (2 * kMat + 9);
+        if (e.j == j && s >= 0 && s < 3) dfc[s] += e.w;
+        if (e.j == j && s >= 9 && s < 12) dgain[s - 9] += e.w;
+      }
+      const float* __restrict df = dfog.data() + j * kBlock;
+      for (int c = 0; c < 3; ++c) {
+        const float* __restrict dc = dcol.data() + (j * 3 + c) * kBlock;
+        float* __restrict hc = ho[c];
+        for (int q = 0; q < m; ++q) hc[q] = ((ca[c][q] * dc[q] + cb[c][q] * df[q]) + cc[c][q] * dfc[c]) + c0[c][q] * dgain[c];
+      }
+      float* o = out + j * n * 3;
+      for (int q = 0; q < m; ++q) {
+        float* p = o + k.pix[q] * 3;
+        p[0] = ho[0][q], p[1] = ho[1][q], p[2] = ho[2][q];
+      }
+    }
+  }
+}
+
 // The face table (kFace floats per face) of faces [f0, f1): the planes of
 // _raster.py::_face_planes from the clip-space vertices, and the corners' normals and positions.
 void FaceTable(const float* clip, const int32_t* tri, const float* normals, const float* points, const float* back,
@@ -849,6 +1139,61 @@ void PackMaps(ffi::ThreadPool& pool, int64_t nthreads, Maps& mp, const float* te
   }
 }
 
+// The inputs both kernels share: their shapes checked, the maps read (their pyramids built)
+// and the face table (in scratch kept per calling thread between calls; every entry is written).
+struct Scene {
+  int64_t n = 0, width = 0, num_lights = 0, nthreads = 1;
+  Maps mp;
+  const float* table = nullptr;
+};
+
+const char* Prepare(ffi::ThreadPool& pool, ffi::Buffer<ffi::S32>& ids, ffi::Buffer<ffi::F32>& xs,
+                    ffi::Buffer<ffi::F32>& ys, ffi::Buffer<ffi::F32>& clip, ffi::Buffer<ffi::S32>& tri,
+                    ffi::Buffer<ffi::F32>& normals, ffi::Buffer<ffi::F32>& points, ffi::Buffer<ffi::F32>& back,
+                    ffi::Buffer<ffi::F32>& params, ffi::Buffer<ffi::F32>& lights, ffi::Buffer<ffi::F32>& uv,
+                    ffi::Buffer<ffi::F32>& texels, ffi::Buffer<ffi::S32>& maps, ffi::Buffer<ffi::F32>& parts,
+                    int32_t grid, Scene& sc) {
+  const int64_t n = ids.element_count();
+  const int64_t num_verts = clip.element_count() / 4, num_faces = tri.element_count() / 3;
+  if (params.element_count() != kParams || lights.element_count() % kLight != 0 ||
+      normals.element_count() != 3 * num_verts || points.element_count() != 3 * num_verts ||
+      back.element_count() != 3 * num_verts || num_verts == 0) {
+    return "bad shapes";
+  }
+  const int64_t width = xs.element_count();
+  if (grid ? width * ys.element_count() != n : (width != n || ys.element_count() != n)) {
+    return "pixel centres do not match the ids";
+  }
+  sc.n = n, sc.width = width, sc.num_lights = lights.element_count() / kLight;
+  unsigned hw = std::thread::hardware_concurrency();
+  sc.nthreads = n < 16384 ? 1 : std::min<int64_t>(hw == 0 ? 1 : hw, 8);  // (small images: one thread)
+  Maps& mp = sc.mp;
+  int64_t packed = 0;
+  if (const char* bad = ReadMaps(maps.typed_data(), maps.element_count(), texels.element_count(), mp, &packed)) {
+    return bad;
+  }
+  thread_local std::vector<float> pyramids;  // (scratch kept per calling thread, as the face table)
+  if (mp.any()) {
+    if (uv.element_count() != 2 * num_verts || parts.element_count() != mp.parts * 2 * num_verts * 3) {
+      return "texture coordinates or parts do not match the mesh";
+    }
+    pyramids.resize(static_cast<size_t>(packed));
+    PackMaps(pool, sc.nthreads, mp, texels.typed_data(), pyramids.data());
+    mp.uv = uv.typed_data(), mp.tri = tri.typed_data();
+    mp.parts_at = parts.typed_data(), mp.num_verts = num_verts;
+  }
+  thread_local std::vector<float> table;
+  table.resize(static_cast<size_t>(num_faces * kFace));
+  float* tab = table.data();
+  const int64_t ft = num_faces < 4096 ? 1 : sc.nthreads;
+  diffshade::ParallelFor(pool, ft, [&](int64_t k) {
+    FaceTable(clip.typed_data(), tri.typed_data(), normals.typed_data(), points.typed_data(), back.typed_data(),
+              num_verts, num_faces * k / ft, num_faces * (k + 1) / ft, tab);
+  });
+  sc.table = tab;
+  return nullptr;
+}
+
 ffi::Error ShadeImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Buffer<ffi::F32> xs,
                      ffi::Buffer<ffi::F32> ys, ffi::Buffer<ffi::F32> clip, ffi::Buffer<ffi::S32> tri,
                      ffi::Buffer<ffi::F32> normals, ffi::Buffer<ffi::F32> points, ffi::Buffer<ffi::F32> back,
@@ -856,50 +1201,61 @@ ffi::Error ShadeImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Buffe
                      ffi::Buffer<ffi::F32> texels, ffi::Buffer<ffi::S32> maps, ffi::Buffer<ffi::F32> parts,
                      ffi::ResultBuffer<ffi::F32> out, int32_t specular,
                      int32_t fresnel, int32_t flags, int32_t fog, int32_t grid) {
-  const int64_t n = ids.element_count();
-  const int64_t num_verts = clip.element_count() / 4, num_faces = tri.element_count() / 3;
-  if (out->element_count() != 3 * n || params.element_count() != kParams || lights.element_count() % kLight != 0 ||
-      normals.element_count() != 3 * num_verts || points.element_count() != 3 * num_verts ||
-      back.element_count() != 3 * num_verts || num_verts == 0) {
-    return ffi::Error::InvalidArgument("diffshade_shade: bad shapes");
-  }
-  const int64_t width = xs.element_count();
-  if (grid ? width * ys.element_count() != n : (width != n || ys.element_count() != n)) {
-    return ffi::Error::InvalidArgument("diffshade_shade: pixel centres do not match the ids");
-  }
-  const Config cfg{specular, fresnel, flags, fog};
-  const int64_t num_lights = lights.element_count() / kLight;
-  unsigned hw = std::thread::hardware_concurrency();
-  int64_t nthreads = std::min<int64_t>(hw == 0 ? 1 : hw, 8);
-  if (n < 16384) nthreads = 1;  // not worth a thread for small images
-  Maps mp;
-  int64_t packed = 0;
-  if (const char* bad = ReadMaps(maps.typed_data(), maps.element_count(), texels.element_count(), mp, &packed)) {
+  Scene sc;
+  if (const char* bad = Prepare(pool, ids, xs, ys, clip, tri, normals, points, back, params, lights, uv, texels, maps,
+                                parts, grid, sc)) {
     return ffi::Error::InvalidArgument(std::string("diffshade_shade: ") + bad);
   }
-  thread_local std::vector<float> pyramids;  // (scratch kept per calling thread, as the face table)
-  if (mp.any()) {
-    if (uv.element_count() != 2 * num_verts || parts.element_count() != mp.parts * 2 * num_verts * 3) {
-      return ffi::Error::InvalidArgument("diffshade_shade: texture coordinates or parts do not match the mesh");
-    }
-    pyramids.resize(static_cast<size_t>(packed));
-    PackMaps(pool, nthreads, mp, texels.typed_data(), pyramids.data());
-    mp.uv = uv.typed_data(), mp.tri = tri.typed_data();
-    mp.parts_at = parts.typed_data(), mp.num_verts = num_verts;
-  }
-  // the face table, in scratch kept per calling thread between calls (every entry is written)
-  thread_local std::vector<float> table;
-  table.resize(static_cast<size_t>(num_faces * kFace));
-  float* tab = table.data();
-  const int64_t ft = num_faces < 4096 ? 1 : nthreads;
-  diffshade::ParallelFor(pool, ft, [&](int64_t k) {
-    FaceTable(clip.typed_data(), tri.typed_data(), normals.typed_data(), points.typed_data(), back.typed_data(),
-              num_verts, num_faces * k / ft, num_faces * (k + 1) / ft, tab);
-  });
-  const int64_t chunks = nthreads * 4;
+  if (out->element_count() != 3 * sc.n) return ffi::Error::InvalidArgument("diffshade_shade: bad shapes");
+  const Config cfg{specular, fresnel, flags, fog};
+  const int64_t n = sc.n, chunks = sc.nthreads * 4;
   diffshade::ParallelFor(pool, chunks, [&](int64_t k) {
-    ShadeRange(cfg, ids.typed_data(), xs.typed_data(), ys.typed_data(), grid != 0, width, tab, params.typed_data(),
-               lights.typed_data(), num_lights, mp, n * k / chunks, n * (k + 1) / chunks, out->typed_data());
+    ShadeRange(cfg, ids.typed_data(), xs.typed_data(), ys.typed_data(), grid != 0, sc.width, sc.table,
+               params.typed_data(), lights.typed_data(), sc.num_lights, sc.mp, n * k / chunks, n * (k + 1) / chunks,
+               out->typed_data());
+  });
+  return ffi::Error::Success();
+}
+
+// The Phong render [N, 3] (ShadeImpl's) and its partials [K, N, 3] along the K directions dirs
+// [K, kParams + L kLight].
+ffi::Error PartialsImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Buffer<ffi::F32> xs,
+                        ffi::Buffer<ffi::F32> ys, ffi::Buffer<ffi::F32> clip, ffi::Buffer<ffi::S32> tri,
+                        ffi::Buffer<ffi::F32> normals, ffi::Buffer<ffi::F32> points, ffi::Buffer<ffi::F32> back,
+                        ffi::Buffer<ffi::F32> params, ffi::Buffer<ffi::F32> lights, ffi::Buffer<ffi::F32> uv,
+                        ffi::Buffer<ffi::F32> texels, ffi::Buffer<ffi::S32> maps, ffi::Buffer<ffi::F32> parts,
+                        ffi::Buffer<ffi::F32> dirs, ffi::ResultBuffer<ffi::F32> value,
+                        ffi::ResultBuffer<ffi::F32> out, int32_t specular,
+                        int32_t fresnel, int32_t flags, int32_t fog, int32_t grid) {
+  Scene sc;
+  if (const char* bad = Prepare(pool, ids, xs, ys, clip, tri, normals, points, back, params, lights, uv, texels, maps,
+                                parts, grid, sc)) {
+    return ffi::Error::InvalidArgument(std::string("diffshade_shade_partials: ") + bad);
+  }
+  const Config cfg{specular, fresnel, flags, fog};
+  const int64_t n = sc.n, row = kParams + sc.num_lights * kLight;
+  const int64_t K = dirs.element_count() / row;
+  if (cfg.Flag(8) || K * row != dirs.element_count() || out->element_count() != K * n * 3 ||
+      value->element_count() != n * 3) {
+    return ffi::Error::InvalidArgument("diffshade_shade_partials: bad shapes (or Gouraud shading)");
+  }
+  std::vector<Entry> es;  // the directions' nonzero numbers
+  const float* d = dirs.typed_data();
+  for (int64_t j = 0; j < K; ++j) {
+    for (int64_t slot = 0; slot < row; ++slot) {
+      const float w = d[j * row + slot];
+      if (w == 0.0f) continue;
+      if (!Supported(slot)) {
+        return ffi::Error::InvalidArgument("diffshade_shade_partials: a direction moves a number it does not differentiate");
+      }
+      es.push_back(Entry{static_cast<int>(slot), static_cast<int>(j), w});
+    }
+  }
+  const int64_t chunks = sc.nthreads * 4;
+  diffshade::ParallelFor(pool, chunks, [&](int64_t k) {
+    PartialsRange(cfg, ids.typed_data(), xs.typed_data(), ys.typed_data(), grid != 0, sc.width, sc.table,
+                  params.typed_data(), lights.typed_data(), sc.num_lights, sc.mp, es, K, n, n * k / chunks,
+                  n * (k + 1) / chunks, value->typed_data(), out->typed_data());
   });
   return ffi::Error::Success();
 }
@@ -924,6 +1280,32 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(DiffshadeShade, ShadeImpl,
                                   .Arg<ffi::Buffer<ffi::S32>>()  // the maps' description (Maps)
                                   .Arg<ffi::Buffer<ffi::F32>>()  // Gouraud: mapped parts [G, 2, V, 3]
                                   .Ret<ffi::Buffer<ffi::F32>>()  // out [N, 3]
+                                  .Attr<int32_t>("specular")
+                                  .Attr<int32_t>("fresnel")
+                                  .Attr<int32_t>("flags")
+                                  .Attr<int32_t>("fog")
+                                  .Attr<int32_t>("grid"));
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(DiffshadeShadePartials, PartialsImpl,
+                              ffi::Ffi::Bind()
+                                  .Ctx<ffi::ThreadPool>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()  // ids [N]
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // xs [W] (grid) or [N]
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // ys [H] (grid) or [N]
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // clip-space vertices [V, 4]
+                                  .Arg<ffi::Buffer<ffi::S32>>()  // faces [F, 3]
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // vertex normals [V, 3]
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // vertex positions [V, 3]
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // Gouraud: back colours [V, 3]
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // params [kParams]
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // lights [L, kLight]
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // texture coordinates [V, 2] (or none)
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // the maps' texels, one after the other
+                                  .Arg<ffi::Buffer<ffi::S32>>()  // the maps' description (Maps)
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // Gouraud: mapped parts [G, 2, V, 3]
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // directions [K, kParams + L kLight]
+                                  .Ret<ffi::Buffer<ffi::F32>>()  // the render [N, 3]
+                                  .Ret<ffi::Buffer<ffi::F32>>()  // partials [K, N, 3]
                                   .Attr<int32_t>("specular")
                                   .Attr<int32_t>("fresnel")
                                   .Attr<int32_t>("flags")
