@@ -62,6 +62,10 @@ GOURAUD_CONFIGS = [
 ]
 
 
+# The partials' default run: back material, all three kinds of light, exp² fog; a smooth spot
+# with per-light ambient and the dielectric Fresnel term; linear fog by depth, clamped
+PARTIALS_DEFAULT = ("all-lights-back-material-exp2", "dielectric-spot-smooth-light-ambient", "linear-fog-depth-clamped")
+
 # The default run: every switch of the kernel at least once (the others are "slow" variants).
 DEFAULT_RUN = {
     ("all-lights-back-material-exp2", "phong"),
@@ -242,6 +246,108 @@ def test_derivatives_are_the_jax_stages():
     kernel, stages, forward = program(jvp, opts), program(jvp, _jax(opts)), program(lambda f, a: f(*a), opts)
     assert sum("diffshade_shade" in line for line in kernel) == 1
     assert len(kernel) <= 1.02 * len(stages) + len(forward), (len(kernel), len(stages), len(forward))
+
+
+def _shading_leaves(scene):
+    """Every leaf of ``scene`` the kernel's partials differentiate by (diffshade._fast._shading_leaf)."""
+    flat = jax.tree_util.tree_flatten_with_path((scene,))[0]
+    return [k for k, (p, x) in enumerate(flat) if _fast._shading_leaf(jax.tree_util.keystr(p)) and x.size]
+
+
+def _partials_against_stages(scene, opts, extra=()):
+    """Tangents (along random directions of every shading leaf, and of the leaves ``extra``) and
+    the value within ds.kernel_partials(), against the stages' jvp; the gradient too."""
+    scene = _f32(scene)
+    ids = ds.scene_visibility(scene, opts)
+    flat, tree = jax.tree_util.tree_flatten_with_path((scene,))
+    leaves = [x for _, x in flat]
+    keys = _shading_leaves(scene) + [k for k, (p, _) in enumerate(flat) if jax.tree_util.keystr(p) in extra]
+    rng = np.random.default_rng(3)
+    args = tuple(leaves[k] for k in keys)
+    tans = tuple(jnp.asarray(rng.normal(size=np.shape(a)), jnp.float32) * 0.1 for a in args)
+
+    def img(o, *xs):
+        full = list(leaves)
+        for k, x in zip(keys, xs):
+            full[k] = x
+        return ds.render(jax.tree.unflatten(tree, full)[0], o, ids=ids)
+
+    def jvp(o):
+        with ds.kernel_partials():
+            return jax.jit(lambda *a: jax.jvp(functools.partial(img, o), a, tans))(*args)
+
+    (value, tangent), (_, ref) = jvp(opts), jvp(_jax(opts))
+    with ds.kernel_partials():
+        program = str(jax.make_jaxpr(lambda *a: jax.jvp(functools.partial(img, opts), a, tans))(*args))
+    assert "diffshade_shade_partials" in program
+    # the value with the partials is the forward render's, bit for bit (a fit compares the two)
+    np.testing.assert_array_equal(np.asarray(value), np.asarray(jax.jit(functools.partial(img, opts))(*args)))
+    scale = float(jnp.abs(ref).max())
+    assert scale > 0
+    np.testing.assert_allclose(np.asarray(tangent), np.asarray(ref), rtol=0, atol=2e-5 * scale)
+
+    def grad(o):
+        with ds.kernel_partials():
+            loss = lambda *a: jnp.sum(img(o, *a) ** 2)  # noqa: E731
+            return jax.jit(jax.grad(loss, argnums=tuple(range(len(args)))))(*args)
+
+    for a, b in zip(grad(opts), grad(_jax(opts))):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=2e-5 * max(float(jnp.abs(b).max()), 1e-6))
+
+
+@pytest.mark.parametrize(
+    "config",
+    [
+        pytest.param(c, marks=() if c in PARTIALS_DEFAULT else pytest.mark.slow)
+        for c in KERNEL_CONFIGS
+        if c != "gain-and-cull"
+    ],
+)
+def test_kernel_partials_are_the_stages_tangents(config):
+    # every shading leaf of the scene at once: materials (front and back), each light's colours
+    # and attenuation, ambient light, fog, background, gain
+    scene, opts = make_scene(config, "phong")
+    _partials_against_stages(scene, opts)
+
+
+def test_kernel_partials_with_maps_and_other_leaves():
+    # a mapped field's constant (the map times it, every pixel); the vertices and a light's
+    # position (the stages' jvp) beside them in one jvp
+    scene, opts = _textured("phong", size=24)
+    light = ds.PointLights(
+        position=[[2.0, 1.0, 3.0]], color=[[0.8, 0.7, 0.6]], attenuation=[[1.0, 0.2, 0.05]], ambient=[[0.05] * 3]
+    )
+    scene = dataclasses.replace(scene, point=light)
+    _partials_against_stages(scene, opts, extra=("[0].mesh.vertices", "[0].point.position"))
+
+
+def test_kernel_partials_refuse_a_number_they_do_not_differentiate():
+    scene, opts = make_scene("phong-point", "phong")
+    scene = _f32(scene)
+    ids = ds.scene_visibility(scene, opts)
+    width = 49 + 24 * int(scene.point.count + scene.directional.count + scene.spot.count)
+    dirs = np.zeros((2, width), np.float32)
+    dirs[0, 6] = 1.0  # k_d's red: differentiated
+    dirs[1, 31] = 1.0  # the eye's x: not (it moves the rasterisation too)
+    with pytest.raises(Exception, match="does not differentiate"):
+        jax.block_until_ready(_fast._kernel(scene, ids, opts, None, jnp.asarray(dirs)))
+
+
+def test_second_derivatives_with_kernel_partials():
+    # the partials' own derivative is the stages' (forward over reverse)
+    scene, opts = make_scene("phong-point", "phong")
+    scene = _f32(scene)
+    ids = ds.scene_visibility(scene, opts)
+
+    def loss(o, m):
+        return jnp.sum(ds.render(eqx.tree_at(lambda s: s.material.shininess, scene, m), o, ids=ids) ** 2)
+
+    m = scene.material.shininess
+    with ds.kernel_partials():
+        hvp = jax.jit(lambda m: jax.jvp(jax.grad(functools.partial(loss, opts)), (m,), (jnp.ones_like(m),)))(m)
+    ref = jax.jit(lambda m: jax.jvp(jax.grad(functools.partial(loss, _jax(opts))), (m,), (jnp.ones_like(m),)))(m)
+    np.testing.assert_allclose(np.asarray(hvp[1]), np.asarray(ref[1]), rtol=1e-4)
+    assert float(jnp.abs(ref[1])) > 0
 
 
 def test_second_derivatives_are_the_jax_stages():
