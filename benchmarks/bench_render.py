@@ -8,8 +8,9 @@ Term sets (static, so each is its own compiled program):
 - ``all``: emission, ambient, per-light ambient, Lambert, Blinn–Phong with dielectric Fresnel,
   two-sided with a back material, point + directional + smooth-edged spot light, exp² fog.
 
-The jvp is tangent-major, ``[12, N]``, as the fit computes its Jacobian (``jax.jacfwd``'s
-``[N, 12]`` is timed beside it), with XLA's estimate of the bytes it moves per pixel. The 12
+The jvp is tangent-major, ``[12, N]``, as the fit computes its Jacobian (within
+``ds.kernel_partials()``: the shading kernel's partials; ``jax.jacfwd``'s ``[N, 12]``, the
+stages' jvp, is timed beside it), with XLA's estimate of the bytes it moves per pixel. The 12
 parameters of the jvp/vjp are k_a (RGB), k_d (RGB), k_s (RGB), m, a1, a2 of the first
 point light (or of nothing for ``diffuse``, whose Jacobian is then mostly zero columns — it is
 timed on the same 12-vector for comparability). Compile time is reported apart from the median
@@ -135,10 +136,16 @@ def main():
                 full = jax.jit(lambda s: ds.render(s, opts))
                 shade = jax.jit(lambda s, i: ds.render(s, opts, ids=i))
                 img_of = lambda p: ds.render(with_params(scene, p), opts, ids=ids).reshape(-1)  # noqa: E731
-                # 12 jvps (vmapped): one LM Jacobian, tangent-major [12, N] as the fit computes it;
-                # jax.jacfwd's [N, 12] layout timed beside it (2.6x slower at 512²: design notes)
+                # 12 jvps (vmapped): one LM Jacobian, tangent-major [12, N] as the fit computes it
+                # (within ds.kernel_partials: the shading kernel's partials); jax.jacfwd's [N, 12]
+                # layout timed beside it (the stages' jvp)
                 E = jnp.eye(12, dtype=p0.dtype)
-                jac = jax.jit(lambda p: jax.vmap(lambda e: jax.jvp(img_of, (p,), (e,))[1])(E))  # noqa: B023
+
+                def jac_of(p, img_of=img_of, E=E):
+                    with ds.kernel_partials():
+                        return jax.vmap(lambda e: jax.jvp(img_of, (p,), (e,))[1])(E)
+
+                jac = jax.jit(jac_of)
                 jacfwd = jax.jit(jax.jacfwd(img_of))
                 ct = jnp.ones(res * res * 3, jnp.float32)
                 vjp = jax.jit(lambda p: jax.vjp(img_of, p)[1](ct)[0])

@@ -14,11 +14,20 @@ mapped parts by the maps per pixel. The kernel samples maps as ``_texture.sample
 from the exact derivatives of the coordinates). Everything else, and every float64 render,
 takes the JAX stages.
 
-Only the value comes from the kernel: its ``custom_jvp`` rule returns the kernel's value (the
-same with a Jacobian as without: a fit compares the two) and the JAX stages' own tangents, so
-gradients, tangents, ``jax.linearize`` (a fit's Jacobian) and transposition are exactly those of
-the reference, and a differentiated render costs what it did, plus one forward render. The
-kernel and the JAX stages agree to float32 rounding (tests/test_fast.py).
+Derivatives: the kernel's ``custom_jvp`` rule returns the kernel's value (the same with a
+Jacobian as without: a fit compares the two) and, by default, the JAX stages' own tangents, so
+gradients, tangents, ``jax.linearize`` and transposition are those of the reference, and a
+differentiated render costs what it did plus one forward render. Within
+:func:`kernel_partials` (the fit's Jacobians: many tangents at once, forward mode), a Phong
+render's tangents along its shading numbers — the materials' colours and shininess, the lights'
+colours, ambient colours and attenuation, the ambient light, fog, background and gain — come
+from a second kernel instead: the render and its partials along every scalar of those leaves in
+one pass (csrc/shade.cc: PartialsRange, the derivatives in closed form from the quantities the
+render computes per light), contracted with the tangents by JAX (so transposable: a gradient
+works, but costs more than the stages' reverse mode, which is why it is not the default). The
+other leaves' tangents (geometry, camera pose, texels, the lights' positions and cones, the
+index of refraction) are the stages' either way. The kernel and the JAX stages agree to float32
+rounding, values and tangents (tests/test_fast.py).
 ``Raster(backend="jax")`` turns the kernel off.
 """
 
