@@ -529,7 +529,7 @@ __attribute__((always_inline)) inline void PixelMaterial(const Config& cfg, cons
 }
 
 // The points of the block of pixels [b0, b1) (col, row: the first one's, in a grid; advanced).
-  // The covered pixels' points (each empty one handed to empty(pixel)): the barycentrics
+  // The covered pixels' points (each run of empty ones handed to empty(first, end)): the barycentrics
   // b_i = E_i / sum_k E_k of their face's edge functions, the corners' normals and positions
   // interpolated with them (a plane per attribute, sum_i E_i a_i, would save work but lose
   // accuracy: up to 2e-5 off the JAX stages, which this form holds to 6e-6).
@@ -548,7 +548,7 @@ __attribute__((always_inline)) inline int Points(const int32_t* ids, const float
     while (r < lim && ids[r] == t) ++r;
     const int n = static_cast<int>(r - p);
     if (t < 0) {
-      for (int64_t q = p; q < r; ++q) empty(q);
+      empty(p, r);
     } else {
       const float* g = faces + static_cast<int64_t>(t) * kFace;
       float c[kFace];
@@ -653,9 +653,12 @@ DIFFSHADE_CLONES void ShadeRange(const Config& cfg, const int32_t* ids, const fl
   int64_t col = grid ? p0 % width : 0, row = grid ? p0 / width : 0;  // (no division per pixel)
   for (int64_t b0 = p0; b0 < p1; b0 += kBlock) {
     const int64_t b1 = std::min(b0 + kBlock, p1);
-    const int m = Points(ids, xs, ys, grid, width, faces, two_sided, gouraud, mp, b0, b1, col, row, k, [&](int64_t q) {
-      for (int c = 0; c < 3; ++c) out[3 * q + c] = background[c] * gain[c];
-    });
+    const int m =
+        Points(ids, xs, ys, grid, width, faces, two_sided, gouraud, mp, b0, b1, col, row, k, [&](int64_t p, int64_t r) {
+          for (int64_t q = p; q < r; ++q) {
+            for (int c = 0; c < 3; ++c) out[3 * q + c] = background[c] * gain[c];
+          }
+        });
     for (int i = 0; i < mp.count; ++i) SampleMap(mp.map[i], k, m, k.tex[i]);
     if (gouraud) {  // the interpolated colour is the pixel's (lit, and clamped if asked, at the vertices)
       for (int q = 0; q < m; ++q) k.col[0][q] = k.nx[q], k.col[1][q] = k.ny[q], k.col[2][q] = k.nz[q];
@@ -903,12 +906,17 @@ DIFFSHADE_CLONES void PartialsRange(const Config& cfg, const int32_t* ids, const
   int64_t col = grid ? p0 % width : 0, row = grid ? p0 / width : 0;
   for (int64_t b0 = p0; b0 < p1; b0 += kBlock) {
     const int64_t b1 = std::min(b0 + kBlock, p1);
-    const int m = Points(ids, xs, ys, grid, width, faces, cfg.Flag(4), false, mp, b0, b1, col, row, k, [&](int64_t q) {
-      for (int c = 0; c < 3; ++c) value[3 * q + c] = background[c] * gain[c];
-      for (int64_t j = 0; j < K; ++j) {
-        for (int c = 0; c < 3; ++c) out[(j * n + q) * 3 + c] = empty[j * 3 + c];
+    auto empty_run = [&](int64_t p, int64_t r) {  // each plane's run of the background's value
+      for (int64_t q = p; q < r; ++q) {
+        for (int c = 0; c < 3; ++c) value[3 * q + c] = background[c] * gain[c];
       }
-    });
+      for (int64_t j = 0; j < K; ++j) {
+        const float e0 = empty[j * 3], e1 = empty[j * 3 + 1], e2 = empty[j * 3 + 2];
+        float* o = out + (j * n + p) * 3;
+        for (int64_t q = 0; q < r - p; ++q) o[3 * q] = e0, o[3 * q + 1] = e1, o[3 * q + 2] = e2;
+      }
+    };
+    const int m = Points(ids, xs, ys, grid, width, faces, cfg.Flag(4), false, mp, b0, b1, col, row, k, empty_run);
     for (int i = 0; i < mp.count; ++i) SampleMap(mp.map[i], k, m, k.tex[i]);
     PixelMaterial(cfg, mp, front, backm, k, m);
     Surface(cfg.Flag(5), eye, view_z, k, m);
