@@ -59,6 +59,10 @@ _FOG = {"linear": 1, "exp": 2, "exp2": 3}
 # The maps' description (csrc/shade.cc: Maps, kMapsHeader, kMapInts)
 _MAP_FIELDS = ("emission", "ambient", "diffuse", "specular", "shininess")
 _MAX_PARTS = 4
+# csrc/shade.cc's kParams, and the first of them a pixel reads in Gouraud shading (the fog's: the
+# materials, ambient light and lights are lit at the vertices)
+_NUMBERS = 2 * 14 + 21
+_PIXEL_NUMBERS = 2 * 14 + 9
 
 
 _PARTIALS = contextvars.ContextVar("diffshade_kernel_partials", default=False)
@@ -111,6 +115,7 @@ def shade(scene: Scene, ids, opts: RenderOptions, pixels, reference):
     ``reference(scene, ids, opts, pixels)`` (the JAX stages): in Phong shading by the kernel's
     partials along the scene's shading leaves (:func:`_partials`), the stages' jvp for the rest."""
     gouraud = opts.raster.shading == "gouraud"
+    mapped = bool(_maps(scene, opts))
 
     @jax.custom_jvp
     def value(scene, ids, pixels):
@@ -128,8 +133,8 @@ def shade(scene: Scene, ids, opts: RenderOptions, pixels, reference):
         # Phong, within kernel_partials(): the leaves that reach the kernel through its numbers and
         # lights only are differentiated by the kernel's partials; the others (geometry, camera,
         # texels) by the stages
-        on = _PARTIALS.get() and not gouraud
-        fast = [k for k in live if on and _shading_leaf(jax.tree_util.keystr(flat[k][0]))]
+        on = _PARTIALS.get() and not (gouraud and mapped)
+        fast = [k for k in live if on and _shading_leaf(jax.tree_util.keystr(flat[k][0]), gouraud)]
         slow = [k for k in live if k not in fast]
 
         def with_leaves(ks, xs):
@@ -164,14 +169,16 @@ _LIGHT_FIELDS = ("color", "ambient", "specular", "attenuation")
 _SCENE_FIELDS = ("[0].ambient_light", "[0].background", "[0].camera.exposure", "[0].camera.white_balance")
 
 
-def _shading_leaf(path: str) -> bool:
+def _shading_leaf(path: str, gouraud: bool = False) -> bool:
+    """Whether the partials differentiate by the leaf at ``path`` (in Gouraud shading every leaf
+    of the materials and lights: they reach the kernel through the vertices' colours, lit in JAX)."""
     head, _, field = path.rpartition(".")
     if "_map" in path:
         return False
     if head in ("[0].material", "[0].back_material"):
-        return field != "ior"
+        return gouraud or field != "ior"
     if head in ("[0].directional", "[0].point", "[0].spot"):
-        return field in _LIGHT_FIELDS
+        return gouraud or field in _LIGHT_FIELDS
     return head == "[0].fog" or path in _SCENE_FIELDS
 
 
@@ -195,7 +202,12 @@ def _partials(with_leaves, leaves, fast, opts, reference):
     def by_kernel(x, rest):
         s, ids, pixels = unpack(x, rest)
         dirs = jax.jacfwd(numbers)(x, rest).T.astype(jnp.float32)  # [n, kParams + L kLight]
-        return _kernel(s, ids, opts, pixels, dirs)
+        corners = None
+        if opts.raster.shading == "gouraud":  # the vertices' colours' tangents; the pixel's numbers only
+            dirs = dirs.at[:, :_PIXEL_NUMBERS].set(0.0).at[:, _NUMBERS:].set(0.0)
+            lit = jax.jacfwd(lambda y: jnp.stack(_vertex_colours(unpack(y, rest)[0], opts, opts.camera_lighting)))(x)
+            corners = jnp.moveaxis(lit, -1, 0).astype(jnp.float32)  # [n, 2, V, 3]
+        return _kernel(s, ids, opts, pixels, dirs, corners)
 
     def by_stages(x, rest):
         image = lambda y: reference(*unpack(y, rest)[:2], opts, unpack(y, rest)[2])  # noqa: E731
@@ -331,9 +343,10 @@ def _switches(opts: RenderOptions, lt, gouraud: bool) -> dict:
     )
 
 
-def _kernel(scene: Scene, ids, opts: RenderOptions, pixels, dirs=None):
+def _kernel(scene: Scene, ids, opts: RenderOptions, pixels, dirs=None, corners=None):
     """The render (``dirs`` None), or the render and its partials ``[K, *image]`` along the
-    directions ``dirs`` ``[K, kParams + L kLight]`` of its numbers and lights (Phong)."""
+    directions ``dirs`` ``[K, kParams + L kLight]`` of its numbers and lights (Gouraud: and
+    ``corners`` ``[K, 2, V, 3]`` of the vertices' front and back colours)."""
     target = _native.ensure_registered(_TARGET if dirs is None else _TARGET + "_partials")
     mesh, lt = scene.mesh, opts.camera_lighting
     gouraud = opts.raster.shading == "gouraud"
@@ -362,7 +375,7 @@ def _kernel(scene: Scene, ids, opts: RenderOptions, pixels, dirs=None):
     if dirs is not None:
         result = (result, jax.ShapeDtypeStruct((dirs.shape[0], n, 3), jnp.float32))
     call = jax.ffi.ffi_call(target, result, vmap_method="sequential")
-    extra = () if dirs is None else (dirs,)
+    extra = () if dirs is None else (dirs, jnp.zeros((0,), jnp.float32) if corners is None else corners)
     f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
     out = call(
         ids[0].reshape(-1).astype(jnp.int32),

@@ -194,6 +194,7 @@ struct Maps {
 
 struct Block {
   int64_t pix[kBlock];
+  int32_t face[kBlock];  // the face each pixel sees
   float nx[kBlock], ny[kBlock], nz[kBlock];  // unit normal (on the lit side)
   float px[kBlock], py[kBlock], pz[kBlock];  // position
   float vx[kBlock], vy[kBlock], vz[kBlock];  // unit vector to the viewer
@@ -570,6 +571,7 @@ __attribute__((always_inline)) inline int Points(const int32_t* ids, const float
       float* __restrict bb = k.b1 + m;
       float* __restrict bc = k.b2 + m;
       int64_t* __restrict pix = k.pix + m;
+      int32_t* __restrict fc = k.face + m;
       for (int i = 0; i < n; ++i) {
         const float x = xr[i], y = yr[i * ystep];
         const float e0 = c[0] + x * c[1] + y * c[2], e1 = c[3] + x * c[4] + y * c[5];
@@ -588,6 +590,7 @@ __attribute__((always_inline)) inline int Points(const int32_t* ids, const float
         bk[i] = back;
         ba[i] = b0, bb[i] = b1, bc[i] = b2;
         pix[i] = p + i;
+        fc[i] = t;
       }
       if (mp.any()) Coordinates(mp, t, c, back > 0, k, m, n);
       m += n;
@@ -876,22 +879,82 @@ DIFFSHADE_CLONES void LightPartials(const Config& cfg, const Maps& mp, const flo
   }
 }
 
-// Pixels [p0, p1) of the partials out [K, n, 3] (entries: the nonzero directions' numbers).
-DIFFSHADE_CLONES void PartialsRange(const Config& cfg, const int32_t* ids, const float* xs, const float* ys, bool grid,
-                                     int64_t width, const float* faces, const float* params, const float* lights,
-                                     int64_t num_lights, const Maps& mp, const std::vector<Entry>& es, int64_t K,
-                                     int64_t n, int64_t p0, int64_t p1, float* value, float* out) {
+// Phong: the block's colour before the clamp, fog and gain (ShadeRange's sum) into c0, and every
+// direction's derivative of it into dcol [K][3][kBlock].
+void PhongPartials(const Config& cfg, const Maps& mp, const float* params, const float* lights, int64_t num_lights,
+                   const std::vector<Entry>& es, Block& k, int m, float* dcol, float* g, float* h,
+                   float (*c0)[kBlock]) {
   const float* front = params;
   const float* backm = params + kMat;
   const float* amb_light = params + 2 * kMat;
   const float* eye = amb_light + 3;
   const float* view_z = eye + 3;
-  const float* fog = view_z + 3;
+  const float amb_on = cfg.Flag(1) ? 1.0f : 0.0f, em_on = cfg.Flag(0) ? 1.0f : 0.0f;
+  for (int i = 0; i < mp.count; ++i) SampleMap(mp.map[i], k, m, k.tex[i]);
+  PixelMaterial(cfg, mp, front, backm, k, m);
+  Surface(cfg.Flag(5), eye, view_z, k, m);
+  for (int c = 0; c < 3; ++c) {
+    for (int q = 0; q < m; ++q) k.col[c][q] = 0.0f, k.base[c][q] = 0.0f;
+  }
+  for (int64_t i = 0; i < num_lights; ++i) {
+    AddLight(cfg, front, backm, lights + i * kLight, k, m);
+    LightPartials(cfg, mp, lights + i * kLight, i, es, m, k, dcol, g, h);
+  }
+  // the ambient and emission terms: k_a I_a and k_e, and the ambient light I_a
+  for (const Entry& e : es) {
+    const int64_t s = e.slot;
+    if (s < 2 * kMat && (s % kMat) < 6) {
+      const int field = static_cast<int>(s % kMat) / 3, c = static_cast<int>(s % kMat) % 3;
+      const float on = field == 0 ? em_on : amb_on * amb_light[c];
+      if (on == 0.0f) continue;
+      Side(mp, k, field, c, s >= kMat, m, h);
+      Accumulate(dcol + (int64_t{e.j} * 3 + c) * kBlock, e.w * on, h, m);
+    } else if (s >= 2 * kMat && s < 2 * kMat + 3 && amb_on != 0.0f) {
+      const int c = static_cast<int>(s - 2 * kMat);
+      Accumulate(dcol + (int64_t{e.j} * 3 + c) * kBlock, e.w, k.ka[c], m);
+    }
+  }
+  // the colour before the clamp, fog and gain (ShadeRange's sum), and the fog factor
+  for (int c = 0; c < 3; ++c) {
+    for (int q = 0; q < m; ++q) {
+      c0[c][q] = ((k.base[c][q] + (k.ka[c][q] * amb_light[c]) * amb_on) + k.ke[c][q] * em_on) + k.col[c][q];
+    }
+  }
+}
+
+// Gouraud: the interpolated colour (Points': the vertices' colours, lit and clamped in JAX) into
+// c0, and each direction's derivative of it, the corners' tangents (corners [K][2][V][3]: front,
+// back) interpolated with the same barycentrics, into dcol [K][3][kBlock].
+void CornerPartials(const int32_t* tri, int64_t num_verts, const float* corners, int64_t K, const Block& k, int m,
+                    float* dcol, float (*c0)[kBlock]) {
+  for (int q = 0; q < m; ++q) c0[0][q] = k.nx[q], c0[1][q] = k.ny[q], c0[2][q] = k.nz[q];
+  for (int q = 0; q < m; ++q) {
+    const int64_t t = k.face[q];
+    int64_t v[3];
+    for (int i = 0; i < 3; ++i) v[i] = std::min<int64_t>(std::max<int32_t>(tri[3 * t + i], 0), num_verts - 1);
+    const int64_t side = k.back[q] > 0 ? 1 : 0;
+    const float b0 = k.b0[q], b1 = k.b1[q], b2 = k.b2[q];
+    for (int64_t j = 0; j < K; ++j) {
+      const float* at = corners + (j * 2 + side) * num_verts * 3;
+      for (int c = 0; c < 3; ++c) {
+        dcol[(j * 3 + c) * kBlock + q] = (at[3 * v[0] + c] * b0 + at[3 * v[1] + c] * b1) + at[3 * v[2] + c] * b2;
+      }
+    }
+  }
+}
+
+// Pixels [p0, p1) of the partials out [K, n, 3] (entries: the nonzero directions' numbers).
+DIFFSHADE_CLONES void PartialsRange(const Config& cfg, const int32_t* ids, const float* xs, const float* ys, bool grid,
+                                     int64_t width, const float* faces, const float* params, const float* lights,
+                                     int64_t num_lights, const Maps& mp, const std::vector<Entry>& es, int64_t K,
+                                     const int32_t* tri, int64_t num_verts, const float* corners, int64_t n,
+                                     int64_t p0, int64_t p1, float* value, float* out) {
+  const float* eye = params + 2 * kMat + 3;
+  const float* fog = eye + 6;
   const float* background = fog + 6;
   const float* gain = background + 3;
   const int fog_mode = cfg.fog & 3;
   const bool fog_depth = (cfg.fog & 4) != 0;
-  const float amb_on = cfg.Flag(1) ? 1.0f : 0.0f, em_on = cfg.Flag(0) ? 1.0f : 0.0f;
   std::vector<float> empty(static_cast<size_t>(K * 3), 0.0f);  // an empty pixel's: background times gain
   for (const Entry& e : es) {
     const int64_t s = e.slot - (2 * kMat + 15);
@@ -916,37 +979,12 @@ DIFFSHADE_CLONES void PartialsRange(const Config& cfg, const int32_t* ids, const
         for (int64_t q = 0; q < r - p; ++q) o[3 * q] = e0, o[3 * q + 1] = e1, o[3 * q + 2] = e2;
       }
     };
-    const int m = Points(ids, xs, ys, grid, width, faces, cfg.Flag(4), false, mp, b0, b1, col, row, k, empty_run);
-    for (int i = 0; i < mp.count; ++i) SampleMap(mp.map[i], k, m, k.tex[i]);
-    PixelMaterial(cfg, mp, front, backm, k, m);
-    Surface(cfg.Flag(5), eye, view_z, k, m);
+    const int m = Points(ids, xs, ys, grid, width, faces, cfg.Flag(4), cfg.Flag(8), mp, b0, b1, col, row, k, empty_run);
     std::fill(dcol.begin(), dcol.end(), 0.0f);
-    for (int c = 0; c < 3; ++c) {
-      for (int q = 0; q < m; ++q) k.col[c][q] = 0.0f, k.base[c][q] = 0.0f;
-    }
-    for (int64_t i = 0; i < num_lights; ++i) {
-      AddLight(cfg, front, backm, lights + i * kLight, k, m);
-      LightPartials(cfg, mp, lights + i * kLight, i, es, m, k, dcol.data(), g, h);
-    }
-    // the ambient and emission terms: k_a I_a and k_e, and the ambient light I_a
-    for (const Entry& e : es) {
-      const int64_t s = e.slot;
-      if (s < 2 * kMat && (s % kMat) < 6) {
-        const int field = static_cast<int>(s % kMat) / 3, c = static_cast<int>(s % kMat) % 3;
-        const float on = field == 0 ? em_on : amb_on * amb_light[c];
-        if (on == 0.0f) continue;
-        Side(mp, k, field, c, s >= kMat, m, h);
-        Accumulate(dcol.data() + (int64_t{e.j} * 3 + c) * kBlock, e.w * on, h, m);
-      } else if (s >= 2 * kMat && s < 2 * kMat + 3 && amb_on != 0.0f) {
-        const int c = static_cast<int>(s - 2 * kMat);
-        Accumulate(dcol.data() + (int64_t{e.j} * 3 + c) * kBlock, e.w, k.ka[c], m);
-      }
-    }
-    // the colour before the clamp, fog and gain (ShadeRange's sum), and the fog factor
-    for (int c = 0; c < 3; ++c) {
-      for (int q = 0; q < m; ++q) {
-        c0[c][q] = ((k.base[c][q] + (k.ka[c][q] * amb_light[c]) * amb_on) + k.ke[c][q] * em_on) + k.col[c][q];
-      }
+    if (cfg.Flag(8)) {
+      CornerPartials(tri, num_verts, corners, K, k, m, dcol.data(), c0);
+    } else {
+      PhongPartials(cfg, mp, params, lights, num_lights, es, k, m, dcol.data(), g, h, c0);
     }
     std::fill(dfog.begin(), dfog.end(), 0.0f);
     float* __restrict f = k.fog;
@@ -1225,14 +1263,14 @@ ffi::Error ShadeImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Buffe
   return ffi::Error::Success();
 }
 
-// The Phong render [N, 3] (ShadeImpl's) and its partials [K, N, 3] along the K directions dirs
-// [K, kParams + L kLight].
+// The render [N, 3] (ShadeImpl's) and its partials [K, N, 3] along the K directions dirs
+// [K, kParams + L kLight] of its numbers, and (Gouraud) of its vertices' colours (corners).
 ffi::Error PartialsImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Buffer<ffi::F32> xs,
                         ffi::Buffer<ffi::F32> ys, ffi::Buffer<ffi::F32> clip, ffi::Buffer<ffi::S32> tri,
                         ffi::Buffer<ffi::F32> normals, ffi::Buffer<ffi::F32> points, ffi::Buffer<ffi::F32> back,
                         ffi::Buffer<ffi::F32> params, ffi::Buffer<ffi::F32> lights, ffi::Buffer<ffi::F32> uv,
                         ffi::Buffer<ffi::F32> texels, ffi::Buffer<ffi::S32> maps, ffi::Buffer<ffi::F32> parts,
-                        ffi::Buffer<ffi::F32> dirs, ffi::ResultBuffer<ffi::F32> value,
+                        ffi::Buffer<ffi::F32> dirs, ffi::Buffer<ffi::F32> corners, ffi::ResultBuffer<ffi::F32> value,
                         ffi::ResultBuffer<ffi::F32> out, int32_t specular,
                         int32_t fresnel, int32_t flags, int32_t fog, int32_t grid) {
   Scene sc;
@@ -1243,9 +1281,11 @@ ffi::Error PartialsImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Bu
   const Config cfg{specular, fresnel, flags, fog};
   const int64_t n = sc.n, row = kParams + sc.num_lights * kLight;
   const int64_t K = dirs.element_count() / row;
-  if (cfg.Flag(8) || K * row != dirs.element_count() || out->element_count() != K * n * 3 ||
-      value->element_count() != n * 3) {
-    return ffi::Error::InvalidArgument("diffshade_shade_partials: bad shapes (or Gouraud shading)");
+  const int64_t num_verts = clip.element_count() / 4;
+  const bool gouraud = cfg.Flag(8);
+  if (K * row != dirs.element_count() || out->element_count() != K * n * 3 || value->element_count() != n * 3 ||
+      corners.element_count() != (gouraud ? K * 2 * num_verts * 3 : 0) || (gouraud && sc.mp.any())) {
+    return ffi::Error::InvalidArgument("diffshade_shade_partials: bad shapes (or Gouraud shading with maps)");
   }
   std::vector<Entry> es;  // the directions' nonzero numbers
   const float* d = dirs.typed_data();
@@ -1253,7 +1293,8 @@ ffi::Error PartialsImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Bu
     for (int64_t slot = 0; slot < row; ++slot) {
       const float w = d[j * row + slot];
       if (w == 0.0f) continue;
-      if (!Supported(slot)) {
+      const bool pixel = slot >= 2 * kMat + 9 && slot < kParams;  // fog, background, gain
+      if (!Supported(slot) || (gouraud && !pixel)) {  // (Gouraud: the rest lit at the vertices: corners)
         return ffi::Error::InvalidArgument("diffshade_shade_partials: a direction moves a number it does not differentiate");
       }
       es.push_back(Entry{static_cast<int>(slot), static_cast<int>(j), w});
@@ -1262,8 +1303,8 @@ ffi::Error PartialsImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Bu
   const int64_t chunks = sc.nthreads * 4;
   diffshade::ParallelFor(pool, chunks, [&](int64_t k) {
     PartialsRange(cfg, ids.typed_data(), xs.typed_data(), ys.typed_data(), grid != 0, sc.width, sc.table,
-                  params.typed_data(), lights.typed_data(), sc.num_lights, sc.mp, es, K, n, n * k / chunks,
-                  n * (k + 1) / chunks, value->typed_data(), out->typed_data());
+                  params.typed_data(), lights.typed_data(), sc.num_lights, sc.mp, es, K, tri.typed_data(), num_verts,
+                  corners.typed_data(), n, n * k / chunks, n * (k + 1) / chunks, value->typed_data(), out->typed_data());
   });
   return ffi::Error::Success();
 }
@@ -1312,6 +1353,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(DiffshadeShadePartials, PartialsImpl,
                                   .Arg<ffi::Buffer<ffi::S32>>()  // the maps' description (Maps)
                                   .Arg<ffi::Buffer<ffi::F32>>()  // Gouraud: mapped parts [G, 2, V, 3]
                                   .Arg<ffi::Buffer<ffi::F32>>()  // directions [K, kParams + L kLight]
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // Gouraud: the corners' tangents [K, 2, V, 3]
                                   .Ret<ffi::Buffer<ffi::F32>>()  // the render [N, 3]
                                   .Ret<ffi::Buffer<ffi::F32>>()  // partials [K, N, 3]
                                   .Attr<int32_t>("specular")
