@@ -23,7 +23,8 @@ render's tangents along its shading numbers — the materials' colours and shini
 colours, ambient colours and attenuation, the ambient light, fog, background and gain — come
 from a second kernel instead: the render and its partials along every scalar of those leaves in
 one pass (csrc/shade.cc: PartialsRange, the derivatives in closed form from the quantities the
-render computes per light), contracted with the tangents by JAX (so transposable: a gradient
+render computes per light; in Gouraud shading, the tangents of the vertices' colours, lit in JAX,
+interpolated: every leaf of the materials and lights), contracted with the tangents by JAX (so transposable: a gradient
 works, but costs more than the stages' reverse mode, which is why it is not the default). The
 other leaves' tangents (geometry, camera pose, texels, the lights' positions and cones, the
 index of refraction) are the stages' either way. The kernel and the JAX stages agree to float32
