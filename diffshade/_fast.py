@@ -63,6 +63,7 @@ _MAX_PARTS = 4
 # csrc/shade.cc's kParams, and the first of them a pixel reads in Gouraud shading (the fog's: the
 # materials, ambient light and lights are lit at the vertices)
 _NUMBERS = 2 * 14 + 21
+_PARTIALS_BYTES = 1 << 28  # the partials' size at most (an image per scalar; beyond, the stages)
 _PIXEL_NUMBERS = 2 * 14 + 9
 
 
@@ -113,8 +114,9 @@ def applies(scene: Scene, opts: RenderOptions, pixels) -> bool:
 
 def shade(scene: Scene, ids, opts: RenderOptions, pixels, reference):
     """The image of ``scene`` at the visibility ``ids`` by the kernel, differentiated as
-    ``reference(scene, ids, opts, pixels)`` (the JAX stages): in Phong shading by the kernel's
-    partials along the scene's shading leaves (:func:`_partials`), the stages' jvp for the rest."""
+    ``reference(scene, ids, opts, pixels)`` (the JAX stages): within :func:`kernel_partials` by
+    the kernel's partials along the scene's shading leaves (:func:`_partials`), the stages' jvp
+    for the rest and outside it."""
     gouraud = opts.raster.shading == "gouraud"
     mapped = bool(_maps(scene, opts))
 
@@ -131,11 +133,15 @@ def shade(scene: Scene, ids, opts: RenderOptions, pixels, reference):
         leaves = [x for _, x in flat]
         dots = jax.tree.leaves(tangents, is_leaf=lambda t: isinstance(t, SymbolicZero))
         live = [k for k, t in enumerate(dots) if not isinstance(t, SymbolicZero)]
-        # Phong, within kernel_partials(): the leaves that reach the kernel through its numbers and
-        # lights only are differentiated by the kernel's partials; the others (geometry, camera,
-        # texels) by the stages
+        # Within kernel_partials(): the shading leaves (those that reach the kernel through its
+        # numbers, lights and, Gouraud, vertices' colours) are differentiated by the kernel's
+        # partials, one image per scalar (up to _PARTIALS_BYTES of them); the others (geometry,
+        # camera, texels) by the stages
         on = _PARTIALS.get() and not (gouraud and mapped)
         fast = [k for k in live if on and _shading_leaf(jax.tree_util.keystr(flat[k][0]), gouraud)]
+        pixels = int(np.prod(jnp.shape(primals[1])[1:]))
+        if 12 * pixels * sum(int(np.size(leaves[k])) for k in fast) > _PARTIALS_BYTES:
+            fast = []
         slow = [k for k in live if k not in fast]
 
         def with_leaves(ks, xs):

@@ -6,6 +6,7 @@ what it does not render falls back; vmap."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 
@@ -334,6 +335,29 @@ def test_kernel_partials_with_maps_and_other_leaves():
     )
     scene = dataclasses.replace(scene, point=light)
     _partials_against_stages(scene, opts, extra=("[0].mesh.vertices", "[0].point.position"))
+
+
+def test_kernel_partials_only_within_their_context(monkeypatch):
+    # outside ds.kernel_partials() a jvp is the stages' (whose transpose, a gradient, costs less);
+    # within it, beyond _PARTIALS_BYTES of partials too (one image per scalar)
+    scene, opts = make_scene("phong-point", "phong")
+    scene = _f32(scene)
+    ids = ds.scene_visibility(scene, opts)
+
+    def program(scene, get, ctx):
+        f = lambda x: ds.render(eqx.tree_at(get, scene, x), opts, ids=ids)  # noqa: E731
+        with ctx:
+            x = get(scene)
+            return str(jax.make_jaxpr(lambda x: jax.jvp(f, (x,), jax.tree.map(jnp.ones_like, (x,))))(x))
+
+    diffuse = lambda s: s.material.diffuse  # noqa: E731
+    assert "diffshade_shade_partials" not in program(scene, diffuse, contextlib.nullcontext())
+    assert "diffshade_shade_partials" in program(scene, diffuse, ds.kernel_partials())
+    pixels = int(np.prod(ids.shape[1:]))
+    monkeypatch.setattr(_fast, "_PARTIALS_BYTES", 12 * pixels * 3)  # three scalars' worth
+    assert "diffshade_shade_partials" in program(scene, diffuse, ds.kernel_partials())
+    both = lambda s: (s.material.diffuse, s.material.ambient)  # noqa: E731
+    assert "diffshade_shade_partials" not in program(scene, both, ds.kernel_partials())
 
 
 def test_kernel_partials_refuse_a_number_they_do_not_differentiate():
