@@ -339,6 +339,52 @@ def test_kernel_partials_with_maps_and_other_leaves():
     _partials_against_stages(scene, opts, extra=("[0].mesh.vertices", "[0].point.position"), grad=False)
 
 
+def test_kernel_partials_hard_cases_are_finite_and_agree():
+    # a light on the surface (at a vertex), attenuation coefficients all 0 (the floored
+    # denominator), a huge and a tiny shininess (x^m underflowing; m log x and m / x large where
+    # the specular base is small): finite, and as accurate as the stages in float32 against the
+    # stages in float64 (a tiny m amplifies either's rounding); one program for all four
+    scene, opts = make_scene("phong-point", "phong")
+    ids = ds.scene_visibility(scene, opts)
+    diff = lambda s: (s.material.diffuse, s.material.specular, s.material.shininess, s.point.attenuation, s.point.color)  # noqa: E731
+
+    def jvp(o, base):
+        def run(position, x, t):
+            sc = eqx.tree_at(lambda s: s.point.position, base, position)
+            return jax.jvp(lambda x: ds.render(eqx.tree_at(diff, sc, x), o, ids=ids), (x,), (t,))[1]
+
+        return jax.jit(run)
+
+    f32 = _f32(scene)
+    kernel, stages, exact = jvp(opts, f32), jvp(_jax(opts), f32), jvp(_jax(opts), scene)
+    kd, ks, m, att, color = diff(f32)
+    pos = f32.point.position
+    vertex = jnp.asarray(f32.mesh.vertices[0])[None]
+    cases = [  # (the light's position, the differentiated numbers)
+        (vertex, (kd, ks, m, att, color)),
+        (pos, (kd, ks, m, jnp.zeros_like(att), color)),
+        (pos, (kd, ks, jnp.float32(1e4), att, color)),
+        (pos, (kd, ks, jnp.float32(1e-3), att, color)),
+    ]
+    for i, (position, x) in enumerate(cases):
+        t = jax.tree.map(lambda a: jnp.ones_like(a) * 0.5, x)
+        with ds.kernel_partials():
+            assert "diffshade_shade_partials" in str(jax.make_jaxpr(kernel)(position, x, t))
+            a = np.asarray(kernel(position, x, t))
+        b = np.asarray(stages(position, x, t))
+        assert np.all(np.isfinite(a))
+        if i == 1:  # (the floor of the attenuation's denominator is float32's: against the stages')
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6 * float(np.abs(b).max()))
+            continue
+        ref = np.asarray(exact(*jax.tree.map(lambda v: jnp.asarray(v, jnp.float64), (position, x, t))))
+        floor = 1e-6 * float(np.abs(ref).max())
+        assert np.abs(a - ref).max() <= 4 * np.abs(b - ref).max() + floor, (
+            i,
+            np.abs(a - ref).max(),
+            np.abs(b - ref).max(),
+        )
+
+
 def test_kernel_partials_only_within_their_context(monkeypatch):
     # outside ds.kernel_partials() a jvp is the stages' (whose transpose, a gradient, costs less);
     # within it, beyond _PARTIALS_BYTES of partials too (one image per scalar)
