@@ -4,9 +4,10 @@
 // terms, clamp, fog, background and the camera's gain) in one pass over the pixels; or, for
 // Gouraud shading, the vertices' colours (lit by the JAX stages) interpolated, fogged and
 // clamped; with texture maps of the material's colours (and, Phong, its shininess), sampled as
-// diffshade/_texture.py samples them. The pure-JAX stages stay the reference and the differentiated path:
-// diffshade/_fast.py calls this kernel for a render's value only, and its tests hold the two
-// equal to float32 rounding.
+// diffshade/_texture.py samples them. The pure-JAX stages stay the reference and, by default,
+// the differentiated path: diffshade/_fast.py calls this kernel for a render's value, and (within
+// ds.kernel_partials) the second one below for the value and its partials along the shading
+// numbers; its tests hold both equal to the stages to float32 rounding.
 //
 // The formulas follow diffshade/_shade.py term by term, with the same guards (double-where
 // cases: a zero normal, a light on the surface, 0^m, an empty pixel).
@@ -735,14 +736,15 @@ DIFFSHADE_CLONES void ShadeRange(const Config& cfg, const int32_t* ids, const fl
 }
 
 // ---------------------------------------------------------------------------------------------
-// Forward-mode partials (diffshade/_fast.py: the kernel's jvp rule): the derivatives of the Phong
+// Forward-mode partials (diffshade/_fast.py: the kernel's jvp rule): the derivatives of the
 // render along K directions of the scene's numbers and lights (dirs [K, kParams + L kLight]),
 // for the numbers the render is linear or nearly so in: the materials' colours and shininess,
 // the lights' colours, ambient colours and attenuation, the ambient light, the fog, background
-// and gain (Supported; the others are the stages'). The render's own quantities per light (its
-// attenuation, n.l, specular term: AddLight's) are computed as for the value, and each
+// and gain (Supported; the others are the stages'). Phong: the render's own quantities per light
+// (its attenuation, n.l, specular term: AddLight's) are computed as for the value, and each
 // direction's derivative is accumulated from them in closed form, one loop over the block's
-// pixels per nonzero (number, direction) pair.
+// pixels per nonzero (number, direction) pair. Gouraud: the vertices' colours' tangents
+// (corners, from JAX) interpolated. Then both through the clamp, fog and gain.
 
 struct Entry {
   int slot, j;  // the number (index into params, then lights) and the direction
