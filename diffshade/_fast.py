@@ -72,9 +72,9 @@ _PARTIALS = contextvars.ContextVar("diffshade_kernel_partials", default=False)
 
 @contextlib.contextmanager
 def kernel_partials():
-    """Within (at trace time), a differentiated Phong render takes its tangents along the scene's
-    shading numbers (:func:`_shading_leaf`) from the kernel's partials, with its value: forward
-    mode, several tangents at once (a fit's Jacobian) costs a fraction of the stages' jvp.
+    """Within (at trace time), a render the kernel differentiates takes its tangents along the
+    scene's shading numbers (:func:`_shading_leaf`) from the kernel's partials, with its value:
+    forward mode, several tangents at once (a fit's Jacobian) costs a fraction of the stages' jvp.
     Outside, the stages' jvp, whose transpose (reverse mode, a gradient) costs less than
     transposing the partials. Tangents agree to float32 rounding either way."""
     token = _PARTIALS.set(True)
@@ -150,13 +150,17 @@ def shade(scene: Scene, ids, opts: RenderOptions, pixels, reference):
                 full[k] = x
             return jax.tree.unflatten(tree, full)
 
+        def render(args):  # the stages' image of (scene, ids, pixels)
+            scene, ids, pixels = args
+            return reference(scene, ids, opts, pixels)
+
         out, tangent = None, None
         if fast:  # (the kernel's value with them: the forward render's, operation for operation)
-            out, part = _partials(with_leaves, leaves, fast, opts, reference)
+            out, part = _partials(with_leaves, leaves, fast, opts, render)
             d = jnp.concatenate([jnp.asarray(dots[k], jnp.float32).reshape(-1) for k in fast])
             tangent = jnp.tensordot(d, part, 1)
         if slow:
-            stages = lambda *xs: reference(*with_leaves(slow, xs)[:2], opts, with_leaves(slow, xs)[2])  # noqa: E731
+            stages = lambda *xs: render(with_leaves(slow, xs))  # noqa: E731
             _, t = jax.jvp(stages, tuple(leaves[k] for k in slow), tuple(dots[k] for k in slow))
             tangent = t if tangent is None else tangent + t
         # The value is the kernel's here too: a fit compares the costs of renders with and
@@ -189,12 +193,12 @@ def _shading_leaf(path: str, gouraud: bool = False) -> bool:
     return head == "[0].fog" or path in _SCENE_FIELDS
 
 
-def _partials(with_leaves, leaves, fast, opts, reference):
+def _partials(with_leaves, leaves, fast, opts, render):
     """The render and its derivatives along every scalar of the leaves ``fast`` (indices into
     ``leaves``, the flattened ``(scene, ids, pixels)``): ``[n, *image]``, by the kernel
     (csrc/shade.cc: PartialsRange) along the directions the scalars move its numbers and lights
     in (their Jacobian, a few dozen floats each, by JAX). Its own derivative (a second
-    derivative) is the stages'."""
+    derivative) is the stages' (``render``: their image of ``(scene, ids, pixels)``)."""
     x0, unravel = ravel_pytree(tuple(leaves[k] for k in fast))
     others = [k for k in range(len(leaves)) if k not in fast]
 
@@ -217,7 +221,7 @@ def _partials(with_leaves, leaves, fast, opts, reference):
         return _kernel(s, ids, opts, pixels, dirs, corners)
 
     def by_stages(x, rest):
-        image = lambda y: reference(*unpack(y, rest)[:2], opts, unpack(y, rest)[2])  # noqa: E731
+        image = lambda y: render(unpack(y, rest))  # noqa: E731
         return image(x), jnp.moveaxis(jax.jacfwd(image)(x), -1, 0)
 
     by_kernel.defjvp(lambda p, t: jax.jvp(by_stages, p, t))

@@ -19,6 +19,7 @@
 #include <limits>
 #include <string>
 #include <thread>
+#include <utility>
 #include <vector>
 
 #include "parallel.h"
@@ -634,6 +635,28 @@ __attribute__((always_inline)) inline void Surface(bool infinite, const float* e
   }
 }
 
+// The fog's factor at the block's m pixels (ShadeRange's and the partials'): the distance (the
+// eye-space depth, or to the eye) into dist, then the factor into f (f may be dist).
+inline void FogFactor(int mode, bool depth, const float* fog, const float* eye, const Block& k, int m,
+                      float* dist, float* f) {
+  for (int q = 0; q < m; ++q) {
+    const float dx = k.px[q] - eye[0], dy = k.py[q] - eye[1], dz = k.pz[q] - eye[2];
+    dist[q] = depth ? k.w[q] : std::sqrt(dx * dx + dy * dy + dz * dz);
+  }
+  if (mode == 1) {
+    const float den = fog[4] - fog[3];
+    for (int q = 0; q < m; ++q) {
+      const float d = dist[q];
+      f[q] = den > 0 ? Clip01((fog[4] - d) / den) : (d <= fog[4] ? 1.0f : 0.0f);
+    }
+  } else {
+    for (int q = 0; q < m; ++q) {
+      const float r = fog[5] * dist[q];
+      f[q] = Exp(mode == 2 ? -r : -(r * r));
+    }
+  }
+}
+
 DIFFSHADE_CLONES void ShadeRange(const Config& cfg, const int32_t* ids, const float* xs, const float* ys, bool grid,
                                   int64_t width, const float* faces, const float* params, const float* lights,
                                   int64_t num_lights, const Maps& mp, int64_t p0, int64_t p1, float* out) {
@@ -682,25 +705,7 @@ DIFFSHADE_CLONES void ShadeRange(const Config& cfg, const int32_t* ids, const fl
       }
       for (int64_t i = 0; i < num_lights; ++i) AddLight(cfg, front, backm, lights + i * kLight, k, m);
     }
-    if (fog_mode != 0) {
-      float* __restrict f = k.fog;
-      for (int q = 0; q < m; ++q) {
-        const float dx = k.px[q] - eye[0], dy = k.py[q] - eye[1], dz = k.pz[q] - eye[2];
-        f[q] = fog_depth ? k.w[q] : std::sqrt(dx * dx + dy * dy + dz * dz);
-      }
-      if (fog_mode == 1) {
-        const float den = fog[4] - fog[3];
-        for (int q = 0; q < m; ++q) {
-          const float d = f[q];
-          f[q] = den > 0 ? Clip01((fog[4] - d) / den) : (d <= fog[4] ? 1.0f : 0.0f);
-        }
-      } else {
-        for (int q = 0; q < m; ++q) {
-          const float r = fog[5] * f[q];
-          f[q] = Exp(fog_mode == 2 ? -r : -(r * r));
-        }
-      }
-    }
+    if (fog_mode != 0) FogFactor(fog_mode, fog_depth, fog, eye, k, m, k.fog, k.fog);
     const float amb_on = ambient ? 1.0f : 0.0f, em_on = emission ? 1.0f : 0.0f;
     for (int c = 0; c < 3; ++c) {
       const float ia = amb_light[c];
@@ -992,21 +997,8 @@ DIFFSHADE_CLONES void PartialsRange(const Config& cfg, const int32_t* ids, const
     float* __restrict f = k.fog;
     for (int q = 0; q < m; ++q) f[q] = 1.0f;
     if (fog_mode != 0) {
-      for (int q = 0; q < m; ++q) {
-        const float dx = k.px[q] - eye[0], dy = k.py[q] - eye[1], dz = k.pz[q] - eye[2];
-        h[q] = fog_depth ? k.w[q] : std::sqrt(dx * dx + dy * dy + dz * dz);  // the fog's distance
-      }
+      FogFactor(fog_mode, fog_depth, fog, eye, k, m, h, f);  // (h: the fog's distance)
       const float start = fog[3], end = fog[4], rho = fog[5], den = end - start;
-      for (int q = 0; q < m; ++q) {
-        const float d = h[q];
-        if (fog_mode == 1) {
-          const float t = den > 0 ? (end - d) / den : 0.0f;
-          f[q] = den > 0 ? Clip01(t) : (d <= end ? 1.0f : 0.0f);
-        } else {
-          const float r = rho * d;
-          f[q] = Exp(fog_mode == 2 ? -r : -(r * r));
-        }
-      }
       for (const Entry& e : es) {  // d f / d (start, end, density)
         const int64_t s = e.slot - (2 * kMat + 12);
         if (s < 0 || s >= 3) continue;
@@ -1313,53 +1305,47 @@ ffi::Error PartialsImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Bu
 
 }  // namespace
 
+namespace {
+
+// The inputs both kernels take (Prepare's), in their order.
+auto SceneInputs() {
+  return ffi::Ffi::Bind()
+      .Ctx<ffi::ThreadPool>()
+      .Arg<ffi::Buffer<ffi::S32>>()   // ids [N]
+      .Arg<ffi::Buffer<ffi::F32>>()   // xs [W] (grid) or [N]
+      .Arg<ffi::Buffer<ffi::F32>>()   // ys [H] (grid) or [N]
+      .Arg<ffi::Buffer<ffi::F32>>()   // clip-space vertices [V, 4]
+      .Arg<ffi::Buffer<ffi::S32>>()   // faces [F, 3]
+      .Arg<ffi::Buffer<ffi::F32>>()   // vertex normals [V, 3]
+      .Arg<ffi::Buffer<ffi::F32>>()   // vertex positions [V, 3]
+      .Arg<ffi::Buffer<ffi::F32>>()   // Gouraud: back colours [V, 3]
+      .Arg<ffi::Buffer<ffi::F32>>()   // params [kParams]
+      .Arg<ffi::Buffer<ffi::F32>>()   // lights [L, kLight]
+      .Arg<ffi::Buffer<ffi::F32>>()   // texture coordinates [V, 2] (or none)
+      .Arg<ffi::Buffer<ffi::F32>>()   // the maps' texels, one after the other
+      .Arg<ffi::Buffer<ffi::S32>>()   // the maps' description (Maps)
+      .Arg<ffi::Buffer<ffi::F32>>();  // Gouraud: mapped parts [G, 2, V, 3]
+}
+
+// The static configuration both kernels take (Config's, and whether the pixels are a grid), last.
+template <class Binding>
+auto Switches(Binding&& b) {
+  return std::forward<Binding>(b)
+      .template Attr<int32_t>("specular")
+      .template Attr<int32_t>("fresnel")
+      .template Attr<int32_t>("flags")
+      .template Attr<int32_t>("fog")
+      .template Attr<int32_t>("grid");
+}
+
+}  // namespace
+
 XLA_FFI_DEFINE_HANDLER_SYMBOL(DiffshadeShade, ShadeImpl,
-                              ffi::Ffi::Bind()
-                                  .Ctx<ffi::ThreadPool>()
-                                  .Arg<ffi::Buffer<ffi::S32>>()  // ids [N]
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // xs [W] (grid) or [N]
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // ys [H] (grid) or [N]
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // clip-space vertices [V, 4]
-                                  .Arg<ffi::Buffer<ffi::S32>>()  // faces [F, 3]
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // vertex normals [V, 3]
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // vertex positions [V, 3]
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // Gouraud: back colours [V, 3]
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // params [kParams]
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // lights [L, kLight]
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // texture coordinates [V, 2] (or none)
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // the maps' texels, one after the other
-                                  .Arg<ffi::Buffer<ffi::S32>>()  // the maps' description (Maps)
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // Gouraud: mapped parts [G, 2, V, 3]
-                                  .Ret<ffi::Buffer<ffi::F32>>()  // out [N, 3]
-                                  .Attr<int32_t>("specular")
-                                  .Attr<int32_t>("fresnel")
-                                  .Attr<int32_t>("flags")
-                                  .Attr<int32_t>("fog")
-                                  .Attr<int32_t>("grid"));
+                              Switches(SceneInputs().Ret<ffi::Buffer<ffi::F32>>()));  // out [N, 3]
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(DiffshadeShadePartials, PartialsImpl,
-                              ffi::Ffi::Bind()
-                                  .Ctx<ffi::ThreadPool>()
-                                  .Arg<ffi::Buffer<ffi::S32>>()  // ids [N]
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // xs [W] (grid) or [N]
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // ys [H] (grid) or [N]
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // clip-space vertices [V, 4]
-                                  .Arg<ffi::Buffer<ffi::S32>>()  // faces [F, 3]
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // vertex normals [V, 3]
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // vertex positions [V, 3]
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // Gouraud: back colours [V, 3]
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // params [kParams]
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // lights [L, kLight]
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // texture coordinates [V, 2] (or none)
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // the maps' texels, one after the other
-                                  .Arg<ffi::Buffer<ffi::S32>>()  // the maps' description (Maps)
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // Gouraud: mapped parts [G, 2, V, 3]
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // directions [K, kParams + L kLight]
-                                  .Arg<ffi::Buffer<ffi::F32>>()  // Gouraud: the corners' tangents [K, 2, V, 3]
-                                  .Ret<ffi::Buffer<ffi::F32>>()  // the render [N, 3]
-                                  .Ret<ffi::Buffer<ffi::F32>>()  // partials [K, N, 3]
-                                  .Attr<int32_t>("specular")
-                                  .Attr<int32_t>("fresnel")
-                                  .Attr<int32_t>("flags")
-                                  .Attr<int32_t>("fog")
-                                  .Attr<int32_t>("grid"));
+                              Switches(SceneInputs()
+                                           .Arg<ffi::Buffer<ffi::F32>>()    // directions [K, kParams + L kLight]
+                                           .Arg<ffi::Buffer<ffi::F32>>()    // Gouraud: corners' tangents [K, 2, V, 3]
+                                           .Ret<ffi::Buffer<ffi::F32>>()    // the render [N, 3]
+                                           .Ret<ffi::Buffer<ffi::F32>>()));  // partials [K, N, 3]
