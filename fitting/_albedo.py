@@ -54,7 +54,7 @@ from ._report import (
     uncertainty,
     verdict,
 )
-from ._sparse import factorise, in_threads
+from ._sparse import Orderings, factorise, in_threads
 
 
 def vertex_colouring(faces: np.ndarray, n_vertices: int) -> np.ndarray:
@@ -121,6 +121,7 @@ class AlbedoProblem:
         E[self.n_col + np.arange(len(self.other)), self.other] = 1.0
         self.E = E
         self._fn = None
+        self.orders = Orderings()
 
     # -- the compiled evaluation ----------------------------------------------------------------
     def _compile(self, theta):
@@ -230,12 +231,12 @@ class _Face:
     per changed scalar (:math:`e_k`, :math:`M_{Bj}`), kept across steps: a face that differs from
     the base by a few scalars costs a solve, not a factorisation."""
 
-    def __init__(self, sp, M, free):
+    def __init__(self, sp, M, free, order=None):
         self.M, self.base, self.cols, self.stacks = M, np.flatnonzero(free), {}, {}
         self.in_base = free.copy()
         Mb = M[self.base][:, self.base]
         self.d = 1 / np.sqrt(np.maximum(Mb.diagonal(), 1e-300))
-        self.lu = factorise((sp.diags(self.d) @ Mb @ sp.diags(self.d)).tocsc())
+        self.lu = factorise((sp.diags(self.d) @ Mb @ sp.diags(self.d)).tocsc(), order)
 
     def _inv(self, r):
         d = self.d if r.ndim == 1 else self.d[:, None]
@@ -298,7 +299,7 @@ class _Faces:
     :data:`BLOCK` scalars share one), each on the block's own matrix: a block is factorised anew
     only where its own face moved."""
 
-    def __init__(self, sp, G, rho, seen):
+    def __init__(self, sp, G, rho, seen, orders: Orderings):
         from scipy.sparse.csgraph import connected_components
 
         idx = np.flatnonzero(seen)
@@ -308,7 +309,7 @@ class _Faces:
         comp = np.where(sizes[comp] >= BLOCK, comp, -1)
         self.groups = [idx[comp == k] for k in np.unique(comp)]
         self.blocks = [M[comp == k][:, comp == k].tocsc() for k in np.unique(comp)]
-        self.sp, self.faces = sp, [None] * len(self.groups)
+        self.sp, self.orders, self.faces = sp, orders, [None] * len(self.groups)
 
     def step(self, r, free):
         """``s`` with ``M_FF s_F = r_F`` on the free scalars ``F``, zero elsewhere (``r``: a vector,
@@ -319,7 +320,10 @@ class _Faces:
             for k, g in enumerate(self.groups)
             if free[g].any() and not (self.faces[k] is not None and self.faces[k].covers(free[g]))
         ]
-        for k, face in zip(new, in_threads(lambda k: _Face(self.sp, self.blocks[k], free[self.groups[k]]), new)):
+        order = {k: self.orders.of(self.blocks[k], free[self.groups[k]]) for k in new}
+        for k, face in zip(
+            new, in_threads(lambda k: _Face(self.sp, self.blocks[k], free[self.groups[k]], order[k]), new)
+        ):
             self.faces[k] = face
         for k, g in enumerate(self.groups):
             if free[g].any():
@@ -415,7 +419,7 @@ class _AlbedoSolver:
         info = np.maximum(dg, dg[seen].mean() if n_seen else 0.0)
         dof = max(int(np.count_nonzero(np.diff(A.tocsr().indptr))) - n_seen, 1)
         rho = RIDGE * info
-        face, start = _Faces(self.ap.sp, G, rho, seen), x.copy()
+        face, start = _Faces(self.ap.sp, G, rho, seen, self.ap.orders), x.copy()
         x, face = self._newton(x, x.copy(), A, b, seen, rho, face, steps=1)
         rounds = 1  # with the present ridge
         cost = self.data(x, A, b)
@@ -424,7 +428,7 @@ class _AlbedoSolver:
         noisy = n_seen >= BLOCK and on_bound > max(CAPACITY, NOISY * n_seen)
         if noisy:
             rho, rounds = np.maximum(rho, s2), 0
-            face = _Faces(self.ap.sp, G, rho, seen)
+            face = _Faces(self.ap.sp, G, rho, seen, self.ap.orders)
             x, cost = start, self.data(start, A, b)  # the step the noise threw is not a start
         self.unsettled = None
         for _ in range(PROXIMAL_ROUNDS):
@@ -436,7 +440,7 @@ class _AlbedoSolver:
                 break
             tight = np.maximum(TIGHT * info, s2 if noisy else 0.0)
             if np.any(rho > 10 * tight):  # a new factorisation pays for itself
-                rho, face, rounds = tight, _Faces(self.ap.sp, G, tight, seen), 0
+                rho, face, rounds = tight, _Faces(self.ap.sp, G, tight, seen, self.ap.orders), 0
         else:  # the last round still lowered the cost: what share of it
             self.unsettled = (last - cost) / max(last, 1e-300)
         g = self.grad(x, A, b)

@@ -38,7 +38,7 @@ from . import _options
 from ._cache import compiled
 from ._params import LINEAR_MAPS, is_map
 from ._problem import FitError, Problem, tangent_images
-from ._sparse import factorise, in_threads
+from ._sparse import Orderings, factorise, in_threads
 
 PROBE_DISTANCE = 8  # texels between the texels of one probing class
 DENSE_LIMIT = 3000  # a connected block up to this many scalars is inverted exactly
@@ -85,6 +85,7 @@ class MapProblem:
         E[len(self.maps) + np.arange(len(self.other)), self.other] = 1.0
         self.E = E
         self._fn = None
+        self.orders = Orderings()
 
     # -- the compiled evaluation ----------------------------------------------------------------
     def _view(self, vd, th, E):
@@ -218,7 +219,8 @@ class MapProblem:
         cls = ((g[:, 0] * d + g[:, 1] % d) * d + g[:, 2] % d) * 4 + g[:, 3]  # a block may hold several channels
         big = list(zip(cuts[:-1][sizes > DENSE_LIMIT], cuts[1:][sizes > DENSE_LIMIT]))
         ridged = [(Gs[a:b, a:b] + self.sp.identity(b - a) * INVERSE_RIDGE).tocsc() for a, b in big]
-        for (a, b), lu in zip(big, in_threads(factorise, ridged)):
+        orders = [self.orders.of(M) for (a, b), M in zip(big, ridged)]
+        for (a, b), lu in zip(big, in_threads(lambda k: factorise(ridged[k], orders[k]), range(len(big)))):
             inv[a:b] = _probed_inverse_diagonal(lu, np.unique(cls[a:b], return_inverse=True)[1])
         out = np.zeros(G.shape[0])
         out[order] = inv

@@ -1,18 +1,106 @@
 """Sparse factorisations of the linear blocks' normal matrices (:mod:`fitting._albedo`,
-:mod:`fitting._maps`): SuperLU in its symmetric mode, several blocks at once in threads."""
+:mod:`fitting._maps`): SuperLU in its symmetric mode, several blocks at once in threads.
+
+**The ordering.** A block of :data:`ORDERED` scalars or more (a channel of a texture map: the
+graph of a 2-D grid) is factorised in METIS's nested-dissection ordering (PyMETIS), computed once
+per sparsity pattern and kept (:class:`Orderings`): a face of the box, a later round or the standard errors
+restrict the same ordering to their scalars. Against SuperLU's own minimum-degree ordering on a
+55k-scalar channel of a 256² map: the factors 3.9M against 4.5M non-zeros, the factorisation
+0.25 s against 0.49 s (its separators make wider supernodes). Smaller blocks keep SuperLU's
+ordering: METIS's time is not repaid there.
+"""
 
 from __future__ import annotations
 
+import hashlib
 import os
 from concurrent.futures import ThreadPoolExecutor
 
+import numpy as np
 
-def factorise(M):
-    """SuperLU of a symmetric positive definite ``M`` (CSC) in its symmetric mode: no pivoting,
-    an ordering of :math:`M + M^T`."""
-    from scipy.sparse.linalg import splu
+ORDERED = 10000  # scalars from which a block is factorised in METIS's nested-dissection ordering
 
-    return splu(M, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+
+def _graph(M):
+    """The graph of the symmetric ``M``: its off-diagonal pattern (CSR, sorted indices)."""
+    import scipy.sparse as sp
+
+    coo = M.tocoo()
+    off = (coo.row != coo.col) & (coo.data != 0)
+    graph = sp.csr_matrix((np.ones(int(off.sum()), np.int8), (coo.row[off], coo.col[off])), shape=M.shape)
+    graph.sort_indices()
+    return graph
+
+
+def nested_dissection(graph) -> np.ndarray:
+    """METIS's nested-dissection ordering of ``graph`` (CSR, symmetric, no diagonal): a
+    permutation of its vertices."""
+    import pymetis
+
+    dtype = pymetis.zero_copy_dtype()
+    adjacency = pymetis.CSRAdjacency(adj_starts=graph.indptr.astype(dtype), adjacent=graph.indices.astype(dtype))
+    perm, _ = pymetis.nested_dissection(adjacency)
+    return np.asarray(perm, np.int64)
+
+
+def restrict(order: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """The ordering ``order`` of a block restricted to the scalars ``keep`` (a mask over the
+    block): a permutation of ``flatnonzero(keep)``'s positions, in the order ``order`` visits them."""
+    position = np.cumsum(keep) - 1
+    return position[order[keep[order]]]
+
+
+class Orderings:
+    """The nested-dissection orderings of a fit's blocks, computed once per sparsity pattern (the
+    three channels of a map or of vertex colours share one where the same pixels see them) and
+    restricted to a subset of a block where asked."""
+
+    def __init__(self):
+        self._orders: dict[bytes, np.ndarray] = {}
+
+    def of(self, M, keep=None) -> np.ndarray | None:
+        """The ordering of the block ``M`` (symmetric), restricted to the mask ``keep``; ``None``
+        below :data:`ORDERED` scalars."""
+        n = M.shape[0] if keep is None else int(np.count_nonzero(keep))
+        if n < ORDERED:
+            return None
+        graph = _graph(M)
+        key = hashlib.blake2b(
+            graph.indptr.astype(np.int64).tobytes() + graph.indices.astype(np.int64).tobytes()
+        ).digest()
+        if key not in self._orders:
+            self._orders[key] = nested_dissection(graph)
+        order = self._orders[key]
+        return order if keep is None else restrict(order, np.asarray(keep, bool))
+
+
+class Factor:
+    """:math:`M^{-1}` of a symmetric positive definite ``M`` (CSC) through SuperLU in its symmetric
+    mode (no pivoting): in the given ordering (a permutation of ``M``'s rows), or in SuperLU's
+    minimum-degree ordering of :math:`M + M^T` where none is given."""
+
+    def __init__(self, M, order: np.ndarray | None = None):
+        from scipy.sparse.linalg import splu
+
+        self.order = order
+        if order is None:
+            spec = "MMD_AT_PLUS_A"
+        else:
+            M, spec = M[order][:, order].tocsc(), "NATURAL"
+        self.lu = splu(M, permc_spec=spec, diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """``M⁻¹ b`` (a vector, or a matrix of columns)."""
+        if self.order is None:
+            return self.lu.solve(b)
+        x = np.empty_like(b, dtype=np.float64)
+        x[self.order] = self.lu.solve(np.asfortranarray(b[self.order], np.float64))
+        return x
+
+
+def factorise(M, order: np.ndarray | None = None) -> Factor:
+    """:class:`Factor` of ``M`` (CSC), in ``order`` where given."""
+    return Factor(M, order)
 
 
 def in_threads(fn, items) -> list:

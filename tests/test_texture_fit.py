@@ -15,6 +15,7 @@ import diffshade as ds
 import fitting
 from fitting._maps import MapProblem
 from fitting._problem import FitError, Problem
+from fitting._sparse import Orderings
 
 
 @pytest.mark.parametrize("filt", ["trilinear", "bilinear"])
@@ -182,9 +183,40 @@ def test_the_inverse_diagonal_of_small_and_probed_blocks():
     i = np.arange(G.shape[0])
     chain = np.concatenate([np.zeros(26, int), np.arange(3500)])[perm]  # a texel's place along its block
     grid = np.stack([np.zeros_like(i), chain // 64, chain % 64, np.zeros_like(i)], -1)
-    fake = types.SimpleNamespace(sp=sp, _grid=lambda: grid)
+    fake = types.SimpleNamespace(sp=sp, _grid=lambda: grid, orders=Orderings())
     got = MapProblem.inverse_diagonal(fake, G, i)
     np.testing.assert_allclose(got, exact, rtol=1e-7)
+
+
+def test_the_nested_dissection_ordering_solves_as_superlus_own():
+    """A block past ORDERED scalars (a 2-D grid's normal matrix, as a map's channel) factorised in
+    METIS's ordering, and in that ordering restricted to a random face, solves as SuperLU in its
+    own ordering; two blocks of one pattern share one ordering; the ordering has fewer non-zeros
+    in its factors (the reason it is used)."""
+    from fitting import _sparse
+
+    n = 110  # 12,100 scalars
+    rng = np.random.default_rng(2)
+    T = sp.diags([-0.3, 1.0, -0.3], [-1, 0, 1], (n, n))
+    M = (sp.kron(T, T) + sp.diags(rng.uniform(0.01, 0.1, n * n))).tocsc()  # a 9-point stencil on the grid
+    assert M.shape[0] >= _sparse.ORDERED
+    orders = Orderings()
+    order = orders.of(M)
+    assert sorted(order) == list(range(n * n))
+    assert orders.of((2 * M).tocsc()) is order  # the same pattern: the same ordering
+    b = rng.normal(size=(n * n, 3))
+    own, ours = _sparse.Factor(M), _sparse.Factor(M, order)
+    np.testing.assert_allclose(ours.solve(b), own.solve(b), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(M @ ours.solve(b[:, 0]), b[:, 0], atol=1e-9)
+    assert ours.lu.L.nnz + ours.lu.U.nnz < own.lu.L.nnz + own.lu.U.nnz
+    keep = rng.uniform(size=n * n) < 0.9
+    sub = M[keep][:, keep].tocsc()
+    np.testing.assert_allclose(
+        _sparse.Factor(sub, orders.of(M, keep)).solve(b[keep]),
+        _sparse.Factor(sub).solve(b[keep]),
+        rtol=1e-9,
+        atol=1e-12,
+    )
 
 
 def test_the_bounded_solve_is_the_bounded_least_squares_optimum():
@@ -199,7 +231,7 @@ def test_the_bounded_solve_is_the_bounded_least_squares_optimum():
         A = sp.random(300, 80, density=0.05, random_state=rng, format="csr") + sp.eye(300, 80, format="csr")
         y = A @ rng.uniform(-0.5, 1.5, 80) + rng.normal(0, 0.05, 300)
         solver = _AlbedoSolver.__new__(_AlbedoSolver)
-        solver.ap, solver.Lp, solver.y, solver._gram = types.SimpleNamespace(sp=sp), None, y, None
+        solver.ap, solver.Lp, solver.y, solver._gram = types.SimpleNamespace(sp=sp, orders=Orderings()), None, y, None
         seen = np.ones(80, bool)
         x, free, _ = solver.bounded(np.full(80, 0.5), A, np.zeros(300), seen)
         ref = lsq_linear(A.toarray(), y, bounds=(0, 1), method="bvls", tol=1e-14).x
