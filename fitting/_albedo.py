@@ -54,7 +54,7 @@ from ._report import (
     uncertainty,
     verdict,
 )
-from ._sparse import Orderings, factorise, in_threads
+from ._sparse import Orderings, factorise, in_threads, restrict
 
 
 def vertex_colouring(faces: np.ndarray, n_vertices: int) -> np.ndarray:
@@ -309,7 +309,8 @@ class _Faces:
         comp = np.where(sizes[comp] >= BLOCK, comp, -1)
         self.groups = [idx[comp == k] for k in np.unique(comp)]
         self.blocks = [M[comp == k][:, comp == k].tocsc() for k in np.unique(comp)]
-        self.sp, self.orders, self.faces = sp, orders, [None] * len(self.groups)
+        self.orders = [orders.of(B) for B in self.blocks]  # METIS's, for the large blocks (fitting._sparse)
+        self.sp, self.faces = sp, [None] * len(self.groups)
 
     def step(self, r, free):
         """``s`` with ``M_FF s_F = r_F`` on the free scalars ``F``, zero elsewhere (``r``: a vector,
@@ -320,7 +321,7 @@ class _Faces:
             for k, g in enumerate(self.groups)
             if free[g].any() and not (self.faces[k] is not None and self.faces[k].covers(free[g]))
         ]
-        order = {k: self.orders.of(self.blocks[k], free[self.groups[k]]) for k in new}
+        order = {k: None if self.orders[k] is None else restrict(self.orders[k], free[self.groups[k]]) for k in new}
         for k, face in zip(
             new, in_threads(lambda k: _Face(self.sp, self.blocks[k], free[self.groups[k]], order[k]), new)
         ):

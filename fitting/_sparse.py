@@ -52,17 +52,14 @@ def restrict(order: np.ndarray, keep: np.ndarray) -> np.ndarray:
 
 class Orderings:
     """The nested-dissection orderings of a fit's blocks, computed once per sparsity pattern (the
-    three channels of a map or of vertex colours share one where the same pixels see them) and
-    restricted to a subset of a block where asked."""
+    three channels of a map or of vertex colours share one where the same pixels see them)."""
 
     def __init__(self):
         self._orders: dict[bytes, np.ndarray] = {}
 
-    def of(self, M, keep=None) -> np.ndarray | None:
-        """The ordering of the block ``M`` (symmetric), restricted to the mask ``keep``; ``None``
-        below :data:`ORDERED` scalars."""
-        n = M.shape[0] if keep is None else int(np.count_nonzero(keep))
-        if n < ORDERED:
+    def of(self, M) -> np.ndarray | None:
+        """The ordering of the block ``M`` (symmetric); ``None`` below :data:`ORDERED` scalars."""
+        if M.shape[0] < ORDERED:
             return None
         graph = _graph(M)
         key = hashlib.blake2b(
@@ -70,8 +67,7 @@ class Orderings:
         ).digest()
         if key not in self._orders:
             self._orders[key] = nested_dissection(graph)
-        order = self._orders[key]
-        return order if keep is None else restrict(order, np.asarray(keep, bool))
+        return self._orders[key]
 
 
 class Factor:
