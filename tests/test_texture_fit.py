@@ -77,6 +77,32 @@ def test_the_linear_model_is_the_render():
     np.testing.assert_allclose(A @ x + b, mp.evaluate(x)[0] * w, atol=1e-13)
 
 
+def test_the_lighting_from_the_kernel_is_the_texels_tangent():
+    """Float32 Phong: the design matrix's S of a diffuse map (its fields: the diffuse and the
+    ambient term it carries) and of a specular map, from the shading kernel's partials along their
+    fields' constants with the maps at ones, against the JAX stages' jvp along each map's texels
+    all +1."""
+    import jax
+
+    starts, targets, _, opts = _views(16, "trilinear", size=24, azimuths=(0,))
+    spec = ds.Texture(np.random.default_rng(5).uniform(0.2, 1.0, (8, 8, 1)), filter="bilinear")
+    start = dataclasses.replace(starts[0], material=dataclasses.replace(starts[0].material, specular_map=spec))
+    start = jax.tree.map(lambda x: x.astype(jnp.float32) if jnp.issubdtype(x.dtype, jnp.floating) else x, start)
+    obs = fitting.Observations([targets[0].astype(np.float32)], views=[start])
+    prob = Problem.build(start, opts, obs, ["material.diffuse_map", "material.specular_map"])
+    mp = MapProblem(prob)
+    vd = prob.data[0]
+    th = prob.pset.theta_of(start)
+    assert mp._by_kernel(prob.pset.apply(vd.scene, th, vd.index), vd)
+    mp._compile(np.asarray(th, np.float64))
+    S = mp._outputs(np.asarray(th, np.float64))[0][1:3]
+    for j in range(2):
+        ref = jax.jvp(lambda t: prob.image(vd, t), (th,), (jnp.asarray(mp.E[j], jnp.float32),))[1]  # the stages
+        scale = float(jnp.abs(ref).max())
+        assert scale > 0.05
+        np.testing.assert_allclose(S[j], ref, atol=2e-5 * scale)  # (test_fast.py: the partials against the stages)
+
+
 @pytest.mark.parametrize("filt", ["bilinear", "trilinear"])
 def test_determined_texels_are_recovered_and_the_others_named(filt):
     starts, targets, truth, opts = _views(16, filt)
