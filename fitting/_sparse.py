@@ -32,6 +32,16 @@ def _graph(M):
     return graph
 
 
+def _have_metis() -> bool:
+    """Whether PyMETIS imports (a dependency; without it, where no wheel installs, SuperLU's own
+    ordering serves, at twice the factorisation time)."""
+    try:
+        import pymetis  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
 def nested_dissection(graph) -> np.ndarray:
     """METIS's nested-dissection ordering of ``graph`` (CSR, symmetric, no diagonal): a
     permutation of its vertices."""
@@ -59,7 +69,7 @@ class Orderings:
 
     def of(self, M) -> np.ndarray | None:
         """The ordering of the block ``M`` (symmetric); ``None`` below :data:`ORDERED` scalars."""
-        if M.shape[0] < ORDERED:
+        if M.shape[0] < ORDERED or not _have_metis():
             return None
         graph = _graph(M)
         key = hashlib.blake2b(
