@@ -54,7 +54,7 @@ from ._report import (
     uncertainty,
     verdict,
 )
-from ._sparse import Orderings, factorise, in_threads, restrict
+from ._sparse import Factor, Orderings, in_threads, restrict
 
 
 def vertex_colouring(faces: np.ndarray, n_vertices: int) -> np.ndarray:
@@ -236,7 +236,7 @@ class _Face:
         self.in_base = free.copy()
         Mb = M[self.base][:, self.base]
         self.d = 1 / np.sqrt(np.maximum(Mb.diagonal(), 1e-300))
-        self.lu = factorise((sp.diags(self.d) @ Mb @ sp.diags(self.d)).tocsc(), order)
+        self.lu = Factor((sp.diags(self.d) @ Mb @ sp.diags(self.d)).tocsc(), order)
 
     def _inv(self, r):
         d = self.d if r.ndim == 1 else self.d[:, None]

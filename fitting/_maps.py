@@ -40,7 +40,7 @@ from . import _options
 from ._cache import compiled
 from ._params import LINEAR_MAPS, is_map
 from ._problem import FitError, Problem, tangent_images
-from ._sparse import Orderings, factorise, in_threads
+from ._sparse import Factor, Orderings, in_threads
 
 PROBE_DISTANCE = 8  # texels between the texels of one probing class
 DENSE_LIMIT = 3000  # a connected block up to this many scalars is inverted exactly
@@ -95,14 +95,15 @@ class MapProblem:
         prob = self.prob
         n_maps = len(self.maps)
         scene = prob.pset.apply(vd.scene, th, vd.index)
-        if not self._by_kernel(scene, vd):  # (the JAX stages: a jvp along the texels all +1 is S)
-            img, T = tangent_images(lambda t: prob.image(vd, t), th, E)
-        elif E.shape[0] > n_maps:
-            img, To = tangent_images(lambda t: prob.image(vd, t), th, E[n_maps:])
-            T = jnp.concatenate([self._lighting(scene, vd).astype(img.dtype), To])
+        by_kernel = self._by_kernel(scene, vd)  # S from the kernel, or the JAX stages' jvp along E's map rows
+        rest = E[n_maps:] if by_kernel else E
+        if rest.shape[0]:
+            img, T = tangent_images(lambda t: prob.image(vd, t), th, rest)
         else:
             img = prob.image(vd, th)
-            T = self._lighting(scene, vd).astype(img.dtype)
+            T = jnp.zeros((0, *img.shape), img.dtype)
+        if by_kernel:
+            T = jnp.concatenate([self._lighting(scene, vd).astype(img.dtype), T])
         u, v, deriv = ds.texture_coordinates(scene, vd.ids, prob.opts.raster, (vd.px, vd.py))
         coords = []
         for k in self.maps:
@@ -267,7 +268,7 @@ class MapProblem:
         big = list(zip(cuts[:-1][sizes > DENSE_LIMIT], cuts[1:][sizes > DENSE_LIMIT]))
         ridged = [(Gs[a:b, a:b] + self.sp.identity(b - a) * INVERSE_RIDGE).tocsc() for a, b in big]
         orders = [self.orders.of(M) for (a, b), M in zip(big, ridged)]
-        for (a, b), lu in zip(big, in_threads(lambda k: factorise(ridged[k], orders[k]), range(len(big)))):
+        for (a, b), lu in zip(big, in_threads(lambda k: Factor(ridged[k], orders[k]), range(len(big)))):
             inv[a:b] = _probed_inverse_diagonal(lu, np.unique(cls[a:b], return_inverse=True)[1])
         out = np.zeros(G.shape[0])
         out[order] = inv

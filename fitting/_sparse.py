@@ -32,14 +32,12 @@ def _graph(M):
     return graph
 
 
-def _have_metis() -> bool:
-    """Whether PyMETIS imports (a dependency; without it, where no wheel installs, SuperLU's own
-    ordering serves, at twice the factorisation time)."""
-    try:
-        import pymetis  # noqa: F401
-    except ImportError:
-        return False
-    return True
+try:  # a dependency; without it (where no wheel installs) SuperLU's own ordering serves, at twice the time
+    import pymetis  # noqa: F401
+
+    HAVE_METIS = True
+except ImportError:
+    HAVE_METIS = False
 
 
 def nested_dissection(graph) -> np.ndarray:
@@ -69,7 +67,7 @@ class Orderings:
 
     def of(self, M) -> np.ndarray | None:
         """The ordering of the block ``M`` (symmetric); ``None`` below :data:`ORDERED` scalars."""
-        if M.shape[0] < ORDERED or not _have_metis():
+        if M.shape[0] < ORDERED or not HAVE_METIS:
             return None
         graph = _graph(M)
         key = hashlib.blake2b(
@@ -102,11 +100,6 @@ class Factor:
         x = np.empty_like(b, dtype=np.float64)
         x[self.order] = self.lu.solve(np.asfortranarray(b[self.order], np.float64))
         return x
-
-
-def factorise(M, order: np.ndarray | None = None) -> Factor:
-    """:class:`Factor` of ``M`` (CSC), in ``order`` where given."""
-    return Factor(M, order)
 
 
 def in_threads(fn, items) -> list:
