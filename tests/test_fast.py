@@ -191,6 +191,41 @@ def test_textured_hard_cases_are_finite_and_agree():
         np.testing.assert_allclose(native, stages, rtol=0, atol=2e-5 if float(jnp.abs(uv).max()) < 1e5 else 1e-3)
 
 
+def test_maps_kept_between_calls_follow_every_texel():
+    """The kernel keeps each map's levels between calls while the texels stay the same bits: a
+    change in the last row of a map, in the last texel of the last map, or only in a map's
+    description (its wrap) renders as a first call of the new maps does, and the old maps again
+    as they did."""
+    rng = np.random.default_rng(9)
+    diffuse = rng.uniform(0.2, 0.9, (40, 48, 3))
+    specular = rng.uniform(0.2, 0.9, (16, 12, 1))
+    scene, opts = _textured("phong", maps={"diffuse": ds.Texture(diffuse), "specular": ds.Texture(specular)})
+    scene = _f32(scene)
+    ids = ds.scene_visibility(scene, opts)
+    render = _render(opts)
+
+    def with_maps(d, sp, wrap="repeat"):
+        mat = dataclasses.replace(scene.material, diffuse_map=ds.Texture(d), specular_map=ds.Texture(sp, wrap=wrap))
+        return _f32(dataclasses.replace(scene, material=mat))
+
+    d2, s2 = diffuse.copy(), specular.copy()
+    d2[-1, :, 2] += 0.5  # (the last row of the first map, which the coordinates sample)
+    s2[-1, -1, 0] = 0.0
+    variants = [
+        with_maps(diffuse, specular),
+        with_maps(d2, specular),
+        with_maps(diffuse, s2),
+        with_maps(diffuse, specular, wrap="clamp"),
+    ]
+    # each as a first call renders it (the JAX stages), then in turns, twice
+    assert all(_uses_kernel(v, opts, ids) for v in variants)
+    stages = [np.asarray(_render(_jax(opts))(v, ids)) for v in variants]
+    for v, ref in list(zip(variants, stages)) * 2:
+        np.testing.assert_allclose(np.asarray(render(v, ids)), ref, rtol=0, atol=2e-5)
+    assert np.abs(stages[1] - stages[0]).max() > 1e-3
+    assert np.abs(stages[2] - stages[0]).max() > 0 and np.abs(stages[3] - stages[0]).max() > 0
+
+
 @pytest.mark.parametrize("textured", [False, True])
 def test_a_pixel_subset_is_the_image_at_those_pixels(textured):
     # (textured: the level of detail takes the camera's size, not the subset's)

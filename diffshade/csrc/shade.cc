@@ -17,6 +17,8 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
+#include <memory>
+#include <mutex>
 #include <string>
 #include <thread>
 #include <utility>
@@ -165,20 +167,24 @@ constexpr int kMaxLevels = 32;
 // shininess) its map or -1; the number of Gouraud parts and each part's map; the camera's width
 // and height; the number of maps, and per map kMapInts ints: channels, clamp (1) or repeat (0),
 // trilinear (1) or bilinear (0), width, height. The "texels" input holds each map's texels (row
-// 0 at the top, channels interleaved), one map after the other; the kernel builds the mipmap
-// pyramids of the trilinear ones (_texture.mip_pyramid) in its own scratch.
+// 0 at the top, channels interleaved), one map after the other; the kernel copies them into its
+// own scratch, each level with a border of one texel on every side (what a tap beyond the edge
+// reads: the other side, repeating, or the edge, clamping; _texture._padded), and builds the
+// mipmap pyramids of the trilinear ones (_texture.mip_pyramid) there. With the border, a
+// bilinear sample's four taps are two pairs of neighbours in two rows, whatever the wrap.
 constexpr int kMapInts = 5;
 constexpr int kMapsHeader = 5 + 1 + kMaxParts + 2 + 1;
 
 struct Level {
-  int64_t off;
-  int w, h;
+  int64_t off;  // in the scratch: the first texel of the border (level 0's in the input: Map::given)
+  int w, h;     // without the border
 };
 struct Map {
   int channels, levels;
   bool clamp, trilinear;
+  int64_t given;  // level 0's offset in the texels input
   Level lv[kMaxLevels];
-  const float* base[kMaxLevels];         // each level's first texel (level 0: the input's)
+  const float* base[kMaxLevels];  // each level's first texel, its border's top-left corner
 };
 struct Maps {
   int field[5] = {-1, -1, -1, -1, -1};
@@ -210,10 +216,10 @@ struct Block {
   float u[kBlock], v[kBlock], dux[kBlock], dvx[kBlock], duy[kBlock], dvy[kBlock];
   float su[kBlock], sv[kBlock], sd[kBlock];  // a map's wrapped coordinates and level of detail
   float b0[kBlock], b1[kBlock], b2[kBlock];  // the barycentrics
-  // a sample's taps (SampleMap): the top-left texel's index and the steps to the right and down
-  // (in floats), the weights; the pixels that blend a second level (their entries, coordinates,
-  // levels, weights and samples)
-  int32_t ti[kBlock], tdx[kBlock], tdy[kBlock], lvl[kBlock], sel[kBlock];
+  // a sample's taps (SampleMap): the top-left texel's index in its bordered level and the step
+  // down (its row, in floats), the weights; the pixels that blend a second level (their entries,
+  // coordinates, levels, weights and samples)
+  int32_t ti[kBlock], tdy[kBlock], lvl[kBlock], sel[kBlock];
   float fx[kBlock], fy[kBlock], cu[kBlock], cv[kBlock], cf[kBlock], hi[3][kBlock];
   float tex[kMaxMaps][3][kBlock];
   float part[kMaxParts][3][kBlock];  // Gouraud: each mapped part's interpolated colour
@@ -229,22 +235,13 @@ inline float Floor(float x) {
   return t > x ? t - 1.0f : t;
 }
 
-// A tap's texel along an axis of n texels, for i in [-1, n] (the border _texture._padded adds):
-// the edge (clamp), or the other side (repeat).
-template <bool clamp>
-inline int Wrap(int i, int n) {
-  return clamp ? std::min(std::max(i, 0), n - 1) : i + (i < 0 ? n : 0) - (i >= n ? n : 0);
-}
-
 // Where n bilinear samples of a map read (_texture._taps: the coordinates u, v wrapped into
-// [0, 1] already where repeating; level lv of the map, a tap outside it reading the border
-// _texture._padded adds): the top-left tap's index in its level (without gathers: vectorised).
-template <bool clamp>
-inline void TapsOf(const Map& t, const float* __restrict u, const float* __restrict v, const int32_t* __restrict lv,
-                   int n, Block& k) {
+// [0, 1] already where repeating; level lv of the map): the top-left tap's index in its bordered
+// level, from -1 (the border) to the last texel, and the step to the row below (vectorised).
+DIFFSHADE_CLONES void TapsAt(const Map& t, const float* __restrict u, const float* __restrict v,
+                             const int32_t* __restrict lv, int n, Block& k) {
   const int C = t.channels, w0 = t.lv[0].w - 1, h0 = t.lv[0].h - 1;
   int32_t* __restrict ti = k.ti;
-  int32_t* __restrict tdx = k.tdx;
   int32_t* __restrict tdy = k.tdy;
   float* __restrict fx = k.fx;
   float* __restrict fy = k.fy;
@@ -255,43 +252,46 @@ inline void TapsOf(const Map& t, const float* __restrict u, const float* __restr
     fx[j] = x - x0, fy[j] = y - y0;
     const int ix = std::min(std::max(static_cast<int>(x0), -1), W - 1);
     const int iy = std::min(std::max(static_cast<int>(y0), -1), H - 1);
-    const int c0 = Wrap<clamp>(ix, W), c1 = Wrap<clamp>(ix + 1, W);
-    const int r0 = Wrap<clamp>(iy, H), r1 = Wrap<clamp>(iy + 1, H);
-    ti[j] = (r0 * W + c0) * C, tdx[j] = (c1 - c0) * C, tdy[j] = (r1 - r0) * W * C;  // (in the level)
+    tdy[j] = (W + 2) * C;
+    ti[j] = (iy + 1) * tdy[j] + (ix + 1) * C;
   }
 }
 
-DIFFSHADE_CLONES void TapsAt(const Map& t, const float* u, const float* v, const int32_t* lv, int n, Block& k) {
-  if (t.clamp) {
-    TapsOf<true>(t, u, v, lv, n, k);
-  } else {
-    TapsOf<false>(t, u, v, lv, n, k);
-  }
+// Four floats from p (a texel's three channels and one float after it, which the scratch's
+// slack keeps in bounds), as one vector: GCC's and Clang's vector extension (SSE, or a scalar
+// fallback on other targets).
+typedef float F4 __attribute__((vector_size(16)));
+inline F4 Load4(const float* p) {
+  F4 r;
+  std::memcpy(&r, p, sizeof(r));
+  return r;
 }
 
 // The n bilinear samples at the taps of TapsAt (_texture._blend, in its order), three channels
-// out (a one-channel map repeated: grey).
-template <int channels>
-inline void BlendOf(const Map& map, const int32_t* __restrict lv, const Block& k, int n, float (*out)[kBlock]) {
+// out (a one-channel map repeated: grey). A three-channel map's taps are blended as vectors of
+// their channels (the fourth lane unused): two loads per row of taps.
+DIFFSHADE_CLONES void Blend(const Map& map, const int32_t* __restrict lv, const Block& k, int n,
+                            float (*out)[kBlock]) {
+  if (map.channels == 3) {
+    for (int j = 0; j < n; ++j) {
+      const float* t00 = map.base[lv[j]] + k.ti[j];
+      const float* t10 = t00 + k.tdy[j];
+      const F4 fx = F4{} + k.fx[j], fy = F4{} + k.fy[j];
+      const F4 a0 = Load4(t00), a1 = Load4(t00 + 3), b0 = Load4(t10), b1 = Load4(t10 + 3);
+      const F4 top = a0 + fx * (a1 - a0), bottom = b0 + fx * (b1 - b0);
+      const F4 s = top + fy * (bottom - top);
+      out[0][j] = s[0], out[1][j] = s[1], out[2][j] = s[2];
+    }
+    return;
+  }
   for (int j = 0; j < n; ++j) {
     const float* t00 = map.base[lv[j]] + k.ti[j];
-    const float *t01 = t00 + k.tdx[j], *t10 = t00 + k.tdy[j], *t11 = t10 + k.tdx[j];
+    const float* t10 = t00 + k.tdy[j];
     const float fx = k.fx[j], fy = k.fy[j];
-    for (int c = 0; c < channels; ++c) {
-      const float top = t00[c] + fx * (t01[c] - t00[c]);
-      const float bottom = t10[c] + fx * (t11[c] - t10[c]);
-      out[c][j] = top + fy * (bottom - top);
-    }
+    const float top = t00[0] + fx * (t00[1] - t00[0]), bottom = t10[0] + fx * (t10[1] - t10[0]);
+    out[0][j] = top + fy * (bottom - top);
   }
-}
-
-DIFFSHADE_CLONES void Blend(const Map& map, const int32_t* lv, const Block& k, int n, float (*out)[kBlock]) {
-  if (map.channels == 3) {
-    BlendOf<3>(map, lv, k, n, out);
-  } else {
-    BlendOf<1>(map, lv, k, n, out);
-    for (int c = 1; c < 3; ++c) std::memcpy(out[c], out[0], n * sizeof(float));
-  }
+  for (int c = 1; c < 3; ++c) std::memcpy(out[c], out[0], n * sizeof(float));
 }
 
 // A map sampled at the block's m pixels (_texture.sample_channels; trilinear with
@@ -455,51 +455,45 @@ __attribute__((noinline)) void AddLight(const Config& cfg, const float* front, c
   }
 }
 
-// The texture coordinates at a run of n pixels of face t (from the block's entry m: their
-// barycentrics b_i = E_i / sum E with the face's planes c, and clip w), perspective-correct, and
-// for trilinear maps their derivatives per pixel step (_texture.pixel_derivatives: with the
-// planes' x and y slopes a_i, b_i, du/dx = (sum a_i u_i - u sum a_i) w / det); Gouraud: each
-// mapped part's colour, interpolated.
-__attribute__((always_inline)) inline void Coordinates(const Maps& mp, int32_t t, const float* c, bool back, Block& k, int m, int n) {
+// A face's texture coordinates (_texture: perspective-correct, u = sum b_i u_i with the
+// barycentrics b_i = E_i / sum E of its planes c) and, for trilinear maps, what their derivatives
+// per pixel step need (_texture.pixel_derivatives: with the planes' x and y slopes a_i, b_i,
+// du/dx = (sum a_i u_i - u sum a_i) w / det, and w / det = 1 / sum E); Gouraud: its corners'
+// colours of each mapped part on the side lit (interpolated as the coordinates).
+struct FaceMap {
   int64_t vid[3];
   float U[3], V[3];
-  for (int j = 0; j < 3; ++j) {
-    vid[j] = std::min<int64_t>(std::max<int32_t>(mp.tri[3 * static_cast<int64_t>(t) + j], 0), mp.num_verts - 1);
-    U[j] = mp.uv[2 * vid[j]], V[j] = mp.uv[2 * vid[j] + 1];
+  float axu, axv, ayu, ayv, sx, sy;
+  void Of(const Maps& mp, int32_t t, const float* c) {
+    for (int j = 0; j < 3; ++j) {
+      vid[j] = std::min<int64_t>(std::max<int32_t>(mp.tri[3 * static_cast<int64_t>(t) + j], 0), mp.num_verts - 1);
+      U[j] = mp.uv[2 * vid[j]], V[j] = mp.uv[2 * vid[j] + 1];
+    }
+    axu = (c[1] * U[0] + c[4] * U[1]) + c[7] * U[2], axv = (c[1] * V[0] + c[4] * V[1]) + c[7] * V[2];
+    ayu = (c[2] * U[0] + c[5] * U[1]) + c[8] * U[2], ayv = (c[2] * V[0] + c[5] * V[1]) + c[8] * V[2];
+    sx = ((c[1] + c[4]) + c[7]) * mp.sx, sy = ((c[2] + c[5]) + c[8]) * mp.sy;  // (and NDC per pixel step)
+    axu *= mp.sx, axv *= mp.sx, ayu *= mp.sy, ayv *= mp.sy;
   }
-  const float* __restrict b0 = k.b0 + m;
-  const float* __restrict b1 = k.b1 + m;
-  const float* __restrict b2 = k.b2 + m;
-  float* __restrict u = k.u + m;
-  float* __restrict v = k.v + m;
-  for (int i = 0; i < n; ++i) {
-    u[i] = (U[0] * b0[i] + U[1] * b1[i]) + U[2] * b2[i], v[i] = (V[0] * b0[i] + V[1] * b1[i]) + V[2] * b2[i];
-  }
-  if (mp.derivatives) {
-    const float axu = (c[1] * U[0] + c[4] * U[1]) + c[7] * U[2], axv = (c[1] * V[0] + c[4] * V[1]) + c[7] * V[2];
-    const float ayu = (c[2] * U[0] + c[5] * U[1]) + c[8] * U[2], ayv = (c[2] * V[0] + c[5] * V[1]) + c[8] * V[2];
-    const float sx = (c[1] + c[4]) + c[7], sy = (c[2] + c[5]) + c[8], det = c[12];
-    const float* __restrict w = k.w + m;
-    float* __restrict dux = k.dux + m;
-    float* __restrict dvx = k.dvx + m;
-    float* __restrict duy = k.duy + m;
-    float* __restrict dvy = k.dvy + m;
-    for (int i = 0; i < n; ++i) {
-      const float scale = det != 0 ? w[i] / (det != 0 ? det : 1.0f) : 0.0f;  // (w is 0 on an empty face)
-      const float fx = scale * mp.sx, fy = scale * mp.sy;
-      dux[i] = (axu - u[i] * sx) * fx, dvx[i] = (axv - v[i] * sx) * fx;
-      duy[i] = (ayu - u[i] * sy) * fy, dvy[i] = (ayv - v[i] * sy) * fy;
+  // The mapped parts' colours at a run of n pixels (entry m on) with barycentrics b0, b1, b2.
+  void Parts(const Maps& mp, bool back, const float* __restrict b0, const float* __restrict b1,
+             const float* __restrict b2, Block& k, int m, int n) const {
+    for (int g = 0; g < mp.parts; ++g) {
+      const float* at = mp.parts_at + (2 * g + (back ? 1 : 0)) * mp.num_verts * 3;
+      float p[3][3];
+      for (int ch = 0; ch < 3; ++ch) {
+        for (int j = 0; j < 3; ++j) p[ch][j] = at[3 * vid[j] + ch];
+      }
+      float* __restrict r = k.part[g][0] + m;
+      float* __restrict gr = k.part[g][1] + m;
+      float* __restrict bl = k.part[g][2] + m;
+      for (int i = 0; i < n; ++i) {
+        r[i] = (p[0][0] * b0[i] + p[0][1] * b1[i]) + p[0][2] * b2[i];
+        gr[i] = (p[1][0] * b0[i] + p[1][1] * b1[i]) + p[1][2] * b2[i];
+        bl[i] = (p[2][0] * b0[i] + p[2][1] * b1[i]) + p[2][2] * b2[i];
+      }
     }
   }
-  for (int g = 0; g < mp.parts; ++g) {  // the part's corner colours on the side lit
-    const float* at = mp.parts_at + (2 * g + (back ? 1 : 0)) * mp.num_verts * 3;
-    for (int ch = 0; ch < 3; ++ch) {
-      const float p0 = at[3 * vid[0] + ch], p1 = at[3 * vid[1] + ch], p2 = at[3 * vid[2] + ch];
-      float* __restrict part = k.part[g][ch] + m;
-      for (int i = 0; i < n; ++i) part[i] = (p0 * b0[i] + p1 * b1[i]) + p2 * b2[i];
-    }
-  }
-}
+};
 
 // Phong: the material at the block's pixels, the lit side's constants (the back material on the
 // back side), each mapped field times its map (maps come with one material: no back material).
@@ -538,11 +532,13 @@ __attribute__((always_inline)) inline void PixelMaterial(const Config& cfg, cons
   // accuracy: up to 2e-5 off the JAX stages, which this form holds to 6e-6).
   // A row's pixels come in runs that see one face: each run is one loop over its pixels with
   // the face's coefficients held (vectorised; pixel by pixel, this took two thirds of the time).
-template <class Empty>
-__attribute__((always_inline)) inline int Points(const int32_t* ids, const float* xs, const float* ys, bool grid,
-                                          int64_t width, const float* faces, bool two_sided, bool gouraud,
-                                          const Maps& mp, int64_t b0, int64_t b1, int64_t& col, int64_t& row,
-                                          Block& k, Empty empty) {
+  // With maps (uvs), each pixel's texture coordinates too (FaceMap), and for trilinear maps
+  // (derivatives) their derivatives per pixel step.
+template <bool uvs, bool derivatives, class Empty>
+__attribute__((always_inline)) inline int PointsOf(const int32_t* ids, const float* xs, const float* ys, bool grid,
+                                            int64_t width, const float* faces, bool two_sided, bool gouraud,
+                                            const Maps& mp, int64_t b0, int64_t b1, int64_t& col, int64_t& row,
+                                            Block& k, Empty empty) {
   int m = 0;
   for (int64_t p = b0; p < b1;) {
     const int32_t t = ids[p];
@@ -574,6 +570,14 @@ __attribute__((always_inline)) inline int Points(const int32_t* ids, const float
       float* __restrict bc = k.b2 + m;
       int64_t* __restrict pix = k.pix + m;
       int32_t* __restrict fc = k.face + m;
+      float* __restrict u = k.u + m;
+      float* __restrict v = k.v + m;
+      float* __restrict dux = k.dux + m;
+      float* __restrict dvx = k.dvx + m;
+      float* __restrict duy = k.duy + m;
+      float* __restrict dvy = k.dvy + m;
+      FaceMap fm;
+      if (uvs) fm.Of(mp, t, c);
       for (int i = 0; i < n; ++i) {
         const float x = xr[i], y = yr[i * ystep];
         const float e0 = c[0] + x * c[1] + y * c[2], e1 = c[3] + x * c[4] + y * c[5];
@@ -593,8 +597,18 @@ __attribute__((always_inline)) inline int Points(const int32_t* ids, const float
         ba[i] = b0, bb[i] = b1, bc[i] = b2;
         pix[i] = p + i;
         fc[i] = t;
+        if (uvs) {
+          const float ui = (fm.U[0] * b0 + fm.U[1] * b1) + fm.U[2] * b2;
+          const float vi = (fm.V[0] * b0 + fm.V[1] * b1) + fm.V[2] * b2;
+          u[i] = ui, v[i] = vi;
+          if (derivatives) {
+            const float scale = ok && c[12] != 0 ? inv : 0.0f;  // (w / det; 0 on an empty face)
+            dux[i] = (fm.axu - ui * fm.sx) * scale, dvx[i] = (fm.axv - vi * fm.sx) * scale;
+            duy[i] = (fm.ayu - ui * fm.sy) * scale, dvy[i] = (fm.ayv - vi * fm.sy) * scale;
+          }
+        }
       }
-      if (mp.any()) Coordinates(mp, t, c, back > 0, k, m, n);
+      if (uvs && mp.parts > 0) fm.Parts(mp, back > 0, ba, bb, bc, k, m, n);
       m += n;
     }
     if (grid) {
@@ -604,6 +618,20 @@ __attribute__((always_inline)) inline int Points(const int32_t* ids, const float
     p = r;
   }
   return m;
+}
+
+template <class Empty>
+__attribute__((always_inline)) inline int Points(const int32_t* ids, const float* xs, const float* ys, bool grid,
+                                          int64_t width, const float* faces, bool two_sided, bool gouraud,
+                                          const Maps& mp, int64_t b0, int64_t b1, int64_t& col, int64_t& row,
+                                          Block& k, Empty empty) {
+  if (!mp.any()) {
+    return PointsOf<false, false>(ids, xs, ys, grid, width, faces, two_sided, gouraud, mp, b0, b1, col, row, k, empty);
+  }
+  if (!mp.derivatives) {
+    return PointsOf<true, false>(ids, xs, ys, grid, width, faces, two_sided, gouraud, mp, b0, b1, col, row, k, empty);
+  }
+  return PointsOf<true, true>(ids, xs, ys, grid, width, faces, two_sided, gouraud, mp, b0, b1, col, row, k, empty);
 }
 
 // The unit normal at the block's m points (reversed where the back side is lit) and the unit
@@ -1093,8 +1121,8 @@ void FaceTable(const float* clip, const int32_t* tri, const float* normals, cons
 }
 
 // The maps' description (layout above Maps), checked against the texels' size: nullptr, or what
-// is wrong. Level 0's offsets are into the texels, the other levels' into the mipmaps built by
-// PackMaps (their size in *packed).
+// is wrong. The levels' offsets are into the scratch PackMaps fills (its size in *packed), each
+// level with its border.
 const char* ReadMaps(const int32_t* a, int64_t n, int64_t num_texels, Maps& mp, int64_t* packed) {
   *packed = 0;
   if (n == 0) return nullptr;
@@ -1117,39 +1145,43 @@ const char* ReadMaps(const int32_t* a, int64_t n, int64_t num_texels, Maps& mp, 
   for (int i = 0; i < mp.count; ++i) {
     const int32_t* d = a + kMapsHeader + i * kMapInts;
     Map& t = mp.map[i];
-    t.channels = d[0], t.clamp = d[1] != 0, t.trilinear = d[2] != 0;
+    t.channels = d[0], t.clamp = d[1] != 0, t.trilinear = d[2] != 0, t.given = given;
     int w = d[3], h = d[4];
     if ((t.channels != 1 && t.channels != 3) || w < 1 || h < 1) return "maps: bad map";
     mp.derivatives = mp.derivatives || t.trilinear;
-    if (int64_t{w} * h * t.channels >= (int64_t{1} << 31)) return "maps: a map of more than 2^31 values";
-    t.lv[0] = Level{given, w, h}, t.levels = 1;
+    if ((int64_t{w} + 2) * (int64_t{h} + 2) * t.channels >= (int64_t{1} << 31)) {
+      return "maps: a map of more than 2^31 values";
+    }
     given += int64_t{w} * h * t.channels;
-    while (t.trilinear && (w > 1 || h > 1)) {  // _texture.mip_pyramid's sizes: halved (rounding up) to 1 x 1
+    t.levels = 0;
+    for (;;) {  // _texture.mip_pyramid's sizes: halved (rounding up) to 1 x 1
+      t.lv[t.levels++] = Level{*packed, w, h};
+      *packed += int64_t{w + 2} * (h + 2) * t.channels;
+      if (!t.trilinear || (w == 1 && h == 1)) break;
       if (t.levels == kMaxLevels) return "maps: too many levels";
       w = (w + 1) / 2, h = (h + 1) / 2;
-      t.lv[t.levels++] = Level{*packed, w, h};
-      *packed += int64_t{w} * h * t.channels;
     }
   }
+  *packed += 4;  // (slack: Blend's loads of four floats at a level's last texel)
   return given == num_texels ? nullptr : "maps: the texels do not match the maps' sizes";
 }
 
-// Rows [y0, y1) of a level from the one before (a, C channels): 2 x 2 box averages
-// (_texture.mip_pyramid: rows first, then columns, an odd last row or column averaged with
-// itself; the same sums in the same order).
+// Rows [y0, y1) of a level (b, its first texel inside the border at dst) from the one before (a,
+// at src; C channels): 2 x 2 box averages (_texture.mip_pyramid: rows first, then columns, an
+// odd last row or column averaged with itself; the same sums in the same order).
 void Downsample(const float* src, const Level& a, float* dst, const Level& b, int C, int y0, int y1) {
-  const int64_t row = int64_t{a.w} * C;
+  const int64_t row = int64_t{a.w} * C, stride = (int64_t{a.w} + 2) * C;
   std::vector<float> sum(static_cast<size_t>(row));  // a pair of rows averaged (a loop that vectorises)
   for (int y = y0; y < y1; ++y) {
-    const float* r0 = src + int64_t{a.h > 1 ? 2 * y : 0} * row;
-    const float* r1 = src + int64_t{a.h > 1 ? std::min(2 * y + 1, a.h - 1) : 0} * row;
+    const float* r0 = src + int64_t{a.h > 1 ? 2 * y : 0} * stride;
+    const float* r1 = src + int64_t{a.h > 1 ? std::min(2 * y + 1, a.h - 1) : 0} * stride;
     const float* l = r0;
     if (a.h > 1) {
       float* __restrict t = sum.data();
       for (int64_t i = 0; i < row; ++i) t[i] = 0.5f * (r0[i] + r1[i]);
       l = t;
     }
-    float* out = dst + int64_t{y} * b.w * C;
+    float* out = dst + int64_t{y} * (int64_t{b.w} + 2) * C;
     if (a.w == 1) {
       for (int c = 0; c < C; ++c) out[c] = l[c];
       continue;
@@ -1161,22 +1193,104 @@ void Downsample(const float* src, const Level& a, float* dst, const Level& b, in
   }
 }
 
-// Each map's level pointers (level 0 in the texels, the others in packed, laid out by
-// ReadMaps), and its levels after the first (Downsample; a large level's rows in threads).
+// A level's border (the level at base, its texels written): each row's first and last texel,
+// then the top and bottom rows (corners included), copied from the other side (repeating) or the
+// edge (clamping).
+void Border(float* base, const Level& a, int C, bool clamp) {
+  const int64_t stride = (int64_t{a.w} + 2) * C;
+  for (int y = 1; y <= a.h; ++y) {
+    float* r = base + y * stride;
+    std::memcpy(r, r + (clamp ? 1 : a.w) * C, C * sizeof(float));
+    std::memcpy(r + (int64_t{a.w} + 1) * C, r + (clamp ? a.w : 1) * C, C * sizeof(float));
+  }
+  std::memcpy(base, base + (clamp ? 1 : a.h) * stride, stride * sizeof(float));
+  std::memcpy(base + (int64_t{a.h} + 1) * stride, base + (clamp ? a.h : 1) * stride, stride * sizeof(float));
+}
+
+// Each map's levels in the scratch (laid out by ReadMaps): level 0 copied from the texels, the
+// others built from the level before (Downsample), each then given its border (a large level's
+// rows in threads).
 void PackMaps(ffi::ThreadPool& pool, int64_t nthreads, Maps& mp, const float* texels, float* packed) {
   for (int i = 0; i < mp.count; ++i) {
     Map& t = mp.map[i];
-    t.base[0] = texels + t.lv[0].off;
-    for (int j = 1; j < t.levels; ++j) {
-      const Level &a = t.lv[j - 1], &b = t.lv[j];
+    const int C = t.channels;
+    for (int j = 0; j < t.levels; ++j) {
+      const Level& b = t.lv[j];
       t.base[j] = packed + b.off;
+      float* inside = packed + b.off + (int64_t{b.w} + 3) * C;  // (past the top border row and the left one)
       const int64_t parts = int64_t{b.w} * b.h < 16384 ? 1 : std::min<int64_t>(nthreads, b.h);
       diffshade::ParallelFor(pool, parts, [&](int64_t q) {
-        Downsample(t.base[j - 1], a, packed + b.off, b, t.channels, static_cast<int>(b.h * q / parts),
-                   static_cast<int>(b.h * (q + 1) / parts));
+        const int y0 = static_cast<int>(b.h * q / parts), y1 = static_cast<int>(b.h * (q + 1) / parts);
+        if (j > 0) {
+          const Level& a = t.lv[j - 1];
+          Downsample(t.base[j - 1] + (int64_t{a.w} + 3) * C, a, inside, b, C, y0, y1);
+          return;
+        }
+        for (int y = y0; y < y1; ++y) {
+          std::memcpy(inside + y * (int64_t{b.w} + 2) * C, texels + t.given + int64_t{y} * b.w * C,
+                      int64_t{b.w} * C * sizeof(float));
+        }
       });
+      Border(packed + b.off, b, C, t.clamp);
     }
   }
+}
+
+// Whether the scratch's levels 0 (at packed, laid out by ReadMaps) hold the texels: their bits,
+// row by row (a first difference ends the comparison).
+bool Packed(const Maps& mp, const float* texels, const float* packed) {
+  for (int i = 0; i < mp.count; ++i) {
+    const Map& t = mp.map[i];
+    const Level& a = t.lv[0];
+    const int64_t row = int64_t{a.w} * t.channels, stride = (int64_t{a.w} + 2) * t.channels;
+    const float* level = packed + a.off + stride + t.channels;  // (past the border)
+    for (int y = 0; y < a.h; ++y) {
+      if (std::memcmp(level + y * stride, texels + t.given + y * row, row * sizeof(float)) != 0) return false;
+    }
+  }
+  return true;
+}
+
+// Maps packed (PackMaps) for a description of the maps (the int32 input) and the texels that
+// level 0 holds. The last one packed, by any thread, is kept: a call whose maps are the same (the
+// same description, the same texel bits: Packed) reads it (a render of several views, a fit's
+// steps that leave the maps), one with other maps packs its own, reusing the kept one's memory
+// where no other call holds it, and leaves it kept. Calls hold what they read (shared_ptr).
+struct Packing {
+  std::vector<int32_t> desc;
+  std::vector<float> levels;
+};
+std::mutex packing_lock;
+std::shared_ptr<Packing> packing_kept;
+
+std::shared_ptr<const Packing> Pack(ffi::ThreadPool& pool, int64_t nthreads, Maps& mp, const int32_t* desc, int64_t nd,
+                                    const float* texels, int64_t packed) {
+  std::shared_ptr<Packing> kept;
+  {
+    std::lock_guard<std::mutex> hold(packing_lock);
+    kept = packing_kept;
+  }
+  if (kept && kept->levels.size() == static_cast<size_t>(packed) && kept->desc.size() == static_cast<size_t>(nd) &&
+      std::equal(desc, desc + nd, kept->desc.begin()) && Packed(mp, texels, kept->levels.data())) {
+    for (int i = 0; i < mp.count; ++i) {
+      for (int j = 0; j < mp.map[i].levels; ++j) mp.map[i].base[j] = kept->levels.data() + mp.map[i].lv[j].off;
+    }
+    return kept;
+  }
+  std::shared_ptr<Packing> mine;
+  {
+    std::lock_guard<std::mutex> hold(packing_lock);
+    if (kept && packing_kept == kept && kept.use_count() == 2) mine = std::move(packing_kept);  // (only we hold it)
+  }
+  kept.reset();
+  if (!mine) mine = std::make_shared<Packing>();
+  mine->levels.resize(static_cast<size_t>(packed));
+  PackMaps(pool, nthreads, mp, texels, mine->levels.data());
+  std::memset(mine->levels.data() + packed - 4, 0, 4 * sizeof(float));  // (the slack)
+  mine->desc.assign(desc, desc + nd);
+  std::lock_guard<std::mutex> hold(packing_lock);
+  packing_kept = mine;
+  return mine;
 }
 
 // The inputs both kernels share: their shapes checked, the maps read (their pyramids built)
@@ -1184,6 +1298,7 @@ void PackMaps(ffi::ThreadPool& pool, int64_t nthreads, Maps& mp, const float* te
 struct Scene {
   int64_t n = 0, width = 0, num_lights = 0, nthreads = 1;
   Maps mp;
+  std::shared_ptr<const Packing> packing;  // (what mp's levels point into)
   const float* table = nullptr;
 };
 
@@ -1212,13 +1327,11 @@ const char* Prepare(ffi::ThreadPool& pool, ffi::Buffer<ffi::S32>& ids, ffi::Buff
   if (const char* bad = ReadMaps(maps.typed_data(), maps.element_count(), texels.element_count(), mp, &packed)) {
     return bad;
   }
-  thread_local std::vector<float> pyramids;  // (scratch kept per calling thread, as the face table)
   if (mp.any()) {
     if (uv.element_count() != 2 * num_verts || parts.element_count() != mp.parts * 2 * num_verts * 3) {
       return "texture coordinates or parts do not match the mesh";
     }
-    pyramids.resize(static_cast<size_t>(packed));
-    PackMaps(pool, sc.nthreads, mp, texels.typed_data(), pyramids.data());
+    sc.packing = Pack(pool, sc.nthreads, mp, maps.typed_data(), maps.element_count(), texels.typed_data(), packed);
     mp.uv = uv.typed_data(), mp.tri = tri.typed_data();
     mp.parts_at = parts.typed_data(), mp.num_verts = num_verts;
   }
