@@ -192,10 +192,11 @@ def test_textured_hard_cases_are_finite_and_agree():
 
 
 def test_maps_kept_between_calls_follow_every_texel():
-    """The kernel keeps each map's levels between calls while the texels stay the same bits: a
-    change in the last row of a map, in the last texel of the last map, or only in a map's
-    description (its wrap) renders as a first call of the new maps does, and the old maps again
-    as they did."""
+    """The kernel keeps the last maps it packed (their levels) while the texels stay the same
+    bits: a change in the last row of a map, in the last texel of the last map, or only in a
+    map's description (its wrap, its filter) renders as a first call of the new maps does, and
+    the old maps again as they did; in turns, twice, five sets of maps (more than are kept: the
+    least recent are dropped and their memory reused)."""
     rng = np.random.default_rng(9)
     diffuse = rng.uniform(0.2, 0.9, (40, 48, 3))
     specular = rng.uniform(0.2, 0.9, (16, 12, 1))
@@ -204,8 +205,9 @@ def test_maps_kept_between_calls_follow_every_texel():
     ids = ds.scene_visibility(scene, opts)
     render = _render(opts)
 
-    def with_maps(d, sp, wrap="repeat"):
-        mat = dataclasses.replace(scene.material, diffuse_map=ds.Texture(d), specular_map=ds.Texture(sp, wrap=wrap))
+    def with_maps(d, sp, wrap="repeat", filter="trilinear"):
+        d, sp = ds.Texture(d, filter=filter), ds.Texture(sp, wrap=wrap)
+        mat = dataclasses.replace(scene.material, diffuse_map=d, specular_map=sp)
         return _f32(dataclasses.replace(scene, material=mat))
 
     d2, s2 = diffuse.copy(), specular.copy()
@@ -216,6 +218,7 @@ def test_maps_kept_between_calls_follow_every_texel():
         with_maps(d2, specular),
         with_maps(diffuse, s2),
         with_maps(diffuse, specular, wrap="clamp"),
+        with_maps(diffuse, specular, filter="bilinear"),
     ]
     # each as a first call renders it (the JAX stages), then in turns, twice
     assert all(_uses_kernel(v, opts, ids) for v in variants)
@@ -223,7 +226,7 @@ def test_maps_kept_between_calls_follow_every_texel():
     for v, ref in list(zip(variants, stages)) * 2:
         np.testing.assert_allclose(np.asarray(render(v, ids)), ref, rtol=0, atol=2e-5)
     assert np.abs(stages[1] - stages[0]).max() > 1e-3
-    assert np.abs(stages[2] - stages[0]).max() > 0 and np.abs(stages[3] - stages[0]).max() > 0
+    assert all(np.abs(stages[i] - stages[0]).max() > 0 for i in (2, 3, 4))
 
 
 @pytest.mark.parametrize("textured", [False, True])

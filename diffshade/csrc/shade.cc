@@ -1252,44 +1252,61 @@ bool Packed(const Maps& mp, const float* texels, const float* packed) {
 }
 
 // Maps packed (PackMaps) for a description of the maps (the int32 input) and the texels that
-// level 0 holds. The last one packed, by any thread, is kept: a call whose maps are the same (the
-// same description, the same texel bits: Packed) reads it (a render of several views, a fit's
-// steps that leave the maps), one with other maps packs its own, reusing the kept one's memory
-// where no other call holds it, and leaves it kept. Calls hold what they read (shared_ptr).
+// level 0 holds. The last kKept packed, by any thread, are kept: a call whose maps are one of
+// theirs (the same description, the same texel bits: Packed) reads it (a render of several
+// views, a fit's steps that leave the maps), one with other maps packs its own (into the memory
+// of the least recent, where no call holds it) and keeps it. Calls hold what they read.
 struct Packing {
   std::vector<int32_t> desc;
   std::vector<float> levels;
 };
+constexpr size_t kKept = 4;
 std::mutex packing_lock;
-std::shared_ptr<Packing> packing_kept;
+std::vector<std::shared_ptr<Packing>> packing_kept;  // (the most recent first)
+
+bool Holds(const Packing& e, const Maps& mp, const int32_t* desc, int64_t nd, const float* texels, int64_t packed) {
+  return e.levels.size() == static_cast<size_t>(packed) && e.desc.size() == static_cast<size_t>(nd) &&
+         std::equal(desc, desc + nd, e.desc.begin()) && Packed(mp, texels, e.levels.data());
+}
 
 std::shared_ptr<const Packing> Pack(ffi::ThreadPool& pool, int64_t nthreads, Maps& mp, const int32_t* desc, int64_t nd,
                                     const float* texels, int64_t packed) {
-  std::shared_ptr<Packing> kept;
-  {
-    std::lock_guard<std::mutex> hold(packing_lock);
-    kept = packing_kept;
-  }
-  if (kept && kept->levels.size() == static_cast<size_t>(packed) && kept->desc.size() == static_cast<size_t>(nd) &&
-      std::equal(desc, desc + nd, kept->desc.begin()) && Packed(mp, texels, kept->levels.data())) {
-    for (int i = 0; i < mp.count; ++i) {
-      for (int j = 0; j < mp.map[i].levels; ++j) mp.map[i].base[j] = kept->levels.data() + mp.map[i].lv[j].off;
-    }
-    return kept;
-  }
   std::shared_ptr<Packing> mine;
   {
-    std::lock_guard<std::mutex> hold(packing_lock);
-    if (kept && packing_kept == kept && kept.use_count() == 2) mine = std::move(packing_kept);  // (only we hold it)
+    std::vector<std::shared_ptr<Packing>> kept;
+    {
+      std::lock_guard<std::mutex> hold(packing_lock);
+      kept = packing_kept;
+    }
+    for (auto& e : kept) {
+      if (Holds(*e, mp, desc, nd, texels, packed)) mine = e;
+      if (mine) break;
+    }
   }
-  kept.reset();
-  if (!mine) mine = std::make_shared<Packing>();
-  mine->levels.resize(static_cast<size_t>(packed));
-  PackMaps(pool, nthreads, mp, texels, mine->levels.data());
-  std::memset(mine->levels.data() + packed - 4, 0, 4 * sizeof(float));  // (the slack)
-  mine->desc.assign(desc, desc + nd);
-  std::lock_guard<std::mutex> hold(packing_lock);
-  packing_kept = mine;
+  if (mine) {
+    std::lock_guard<std::mutex> hold(packing_lock);
+    auto at = std::find(packing_kept.begin(), packing_kept.end(), mine);
+    if (at != packing_kept.end()) std::rotate(packing_kept.begin(), at, at + 1);
+  } else {
+    {
+      std::lock_guard<std::mutex> hold(packing_lock);
+      if (packing_kept.size() == kKept) {
+        if (packing_kept.back().use_count() == 1) mine = std::move(packing_kept.back());  // (no call holds it)
+        packing_kept.pop_back();
+      }
+    }
+    if (!mine) mine = std::make_shared<Packing>();
+    mine->levels.resize(static_cast<size_t>(packed));
+    PackMaps(pool, nthreads, mp, texels, mine->levels.data());
+    std::memset(mine->levels.data() + packed - 4, 0, 4 * sizeof(float));  // (the slack)
+    mine->desc.assign(desc, desc + nd);
+    std::lock_guard<std::mutex> hold(packing_lock);
+    packing_kept.insert(packing_kept.begin(), mine);
+    if (packing_kept.size() > kKept) packing_kept.pop_back();
+  }
+  for (int i = 0; i < mp.count; ++i) {
+    for (int j = 0; j < mp.map[i].levels; ++j) mp.map[i].base[j] = mine->levels.data() + mp.map[i].lv[j].off;
+  }
   return mine;
 }
 
