@@ -17,6 +17,7 @@ import shutil
 import subprocess
 import tempfile
 import threading
+import warnings
 from pathlib import Path
 
 import jax
@@ -96,11 +97,20 @@ def ensure_registered(target: str = "diffshade_raster") -> str:
 
 def available() -> bool:
     """Whether the native kernel can be used here: it builds, and JAX's default device is the CPU
-    (it is a CPU kernel)."""
+    (it is a CPU kernel). On the CPU, a kernel that does not build is said once, as a warning
+    that names why (a compiler's error, no compiler)."""
     if jax.default_backend() != "cpu":
         return False
     try:
         ensure_registered()
-    except NativeUnavailable:
+    except NativeUnavailable as exc:
+        if not _state.get("warned"):  # (once: the renders that follow all take the JAX stages)
+            _state["warned"] = True
+            warnings.warn(
+                "diffshade's native CPU kernels are unavailable, so renders take the JAX stages (the same "
+                f"images, several times slower): {exc}",
+                RuntimeWarning,
+                stacklevel=2,
+            )
         return False
     return True

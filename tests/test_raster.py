@@ -1,5 +1,6 @@
 import functools
 import os
+import warnings
 
 import equinox as eqx
 import jax
@@ -402,6 +403,21 @@ def test_bad_arguments_raise_clear_errors():
         ds.visibility(jnp.zeros((3, 4)), jnp.zeros((1, 3), int), (8, 8), cull="backs")
     with pytest.raises(ValueError, match="Raster.cull must be one of"):
         ds.Raster(cull=True)
+
+
+def test_a_kernel_that_does_not_build_is_said_once(monkeypatch):
+    # the renderer then takes the JAX stages (the same images, slower): the user is told why, once
+    def fails():
+        raise _native.NativeUnavailable("compiling raster.cc and shade.cc failed: (a compiler's error)")
+
+    monkeypatch.setattr(_native, "_state", {})
+    monkeypatch.setattr(_native, "_build", fails)
+    monkeypatch.setattr(jax, "default_backend", lambda: "cpu")
+    with pytest.warns(RuntimeWarning, match="native CPU kernels are unavailable.*a compiler's error"):
+        assert not _native.available()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert not _native.available()
 
 
 def test_native_backend_off_the_cpu_is_a_clear_error(monkeypatch):
