@@ -1255,12 +1255,14 @@ bool Packed(const Maps& mp, const float* texels, const float* packed) {
 // level 0 holds. The last kKept packed, by any thread, are kept: a call whose maps are one of
 // theirs (the same description, the same texel bits: Packed) reads it (a render of several
 // views, a fit's steps that leave the maps), one with other maps packs its own (into the memory
-// of the least recent, where no call holds it) and keeps it. Calls hold what they read.
+// of the least recent, where no call holds it) and keeps it. Calls hold what they read. What is
+// kept stays under kKeptFloats (256 MB: a 4096² colour map's levels are 268 MB, and are not kept).
 struct Packing {
   std::vector<int32_t> desc;
   std::vector<float> levels;
 };
 constexpr size_t kKept = 4;
+constexpr size_t kKeptFloats = size_t{64} << 20;
 std::mutex packing_lock;
 std::vector<std::shared_ptr<Packing>> packing_kept;  // (the most recent first)
 
@@ -1303,6 +1305,12 @@ std::shared_ptr<const Packing> Pack(ffi::ThreadPool& pool, int64_t nthreads, Map
     std::lock_guard<std::mutex> hold(packing_lock);
     packing_kept.insert(packing_kept.begin(), mine);
     if (packing_kept.size() > kKept) packing_kept.pop_back();
+    size_t kept_floats = 0;
+    for (const auto& e : packing_kept) kept_floats += e->levels.capacity();
+    while (!packing_kept.empty() && kept_floats > kKeptFloats) {  // (the least recent first, mine last)
+      kept_floats -= packing_kept.back()->levels.capacity();
+      packing_kept.pop_back();
+    }
   }
   for (int i = 0; i < mp.count; ++i) {
     for (int j = 0; j < mp.map[i].levels; ++j) mp.map[i].base[j] = mine->levels.data() + mp.map[i].lv[j].off;
