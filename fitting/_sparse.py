@@ -3,8 +3,8 @@
 
 **The ordering.** A block of :data:`ORDERED` scalars or more (a channel of a texture map: the
 graph of a 2-D grid) is factorised in METIS's nested-dissection ordering (PyMETIS), computed once
-per sparsity pattern and kept (:class:`Orderings`): a face of the box, a later round or the standard errors
-restrict the same ordering to their scalars. Against SuperLU's own minimum-degree ordering on a
+per sparsity pattern and kept (:class:`Orderings`): a face of the box, a later round or the
+standard errors restrict the same ordering to their scalars. Against SuperLU's own minimum-degree ordering on a
 55k-scalar channel of a 256² map: the factors 3.9M against 4.5M non-zeros, the factorisation
 0.25 s against 0.49 s (its separators make wider supernodes). Smaller blocks keep SuperLU's
 ordering: METIS's time is not repaid there.
@@ -18,6 +18,13 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+try:  # a dependency; without it (where no wheel installs) SuperLU's own ordering serves, at twice the time
+    import pymetis  # noqa: F401
+
+    HAVE_METIS = True
+except ImportError:
+    HAVE_METIS = False
+
 ORDERED = 10000  # scalars from which a block is factorised in METIS's nested-dissection ordering
 
 
@@ -30,14 +37,6 @@ def _graph(M):
     graph = sp.csr_matrix((np.ones(int(off.sum()), np.int8), (coo.row[off], coo.col[off])), shape=M.shape)
     graph.sort_indices()
     return graph
-
-
-try:  # a dependency; without it (where no wheel installs) SuperLU's own ordering serves, at twice the time
-    import pymetis  # noqa: F401
-
-    HAVE_METIS = True
-except ImportError:
-    HAVE_METIS = False
 
 
 def nested_dissection(graph) -> np.ndarray:

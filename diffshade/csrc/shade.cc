@@ -178,6 +178,8 @@ constexpr int kMapsHeader = 5 + 1 + kMaxParts + 2 + 1;
 struct Level {
   int64_t off;  // in the scratch: the first texel of the border (level 0's in the input: Map::given)
   int w, h;     // without the border
+  int64_t Stride(int C) const { return (int64_t{w} + 2) * C; }  // a bordered row, in floats
+  int64_t Inside(int C) const { return Stride(C) + C; }          // the first texel past the border
 };
 struct Map {
   int channels, levels;
@@ -1156,7 +1158,7 @@ const char* ReadMaps(const int32_t* a, int64_t n, int64_t num_texels, Maps& mp, 
     t.levels = 0;
     for (;;) {  // _texture.mip_pyramid's sizes: halved (rounding up) to 1 x 1
       t.lv[t.levels++] = Level{*packed, w, h};
-      *packed += int64_t{w + 2} * (h + 2) * t.channels;
+      *packed += t.lv[t.levels - 1].Stride(t.channels) * (h + 2);
       if (!t.trilinear || (w == 1 && h == 1)) break;
       if (t.levels == kMaxLevels) return "maps: too many levels";
       w = (w + 1) / 2, h = (h + 1) / 2;
@@ -1170,7 +1172,7 @@ const char* ReadMaps(const int32_t* a, int64_t n, int64_t num_texels, Maps& mp, 
 // at src; C channels): 2 x 2 box averages (_texture.mip_pyramid: rows first, then columns, an
 // odd last row or column averaged with itself; the same sums in the same order).
 void Downsample(const float* src, const Level& a, float* dst, const Level& b, int C, int y0, int y1) {
-  const int64_t row = int64_t{a.w} * C, stride = (int64_t{a.w} + 2) * C;
+  const int64_t row = int64_t{a.w} * C, stride = a.Stride(C);
   std::vector<float> sum(static_cast<size_t>(row));  // a pair of rows averaged (a loop that vectorises)
   for (int y = y0; y < y1; ++y) {
     const float* r0 = src + int64_t{a.h > 1 ? 2 * y : 0} * stride;
@@ -1181,7 +1183,7 @@ void Downsample(const float* src, const Level& a, float* dst, const Level& b, in
       for (int64_t i = 0; i < row; ++i) t[i] = 0.5f * (r0[i] + r1[i]);
       l = t;
     }
-    float* out = dst + int64_t{y} * (int64_t{b.w} + 2) * C;
+    float* out = dst + y * b.Stride(C);
     if (a.w == 1) {
       for (int c = 0; c < C; ++c) out[c] = l[c];
       continue;
@@ -1197,7 +1199,7 @@ void Downsample(const float* src, const Level& a, float* dst, const Level& b, in
 // then the top and bottom rows (corners included), copied from the other side (repeating) or the
 // edge (clamping).
 void Border(float* base, const Level& a, int C, bool clamp) {
-  const int64_t stride = (int64_t{a.w} + 2) * C;
+  const int64_t stride = a.Stride(C);
   for (int y = 1; y <= a.h; ++y) {
     float* r = base + y * stride;
     std::memcpy(r, r + (clamp ? 1 : a.w) * C, C * sizeof(float));
@@ -1217,17 +1219,17 @@ void PackMaps(ffi::ThreadPool& pool, int64_t nthreads, Maps& mp, const float* te
     for (int j = 0; j < t.levels; ++j) {
       const Level& b = t.lv[j];
       t.base[j] = packed + b.off;
-      float* inside = packed + b.off + (int64_t{b.w} + 3) * C;  // (past the top border row and the left one)
+      float* inside = packed + b.off + b.Inside(C);
       const int64_t parts = int64_t{b.w} * b.h < 16384 ? 1 : std::min<int64_t>(nthreads, b.h);
       diffshade::ParallelFor(pool, parts, [&](int64_t q) {
         const int y0 = static_cast<int>(b.h * q / parts), y1 = static_cast<int>(b.h * (q + 1) / parts);
         if (j > 0) {
           const Level& a = t.lv[j - 1];
-          Downsample(t.base[j - 1] + (int64_t{a.w} + 3) * C, a, inside, b, C, y0, y1);
+          Downsample(t.base[j - 1] + a.Inside(C), a, inside, b, C, y0, y1);
           return;
         }
         for (int y = y0; y < y1; ++y) {
-          std::memcpy(inside + y * (int64_t{b.w} + 2) * C, texels + t.given + int64_t{y} * b.w * C,
+          std::memcpy(inside + y * b.Stride(C), texels + t.given + int64_t{y} * b.w * C,
                       int64_t{b.w} * C * sizeof(float));
         }
       });
@@ -1242,8 +1244,8 @@ bool Packed(const Maps& mp, const float* texels, const float* packed) {
   for (int i = 0; i < mp.count; ++i) {
     const Map& t = mp.map[i];
     const Level& a = t.lv[0];
-    const int64_t row = int64_t{a.w} * t.channels, stride = (int64_t{a.w} + 2) * t.channels;
-    const float* level = packed + a.off + stride + t.channels;  // (past the border)
+    const int64_t row = int64_t{a.w} * t.channels, stride = a.Stride(t.channels);
+    const float* level = packed + a.off + a.Inside(t.channels);
     for (int y = 0; y < a.h; ++y) {
       if (std::memcmp(level + y * stride, texels + t.given + y * row, row * sizeof(float)) != 0) return false;
     }
@@ -1281,8 +1283,10 @@ std::shared_ptr<const Packing> Pack(ffi::ThreadPool& pool, int64_t nthreads, Map
       kept = packing_kept;
     }
     for (auto& e : kept) {
-      if (Holds(*e, mp, desc, nd, texels, packed)) mine = e;
-      if (mine) break;
+      if (Holds(*e, mp, desc, nd, texels, packed)) {
+        mine = e;
+        break;
+      }
     }
   }
   if (mine) {
