@@ -4,7 +4,7 @@
 // (diffshade/_raster.py), operation for operation: a pixel (column i, row j) with
 // qx = 2i + 1, qy = 2j + 1 is covered by triangle f when, for each edge k,
 //     E_k = c0 + cy qy + cx qx  >  0,  or  == 0 and the edge owns ties,
-// and the interpolated depth d = Z / W of the planes Z, W (same form) satisfies -W <= Z <= W.
+// and the depth d (DepthAt: the vertices' depths' mean weighted by w_k E_k) is in [-1, 1].
 // Fragments are kept per pixel as the K nearest by (depth, triangle id).
 //
 // Bit-for-bit agreement with XLA: XLA may contract a*b + c into a fused multiply-add, so every
@@ -115,6 +115,24 @@ inline float Eval(const Plane& pl, float qx, float qy) {
   return XPart<kCount>(pl, RowPart<kCount>(pl, qy), qx);
 }
 
+// A triangle's depth weights (_raster.py::_depth_weights, computed in Setup): a reference depth
+// d0 and, cut to 12 bits, dz_k = z_k - d0 w_k and w_k.
+struct Depth {
+  float d0, dz[3], w[3];
+};
+// The depth d = d0 + N / W at a pixel with edge functions e0..e2, N = sum_k dz_k E_k and
+// W = sum_k w_k E_k (E_k cut to 12 bits, so each product is exact), and whether the point is in
+// front of the eye (W > 0) and between the near and far planes (_raster.py::_depth: the weighted
+// mean of the vertices' depths, accurate to float32 rounding for a triangle seen edge-on too).
+inline bool DepthAt(const Depth& dp, float e0, float e1, float e2, float* d) {
+  const float h0 = Trunc(e0, 12), h1 = Trunc(e1, 12), h2 = Trunc(e2, 12);
+  const float n = (dp.dz[0] * h0 + dp.dz[1] * h1) + dp.dz[2] * h2;
+  const float ww = (dp.w[0] * h0 + dp.w[1] * h1) + dp.w[2] * h2;
+  const bool front = ww > 0;
+  *d = dp.d0 + n / (front ? ww : 1.0f);
+  return front & (*d >= -1.0f) & (*d <= 1.0f);
+}
+
 // Bits per piece and piece count (_raster.py::_piece_plan).
 inline void PiecePlan(int64_t height, int64_t width, int* keep, int* count) {
   int64_t q = 2 * std::max(height, width) - 1;
@@ -174,12 +192,18 @@ DIFFSHADE_CLONES void RasterBand(const float* coef, const float* zw, const int32
     if (y1 >= row_end) y1 = row_end - 1;
     if (y0 > y1) continue;
     const int32_t own = meta[4 * nf + f];
-    Plane pl[5];
-    for (int k = 0; k < 5; ++k) {
-      const float* src = k < 3 ? coef + 3 * k * nf : zw + 3 * (k - 3) * nf;
+    Plane pl[3];
+    for (int k = 0; k < 3; ++k) {
+      const float* src = coef + 3 * k * nf;
       pl[k].c0 = src[f];
       pl[k].x = Split(src[nf + f], keep, kCount);
       pl[k].y = Split(src[2 * nf + f], keep, kCount);
+    }
+    Depth dp;
+    dp.d0 = zw[f];
+    for (int k = 0; k < 3; ++k) {
+      dp.dz[k] = zw[(1 + k) * nf + f];
+      dp.w[k] = zw[(4 + k) * nf + f];
     }
     const bool own0 = own & 1, own1 = own & 2, own2 = own & 4;
     const int64_t span = x1 - x0 + 1;
@@ -194,10 +218,9 @@ DIFFSHADE_CLONES void RasterBand(const float* coef, const float* zw, const int32
           if (!Inside(e1, own1)) continue;
           const float e2 = Eval<kCount>(pl[2], qx, qy);
           if (!Inside(e2, own2)) continue;
-          const float zz = Eval<kCount>(pl[3], qx, qy);
-          const float ww = Eval<kCount>(pl[4], qx, qy);
-          if (!(zz >= -ww && zz <= ww)) continue;
-          Insert(zz / ww, py * width + px, f, layers, stride, depth_buf, ids);
+          float d;
+          if (!DepthAt(dp, e0, e1, e2, &d)) continue;
+          Insert(d, py * width + px, f, layers, stride, depth_buf, ids);
         }
       }
       continue;
@@ -210,17 +233,16 @@ DIFFSHADE_CLONES void RasterBand(const float* coef, const float* zw, const int32
       // depth if the triangle covers it there, +inf if not. The same operations in the same
       // order as a test pixel by pixel: only which results are looked at differs.
       const int32_t q0 = static_cast<int32_t>(2 * x0 + 1), n = static_cast<int32_t>(span);
-      float rp[5];
-      for (int k = 0; k < 5; ++k) rp[k] = RowPart<kCount>(pl[k], qy);
+      float rp[3];
+      for (int k = 0; k < 3; ++k) rp[k] = RowPart<kCount>(pl[k], qy);
       for (int32_t i = 0; i < n; ++i) {
         const float qx = static_cast<float>(q0 + 2 * i);  // (int32: SSE2 converts it 4 at a time)
         const float e0 = XPart<kCount>(pl[0], rp[0], qx);
         const float e1 = XPart<kCount>(pl[1], rp[1], qx);
         const float e2 = XPart<kCount>(pl[2], rp[2], qx);
-        const float zz = XPart<kCount>(pl[3], rp[3], qx);
-        const float ww = XPart<kCount>(pl[4], rp[4], qx);
-        const bool inside = Inside(e0, own0) & Inside(e1, own1) & Inside(e2, own2) & (zz >= -ww) & (zz <= ww);
-        const float d = zz / ww;
+        float d;
+        const bool in_depth = DepthAt(dp, e0, e1, e2, &d);
+        const bool inside = Inside(e0, own0) & Inside(e1, own1) & Inside(e2, own2) & in_depth;
         rd[i] = inside ? d : kInf;
       }
       // Pass 2: the covered pixels' fragments into their sorted lists. One layer: a z-buffer,
@@ -308,7 +330,7 @@ void Setup(const float* clip, const int32_t* faces, int64_t num_verts, int64_t n
            int32_t* meta) {
   ScopedFlushDenormals ftz;
   float X[3][kBlock], Y[3][kBlock], Z[3][kBlock], W[3][kBlock], minor[3][kBlock], nat[3][kBlock];
-  float ndc[9][kBlock], det[kBlock];
+  float det[kBlock], d0[kBlock];
   int32_t VI[3][kBlock];
   bool bad[kBlock];
   for (int64_t f0 = f_begin; f0 < f_end; f0 += kBlock) {
@@ -347,27 +369,28 @@ void Setup(const float* clip, const int32_t* faces, int64_t num_verts, int64_t n
         const float s = sw ? -sdet : sdet;
         const float xa = sw ? X[b][j] : X[a][j], ya = sw ? Y[b][j] : Y[a][j], wa = sw ? W[b][j] : W[a][j];
         const float xb = sw ? X[a][j] : X[b][j], yb = sw ? Y[a][j] : Y[b][j], wb = sw ? W[a][j] : W[b][j];
-        ndc[3 * i][j] = s * minor[i][j];
-        ndc[3 * i + 1][j] = s * (Mul(wb, ya) - Mul(wa, yb));
-        ndc[3 * i + 2][j] = s * (Mul(xb, wa) - Mul(xa, wb));
+        const float cc = s * minor[i][j];
+        const float ax = s * (Mul(wb, ya) - Mul(wa, yb));
+        const float ay = s * (Mul(xb, wa) - Mul(xa, wb));
         float cf[3];
-        ToPixelUnits(ndc[3 * i][j], ndc[3 * i + 1][j], ndc[3 * i + 2][j], height, width, cf);
+        ToPixelUnits(cc, ax, ay, height, width, cf);
         for (int k = 0; k < 3; ++k) coef[(3 * i + k) * nf + f0 + j] = cf[k];
       }
     }
-    // the depth planes Z and W in pixel units
-    for (int q = 0; q < 2; ++q) {
+    // the depth weights (Depth), in loops over the block that vectorise
+    for (int64_t j = 0; j < n; ++j) {
+      const float zs = (Z[0][j] + Z[1][j]) + Z[2][j], ws = (W[0][j] + W[1][j]) + W[2][j];
+      const float d = zs / (ws > 0 ? ws : 1.0f);
+      const float lo = d < -1.0f ? -1.0f : d;
+      d0[j] = ws > 0 ? (lo > 1.0f ? 1.0f : lo) : 0.0f;
+    }
+    for (int k = 0; k < 3; ++k) {
       for (int64_t j = 0; j < n; ++j) {
-        const float v0 = q == 0 ? Z[0][j] : W[0][j], v1 = q == 0 ? Z[1][j] : W[1][j];
-        const float v2 = q == 0 ? Z[2][j] : W[2][j];
-        float plane[3], out[3];
-        for (int k = 0; k < 3; ++k) {
-          plane[k] = (Mul(ndc[k][j], v0) + Mul(ndc[3 + k][j], v1)) + Mul(ndc[6 + k][j], v2);
-        }
-        ToPixelUnits(plane[0], plane[1], plane[2], height, width, out);
-        for (int k = 0; k < 3; ++k) zw[(3 * q + k) * nf + f0 + j] = out[k];
+        zw[(1 + k) * nf + f0 + j] = Trunc(Z[k][j] - Mul(d0[j], W[k][j]), 12);
+        zw[(4 + k) * nf + f0 + j] = Trunc(W[k][j], 12);
       }
     }
+    for (int64_t j = 0; j < n; ++j) zw[f0 + j] = d0[j];
     for (int64_t j = 0; j < n; ++j) {
       const int64_t f = f0 + j;
       int32_t own = 0;
@@ -410,7 +433,7 @@ ffi::Error RasterImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> clip, ffi::Buf
   thread_local std::vector<float> coef, zw, depth;
   thread_local std::vector<int32_t> meta;
   coef.resize(static_cast<size_t>(9 * num_faces));
-  zw.resize(static_cast<size_t>(6 * num_faces));
+  zw.resize(static_cast<size_t>(7 * num_faces));
   meta.resize(static_cast<size_t>(5 * num_faces));
   int64_t batch = 1;
   for (size_t i = 0; i + 3 < odims.size(); ++i) batch *= odims[i];
