@@ -155,7 +155,9 @@ def main():
                 culled = opts.replace(raster=dataclasses.replace(opts.raster, cull="back"))
                 full_culled = jax.jit(lambda s: ds.render(s, culled))  # noqa: B023
                 r["culled"] = timed(full_culled, scene, repeats=args.repeats)[1]
-                r["culled_diff"] = float(jnp.max(jnp.abs(full_culled(scene) - full(scene))))
+                diff = jnp.max(jnp.abs(full_culled(scene) - full(scene)), axis=-1)
+                r["culled_diff"] = float(jnp.max(diff))
+                r["culled_px"] = int(jnp.sum(diff > 1e-4))  # (a back face shown at a silhouette: pixels)
                 # and Gouraud-shaded, what DEODR computes (colours lit at the vertices, interpolated)
                 gouraud = culled.replace(raster=dataclasses.replace(culled.raster, shading="gouraud"))
                 r["gouraud"] = timed(jax.jit(lambda s: ds.render(s, gouraud)), scene, repeats=args.repeats)[1]  # noqa: B023
@@ -171,7 +173,7 @@ def main():
                 rows.append(r)
                 print(
                     f"{len(f):6d} faces {res:4d}² {terms:8s} full {r['full']:8.2f} ms (compile {r['full_c']:.2f} s)  "
-                    f"culled {r['culled']:8.2f} ms (image ±{r['culled_diff']:.1e}), Gouraud {r['gouraud']:.2f} ms  "
+                    f"culled {r['culled']:8.2f} ms (image ±{r['culled_diff']:.1e}, {r['culled_px']} px beyond 1e-4), Gouraud {r['gouraud']:.2f} ms  "
                     f"shade {r['shade']:8.2f} ms  jvp×12 {r['jvp']:8.2f} ms ({r['jvp_bytes']:.0f} B/px; "
                     f"jacfwd {r['jacfwd']:.2f} ms)  vjp {r['vjp']:8.2f} ms  "
                     f"program {r['hlo_lines']} HLO lines" + (f"  DEODR {ref:.2f} ms" if ref else ""),

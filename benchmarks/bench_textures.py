@@ -8,7 +8,7 @@ the ratio is to the constant-material render measured in the same run (on a CPU 
 shading kernel renders both, with and without the map), and to the constant render by the JAX
 stages (``backend="jax"``).
 
-    GLIBC_TUNABLES=glibc.malloc.hugetlb=1 python benchmarks/bench_textures.py [--repeats 30]
+    GLIBC_TUNABLES=glibc.malloc.hugetlb=1 python benchmarks/bench_textures.py [--repeats 30] [--sizes 256,512]
 """
 
 from __future__ import annotations
@@ -43,11 +43,12 @@ def scene_at(size: int, texture: ds.Texture | None):
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeats", type=int, default=30)
+    ap.add_argument("--sizes", default="256,512", help="image sides (default 256,512)")
     args = ap.parse_args()
     texels = np.random.default_rng(0).uniform(0.2, 0.9, (256, 256, 3))
     render = jax.jit(ds.render, static_argnames="opts")
     print(f"jax {jax.__version__}, {jax.devices()[0].platform}; medians of {args.repeats} interleaved calls")
-    for size in (256, 512):
+    for size in (int(x) for x in args.sizes.split(",")):
         for shading in ("phong", "gouraud"):
             variants = {
                 "constant k_d": None,
