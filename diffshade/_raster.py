@@ -46,11 +46,11 @@ Two backends compute the same visibility, bit for bit:
 Bit-for-bit agreement: XLA's CPU backend contracts ``a*b + c`` into fused multiply-adds where it
 likes, which would change the last bit of an edge function. So every product in the visibility
 arithmetic is exact (factors are split into pieces short enough that each partial product is
-representable, see :func:`_xmul` and :func:`_plane_eval`), planes are evaluated in pixel units
-``(2i + 1, 2j + 1)`` (small exact integers), additions happen in one fixed order, and the native
-kernel flushes denormals as XLA does. Contraction then cannot change a result, and the two
-backends agree on every pixel, edge and depth ties included (tested). Image sides are limited to
-``MAX_SIDE`` = 8192 pixels so that three pieces suffice.
+representable, see :func:`_xmul`, :func:`_plane_eval` and :func:`_depth`), planes are evaluated
+in pixel units ``(2i + 1, 2j + 1)`` (small exact integers), additions happen in one fixed order,
+and the native kernel flushes denormals as XLA does. Contraction then cannot change a result,
+and the two backends agree on every pixel, edge and depth ties included (tested). Image sides are
+limited to ``MAX_SIDE`` = 8192 pixels so that three pieces suffice.
 """
 
 from __future__ import annotations

@@ -383,6 +383,7 @@ void Setup(const float* clip, const int32_t* faces, int64_t num_verts, int64_t n
       const float d = zs / (ws > 0 ? ws : 1.0f);
       const float lo = d < -1.0f ? -1.0f : d;
       d0[j] = ws > 0 ? (lo > 1.0f ? 1.0f : lo) : 0.0f;
+      zw[f0 + j] = d0[j];
     }
     for (int k = 0; k < 3; ++k) {
       for (int64_t j = 0; j < n; ++j) {
@@ -390,7 +391,6 @@ void Setup(const float* clip, const int32_t* faces, int64_t num_verts, int64_t n
         zw[(4 + k) * nf + f0 + j] = Trunc(W[k][j], 12);
       }
     }
-    for (int64_t j = 0; j < n; ++j) zw[f0 + j] = d0[j];
     for (int64_t j = 0; j < n; ++j) {
       const int64_t f = f0 + j;
       int32_t own = 0;
