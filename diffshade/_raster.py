@@ -537,20 +537,20 @@ def _per_face(faces, t) -> bool:
 
 
 def _face_planes(clip: Float[Array, "V 4"], faces: Int[Array, "F 3"]) -> list[Array]:
-    r"""Per face, the 13 coefficients the fragments need, each an ``[F]`` array: the three
+    r"""Per face, the 16 numbers the fragments need, each an ``[F]`` array: the three
     homogeneous edge functions :math:`E_i = c_i + a_i x + b_i y` (the cofactors of the clip-space
-    matrix :math:`[x_k; y_k; w_k]`), the plane :math:`\sum_i E_i z_i` and the determinant
-    :math:`D = \sum_i E_i w_i` (constant over the face). Computed once per face and gathered per
-    pixel: 13 gathers by triangle id instead of 3 vertex-id gathers and 12 of clip components, and
-    no per-pixel cofactors (the shading of a diffuse render at 512² moved 640 bytes per pixel,
-    now 460; docs/performance.md)."""
+    matrix :math:`[x_k; y_k; w_k]`), the corners' clip :math:`z_i` and :math:`w_i`, and the
+    determinant :math:`D = \sum_i E_i w_i` (constant over the face; its sign is the winding).
+    Computed once per face and gathered per pixel: gathers by triangle id instead of 3 vertex-id
+    gathers and 12 of clip components, and no per-pixel cofactors (the shading of a diffuse render
+    at 512² moved 640 bytes per pixel, then 460; docs/performance.md)."""
     ct = clip.T
     X, Y, Z, Wc = ([ct[c][faces[:, j]] for j in range(3)] for c in range(4))
     planes = []
     for i in range(3):
         a, b = (i + 1) % 3, (i + 2) % 3
         planes += [X[a] * Y[b] - X[b] * Y[a], Wc[b] * Y[a] - Wc[a] * Y[b], X[b] * Wc[a] - X[a] * Wc[b]]
-    planes += [sum(planes[3 * i + q] * Z[i] for i in range(3)) for q in range(3)]
+    planes += [*Z, *Wc]
     planes.append(
         X[0] * (Y[1] * Wc[2] - Y[2] * Wc[1])
         - Y[0] * (X[1] * Wc[2] - X[2] * Wc[1])
@@ -569,10 +569,11 @@ def fragments(
     covered ones, gathered with their ids — is shaded at the cost of that subset.
 
     With :math:`E_i` the edge functions at the pixel centre (see the module docstring),
-    :math:`b_i = E_i / \sum_k E_k`; since :math:`\sum_i E_i (x_i, y_i, w_i) = D\,(x, y, 1)` for
-    the face's clip-space determinant :math:`D`, :math:`w = \sum_i b_i w_i = D / \sum_k E_k` and
-    depth :math:`= \sum_i b_i z_i / w = \sum_i E_i z_i / D`. Gradients flow to ``clip`` (and so
-    to vertices and camera); empty pixels get zeros, with finite gradients (double ``where``).
+    :math:`b_i = E_i / \sum_k E_k`, :math:`w = \sum_i b_i w_i` and depth :math:`= \sum_i b_i z_i
+    / w`, the corners' means (with the face's clip-space determinant :math:`D`, :math:`w = D /
+    \sum_k E_k` in exact arithmetic, but not in float32 at a face seen nearly edge-on).
+    Gradients flow to ``clip`` (and so to vertices and camera); empty pixels get zeros, with
+    finite gradients (double ``where``).
     """
     clip = jnp.asarray(clip)
     dtype = clip.dtype
@@ -596,16 +597,14 @@ def fragments(
     ok = valid & (s != 0)
     inv = 1.0 / jnp.where(ok, s, 1.0)
     bary = [jnp.where(ok, e * inv, 0.0) for e in es]
-    det = g[12]
-    okw = ok & (det != 0)
-    depth = jnp.where(okw, (g[9] + x * g[10] + y * g[11]) / jnp.where(okw, det, 1.0), 1.0)
-    return Fragments(
-        tri_id=tri_id,
-        bary=jnp.stack(bary, axis=-1),
-        depth=depth,
-        w=jnp.where(ok, det * inv, 0.0),
-        front=valid & (det > 0),
-    )
+    # w and z as the corners' means weighted by the barycentrics: D / sum E is the same number in
+    # exact arithmetic, but at a face seen nearly edge-on both are small differences of large
+    # terms (float32, 81,920 faces at 1024²: w off by up to 10 %; the means: 4e-4; docs/design.md)
+    wm = bary[0] * g[12] + bary[1] * g[13] + bary[2] * g[14]
+    zm = bary[0] * g[9] + bary[1] * g[10] + bary[2] * g[11]
+    okw = ok & (wm != 0)
+    depth = jnp.where(okw, zm / jnp.where(okw, wm, 1.0), 1.0)
+    return Fragments(tri_id=tri_id, bary=jnp.stack(bary, axis=-1), depth=depth, w=wm, front=valid & (g[15] > 0))
 
 
 def rasterize(

@@ -32,8 +32,9 @@ namespace ffi = xla::ffi;
 namespace {
 
 // Layouts shared with diffshade/_fast.py (kept in step by its constants).
-// Per face, kFace floats (built by FaceTable below): the 13 planes of _raster.py::_face_planes
-// (E_i = c + a x + b y for i = 0..2 at the pixel centre (x, y) in NDC, the depth plane, D), the
+// Per face, kFace floats (built by FaceTable below): the edge functions of
+// _raster.py::_face_planes (E_i = c + a x + b y for i = 0..2 at the pixel centre (x, y) in NDC),
+// the corners' clip w (w = sum_i b_i w_i at a pixel), the clip-space determinant D, the
 // corners' normals (3 x 3; Gouraud: their front colours), their positions (3 x 3), whether the
 // face is front-facing (D > 0; 1 or 0), and (Gouraud) the corners' back colours (3 x 3).
 constexpr int kFace = 41;
@@ -594,7 +595,10 @@ __attribute__((always_inline)) inline int PointsOf(const int32_t* ids, const flo
         px[i] = (c[22] * b0 + c[25] * b1) + c[28] * b2;
         py[i] = (c[23] * b0 + c[26] * b1) + c[29] * b2;
         pz[i] = (c[24] * b0 + c[27] * b1) + c[30] * b2;
-        w[i] = ok ? c[12] * inv : 0.0f;
+        // (D / sum E in exact arithmetic; as the corners' mean it keeps its precision at a face
+        // seen edge-on, where both are small differences of large terms: _raster.fragments)
+        const float wi = (c[9] * b0 + c[10] * b1) + c[11] * b2;
+        w[i] = wi;
         bk[i] = back;
         ba[i] = b0, bb[i] = b1, bc[i] = b2;
         pix[i] = p + i;
@@ -604,7 +608,7 @@ __attribute__((always_inline)) inline int PointsOf(const int32_t* ids, const flo
           const float vi = (fm.V[0] * b0 + fm.V[1] * b1) + fm.V[2] * b2;
           u[i] = ui, v[i] = vi;
           if (derivatives) {
-            const float scale = ok && c[12] != 0 ? inv : 0.0f;  // (w / det; 0 on an empty face)
+            const float scale = ok && c[12] != 0 ? wi / c[12] : 0.0f;  // (1 / sum E; 0 on an empty face)
             dux[i] = (fm.axu - ui * fm.sx) * scale, dvx[i] = (fm.axv - vi * fm.sx) * scale;
             duy[i] = (fm.ayu - ui * fm.sy) * scale, dvy[i] = (fm.ayv - vi * fm.sy) * scale;
           }
@@ -1088,18 +1092,19 @@ DIFFSHADE_CLONES void PartialsRange(const Config& cfg, const int32_t* ids, const
   }
 }
 
-// The face table (kFace floats per face) of faces [f0, f1): the planes of
-// _raster.py::_face_planes from the clip-space vertices, and the corners' normals and positions.
+// The face table (kFace floats per face) of faces [f0, f1): the edge functions of
+// _raster.py::_face_planes from the clip-space vertices, the corners' clip w, D, and the corners'
+// normals and positions.
 void FaceTable(const float* clip, const int32_t* tri, const float* normals, const float* points, const float* back,
                int64_t num_verts, int64_t f0, int64_t f1, float* table) {
   for (int64_t f = f0; f < f1; ++f) {
     float* g = table + f * kFace;
-    float X[3], Y[3], Z[3], W[3];
+    float X[3], Y[3], W[3];
     int64_t v[3];
     for (int j = 0; j < 3; ++j) {
       v[j] = std::min<int64_t>(std::max<int32_t>(tri[3 * f + j], 0), num_verts - 1);
       const float* c = clip + 4 * v[j];
-      X[j] = c[0], Y[j] = c[1], Z[j] = c[2], W[j] = c[3];
+      X[j] = c[0], Y[j] = c[1], W[j] = c[3];
     }
     for (int i = 0; i < 3; ++i) {
       const int a = (i + 1) % 3, b = (i + 2) % 3;
@@ -1107,7 +1112,7 @@ void FaceTable(const float* clip, const int32_t* tri, const float* normals, cons
       g[3 * i + 1] = W[b] * Y[a] - W[a] * Y[b];
       g[3 * i + 2] = X[b] * W[a] - X[a] * W[b];
     }
-    for (int q = 0; q < 3; ++q) g[9 + q] = (g[q] * Z[0] + g[3 + q] * Z[1]) + g[6 + q] * Z[2];
+    for (int j = 0; j < 3; ++j) g[9 + j] = W[j];
     const float det = (X[0] * (Y[1] * W[2] - Y[2] * W[1]) - Y[0] * (X[1] * W[2] - X[2] * W[1])) +
                       W[0] * (X[1] * Y[2] - X[2] * Y[1]);
     g[12] = det;
