@@ -31,6 +31,14 @@ def shared_mesh_dir():
     return os.path.abspath(MESHES)
 
 
+def float32(tree):
+    """``tree`` (a scene, or any pytree) with its floating-point leaves in float32: what the native
+    kernels render."""
+    import jax.numpy as jnp
+
+    return jax.tree.map(lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a, tree)
+
+
 def small_default_scene(width=32, height=32, **render):
     """The default scene on a 320-face icosphere at a small image size, render options overridden."""
     import diffshade as ds

@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import float32
 from test_shading import CONFIGS, make_scene
 
 import diffshade as ds
@@ -27,10 +28,6 @@ pytestmark = pytest.mark.skipif(
 
 def _jax(opts):
     return opts.replace(raster=dataclasses.replace(opts.raster, backend="jax"))
-
-
-def _f32(scene):
-    return jax.tree.map(lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a, scene)
 
 
 @functools.cache
@@ -109,7 +106,7 @@ def _assert_as_accurate_as_the_stages(scene64, opts, covered):
     """The kernel renders the float32 copy of ``scene64`` (at least ``covered`` pixels) within 4×
     the JAX stages' own float32 error, both against the stages in float64; returns
     ``(scene, ids, image)``, the float32 scene and the kernel's image."""
-    scene = _f32(scene64)
+    scene = float32(scene64)
     ids = ds.scene_visibility(scene, opts)
     assert _fast.applies(scene, opts, None) and _uses_kernel(scene, opts, ids)
     truth = np.asarray(_render(_jax(opts))(scene64, ids))
@@ -181,7 +178,7 @@ def test_textured_hard_cases_are_finite_and_agree():
         "emission": ds.Texture(np.random.default_rng(2).uniform(0, 0.2, (5, 3, 3)), wrap="repeat"),
     }
     scene, opts = _textured("phong", size=16, maps=maps)
-    scene = _f32(scene)
+    scene = float32(scene)
     ids = ds.scene_visibility(scene, opts)
     n = scene.mesh.uv.shape[0]
     for uv in (jnp.zeros((n, 2)), scene.mesh.uv * 1e4 - 3e3, scene.mesh.uv * 1e9 + 5e8):
@@ -202,14 +199,14 @@ def test_maps_kept_between_calls_follow_every_texel():
     specular = rng.uniform(0.2, 0.9, (16, 12, 1))
     maps = {"diffuse": ds.Texture(diffuse), "specular": ds.Texture(specular)}
     scene, opts = _textured("phong", size=128, maps=maps)
-    scene = _f32(scene)
+    scene = float32(scene)
     ids = ds.scene_visibility(scene, opts)
     render = _render(opts)
 
     def with_maps(d, sp, wrap="repeat", filter="trilinear"):
         d, sp = ds.Texture(d, filter=filter), ds.Texture(sp, wrap=wrap)
         mat = dataclasses.replace(scene.material, diffuse_map=d, specular_map=sp)
-        return _f32(dataclasses.replace(scene, material=mat))
+        return float32(dataclasses.replace(scene, material=mat))
 
     d2, s2 = diffuse.copy(), specular.copy()
     d2[-1] = 0.0  # (the last row of the first map, which the coordinates sample)
@@ -235,7 +232,7 @@ def test_maps_kept_between_calls_follow_every_texel():
 def test_a_pixel_subset_is_the_image_at_those_pixels(textured):
     # (textured: the level of detail takes the camera's size, not the subset's)
     scene, opts = _textured("phong") if textured else make_scene("all-lights-back-material-exp2", "phong")
-    scene = _f32(scene)
+    scene = float32(scene)
     ids = ds.scene_visibility(scene, opts)
     full = np.asarray(_render(opts)(scene, ids))
     rows, cols = np.nonzero(np.asarray(ids[0]) >= -1)  # every pixel, covered or not, in a shuffled order
@@ -252,7 +249,7 @@ def test_a_pixel_subset_is_the_image_at_those_pixels(textured):
 def test_derivatives_are_the_jax_stages():
     # value by the kernel, under jvp too (what jax.linearize runs); tangents and grad by the JAX stages
     scene, opts = make_scene("all-lights-back-material-exp2", "phong")
-    scene = _f32(scene)
+    scene = float32(scene)
     ids = ds.scene_visibility(scene, opts)
 
     def img(o, kd, m, pos):
@@ -304,7 +301,7 @@ def _shading_leaves(scene, gouraud):
 def _partials_against_stages(scene, opts, extra=(), grad=True):
     """Tangents (along random directions of every shading leaf, and of the leaves ``extra``) and
     the value within ds.kernel_partials(), against the stages' jvp; the gradient too (``grad``)."""
-    scene = _f32(scene)
+    scene = float32(scene)
     ids = ds.scene_visibility(scene, opts)
     flat, tree = jax.tree_util.tree_flatten_with_path((scene,))
     leaves = [x for _, x in flat]
@@ -395,7 +392,7 @@ def test_kernel_partials_hard_cases_are_finite_and_agree():
 
         return jax.jit(run)
 
-    f32 = _f32(scene)
+    f32 = float32(scene)
     kernel, stages, exact = jvp(opts, f32), jvp(_jax(opts), f32), jvp(_jax(opts), scene)
     kd, ks, m, att, color = diff(f32)
     pos = f32.point.position
@@ -429,7 +426,7 @@ def test_kernel_partials_only_within_their_context(monkeypatch):
     # outside ds.kernel_partials() a jvp is the stages' (whose transpose, a gradient, costs less);
     # within it, beyond _PARTIALS_BYTES of partials too (one image per scalar)
     scene, opts = make_scene("phong-point", "phong")
-    scene = _f32(scene)
+    scene = float32(scene)
     ids = ds.scene_visibility(scene, opts)
 
     def program(scene, get, ctx):
@@ -450,7 +447,7 @@ def test_kernel_partials_only_within_their_context(monkeypatch):
 
 def test_kernel_partials_refuse_a_number_they_do_not_differentiate():
     scene, opts = make_scene("phong-point", "phong")
-    scene = _f32(scene)
+    scene = float32(scene)
     ids = ds.scene_visibility(scene, opts)
     width = 49 + 24 * int(scene.point.count + scene.directional.count + scene.spot.count)
     dirs = np.zeros((2, width), np.float32)
@@ -464,7 +461,7 @@ def test_second_derivatives_are_the_jax_stages():
     # forward over reverse (a Hessian-vector product): the rule's value is itself differentiated;
     # within ds.kernel_partials() the partials' own derivative is the stages'
     scene, opts = make_scene("phong-point", "phong")
-    scene = _f32(scene)
+    scene = float32(scene)
     ids = ds.scene_visibility(scene, opts)
 
     def loss(o, m):
@@ -486,7 +483,7 @@ def test_second_derivatives_are_the_jax_stages():
 
 def test_vmap_over_scenes():
     scene, opts = make_scene("phong-point", "phong")
-    scene = _f32(scene)
+    scene = float32(scene)
     ids = ds.scene_visibility(scene, opts)
     kds = jnp.asarray([[0.7, 0.5, 0.3], [0.2, 0.9, 0.4]], jnp.float32)
 
@@ -516,7 +513,7 @@ def test_what_the_kernel_does_not_render_takes_the_jax_stages(why):
         opts = opts.with_keys(transparency=True, layers=2)
     elif why == "shininess map, Gouraud":  # (the JAX stages refuse it, and say why)
         scene, opts = _textured("gouraud", size=8, maps={"shininess": ds.Texture(np.ones((2, 2)))})
-        scene = _f32(scene)
+        scene = float32(scene)
     elif why == "backend jax":
         opts = _jax(opts)
     elif why == "area light":

@@ -8,20 +8,16 @@ Marked ``opengl``: skipped, with the reason, where Mesa's OSMesa or PyOpenGL is 
 """
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import opengl_reference as GL
 import pytest
+from conftest import float32
 from test_shading import make_scene
 
 import diffshade as ds
 
 _WHY = GL.unavailable()
 pytestmark = [pytest.mark.opengl, pytest.mark.skipif(_WHY is not None, reason=f"OpenGL reference unavailable: {_WHY}")]
-
-
-def _f32(scene):
-    return jax.tree.map(lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a, scene)
 
 
 def _resize(scene, w, h):
@@ -158,7 +154,7 @@ SCENES = {
 @pytest.mark.parametrize("name", list(SCENES))
 def test_matches_mesa(name):
     scene, opts = SCENES[name]()
-    scene = _f32(scene)
+    scene = float32(scene)
     img, covered = _diffshade(scene, opts)
     ref, ref_covered = GL.render(scene, opts)
     m = GL.compare(img, covered, ref, ref_covered)
@@ -171,7 +167,7 @@ def test_the_clamp_order_is_what_makes_gouraud_match():
     # the saturated highlight of a bright point light: clamping per pixel (diffshade's default)
     # differs from OpenGL by more than the floor; per vertex (OpenGL's order) it meets it
     scene, opts = make_scene("opengl-separate-specular", "gouraud")
-    scene = _f32(scene)
+    scene = float32(scene)
     ref, ref_covered = GL.render(scene, opts)
     ok = GL.compare(*_diffshade(scene, opts), ref, ref_covered)
     off = GL.compare(*_diffshade(scene, opts.with_keys(clamp_at="pixel")), ref, ref_covered)

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import trimesh
-from conftest import check_grads, shared_mesh_dir
+from conftest import check_grads, float32, shared_mesh_dir
 from reference import brute_force
 
 import diffshade as ds
@@ -204,6 +204,20 @@ def test_culling_a_closed_mesh_seen_from_outside(backend):
     assert (back[1] < 0).all() and (front[1] < 0).all()
 
 
+def _edge_on_views(size, count=3, seed=11, target=0.0):
+    """A 5,120-face sphere's float32 clip coordinates from ``count`` random views, eye 2.2-4 from
+    its centre, looking at a point ``target``-scaled normal noise from it (each image has faces
+    seen nearly edge-on along its outline)."""
+    m = trimesh.creation.icosphere(subdivisions=4)
+    rng = np.random.default_rng(seed)
+    for _ in range(count):
+        eye = rng.normal(size=3)
+        eye *= rng.uniform(2.2, 4.0) / np.linalg.norm(eye)
+        at = rng.normal(size=3) * target if target else np.zeros(3)
+        cam = ds.Camera(eye=eye, target=at, up=[0, 1, 0], fov_y=45.0, near=0.1, far=10.0, width=size, height=size)
+        yield m, cam, np.asarray(cam.world_to_clip(jnp.asarray(m.vertices, jnp.float32)), np.float32)
+
+
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_a_silhouette_shows_the_front_face(backend):
     # A closed convex mesh seen from outside shows front faces only, so culling the back faces
@@ -211,41 +225,12 @@ def test_a_silhouette_shows_the_front_face(backend):
     # behind it by little: a pixel 2 % into the two triangles sees them 6e-5 apart in depth, and
     # depths from planes summed once per triangle (off by up to 3e-3 for the back face, seen nearly
     # edge-on) showed it in front at 1-4 pixels of each of these images.
-    m = trimesh.creation.icosphere(subdivisions=4)
-    rng = np.random.default_rng(7)
-    for _ in range(3):
-        eye = rng.normal(size=3)
-        eye *= rng.uniform(2.2, 4.0) / np.linalg.norm(eye)
-        cam = ds.Camera(
-            eye=eye,
-            target=rng.normal(size=3) * 0.2,
-            up=[0, 1, 0],
-            fov_y=45.0,
-            near=0.1,
-            far=10.0,
-            width=512,
-            height=512,
-        )
-        clip = np.asarray(cam.world_to_clip(jnp.asarray(m.vertices, jnp.float32)))
+    for m, _, clip in _edge_on_views(512, seed=7, target=0.2):
         both = vis(clip, m.faces, 512, 1, backend)
         back = vis(clip, m.faces, 512, 1, backend, cull="back")
         assert (both[0] >= 0).sum() > 40000
         differ = np.argwhere(both[0] != back[0])
         assert len(differ) == 0, f"a back face in front at {len(differ)} pixels, e.g. {differ[:3].tolist()}"
-
-
-def _edge_on_views(size, count=3, seed=11):
-    """A 5,120-face sphere's float32 clip coordinates from ``count`` random views (each image has
-    faces seen nearly edge-on along its outline)."""
-    m = trimesh.creation.icosphere(subdivisions=4)
-    rng = np.random.default_rng(seed)
-    for _ in range(count):
-        eye = rng.normal(size=3)
-        eye *= rng.uniform(2.2, 4.0) / np.linalg.norm(eye)
-        cam = ds.Camera(
-            eye=eye, target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.1, far=10.0, width=size, height=size
-        )
-        yield m, cam, np.asarray(cam.world_to_clip(jnp.asarray(m.vertices)), np.float32)
 
 
 def test_fragments_keep_w_and_depth_precise_at_faces_seen_edge_on():
@@ -288,7 +273,7 @@ def test_the_kernel_w_is_the_fragments_w():
             ambient_light=0.0,
             fog=ds.Fog(color=1.0, start=0.5, end=6.0),
         )
-        scene = jax.tree.map(lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a, scene)
+        scene = float32(scene)
         ids = vis(clip, m.faces, size, 1, "native")
         images = []
         for o, kernel in ((opts, True), (stages, False)):

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.sparse as sp
+from conftest import float32
 
 import diffshade as ds
 import fitting
@@ -87,7 +88,7 @@ def test_the_lighting_from_the_kernel_is_the_texels_tangent():
     starts, targets, _, opts = _views(8, "bilinear", size=24, azimuths=(0,))  # (test_what_a_map_fit_refuses' views)
     spec = ds.Texture(np.random.default_rng(5).uniform(0.2, 1.0, (8, 8, 1)), filter="bilinear")
     start = dataclasses.replace(starts[0], material=dataclasses.replace(starts[0].material, specular_map=spec))
-    start = jax.tree.map(lambda x: x.astype(jnp.float32) if jnp.issubdtype(x.dtype, jnp.floating) else x, start)
+    start = float32(start)
     obs = fitting.Observations([targets[0].astype(np.float32)], views=[start])
     prob = Problem.build(start, opts, obs, ["material.diffuse_map", "material.specular_map"])
     mp = MapProblem(prob)

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import check_grads
+from conftest import check_grads, float32
 
 import diffshade as ds
 
@@ -250,7 +250,7 @@ def test_hard_cases_are_finite():
     of range (a repeated map and a clamped one), texel values of 0: values, a JVP and a gradient
     finite, in float32 (one compiled program of each)."""
     scene, opts = _textured_default("phong", {"diffuse": ds.Texture(np.zeros((1, 1, 3)))}, size=12)
-    scene = jax.tree.map(lambda x: x.astype(jnp.float32) if jnp.issubdtype(x.dtype, jnp.floating) else x, scene)
+    scene = float32(scene)
     n = scene.mesh.uv.shape[0]
 
     def f(td, ts, uv):

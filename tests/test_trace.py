@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import check_grads
+from conftest import check_grads, float32
 
 import diffshade as ds
 from diffshade import _rays
@@ -837,7 +837,7 @@ def test_float32_engines_agree_on_a_glass_ball():
     scene, opts = ds.scene_from_dict(d)
     scene = _f64(scene)
     ref = np.asarray(_render(scene, opts.with_keys(ray_backend="jax")))
-    s32 = jax.tree.map(lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a, scene)
+    s32 = float32(scene)
     engines = ["jax"] + (["embree"] if _rays.embree_available() else [])
     for be in engines:
         img = np.asarray(_render(s32, opts.with_keys(ray_backend=be)), np.float64)
