@@ -52,8 +52,20 @@ def keep(*xs: ArrayLike) -> tuple[Array, ...]:
     recomputed inside the next).
     """
     xs = tuple(jnp.asarray(x) for x in xs)
+    if not any(isinstance(x, jax.core.Tracer) for x in xs):
+        # called eagerly (no jit, grad, jvp or vmap traces xs): every array is materialised
+        # already, and a conditional made of new branches would be compiled anew at every call
+        return xs
     first = next((x for x in xs if x.size), xs[0])
     p = first.reshape(-1)[0] if first.size else jnp.zeros((), first.dtype)
     p = p if jnp.issubdtype(p.dtype, jnp.floating) else p.astype(jnp.float32)
     pred = (p == p) | (p != p)
-    return jax.lax.cond(pred, lambda t: t, lambda t: tuple(jnp.zeros_like(a) for a in t), xs)
+    return jax.lax.cond(pred, _identity, _zeros_like, xs)
+
+
+def _identity(t):
+    return t
+
+
+def _zeros_like(t):
+    return tuple(jnp.zeros_like(a) for a in t)
