@@ -17,7 +17,6 @@ import math
 import numbers
 from dataclasses import dataclass
 
-import jax
 import numpy as np
 
 
@@ -134,11 +133,6 @@ SCENE: dict[str, dict[str, Domain]] = {
     "scene": {"ambient_light": NONNEG, "background": NONNEG, "shadow_bias": NONNEG, "shadow_slope_bias": NONNEG},
 }
 _NONZERO = {"direction", "axis", "normal", "up"}  # directions: not the zero vector
-
-
-def is_concrete(tree) -> bool:
-    """Whether every array of ``tree`` holds values (no JAX tracer: outside ``jit``, ``grad``, ...)."""
-    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
 
 
 def check_scene(scene) -> None:

@@ -23,6 +23,7 @@ from ._materials import _select, _select_sides
 from ._options import Lighting, Output
 from ._scene import Lights, Material, Scene
 from ._surface import Components, Surface
+from ._util import is_concrete
 from ._util import keep as _keep
 
 
@@ -218,15 +219,23 @@ def _scan_lights(one, lights, vis):
     """``Σ_i one(light_i, vis_i)`` (direct and per-light ambient colour tuples) by ``lax.scan``
     over the lights' leading axis (and ``vis``'s, when given): one copy of a light's terms in the
     program, whatever their number."""
-    row = lambda t: jax.tree.map(lambda x: x[0], t)  # noqa: E731
-    shapes = jax.eval_shape(one, row(lights), None if vis is None else vis[0])
-    init = jax.tree.map(lambda sd: jnp.zeros(sd.shape, sd.dtype), shapes)
 
-    def body(acc, x):
-        out = one(*x)
-        return jax.tree.map(lambda s, t: (s + t).astype(s.dtype), acc, out), None
+    def add(acc, out):
+        return jax.tree.map(lambda s, t: (s + t).astype(s.dtype), acc, out)
 
-    (d, a), _ = jax.lax.scan(body, init, (lights, vis))
+    def light(i):
+        return one(jax.tree.map(lambda x: x[i], lights), None if vis is None else vis[i])
+
+    first = light(0)
+    if is_concrete(first):
+        # called eagerly: a loop (an eager scan of a new body is compiled anew at every call;
+        # under jit, first's ops are unused and left out of the program)
+        acc = first
+        for i in range(1, lights.count):
+            acc = add(acc, light(i))
+        return acc
+    init = jax.tree.map(jnp.zeros_like, first)
+    (d, a), _ = jax.lax.scan(lambda acc, x: (add(acc, one(*x)), None), init, (lights, vis))
     return d, a
 
 

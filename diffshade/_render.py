@@ -22,7 +22,7 @@ from . import _fast
 from . import _lighting as Lg
 from . import _shade as S
 from ._composite import composite
-from ._domains import check_scene, is_concrete
+from ._domains import check_scene
 from ._lighting import LightVisibility, illuminate
 from ._options import Raster, RenderOptions, ShadowMaps, ShadowRays
 from ._raster import fragments, visibility
@@ -30,6 +30,7 @@ from ._scene import Scene
 from ._shadow import shadow_map_visibility
 from ._surface import Surface, needs, surface_points
 from ._trace import generations, secondary_rays, shadow_ray_visibility
+from ._util import is_concrete
 
 
 def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=None) -> Float[Array, "H W 3"]:

@@ -16,10 +16,10 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._camera import Camera
-from ._domains import check_scene, is_concrete
+from ._domains import check_scene
 from ._mesh import Mesh
 from ._texture import Texture
-from ._util import as_float_array
+from ._util import as_float_array, is_concrete
 from ._util import rgb_array as _rgb
 
 MAPPED_FIELDS = ("emission", "ambient", "diffuse", "specular", "shininess", "opacity")

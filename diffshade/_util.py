@@ -36,6 +36,11 @@ def safe_normalize(v, axis=-1, fallback=None):
     return jnp.where(ok, out, fb)
 
 
+def is_concrete(tree) -> bool:
+    """Whether every array of ``tree`` holds values (no JAX tracer: outside ``jit``, ``grad``, ...)."""
+    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
+
+
 def keep(*xs: ArrayLike) -> tuple[Array, ...]:
     """Materialise ``xs`` (returned as a tuple): an XLA fusion boundary, transparent to jit, grad, jvp and vmap.
 
@@ -52,7 +57,7 @@ def keep(*xs: ArrayLike) -> tuple[Array, ...]:
     recomputed inside the next).
     """
     xs = tuple(jnp.asarray(x) for x in xs)
-    if not any(isinstance(x, jax.core.Tracer) for x in xs):
+    if is_concrete(xs):
         # called eagerly (no jit, grad, jvp or vmap traces xs): every array is materialised
         # already, and a conditional made of new branches would be compiled anew at every call
         return xs

@@ -167,3 +167,29 @@ def test_program_size_with_shadows_does_not_grow_with_the_number_of_lights():
         scene, opts = many_lights_scene(n, n, n, size=8, wall=True, shadows=True, shadow_resolution=16)
         sizes.append(_program_size(scene, opts, ds.scene_visibility(scene, opts)))
     assert sizes[1] <= sizes[0] * 1.02, sizes
+
+
+def test_many_lights_rendered_eagerly_compile_nothing_the_second_time():
+    # Called eagerly, the lights are summed in a Python loop (an eager lax.scan or lax.map of a new
+    # body was compiled anew at every call: 6 compiles a render with shadow rays); under jit,
+    # the scan (test_program_size_does_not_grow_with_the_number_of_lights).
+    scene, opts = many_lights_scene(6, 6, 6, size=8, wall=True)
+    opts = opts.replace(shadows=ds.ShadowRays())
+    scene = jax.tree.map(lambda a: a.astype(jnp.float64) if eqx.is_inexact_array(a) else a, scene)
+    assert scene.point.count > R.LIGHTS_UNROLLED
+    first = ds.render(scene, opts)
+    compiles = []
+
+    def count(event, duration, **kw):
+        if event.endswith("backend_compile_duration"):
+            compiles.append(kw.get("fun_name"))
+
+    jax.monitoring.register_event_duration_secs_listener(count)
+    try:
+        again = ds.render(scene, opts)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(count)
+    assert compiles == [], f"an eager render compiled {compiles}"
+    np.testing.assert_array_equal(np.asarray(first), np.asarray(again))
+    jitted = jax.jit(ds.render, static_argnames="opts")(scene, opts)
+    np.testing.assert_allclose(np.asarray(first), np.asarray(jitted), rtol=1e-12, atol=1e-12)
