@@ -44,7 +44,7 @@ import numpy as np
 
 from . import _shade as S
 from ._raster import visibility
-from ._util import is_concrete, keep
+from ._util import keep, map_lights
 
 _SPOT_MAX_HALF_ANGLE = 80.0
 _CUBE = np.array(  # (axis a, u, v) of the six faces: +x, -x, +y, -y, +z, -z
@@ -316,10 +316,5 @@ def shadow_map_visibility(scene, maps, P, ng, unrolled: int, backend: str = "aut
             ids = jax.vmap(lambda cl: visibility(cl, faces, (R, R), 1, backend)[0])(vw.clip(X))
             return _lookup(vw, ids, planes, P, ng, bias, slope, R, pcf, eager=lookups > vw.count * R * R)
 
-        each = [one(jax.tree.map(lambda x: x[0], lights))]
-        if lights.count > unrolled and not is_concrete(each):
-            out[kind] = jax.lax.map(one, lights)  # (each's ops are unused: left out of the program)
-        else:  # few lights, or called eagerly (an eager map of a new body compiles at every call)
-            each += [one(jax.tree.map(lambda x: x[i], lights)) for i in range(1, lights.count)]
-            out[kind] = jnp.stack(each)
+        out[kind] = map_lights(one, lights, unrolled)
     return out

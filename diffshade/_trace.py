@@ -40,7 +40,7 @@ from ._options import RenderOptions, ShadowRays
 from ._rays import first_hits, intersect
 from ._scene import Scene
 from ._surface import Components, Surface, needs
-from ._util import is_concrete
+from ._util import map_lights
 
 # Secondary rays start this far (relative to the scene's size) along themselves, and skip the
 # triangle they leave: a ray never meets its own surface again through rounding.
@@ -132,12 +132,7 @@ def shadow_ray_visibility(scene: Scene, rays: ShadowRays, P, tri, area_grid=(4, 
     for kind, lights in Lg.light_kinds(scene, area_grid):
         one = lambda li, kind=kind: one_kind("point" if kind == "area" else kind, li)  # noqa: E731
         # past a few lights of a kind, one copy in the program (as for shadow maps and lighting)
-        each = [one(jax.tree.map(lambda x: x[0], lights))]
-        if lights.count > Lg.LIGHTS_UNROLLED and not is_concrete(each):
-            out[kind] = jax.lax.map(one, lights)  # (each's ops are unused: left out of the program)
-        else:  # few lights, or called eagerly (an eager map of a new body compiles at every call)
-            each += [one(jax.tree.map(lambda x: x[i], lights)) for i in range(1, lights.count)]
-            out[kind] = jnp.stack(each)
+        out[kind] = map_lights(one, lights, Lg.LIGHTS_UNROLLED)
     return LightVisibility(out, rgb=K > 0)
 
 

@@ -41,6 +41,19 @@ def is_concrete(tree) -> bool:
     return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
 
 
+def map_lights(one, lights, unrolled: int):
+    """``one(light_i)`` stacked over the lights (a pytree of arrays with a leading light axis of
+    ``lights.count``): past ``unrolled`` lights under a trace by ``lax.map`` (one copy of ``one`` in
+    the program, whatever the count), otherwise by a Python loop. Called eagerly it is always the
+    loop: an eager map of a new body is compiled anew at every call. (Under a trace, the first
+    light's ops, evaluated to tell, are unused and left out of the program.)"""
+    each = [one(jax.tree.map(lambda x: x[0], lights))]
+    if lights.count > unrolled and not is_concrete(each):
+        return jax.lax.map(one, lights)
+    each += [one(jax.tree.map(lambda x, i=i: x[i], lights)) for i in range(1, lights.count)]
+    return jnp.stack(each)
+
+
 def keep(*xs: ArrayLike) -> tuple[Array, ...]:
     """Materialise ``xs`` (returned as a tuple): an XLA fusion boundary, transparent to jit, grad, jvp and vmap.
 

@@ -1,3 +1,4 @@
+import contextlib
 import os
 import re
 from importlib.metadata import version
@@ -31,12 +32,37 @@ def shared_mesh_dir():
     return os.path.abspath(MESHES)
 
 
+def _cast(tree, dtype):
+    import jax.numpy as jnp
+
+    return jax.tree.map(lambda a: a.astype(dtype) if jnp.issubdtype(a.dtype, jnp.floating) else a, tree)
+
+
 def float32(tree):
     """``tree`` (a scene, or any pytree) with its floating-point leaves in float32: what the native
     kernels render."""
-    import jax.numpy as jnp
+    return _cast(tree, np.float32)
 
-    return jax.tree.map(lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a, tree)
+
+def float64(tree):
+    """``tree`` with its floating-point leaves in float64: what only the JAX stages render."""
+    return _cast(tree, np.float64)
+
+
+@contextlib.contextmanager
+def compiles():
+    """The names of the programs XLA compiles inside the ``with`` block (a list, filled as it runs)."""
+    names = []
+
+    def count(event, duration, **kw):
+        if event.endswith("backend_compile_duration"):
+            names.append(kw.get("fun_name"))
+
+    jax.monitoring.register_event_duration_secs_listener(count)
+    try:
+        yield names
+    finally:
+        jax.monitoring.unregister_event_duration_listener(count)
 
 
 def small_default_scene(width=32, height=32, **render):

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import float32
+from conftest import float32, float64
 from test_shading import CONFIGS, make_scene
 
 import diffshade as ds
@@ -504,7 +504,7 @@ def test_vmap_over_scenes():
 def test_what_the_kernel_does_not_render_takes_the_jax_stages(why):
     scene, opts = make_scene(why if why in NOT_KERNEL else "phong-point", "phong", dtype=jnp.float32)
     if why == "float64":
-        scene = jax.tree.map(lambda a: a.astype(jnp.float64) if jnp.issubdtype(a.dtype, jnp.floating) else a, scene)
+        scene = float64(scene)
     elif why == "flat":
         opts = opts.with_keys(shading="flat")
     elif why == "shadows":

@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import compiles, float64
 
 import diffshade as ds
 import diffshade._lighting as R
@@ -71,7 +72,7 @@ def many_lights_scene(n_point, n_spot, n_dir, size=12, shading="phong", seed=0, 
         lights.append({"type": "directional", "color": col(), "direction": [-c for c in pos()], "ambient": col()})
     d["light"] = lights
     scene, opts = ds.scene_from_dict(d)
-    return jax.tree.map(lambda a: a.astype(jnp.float64) if jnp.issubdtype(a.dtype, jnp.floating) else a, scene), opts
+    return float64(scene), opts
 
 
 def _with_unroll(k, fn, *args):
@@ -175,21 +176,11 @@ def test_many_lights_rendered_eagerly_compile_nothing_the_second_time():
     # the scan (test_program_size_does_not_grow_with_the_number_of_lights).
     scene, opts = many_lights_scene(6, 6, 6, size=8, wall=True)
     opts = opts.replace(shadows=ds.ShadowRays())
-    scene = jax.tree.map(lambda a: a.astype(jnp.float64) if eqx.is_inexact_array(a) else a, scene)
-    assert scene.point.count > R.LIGHTS_UNROLLED
+    assert scene.point.count > R.LIGHTS_UNROLLED and scene.point.color.dtype == jnp.float64  # the JAX stages
     first = ds.render(scene, opts)
-    compiles = []
-
-    def count(event, duration, **kw):
-        if event.endswith("backend_compile_duration"):
-            compiles.append(kw.get("fun_name"))
-
-    jax.monitoring.register_event_duration_secs_listener(count)
-    try:
+    with compiles() as compiled:
         again = ds.render(scene, opts)
-    finally:
-        jax.monitoring.unregister_event_duration_listener(count)
-    assert compiles == [], f"an eager render compiled {compiles}"
+    assert compiled == [], f"an eager render compiled {compiled}"
     np.testing.assert_array_equal(np.asarray(first), np.asarray(again))
     jitted = jax.jit(ds.render, static_argnames="opts")(scene, opts)
     np.testing.assert_allclose(np.asarray(first), np.asarray(jitted), rtol=1e-12, atol=1e-12)

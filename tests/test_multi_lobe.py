@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import check_grads
+from conftest import check_grads, float64
 
 import diffshade as ds
 import diffshade._lighting as R
@@ -32,10 +32,6 @@ LOBES = [
     {"axis": [0.6, 0.5, -1.0], "cutoff": 50.0, "exponent": 8.0, "edge": 10.0, "color": [0.5, 0.5, 0.1]},
 ]
 POSITION, ATTENUATION = [0.3, 0.2, 2.2], [1.0, 0.1, 0.05]
-
-
-def _f64(scene):
-    return jax.tree.map(lambda a: a.astype(jnp.float64) if jnp.issubdtype(a.dtype, jnp.floating) else a, scene)
 
 
 def _dict(lights, shading="phong", size=16, **render):
@@ -69,7 +65,7 @@ def _spots(lobes=LOBES, position=POSITION):
 def test_a_multi_lobe_light_equals_the_sum_of_its_spots(shading):
     a, opts = ds.scene_from_dict(_dict([_multi()], shading))
     b, opts_b = ds.scene_from_dict(_dict(_spots(), shading))
-    a, b = _f64(a), _f64(b)
+    a, b = float64(a), float64(b)
     ids = ds.scene_visibility(a, opts)
     img_a, img_b = ds.render(a, opts, ids), ds.render(b, opts_b, ids)
     assert float(jnp.max(img_a)) > 0.3 and float(jnp.std(img_a)) > 0.05  # lit, with structure
@@ -99,14 +95,16 @@ def test_lights_with_fewer_lobes_are_padded_with_dark_lobes():
     np.testing.assert_array_equal(a.multi_lobe.color[0, 1:], 0.0)
     b, _ = ds.scene_from_dict(_dict(_spots(LOBES[:1], [0.3, 0.2, 2.2]) + _spots(LOBES, [-0.4, 0.1, 2.0])))
     ids = ds.scene_visibility(a, opts)
-    np.testing.assert_allclose(ds.render(_f64(a), opts, ids), ds.render(_f64(b), opts, ids), rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(
+        ds.render(float64(a), opts, ids), ds.render(float64(b), opts, ids), rtol=1e-12, atol=1e-13
+    )
 
 
 def test_many_multi_lobe_lights_scanned_equal_the_unrolled_sum():
     rng = np.random.default_rng(3)
     lights = [_multi(LOBES, list(rng.uniform([-1, -1, 1.5], [1, 1, 2.5]))) for _ in range(6)]
     scene, opts = ds.scene_from_dict(_dict(lights, size=10))
-    scene = _f64(scene)
+    scene = float64(scene)
     ids = ds.scene_visibility(scene, opts)
     p, rest = eqx.partition(scene, eqx.is_inexact_array)
     t = jax.tree.map(lambda x: jnp.asarray(rng.normal(size=x.shape) * 0.01, x.dtype), p)
@@ -125,7 +123,7 @@ def test_many_multi_lobe_lights_scanned_equal_the_unrolled_sum():
 
 def test_multi_lobe_gradients_match_finite_differences():
     scene, opts = ds.scene_from_dict(_dict([_multi()], size=8))
-    scene = _f64(scene)
+    scene = float64(scene)
     ids = ds.scene_visibility(scene, opts)
     ml = scene.multi_lobe
     leaves = (ml.color, ml.ambient, ml.axis, ml.cutoff, ml.exponent, ml.edge, ml.position, ml.attenuation)

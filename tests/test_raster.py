@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import trimesh
-from conftest import check_grads, float32, shared_mesh_dir
+from conftest import check_grads, compiles, float32, float64, shared_mesh_dir
 from reference import brute_force
 
 import diffshade as ds
@@ -409,7 +409,7 @@ def test_the_stages_called_eagerly_compile_nothing_the_second_time():
     from diffshade._util import keep
 
     scene, opts = small_default_scene(16, 16, shading="phong")
-    scene = jax.tree.map(lambda a: a.astype(jnp.float64) if eqx.is_inexact_array(a) else a, scene)
+    scene = float64(scene)
     clip = scene.camera.world_to_clip(scene.mesh.vertices)
     ids = ds.scene_visibility(scene, opts)
 
@@ -417,19 +417,10 @@ def test_the_stages_called_eagerly_compile_nothing_the_second_time():
         frags = ds.fragments(clip, scene.mesh.faces, ids[:1])
         return ds.surface_points(scene, frags, opts.raster, ds.needs(opts), clip)
 
-    compiles = []
-
-    def count(event, duration, **kw):
-        if event.endswith("backend_compile_duration"):
-            compiles.append(kw.get("fun_name"))
-
     first = stages()
-    jax.monitoring.register_event_duration_secs_listener(count)
-    try:
+    with compiles() as compiled:
         again = stages()
-    finally:
-        jax.monitoring.unregister_event_duration_listener(count)
-    assert compiles == [], f"an eager call compiled {compiles}"
+    assert compiled == [], f"an eager call compiled {compiled}"
     for a, b in zip(
         first.normal + first.position + (first.frags.bary,), again.normal + again.position + (again.frags.bary,)
     ):

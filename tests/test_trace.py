@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import check_grads, float32
+from conftest import check_grads, float32, float64
 
 import diffshade as ds
 from diffshade import _rays
@@ -15,10 +15,6 @@ from diffshade import _rays
 _render = jax.jit(ds.render, static_argnames="opts")
 
 BACKENDS = ["jax", pytest.param("embree", marks=pytest.mark.skipif(not _rays.embree_available(), reason="no embreex"))]
-
-
-def _f64(scene):
-    return jax.tree.map(lambda a: a.astype(jnp.float64) if jnp.issubdtype(a.dtype, jnp.floating) else a, scene)
 
 
 def _scene(floor=None, ball=None, size=(32, 24), render=None, lights=None, ico=3):
@@ -57,7 +53,7 @@ def _scene(floor=None, ball=None, size=(32, 24), render=None, lights=None, ico=3
     if d["render"]["fog"] != "none":
         d["fog"] = {"color": [0.5, 0.5, 0.6], "density": 0.15, "start": 2.0, "end": 9.0}
     scene, opts = ds.scene_from_dict(d)
-    return _f64(scene), opts
+    return float64(scene), opts
 
 
 _NO_EMBREE = pytest.mark.skipif(not _rays.embree_available(), reason="no embreex")
@@ -184,7 +180,7 @@ def _slab_scene(eta, backend, depth=3):
         "light": [{"type": "directional", "direction": [0.3, -0.2, -1.0], "color": 1.0}],
     }
     scene, opts = ds.scene_from_dict(d)
-    return _f64(scene), opts
+    return float64(scene), opts
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -373,7 +369,7 @@ def test_fit_recovers_a_mirrors_weight_from_the_reflection_of_a_lit_ball():
         "background": [0, 0, 0],
     }
     scene, opts = ds.scene_from_dict(d)
-    scene = _f64(scene)
+    scene = float64(scene)
     free = ["material[1].mirror", "material.diffuse"]
     pset = ParamSet(free, scene)
     true = np.asarray(pset.theta_of(scene), np.float64)
@@ -577,7 +573,7 @@ def test_a_coloured_filter_tints_the_shadow_by_its_transmittance(backend):
         "light": [{"type": "directional", "direction": [0, -1, 0], "color": 1.0}],
     }
     scene, opts = ds.scene_from_dict(d)
-    scene = _f64(scene)
+    scene = float64(scene)
     img = np.asarray(_render(scene, opts))
     ids = np.asarray(ds.scene_visibility(scene, opts)[0])
     o, dd = (np.asarray(a) for a in scene.camera.pixel_rays(jnp.float64))
@@ -835,7 +831,7 @@ def test_float32_engines_agree_on_a_glass_ball():
         "background": [0.55, 0.65, 0.8],
     }
     scene, opts = ds.scene_from_dict(d)
-    scene = _f64(scene)
+    scene = float64(scene)
     ref = np.asarray(_render(scene, opts.with_keys(ray_backend="jax")))
     s32 = float32(scene)
     engines = ["jax"] + (["embree"] if _rays.embree_available() else [])
