@@ -421,10 +421,13 @@ def test_the_stages_called_eagerly_compile_nothing_the_second_time():
     with compiles() as compiled:
         again = stages()
     assert compiled == [], f"an eager call compiled {compiled}"
+    # Equal to the bit on a CPU. A GPU sums the vertex normals' scatter-add with atomics in no
+    # fixed order: on an H200 two calls differed by 1 ulp at 9 of 256 entries.
+    tol = 0.0 if jax.default_backend() == "cpu" else 8 * np.finfo(np.float64).eps
     for a, b in zip(
         first.normal + first.position + (first.frags.bary,), again.normal + again.position + (again.frags.bary,)
     ):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=tol, atol=tol)
     x = jnp.arange(3.0)
     assert np.array_equal(keep(x, 2 * x)[1], 2 * x)
     assert "cond" in str(jax.make_jaxpr(lambda y: keep(y, 2 * y))(x))
