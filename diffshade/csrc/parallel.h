@@ -16,8 +16,10 @@
 // diffuse render 3.38-3.42 -> 2.79-2.90 ms, Gouraud 3.10-3.11 -> 2.45-2.50 ms.
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && defined(__linux__)
 #define DIFFSHADE_CLONES __attribute__((target_clones("avx2", "default")))
+#define DIFFSHADE_HAS_CLONES 1
 #else
 #define DIFFSHADE_CLONES
+#define DIFFSHADE_HAS_CLONES 0
 #endif
 
 namespace diffshade {
