@@ -319,6 +319,10 @@ def _select_k(d, ids, k: int):
     return jnp.stack(out_d, -1), jnp.stack(out_i, -1)
 
 
+# jitted (the sizes static) so that an eager call compiles its while loops once: called eagerly,
+# a while_loop of new closures was compiled anew at every call (0.6 s a call at 64²). Under an
+# outer jit it is traced inline as before.
+@functools.partial(jax.jit, static_argnums=(1, 2, 3, 4, 5))
 def _visibility_jax(setup: _Setup, height: int, width: int, layers: int, tile_capacity: int, pair_capacity: int):
     ntx, nty = -(-width // TILE), -(-height // TILE)
     ntiles = ntx * nty

@@ -20,6 +20,7 @@ and ``vmap`` work through them.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 from collections import OrderedDict
@@ -147,6 +148,8 @@ def _moller_trumbore(o, d, v0, v1, v2):
     return t, b1, b2, inside
 
 
+# jitted (chunk static) so that an eager call compiles its scan once, not at every call
+@functools.partial(jax.jit, static_argnames="chunk")
 def _jax_hits(orig, dirs, tmin, skip, tris, chunk: int = 256):
     """First-hit ids by brute force: every ray against every triangle, ``chunk`` triangles at a time."""
     n = orig.shape[0]

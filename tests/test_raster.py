@@ -433,6 +433,25 @@ def test_the_stages_called_eagerly_compile_nothing_the_second_time():
     assert "cond" in str(jax.make_jaxpr(lambda y: keep(y, 2 * y))(x))
 
 
+def test_the_jax_visibility_called_eagerly_compiles_nothing_the_second_time():
+    # Its while loops, called eagerly, were compiled anew at every call (0.6 s a call at 64²);
+    # the backend is now one jitted program per size. Two eager calls: the second compiles
+    # nothing and gives the same ids, which are the native backend's where it is available.
+    from conftest import small_default_scene
+
+    scene, opts = small_default_scene(16, 16, shading="phong")
+    opts = opts.replace(raster=dataclasses.replace(opts.raster, backend="jax"))
+    first = ds.scene_visibility(scene, opts)
+    with compiles() as compiled:
+        again = ds.scene_visibility(scene, opts)
+    assert compiled == [], f"an eager call compiled {compiled}"
+    np.testing.assert_array_equal(np.asarray(first), np.asarray(again))
+    assert (np.asarray(first) >= 0).sum() > 50
+    if _native.available():
+        native = ds.scene_visibility(scene, opts.replace(raster=dataclasses.replace(opts.raster, backend="native")))
+        np.testing.assert_array_equal(np.asarray(first), np.asarray(native))
+
+
 @pytest.mark.parametrize("per_face", [True, False])
 def test_fragments_gradients_match_finite_differences(per_face, monkeypatch):
     # d(barycentrics, depth)/d(vertices, camera) at interior pixels, forward and reverse mode,
