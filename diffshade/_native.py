@@ -25,7 +25,7 @@ import jaxlib
 
 _CSRC = Path(__file__).parent / "csrc"
 _SOURCES = [_CSRC / "raster.cc", _CSRC / "shade.cc"]
-_HEADERS = [_CSRC / "parallel.h", _CSRC / "pow_lanes.h"]
+_HEADERS = [_CSRC / "parallel.h", _CSRC / "math_lanes.h"]
 _FLAGS = [
     "-O3",
     "-std=c++17",

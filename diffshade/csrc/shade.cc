@@ -50,102 +50,54 @@ constexpr int kParams = 2 * kMat + 3 + 3 + 3 + 6 + 3 + 3;
 // exponent, whether the edge is smooth.
 constexpr int kLight = 24;
 
-// exp and log of floats as straight-line code (Cephes' expf and logf: a polynomial after range
-// reduction, within 2 ulp of the libm functions on their range here), so that the loops that
-// call them vectorise; libm's are calls, one value at a time (the all-terms render spent most
-// of its time in them).
-inline float Bits(int32_t i) {
-  float f;
-  std::memcpy(&f, &i, 4);
-  return f;
-}
-inline int32_t Int(float f) {
-  int32_t i;
-  std::memcpy(&i, &f, 4);
-  return i;
-}
-
-// e^x for x in [-87.3, 88.3] (clamped there: the callers need no more; 2^n stays a normal float).
-inline float Exp(float x) {
-  x = std::min(std::max(x, -87.3f), 88.3f);
-  const float v = x * 1.44269504088896341f + 0.5f;
-  int32_t n = static_cast<int32_t>(v);  // floor(v), by truncation and a step down below 0
-  n = n - (static_cast<float>(n) > v ? 1 : 0);
-  const float fn = static_cast<float>(n);
-  float r = x - fn * 0.693359375f;
-  r = r - fn * -2.12194440e-4f;
-  const float z = r * r;
-  float y = 1.9875691500e-4f;
-  y = y * r + 1.3981999507e-3f;
-  y = y * r + 8.3334519073e-3f;
-  y = y * r + 4.1665795894e-2f;
-  y = y * r + 1.6666665459e-1f;
-  y = y * r + 5.0000001201e-1f;
-  y = y * z + r + 1.0f;
-  return y * Bits((n + 127) << 23);  // times 2^n, n in [-126, 127]
-}
-
-// log x for a positive normal float x.
-inline float Log(float x) {
-  const int32_t i = Int(x);
-  int32_t e = ((i >> 23) & 0xff) - 126;
-  float m = Bits((i & 0x007fffff) | 0x3f000000);  // x = m 2^e, m in [0.5, 1)
-  const bool small = m < 0.707106781186547524f;
-  e = e - (small ? 1 : 0);
-  m = (small ? m + m : m) - 1.0f;
-  const float z = m * m;
-  float y = 7.0376836292e-2f;
-  y = y * m - 1.1514610310e-1f;
-  y = y * m + 1.1676998740e-1f;
-  y = y * m - 1.2420140846e-1f;
-  y = y * m + 1.4249322787e-1f;
-  y = y * m - 1.6668057665e-1f;
-  y = y * m + 2.0000714765e-1f;
-  y = y * m - 2.4999993993e-1f;
-  y = y * m + 3.3333331174e-1f;
-  const float fe = static_cast<float>(e);
-  y = y * m * z;
-  y = y + -2.12194440e-4f * fe;
-  y = y - 0.5f * z;
-  return (m + y) + 0.693359375f * fe;
-}
-
-// Exp and Log W lanes at a time, in GCC's vector extensions (the same operations in the same
-// order), and with them x^m. The loops that take powers call these rather than leave them to the
-// auto-vectoriser: for AVX2, GCC split Exp's clamp into paths, and a float-to-int conversion on
-// one path kept the loop scalar. With the per-light terms compiled for AVX2 the all-terms render
-// at 512² then took 20.5 ms of shading, against 13.3 ms for SSE2; this way 11.8-12.5 ms for the
-// whole render, against 16.5-17.9 ms. Eight lanes for AVX2, four otherwise (SSE2 split eight
-// into pairs and was 5-15 % slower than the auto-vectorised loop). Always inlined into
-// SafePowN, which takes and passes no vectors: its AVX2 and default versions pass nothing in
-// registers that differ between the two.
+// exp, log and x^m of a block's floats (csrc/math_lanes.h: Cephes' expf and logf, a polynomial
+// after range reduction, within 2 ulp of libm's on their range here), W lanes at a time in GCC's
+// vector extensions. libm's are calls, one value at a time (the all-terms render spent most of
+// its time in them); left to the auto-vectoriser, straight-line scalar versions vectorised for
+// SSE2 but not for AVX2, where GCC split Exp's clamp into paths and a float-to-int conversion on
+// one of them kept the loop scalar. With the per-light terms compiled for AVX2 the all-terms
+// render at 512² then took 20.5 ms of shading, against 13.3 ms for SSE2; this way 11.8-12.5 ms
+// for the whole render, against 16.5-17.9 ms. Eight lanes for AVX2, four otherwise (eight split
+// into SSE2 pairs were 5-15 % slower). The lane functions are always inlined into MapLanes, which
+// takes and passes no vectors: its AVX2 and default versions agree on how arguments pass.
 #pragma GCC diagnostic ignored "-Wpsabi"  // (the note that such vectors pass differently with AVX)
+enum LaneOp { kExp, kLog, kPow };
 namespace lanes4 {
 constexpr int W = 4;
 typedef float F __attribute__((vector_size(16)));
 typedef int32_t I __attribute__((vector_size(16)));
-#include "pow_lanes.h"
+#include "math_lanes.h"
 }  // namespace lanes4
 namespace lanes8 {
 constexpr int W = 8;
 typedef float F __attribute__((vector_size(32)));
 typedef int32_t I __attribute__((vector_size(32)));
-#include "pow_lanes.h"
+#include "math_lanes.h"
 }  // namespace lanes8
 
-// out[q] = x[q]^e[q] (e_step 1) or x[q]^e[0] (e_step 0) for q < m: x, e and out are a Block's
+// out[q] = op(x[q]) for q < m (kPow: x[q]^e[q] with e_step 1, x[q]^e[0] with 0): x, e and out are
 // arrays of kBlock (a multiple of 8) floats, and the lanes from m to the next multiple of the
 // width are computed from what they hold and written (no pixel's). out may be x.
 #if DIFFSHADE_HAS_CLONES
-__attribute__((target("avx2"))) void SafePowN(const float* x, const float* e, int e_step, float* out, int m) {
-  lanes8::Pow(x, e, e_step, out, m);
+__attribute__((target("avx2"))) void MapLanes(int op, const float* x, const float* e, int e_step, float* out, int m) {
+  lanes8::Map(op, x, e, e_step, out, m);
 }
-__attribute__((target("default"))) void SafePowN(const float* x, const float* e, int e_step, float* out, int m) {
-  lanes4::Pow(x, e, e_step, out, m);
+__attribute__((target("default"))) void MapLanes(int op, const float* x, const float* e, int e_step, float* out,
+                                                 int m) {
+  lanes4::Map(op, x, e, e_step, out, m);
 }
 #else
-void SafePowN(const float* x, const float* e, int e_step, float* out, int m) { lanes4::Pow(x, e, e_step, out, m); }
+void MapLanes(int op, const float* x, const float* e, int e_step, float* out, int m) {
+  lanes4::Map(op, x, e, e_step, out, m);
+}
 #endif
+inline void ExpN(const float* x, float* out, int m) { MapLanes(kExp, x, nullptr, 0, out, m); }  // e^x, x clamped to [-87.3, 88.3]
+inline void LogN(const float* x, float* out, int m) { MapLanes(kLog, x, nullptr, 0, out, m); }  // x positive and normal
+// x^e with 0^e = 0, and 0 where e log x is below the log of the smallest normal float
+// (_shade.safe_pow)
+inline void SafePowN(const float* x, const float* e, int e_step, float* out, int m) {
+  MapLanes(kPow, x, e, e_step, out, m);
+}
 
 inline float Radial(float d, const float* a) {  // _shade.radial_attenuation
   const float kEps = 2.2737368e-13f;  // cbrt(FLT_MIN)
@@ -187,7 +139,7 @@ struct Config {
 // branches or pointer selects, which the compiler vectorises (square roots and divisions four at
 // a time; one pixel at a time they were a chain of latencies, 25 ns per pixel).
 constexpr int kBlock = 64;
-static_assert(kBlock % 8 == 0, "SafePowN works in lanes of 8");
+static_assert(kBlock % 8 == 0, "MapLanes works in lanes of up to 8");
 constexpr int kMaxMaps = 5;    // distinct maps (emission, ambient, diffuse, specular, shininess)
 constexpr int kMaxParts = 4;   // Gouraud: colour parts under a map (the ambient shares the diffuse map)
 constexpr int kMaxLevels = 32;
@@ -239,17 +191,17 @@ struct Block {
   float px[kBlock], py[kBlock], pz[kBlock];  // position
   float vx[kBlock], vy[kBlock], vz[kBlock];  // unit vector to the viewer
   float w[kBlock], back[kBlock];             // clip w; 1 where the back side (material) is lit
-  float lx[kBlock], ly[kBlock], lz[kBlock], att[kBlock], ndl[kBlock], fog[kBlock];
-  // the specular term; a spot light's cosine to its axis and its lobe cos^e (zeroed: SafePowN
-  // reads up to a multiple of 8 past a block's last pixel)
-  float spec[kBlock] = {}, cs[kBlock] = {}, lobe[kBlock] = {};
+  float lx[kBlock], ly[kBlock], lz[kBlock], att[kBlock], ndl[kBlock];
+  // the specular term, the fog's factor; a spot light's cosine to its axis and its lobe cos^e
+  // (zeroed: MapLanes reads up to a multiple of 8 past a block's last pixel)
+  float spec[kBlock] = {}, fog[kBlock] = {}, cs[kBlock] = {}, lobe[kBlock] = {};
   float col[3][kBlock], base[3][kBlock];
   // the material per pixel (emission, ambient, diffuse, specular, shininess): the side's
   // constants, times the texels where a field has a map
   float ke[3][kBlock], ka[3][kBlock], kd[3][kBlock], ks[3][kBlock], sh[kBlock];
   // texture coordinates and (trilinear) their derivatives per pixel step; each map's sample
   float u[kBlock], v[kBlock], dux[kBlock], dvx[kBlock], duy[kBlock], dvy[kBlock];
-  float su[kBlock], sv[kBlock], sd[kBlock];  // a map's wrapped coordinates and level of detail
+  float su[kBlock], sv[kBlock], sd[kBlock] = {};  // a map's wrapped coordinates and level of detail
   float b0[kBlock], b1[kBlock], b2[kBlock];  // the barycentrics
   // a sample's taps (SampleMap): the top-left texel's index in its bordered level and the step
   // down (its row, in floats), the weights; the pixels that blend a second level (their entries,
@@ -354,11 +306,14 @@ DIFFSHADE_CLONES void SampleMap(const Map& t, Block& k, int m, float (*out)[kBlo
   int blend = 0;
   if (t.trilinear) {
     float* __restrict sd = k.sd;
-    for (int q = 0; q < m; ++q) {
+    for (int q = 0; q < m; ++q) {  // the footprint's squared length; 1 (level 0) where it is ~0
       const float ax = k.dux[q] * w0, bx = k.dvx[q] * h0, ay = k.duy[q] * w0, by = k.dvy[q] * h0;
       const float r2 = std::max(ax * ax + bx * bx, ay * ay + by * by);
-      const bool ok = r2 > 1e-30f;
-      const float lod = ok ? 0.5f * (Log(ok ? r2 : 1.0f) * 1.44269504088896341f) : -100.0f;
+      sd[q] = r2 > 1e-30f ? r2 : 1.0f;
+    }
+    LogN(sd, sd, m);
+    for (int q = 0; q < m; ++q) {
+      const float lod = 0.5f * (sd[q] * 1.44269504088896341f);
       const float d = std::min(std::max(lod, 0.0f), top);
       lvl[q] = std::min(static_cast<int32_t>(d), last);  // (d >= 0)
       sd[q] = d - static_cast<float>(lvl[q]);
@@ -716,8 +671,9 @@ inline void FogFactor(int mode, bool depth, const float* fog, const float* eye, 
   } else {
     for (int q = 0; q < m; ++q) {
       const float r = fog[5] * dist[q];
-      f[q] = Exp(mode == 2 ? -r : -(r * r));
+      f[q] = mode == 2 ? -r : -(r * r);
     }
+    ExpN(f, f, m);
   }
 }
 
@@ -880,10 +836,9 @@ DIFFSHADE_CLONES void LightPartials(const Config& cfg, const Maps& mp, const flo
           gg[q] = (k.nx[q] * hx + k.ny[q] * hy + k.nz[q] * hz) * inv;
         }
       }
-      for (int q = 0; q < m; ++q) {
-        const bool on = k.spec[q] != 0.0f;
-        gg[q] = on ? k.att[q] * k.spec[q] * Log(on ? gg[q] : 1.0f) * sel[q] : 0.0f;
-      }
+      for (int q = 0; q < m; ++q) gg[q] = k.spec[q] != 0.0f ? gg[q] : 1.0f;
+      LogN(gg, gg, m);
+      for (int q = 0; q < m; ++q) gg[q] = k.spec[q] != 0.0f ? k.att[q] * k.spec[q] * gg[q] * sel[q] : 0.0f;
       for (int c = 0; c < 3; ++c) {
         const float lc = has_spec ? li[7 + c] : li[1 + c];
         float* __restrict d = dcol + (int64_t{e.j} * 3 + c) * kBlock;
@@ -1033,7 +988,7 @@ DIFFSHADE_CLONES void PartialsRange(const Config& cfg, const int32_t* ids, const
     if (s >= 3 && s < 6) empty[e.j * 3 + s - 3] += e.w * background[s - 3];
   }
   std::vector<float> dcol(static_cast<size_t>(K * 3 * kBlock)), dfog(static_cast<size_t>(K * kBlock));
-  float g[kBlock], h[kBlock], c0[3][kBlock], ca[3][kBlock], cb[3][kBlock], cc[3][kBlock], ho[3][kBlock];
+  float g[kBlock] = {}, h[kBlock] = {}, c0[3][kBlock], ca[3][kBlock], cb[3][kBlock], cc[3][kBlock], ho[3][kBlock];
   Block k;
   std::memset(k.ke, 0, sizeof(k.ke)), std::memset(k.ka, 0, sizeof(k.ka)), std::memset(k.kd, 0, sizeof(k.kd));
   std::memset(k.ks, 0, sizeof(k.ks)), std::memset(k.sh, 0, sizeof(k.sh));

@@ -1,9 +1,10 @@
 // diffshade: exp, log and x^m over W float lanes in GCC's vector extensions (see shade.cc,
-// "Exp and Log W lanes at a time"). Included once per width, in a namespace that defines W and
+// MapLanes). Included once per width, in a namespace that defines W and
 // the vector types F (W floats) and I (W int32s) before it.
 // (No include guard: it is meant to be included more than once.)
 [[gnu::always_inline]] inline F Splat(float a) { return F{} + a; }
 
+// e^x for x in [-87.3, 88.3] (clamped there: the callers need no more; 2^n stays a normal float).
 [[gnu::always_inline]] inline F Exp(F x) {
   x = x < Splat(-87.3f) ? Splat(-87.3f) : x;  // std::max(x, -87.3f)
   x = Splat(88.3f) < x ? Splat(88.3f) : x;    // std::min(x, 88.3f)
@@ -24,6 +25,7 @@
   return y * reinterpret_cast<F>((n + 127) << 23);
 }
 
+// log x for positive normal floats x.
 [[gnu::always_inline]] inline F Log(F x) {
   const I i = reinterpret_cast<I>(x);
   I e = ((i >> 23) & 0xff) - 126;
@@ -57,14 +59,21 @@
   return (pos & (t > kFloor)) ? Exp(t) : Splat(0.0f);
 }
 
-// out[q] = x[q]^e[q] (e_step 1) or x[q]^e[0] (e_step 0) for q < m.
-[[gnu::always_inline]] inline void Pow(const float* x, const float* e, int e_step, float* out, int m) {
-  const F e0 = Splat(e[0]);
+// out[q] = op(x[q]) for q < m (MapLanes).
+[[gnu::always_inline]] inline void Map(int op, const float* x, const float* e, int e_step, float* out, int m) {
+  const F e0 = op == kPow ? Splat(e[0]) : F{};
   for (int q = 0; q < m; q += W) {
-    F a, b = e0;
+    F a, r;
     std::memcpy(&a, x + q, sizeof a);
-    if (e_step) std::memcpy(&b, e + q, sizeof b);
-    const F r = SafePow(a, b);
+    if (op == kExp) {
+      r = Exp(a);
+    } else if (op == kLog) {
+      r = Log(a);
+    } else {
+      F b = e0;
+      if (e_step) std::memcpy(&b, e + q, sizeof b);
+      r = SafePow(a, b);
+    }
     std::memcpy(out + q, &r, sizeof r);
   }
 }
