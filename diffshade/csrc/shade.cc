@@ -184,13 +184,15 @@ struct Maps {
   bool any() const { return count > 0; }
 };
 
+// (what PointsOf writes has room for a run's last vector of eight past the block's end)
+constexpr int kRoom = kBlock + 8;
 struct Block {
-  int64_t pix[kBlock];
-  int32_t face[kBlock];  // the face each pixel sees
-  float nx[kBlock], ny[kBlock], nz[kBlock];  // unit normal (on the lit side)
-  float px[kBlock], py[kBlock], pz[kBlock];  // position
+  int64_t pix[kRoom];
+  int32_t face[kRoom];  // the face each pixel sees
+  float nx[kRoom], ny[kRoom], nz[kRoom];  // unit normal (on the lit side)
+  float px[kRoom], py[kRoom], pz[kRoom];  // position
   float vx[kBlock], vy[kBlock], vz[kBlock];  // unit vector to the viewer
-  float w[kBlock], back[kBlock];             // clip w; 1 where the back side (material) is lit
+  float w[kRoom], back[kRoom];               // clip w; 1 where the back side (material) is lit
   float lx[kBlock], ly[kBlock], lz[kBlock], att[kBlock], ndl[kBlock];
   // the specular term, the fog's factor; a spot light's cosine to its axis and its lobe cos^e
   // (zeroed: MapLanes reads up to a multiple of 8 past a block's last pixel)
@@ -200,16 +202,26 @@ struct Block {
   // constants, times the texels where a field has a map
   float ke[3][kBlock], ka[3][kBlock], kd[3][kBlock], ks[3][kBlock], sh[kBlock];
   // texture coordinates and (trilinear) their derivatives per pixel step; each map's sample
-  float u[kBlock], v[kBlock], dux[kBlock], dvx[kBlock], duy[kBlock], dvy[kBlock];
+  float u[kRoom], v[kRoom], dux[kRoom], dvx[kRoom], duy[kRoom], dvy[kRoom];
   float su[kBlock], sv[kBlock], sd[kBlock] = {};  // a map's wrapped coordinates and level of detail
-  float b0[kBlock], b1[kBlock], b2[kBlock];  // the barycentrics
+  float b0[kRoom], b1[kRoom], b2[kRoom];  // the barycentrics
   // a sample's taps (SampleMap): the top-left texel's index in its bordered level and the step
   // down (its row, in floats), the weights; the pixels that blend a second level (their entries,
   // coordinates, levels, weights and samples)
   int32_t ti[kBlock], tdy[kBlock], lvl[kBlock], sel[kBlock];
   float fx[kBlock], fy[kBlock], cu[kBlock], cv[kBlock], cf[kBlock], hi[3][kBlock];
   float tex[kMaxMaps][3][kBlock];
-  float part[kMaxParts][3][kBlock];  // Gouraud: each mapped part's interpolated colour
+  float part[kMaxParts][3][kRoom];  // Gouraud: each mapped part's interpolated colour
+  bool fixed = false;  // PixelMaterial has written the fields that are constant
+};
+
+// The pixels shaded: their faces (ids [n], -1 where none) and centres in NDC (xs [width] and
+// ys [n / width] in a grid; otherwise xs and ys [n], one per pixel).
+struct Pixels {
+  const int32_t* ids;
+  const float *xs, *ys;
+  bool grid;
+  int64_t width, n;
 };
 
 inline float Pick(float back, float b, float f) { return back > 0 ? b : f; }
@@ -462,31 +474,18 @@ struct FaceMap {
     sx = ((c[1] + c[4]) + c[7]) * mp.sx, sy = ((c[2] + c[5]) + c[8]) * mp.sy;  // (and NDC per pixel step)
     axu *= mp.sx, axv *= mp.sx, ayu *= mp.sy, ayv *= mp.sy;
   }
-  // The mapped parts' colours at a run of n pixels (entry m on) with barycentrics b0, b1, b2.
-  void Parts(const Maps& mp, bool back, const float* __restrict b0, const float* __restrict b1,
-             const float* __restrict b2, Block& k, int m, int n) const {
-    for (int g = 0; g < mp.parts; ++g) {
-      const float* at = mp.parts_at + (2 * g + (back ? 1 : 0)) * mp.num_verts * 3;
-      float p[3][3];
-      for (int ch = 0; ch < 3; ++ch) {
-        for (int j = 0; j < 3; ++j) p[ch][j] = at[3 * vid[j] + ch];
-      }
-      float* __restrict r = k.part[g][0] + m;
-      float* __restrict gr = k.part[g][1] + m;
-      float* __restrict bl = k.part[g][2] + m;
-      for (int i = 0; i < n; ++i) {
-        r[i] = (p[0][0] * b0[i] + p[0][1] * b1[i]) + p[0][2] * b2[i];
-        gr[i] = (p[1][0] * b0[i] + p[1][1] * b1[i]) + p[1][2] * b2[i];
-        bl[i] = (p[2][0] * b0[i] + p[2][1] * b1[i]) + p[2][2] * b2[i];
-      }
-    }
-  }
+  // The mapped parts' colours at a run of n pixels (the block's entry m on: its barycentrics),
+  // eight at a time (PointsOf).
+  void Parts(const Maps& mp, bool back, Block& k, int m, int n) const;
 };
 
 // Phong: the material at the block's pixels, the lit side's constants (the back material on the
 // back side), each mapped field times its map (maps come with one material: no back material).
+// Lit one-sided, a field without a map is the front's constant at every pixel of every block:
+// written once, at the first block (k.fixed), for all kBlock entries.
 __attribute__((always_inline)) inline void PixelMaterial(const Config& cfg, const Maps& mp, const float* front, const float* backm, Block& k, int m) {
   const float* __restrict bk = k.back;
+  const bool one_sided = !cfg.Flag(4), refill = !(one_sided && k.fixed);
   float(*fields[4])[kBlock] = {k.ke, k.ka, k.kd, k.ks};
   const bool used[5] = {cfg.Flag(0), cfg.Flag(1) || cfg.Flag(3), cfg.Flag(2), cfg.specular != 0, cfg.specular != 0};
   for (int f = 0; f < 4; ++f) {
@@ -498,35 +497,80 @@ __attribute__((always_inline)) inline void PixelMaterial(const Config& cfg, cons
       if (mp.field[f] >= 0 && !one) {
         const float* __restrict t = k.tex[mp.field[f]][c];
         for (int q = 0; q < m; ++q) dst[q] = kf * t[q];
-      } else {
+      } else if (one_sided && refill) {
+        for (int q = 0; q < kBlock; ++q) dst[q] = kf;
+      } else if (!one_sided) {
         for (int q = 0; q < m; ++q) dst[q] = Pick(bk[q], kb, kf);
       }
     }
   }
   const float shf = front[12], shb = backm[12];
-  if (!used[4]) return;
-  if (mp.field[4] >= 0) {
+  if (used[4] && mp.field[4] >= 0) {
     const float* __restrict t = k.tex[mp.field[4]][0];
     for (int q = 0; q < m; ++q) k.sh[q] = shf * t[q];
-  } else {
+  } else if (used[4] && one_sided && refill) {
+    for (int q = 0; q < kBlock; ++q) k.sh[q] = shf;
+  } else if (used[4] && !one_sided) {
     for (int q = 0; q < m; ++q) k.sh[q] = Pick(bk[q], shb, shf);
+  }
+  k.fixed = true;
+}
+
+// Eight floats (GCC's and Clang's vector extensions: one AVX2 register in the AVX2 clone, two SSE
+// ones otherwise), for loops over a face's run of pixels: at 512² a run is 6.4 pixels on average,
+// shorter than a vectorised loop's minimum, so such a loop ran as its scalar remainder. A run is
+// done in vectors of eight whatever its length; the lanes past its end are written into the
+// block's room (kRoom) and overwritten by the next run, or never read.
+typedef float V8 __attribute__((vector_size(32)));
+typedef int32_t I8 __attribute__((vector_size(32)));
+typedef int64_t L8 __attribute__((vector_size(64)));
+template <class T>
+inline T Load8(const void* p) {
+  T v;
+  std::memcpy(&v, p, sizeof(v));
+  return v;
+}
+template <class T>
+inline void Store8(void* p, T v) {
+  std::memcpy(p, &v, sizeof(v));
+}
+// Eight floats from p, of which only the first `avail` may be read (the rest: 0).
+inline V8 Load8Upto(const float* p, int64_t avail) {
+  if (avail >= 8) return Load8<V8>(p);
+  float r[8] = {};
+  std::memcpy(r, p, static_cast<size_t>(avail) * sizeof(float));
+  return Load8<V8>(r);
+}
+
+void FaceMap::Parts(const Maps& mp, bool back, Block& k, int m, int n) const {
+  for (int g = 0; g < mp.parts; ++g) {
+    const float* at = mp.parts_at + (2 * g + (back ? 1 : 0)) * mp.num_verts * 3;
+    for (int i = 0; i < n; i += 8) {
+      const int q = m + i;
+      const V8 b0 = Load8<V8>(k.b0 + q), b1 = Load8<V8>(k.b1 + q), b2 = Load8<V8>(k.b2 + q);
+      for (int ch = 0; ch < 3; ++ch) {
+        const float p0 = at[3 * vid[0] + ch], p1 = at[3 * vid[1] + ch], p2 = at[3 * vid[2] + ch];
+        Store8(k.part[g][ch] + q, (p0 * b0 + p1 * b1) + p2 * b2);
+      }
+    }
   }
 }
 
-// The points of the block of pixels [b0, b1) (col, row: the first one's, in a grid; advanced).
-  // The covered pixels' points (each run of empty ones handed to empty(first, end)): the barycentrics
-  // b_i = E_i / sum_k E_k of their face's edge functions, the corners' normals and positions
-  // interpolated with them (a plane per attribute, sum_i E_i a_i, would save work but lose
-  // accuracy: up to 2e-5 off the JAX stages, which this form holds to 6e-6).
-  // A row's pixels come in runs that see one face: each run is one loop over its pixels with
-  // the face's coefficients held (vectorised; pixel by pixel, this took two thirds of the time).
-  // With maps (uvs), each pixel's texture coordinates too (FaceMap), and for trilinear maps
-  // (derivatives) their derivatives per pixel step.
+// The covered pixels' points of the block of pixels [b0, b1) (col, row: the first one's, in a
+// grid; advanced), each run of empty ones handed to empty(first, end): the barycentrics
+// b_i = E_i / sum_k E_k of their face's edge functions, the corners' normals and positions
+// interpolated with them (a plane per attribute, sum_i E_i a_i, would save work but lose
+// accuracy: up to 2e-5 off the JAX stages, which this form holds to 6e-6). A row's pixels come
+// in runs that see one face, each done in vectors of eight with the face's numbers held. With
+// maps (uvs), each pixel's texture coordinates too (FaceMap), and for trilinear maps
+// (derivatives) their derivatives per pixel step.
 template <bool uvs, bool derivatives, class Empty>
-__attribute__((always_inline)) inline int PointsOf(const int32_t* ids, const float* xs, const float* ys, bool grid,
-                                            int64_t width, const float* faces, bool two_sided, bool gouraud,
-                                            const Maps& mp, int64_t b0, int64_t b1, int64_t& col, int64_t& row,
-                                            Block& k, Empty empty) {
+__attribute__((always_inline)) inline int PointsOf(const Pixels& px, const float* faces, bool two_sided,
+                                                   bool gouraud, const Maps& mp, int64_t b0, int64_t b1,
+                                                   int64_t& col, int64_t& row, Block& k, Empty empty) {
+  const int32_t* ids = px.ids;
+  const int64_t width = px.width;
+  const bool grid = px.grid;
   int m = 0;
   for (int64_t p = b0; p < b1;) {
     const int32_t t = ids[p];
@@ -537,69 +581,51 @@ __attribute__((always_inline)) inline int PointsOf(const int32_t* ids, const flo
     if (t < 0) {
       empty(p, r);
     } else {
-      const float* g = faces + static_cast<int64_t>(t) * kFace;
-      float c[kFace];
-      std::memcpy(c, g, sizeof(c));
+      const float* __restrict c = faces + static_cast<int64_t>(t) * kFace;
       const float back = (two_sided && !(c[31] > 0)) ? 1.0f : 0.0f;
       const int o = (gouraud && back > 0) ? 32 : 13;  // Gouraud: the back colours on a back face
-      const float* __restrict xr = grid ? xs + col : xs + p;
-      const float* __restrict yr = grid ? ys + row : ys + p;
-      const int ystep = grid ? 0 : 1;
-      float* __restrict nx = k.nx + m;
-      float* __restrict ny = k.ny + m;
-      float* __restrict nz = k.nz + m;
-      float* __restrict px = k.px + m;
-      float* __restrict py = k.py + m;
-      float* __restrict pz = k.pz + m;
-      float* __restrict w = k.w + m;
-      float* __restrict bk = k.back + m;
-      float* __restrict ba = k.b0 + m;
-      float* __restrict bb = k.b1 + m;
-      float* __restrict bc = k.b2 + m;
-      int64_t* __restrict pix = k.pix + m;
-      int32_t* __restrict fc = k.face + m;
-      float* __restrict u = k.u + m;
-      float* __restrict v = k.v + m;
-      float* __restrict dux = k.dux + m;
-      float* __restrict dvx = k.dvx + m;
-      float* __restrict duy = k.duy + m;
-      float* __restrict dvy = k.dvy + m;
+      const int64_t at = grid ? col : p;  // the run's first pixel centre in xs (and ys, not a grid)
+      const int64_t avail = (grid ? width : px.n) - at;  // (centres there)
+      const float* __restrict xr = px.xs + at;
+      const float* __restrict yr = px.ys + (grid ? row : p);
       FaceMap fm;
       if (uvs) fm.Of(mp, t, c);
-      for (int i = 0; i < n; ++i) {
-        const float x = xr[i], y = yr[i * ystep];
-        const float e0 = c[0] + x * c[1] + y * c[2], e1 = c[3] + x * c[4] + y * c[5];
-        const float e2 = c[6] + x * c[7] + y * c[8];
-        const float s = e0 + e1 + e2;
-        const bool ok = s != 0;
-        const float inv = ok ? 1.0f / s : 1.0f;
-        const float b0 = ok ? e0 * inv : 0.0f, b1 = ok ? e1 * inv : 0.0f, b2 = ok ? e2 * inv : 0.0f;
-        nx[i] = (c[o] * b0 + c[o + 3] * b1) + c[o + 6] * b2;
-        ny[i] = (c[o + 1] * b0 + c[o + 4] * b1) + c[o + 7] * b2;
-        nz[i] = (c[o + 2] * b0 + c[o + 5] * b1) + c[o + 8] * b2;
-        px[i] = (c[22] * b0 + c[25] * b1) + c[28] * b2;
-        py[i] = (c[23] * b0 + c[26] * b1) + c[29] * b2;
-        pz[i] = (c[24] * b0 + c[27] * b1) + c[30] * b2;
+      for (int i = 0; i < n; i += 8) {
+        const int q = m + i;
+        const V8 x = Load8Upto(xr + i, avail - i);
+        const V8 y = grid ? V8{} + yr[0] : Load8Upto(yr + i, avail - i);
+        const V8 e0 = c[0] + x * c[1] + y * c[2], e1 = c[3] + x * c[4] + y * c[5];
+        const V8 e2 = c[6] + x * c[7] + y * c[8];
+        const V8 s = e0 + e1 + e2;
+        const I8 ok = s != 0;
+        const V8 inv = ok ? 1.0f / s : V8{} + 1.0f;
+        const V8 b0 = ok ? e0 * inv : V8{}, b1 = ok ? e1 * inv : V8{}, b2 = ok ? e2 * inv : V8{};
+        Store8(k.nx + q, (c[o] * b0 + c[o + 3] * b1) + c[o + 6] * b2);
+        Store8(k.ny + q, (c[o + 1] * b0 + c[o + 4] * b1) + c[o + 7] * b2);
+        Store8(k.nz + q, (c[o + 2] * b0 + c[o + 5] * b1) + c[o + 8] * b2);
+        Store8(k.px + q, (c[22] * b0 + c[25] * b1) + c[28] * b2);
+        Store8(k.py + q, (c[23] * b0 + c[26] * b1) + c[29] * b2);
+        Store8(k.pz + q, (c[24] * b0 + c[27] * b1) + c[30] * b2);
         // (D / sum E in exact arithmetic; as the corners' mean it keeps its precision at a face
         // seen edge-on, where both are small differences of large terms: _raster.fragments)
-        const float wi = (c[9] * b0 + c[10] * b1) + c[11] * b2;
-        w[i] = wi;
-        bk[i] = back;
-        ba[i] = b0, bb[i] = b1, bc[i] = b2;
-        pix[i] = p + i;
-        fc[i] = t;
+        const V8 wi = (c[9] * b0 + c[10] * b1) + c[11] * b2;
+        Store8(k.w + q, wi);
+        Store8(k.back + q, V8{} + back);
+        Store8(k.b0 + q, b0), Store8(k.b1 + q, b1), Store8(k.b2 + q, b2);
+        Store8(k.pix + q, (p + i) + L8{0, 1, 2, 3, 4, 5, 6, 7});
+        Store8(k.face + q, I8{} + t);
         if (uvs) {
-          const float ui = (fm.U[0] * b0 + fm.U[1] * b1) + fm.U[2] * b2;
-          const float vi = (fm.V[0] * b0 + fm.V[1] * b1) + fm.V[2] * b2;
-          u[i] = ui, v[i] = vi;
-          if (derivatives) {
-            const float scale = ok && c[12] != 0 ? wi / c[12] : 0.0f;  // (1 / sum E; 0 on an empty face)
-            dux[i] = (fm.axu - ui * fm.sx) * scale, dvx[i] = (fm.axv - vi * fm.sx) * scale;
-            duy[i] = (fm.ayu - ui * fm.sy) * scale, dvy[i] = (fm.ayv - vi * fm.sy) * scale;
+          const V8 ui = (fm.U[0] * b0 + fm.U[1] * b1) + fm.U[2] * b2;
+          const V8 vi = (fm.V[0] * b0 + fm.V[1] * b1) + fm.V[2] * b2;
+          Store8(k.u + q, ui), Store8(k.v + q, vi);
+          if (derivatives) {  // (1 / sum E; 0 on an empty face)
+            const V8 scale = c[12] != 0 ? (ok ? wi / c[12] : V8{}) : V8{};
+            Store8(k.dux + q, (fm.axu - ui * fm.sx) * scale), Store8(k.dvx + q, (fm.axv - vi * fm.sx) * scale);
+            Store8(k.duy + q, (fm.ayu - ui * fm.sy) * scale), Store8(k.dvy + q, (fm.ayv - vi * fm.sy) * scale);
           }
         }
       }
-      if (uvs && mp.parts > 0) fm.Parts(mp, back > 0, ba, bb, bc, k, m, n);
+      if (uvs && mp.parts > 0) fm.Parts(mp, back > 0, k, m, n);
       m += n;
     }
     if (grid) {
@@ -612,17 +638,12 @@ __attribute__((always_inline)) inline int PointsOf(const int32_t* ids, const flo
 }
 
 template <class Empty>
-__attribute__((always_inline)) inline int Points(const int32_t* ids, const float* xs, const float* ys, bool grid,
-                                          int64_t width, const float* faces, bool two_sided, bool gouraud,
-                                          const Maps& mp, int64_t b0, int64_t b1, int64_t& col, int64_t& row,
-                                          Block& k, Empty empty) {
-  if (!mp.any()) {
-    return PointsOf<false, false>(ids, xs, ys, grid, width, faces, two_sided, gouraud, mp, b0, b1, col, row, k, empty);
-  }
-  if (!mp.derivatives) {
-    return PointsOf<true, false>(ids, xs, ys, grid, width, faces, two_sided, gouraud, mp, b0, b1, col, row, k, empty);
-  }
-  return PointsOf<true, true>(ids, xs, ys, grid, width, faces, two_sided, gouraud, mp, b0, b1, col, row, k, empty);
+__attribute__((always_inline)) inline int Points(const Pixels& px, const float* faces, bool two_sided, bool gouraud,
+                                                 const Maps& mp, int64_t b0, int64_t b1, int64_t& col, int64_t& row,
+                                                 Block& k, Empty empty) {
+  if (!mp.any()) return PointsOf<false, false>(px, faces, two_sided, gouraud, mp, b0, b1, col, row, k, empty);
+  if (!mp.derivatives) return PointsOf<true, false>(px, faces, two_sided, gouraud, mp, b0, b1, col, row, k, empty);
+  return PointsOf<true, true>(px, faces, two_sided, gouraud, mp, b0, b1, col, row, k, empty);
 }
 
 // The unit normal at the block's m points (reversed where the back side is lit) and the unit
@@ -677,9 +698,9 @@ inline void FogFactor(int mode, bool depth, const float* fog, const float* eye, 
   }
 }
 
-DIFFSHADE_CLONES void ShadeRange(const Config& cfg, const int32_t* ids, const float* xs, const float* ys, bool grid,
-                                  int64_t width, const float* faces, const float* params, const float* lights,
-                                  int64_t num_lights, const Maps& mp, int64_t p0, int64_t p1, float* out) {
+DIFFSHADE_CLONES void ShadeRange(const Config& cfg, const Pixels& px, const float* faces, const float* params,
+                                  const float* lights, int64_t num_lights, const Maps& mp, int64_t p0, int64_t p1,
+                                  float* out) {
   const float* front = params;
   const float* backm = params + kMat;
   const float* amb_light = params + 2 * kMat;
@@ -697,11 +718,11 @@ DIFFSHADE_CLONES void ShadeRange(const Config& cfg, const int32_t* ids, const fl
   // the fields of the terms that are off stay 0 (PixelMaterial does not write them)
   std::memset(k.ke, 0, sizeof(k.ke)), std::memset(k.ka, 0, sizeof(k.ka)), std::memset(k.kd, 0, sizeof(k.kd));
   std::memset(k.ks, 0, sizeof(k.ks)), std::memset(k.sh, 0, sizeof(k.sh));
-  int64_t col = grid ? p0 % width : 0, row = grid ? p0 / width : 0;  // (no division per pixel)
+  int64_t col = px.grid ? p0 % px.width : 0, row = px.grid ? p0 / px.width : 0;  // (no division per pixel)
   for (int64_t b0 = p0; b0 < p1; b0 += kBlock) {
     const int64_t b1 = std::min(b0 + kBlock, p1);
     const int m =
-        Points(ids, xs, ys, grid, width, faces, two_sided, gouraud, mp, b0, b1, col, row, k, [&](int64_t p, int64_t r) {
+        Points(px, faces, two_sided, gouraud, mp, b0, b1, col, row, k, [&](int64_t p, int64_t r) {
           for (int64_t q = p; q < r; ++q) {
             for (int c = 0; c < 3; ++c) out[3 * q + c] = background[c] * gain[c];
           }
@@ -970,8 +991,8 @@ void CornerPartials(const int32_t* tri, int64_t num_verts, const float* corners,
 }
 
 // Pixels [p0, p1) of the partials out [K, n, 3] (entries: the nonzero directions' numbers).
-DIFFSHADE_CLONES void PartialsRange(const Config& cfg, const int32_t* ids, const float* xs, const float* ys, bool grid,
-                                     int64_t width, const float* faces, const float* params, const float* lights,
+DIFFSHADE_CLONES void PartialsRange(const Config& cfg, const Pixels& px, const float* faces, const float* params,
+                                     const float* lights,
                                      int64_t num_lights, const Maps& mp, const std::vector<Entry>& es, int64_t K,
                                      const int32_t* tri, int64_t num_verts, const float* corners, int64_t n,
                                      int64_t p0, int64_t p1, float* value, float* out) {
@@ -992,7 +1013,7 @@ DIFFSHADE_CLONES void PartialsRange(const Config& cfg, const int32_t* ids, const
   Block k;
   std::memset(k.ke, 0, sizeof(k.ke)), std::memset(k.ka, 0, sizeof(k.ka)), std::memset(k.kd, 0, sizeof(k.kd));
   std::memset(k.ks, 0, sizeof(k.ks)), std::memset(k.sh, 0, sizeof(k.sh));
-  int64_t col = grid ? p0 % width : 0, row = grid ? p0 / width : 0;
+  int64_t col = px.grid ? p0 % px.width : 0, row = px.grid ? p0 / px.width : 0;
   for (int64_t b0 = p0; b0 < p1; b0 += kBlock) {
     const int64_t b1 = std::min(b0 + kBlock, p1);
     auto empty_run = [&](int64_t p, int64_t r) {  // each plane's run of the background's value
@@ -1005,7 +1026,7 @@ DIFFSHADE_CLONES void PartialsRange(const Config& cfg, const int32_t* ids, const
         for (int64_t q = 0; q < r - p; ++q) o[3 * q] = e0, o[3 * q + 1] = e1, o[3 * q + 2] = e2;
       }
     };
-    const int m = Points(ids, xs, ys, grid, width, faces, cfg.Flag(4), cfg.Flag(8), mp, b0, b1, col, row, k, empty_run);
+    const int m = Points(px, faces, cfg.Flag(4), cfg.Flag(8), mp, b0, b1, col, row, k, empty_run);
     std::fill(dcol.begin(), dcol.end(), 0.0f);
     if (cfg.Flag(8)) {
       CornerPartials(tri, num_verts, corners, K, k, m, dcol.data(), c0);
@@ -1316,6 +1337,7 @@ std::shared_ptr<const Packing> Pack(ffi::ThreadPool& pool, int64_t nthreads, Map
 // and the face table (in scratch kept per calling thread between calls; every entry is written).
 struct Scene {
   int64_t n = 0, width = 0, num_lights = 0, nthreads = 1;
+  Pixels px = {};
   Maps mp;
   std::shared_ptr<const Packing> packing;  // (what mp's levels point into)
   const float* table = nullptr;
@@ -1339,6 +1361,7 @@ const char* Prepare(ffi::ThreadPool& pool, ffi::Buffer<ffi::S32>& ids, ffi::Buff
     return "pixel centres do not match the ids";
   }
   sc.n = n, sc.width = width, sc.num_lights = lights.element_count() / kLight;
+  sc.px = Pixels{ids.typed_data(), xs.typed_data(), ys.typed_data(), grid != 0, width, n};
   unsigned hw = std::thread::hardware_concurrency();
   sc.nthreads = n < 16384 ? 1 : std::min<int64_t>(hw == 0 ? 1 : hw, 8);  // (small images: one thread)
   Maps& mp = sc.mp;
@@ -1382,8 +1405,7 @@ ffi::Error ShadeImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Buffe
   const Config cfg{specular, fresnel, flags, fog};
   const int64_t n = sc.n, chunks = sc.nthreads * 4;
   diffshade::ParallelFor(pool, chunks, [&](int64_t k) {
-    ShadeRange(cfg, ids.typed_data(), xs.typed_data(), ys.typed_data(), grid != 0, sc.width, sc.table,
-               params.typed_data(), lights.typed_data(), sc.num_lights, sc.mp, n * k / chunks, n * (k + 1) / chunks,
+    ShadeRange(cfg, sc.px, sc.table, params.typed_data(), lights.typed_data(), sc.num_lights, sc.mp, n * k / chunks, n * (k + 1) / chunks,
                out->typed_data());
   });
   return ffi::Error::Success();
@@ -1428,8 +1450,7 @@ ffi::Error PartialsImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Bu
   }
   const int64_t chunks = sc.nthreads * 4;
   diffshade::ParallelFor(pool, chunks, [&](int64_t k) {
-    PartialsRange(cfg, ids.typed_data(), xs.typed_data(), ys.typed_data(), grid != 0, sc.width, sc.table,
-                  params.typed_data(), lights.typed_data(), sc.num_lights, sc.mp, es, K, tri.typed_data(), num_verts,
+    PartialsRange(cfg, sc.px, sc.table, params.typed_data(), lights.typed_data(), sc.num_lights, sc.mp, es, K, tri.typed_data(), num_verts,
                   corners.typed_data(), n, n * k / chunks, n * (k + 1) / chunks, value->typed_data(), out->typed_data());
   });
   return ffi::Error::Success();
