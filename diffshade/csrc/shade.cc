@@ -479,7 +479,7 @@ struct FaceMap {
   }
   // The mapped parts' colours at a run of n pixels (the block's entry m on: its barycentrics),
   // eight at a time (PointsOf).
-  void Parts(const Maps& mp, bool back, Block& k, int m, int n) const;
+  inline void Parts(const Maps& mp, bool back, Block& k, int m, int n) const;
 };
 
 // Phong: the material at the block's pixels, the lit side's constants (the back material on the
@@ -545,7 +545,7 @@ inline V8 Load8Upto(const float* p, int64_t avail) {
   return Load8<V8>(r);
 }
 
-void FaceMap::Parts(const Maps& mp, bool back, Block& k, int m, int n) const {
+__attribute__((always_inline)) inline void FaceMap::Parts(const Maps& mp, bool back, Block& k, int m, int n) const {
   for (int g = 0; g < mp.parts; ++g) {
     const float* at = mp.parts_at + (2 * g + (back ? 1 : 0)) * mp.num_verts * 3;
     for (int i = 0; i < n; i += 8) {
@@ -624,6 +624,22 @@ __attribute__((always_inline)) inline int PointsOf(const Pixels& px, const float
     const int i1 = starts != 0 ? __builtin_ctzll(starts) : len;
     const int64_t p = b0 + i0, r = b0 + i1;
     const int32_t t = ids[p];
+    if (r < px.n) {  // the next run's face record (three cache lines), fetched while this run is done
+      const int64_t tn = std::max(ids[r], 0);
+      const char* next = reinterpret_cast<const char*>(faces + tn * kFace);
+      __builtin_prefetch(next), __builtin_prefetch(next + 64), __builtin_prefetch(next + 128);
+      if (uvs) {  // and its corners' texture coordinates and (Gouraud) mapped parts
+        for (int j = 0; j < 3; ++j) {
+          const int64_t vj = std::min<int64_t>(std::max<int32_t>(mp.tri[3 * tn + j], 0), mp.num_verts - 1);
+          __builtin_prefetch(mp.uv + 2 * vj);
+          for (int g = 0; g < mp.parts; ++g) {  // (the front side's; two-sided, the back's too)
+            const float* at = mp.parts_at + 2 * g * mp.num_verts * 3 + 3 * vj;
+            __builtin_prefetch(at);
+            if (two_sided) __builtin_prefetch(at + mp.num_verts * 3);
+          }
+        }
+      }
+    }
     const int n = i1 - i0;
     if (t < 0) {
       empty(p, r);
