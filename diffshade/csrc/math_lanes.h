@@ -59,6 +59,14 @@
   return (pos & (t > kFloor)) ? Exp(t) : Splat(0.0f);
 }
 
+// Whether a lane of x is a positive normal float (SafePow's base that is not taken as 0).
+[[gnu::always_inline]] inline bool AnyNormal(F x) {
+  const I pos = x >= std::numeric_limits<float>::min();
+  int any = 0;
+  for (int l = 0; l < W; ++l) any |= pos[l];
+  return any != 0;
+}
+
 // out[q] = op(x[q]) for q < m (MapLanes).
 [[gnu::always_inline]] inline void Map(int op, const float* x, const float* e, int e_step, float* out, int m) {
   const F e0 = op == kPow ? Splat(e[0]) : F{};
@@ -69,10 +77,12 @@
       r = Exp(a);
     } else if (op == kLog) {
       r = Log(a);
-    } else {
+    } else if (AnyNormal(a)) {
       F b = e0;
       if (e_step) std::memcpy(&b, e + q, sizeof b);
       r = SafePow(a, b);
+    } else {  // (SafePow's value where no lane has a positive normal base: the specular term's
+      r = F{};  // off-highlight pixels, most of an image, skip the log and exp)
     }
     std::memcpy(out + q, &r, sizeof r);
   }
