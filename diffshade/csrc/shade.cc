@@ -488,7 +488,7 @@ struct FaceMap {
 // written once, at the first block (k.fixed), for all kBlock entries.
 __attribute__((always_inline)) inline void PixelMaterial(const Config& cfg, const Maps& mp, const float* front, const float* backm, Block& k, int m) {
   const float* __restrict bk = k.back;
-  const bool one_sided = !cfg.Flag(4), refill = !(one_sided && k.fixed);
+  const bool one_sided = !cfg.Flag(4), fill = one_sided && !k.fixed;  // (the constants, this once)
   float(*fields[4])[kBlock] = {k.ke, k.ka, k.kd, k.ks};
   const bool used[5] = {cfg.Flag(0), cfg.Flag(1) || cfg.Flag(3), cfg.Flag(2), cfg.specular != 0, cfg.specular != 0};
   for (int f = 0; f < 4; ++f) {
@@ -500,10 +500,10 @@ __attribute__((always_inline)) inline void PixelMaterial(const Config& cfg, cons
       if (mp.field[f] >= 0 && !one) {
         const float* __restrict t = k.tex[mp.field[f]][c];
         for (int q = 0; q < m; ++q) dst[q] = kf * t[q];
-      } else if (one_sided && refill) {
-        for (int q = 0; q < kBlock; ++q) dst[q] = kf;
       } else if (!one_sided) {
         for (int q = 0; q < m; ++q) dst[q] = Pick(bk[q], kb, kf);
+      } else if (fill) {
+        for (int q = 0; q < kBlock; ++q) dst[q] = kf;
       }
     }
   }
@@ -511,10 +511,10 @@ __attribute__((always_inline)) inline void PixelMaterial(const Config& cfg, cons
   if (used[4] && mp.field[4] >= 0) {
     const float* __restrict t = k.tex[mp.field[4]][0];
     for (int q = 0; q < m; ++q) k.sh[q] = shf * t[q];
-  } else if (used[4] && one_sided && refill) {
-    for (int q = 0; q < kBlock; ++q) k.sh[q] = shf;
   } else if (used[4] && !one_sided) {
     for (int q = 0; q < m; ++q) k.sh[q] = Pick(bk[q], shb, shf);
+  } else if (used[4] && fill) {
+    for (int q = 0; q < kBlock; ++q) k.sh[q] = shf;
   }
   k.fixed = true;
 }
@@ -563,6 +563,12 @@ __attribute__((always_inline)) inline void FaceMap::Parts(const Maps& mp, bool b
 // i of a word (bit 0 set): where a block's runs of one face start. Eight (AVX2) or four (SSE2)
 // ids compared at once; one at a time, the scan for a run's end (a compare and a branch a pixel)
 // took a tenth of the shading kernel's time.
+// (bits i to len - 1 added to bits one pixel at a time: the vector loops' tail, and all of it
+// off x86-64)
+inline uint64_t FaceChangesFrom(const int32_t* ids, int64_t b, int i, int len, uint64_t bits) {
+  for (; i < len; ++i) bits |= static_cast<uint64_t>(ids[b + i] != ids[b + i - 1]) << i;
+  return bits;
+}
 #if DIFFSHADE_HAS_CLONES
 __attribute__((target("avx2"))) uint64_t FaceChanges(const int32_t* ids, int64_t b, int len) {
   uint64_t bits = 1;
@@ -573,8 +579,7 @@ __attribute__((target("avx2"))) uint64_t FaceChanges(const int32_t* ids, int64_t
     const unsigned same = static_cast<unsigned>(_mm256_movemask_ps(_mm256_castsi256_ps(_mm256_cmpeq_epi32(a, before))));
     bits |= static_cast<uint64_t>(~same & 0xffu) << i;
   }
-  for (; i < len; ++i) bits |= static_cast<uint64_t>(ids[b + i] != ids[b + i - 1]) << i;
-  return bits;
+  return FaceChangesFrom(ids, b, i, len, bits);
 }
 __attribute__((target("default"))) uint64_t FaceChanges(const int32_t* ids, int64_t b, int len) {
   uint64_t bits = 1;
@@ -585,15 +590,10 @@ __attribute__((target("default"))) uint64_t FaceChanges(const int32_t* ids, int6
     const unsigned same = static_cast<unsigned>(_mm_movemask_ps(_mm_castsi128_ps(_mm_cmpeq_epi32(a, before))));
     bits |= static_cast<uint64_t>(~same & 0xfu) << i;
   }
-  for (; i < len; ++i) bits |= static_cast<uint64_t>(ids[b + i] != ids[b + i - 1]) << i;
-  return bits;
+  return FaceChangesFrom(ids, b, i, len, bits);
 }
 #else
-uint64_t FaceChanges(const int32_t* ids, int64_t b, int len) {
-  uint64_t bits = 1;
-  for (int i = 1; i < len; ++i) bits |= static_cast<uint64_t>(ids[b + i] != ids[b + i - 1]) << i;
-  return bits;
-}
+uint64_t FaceChanges(const int32_t* ids, int64_t b, int len) { return FaceChangesFrom(ids, b, 1, len, 1); }
 #endif
 
 // The covered pixels' points of the block of pixels [b0, b1) (col, row: the first one's, in a
@@ -1069,8 +1069,7 @@ void CornerPartials(const int32_t* tri, int64_t num_verts, const float* corners,
 
 // Pixels [p0, p1) of the partials out [K, n, 3] (entries: the nonzero directions' numbers).
 DIFFSHADE_CLONES void PartialsRange(const Config& cfg, const Pixels& px, const float* faces, const float* params,
-                                     const float* lights,
-                                     int64_t num_lights, const Maps& mp, const std::vector<Entry>& es, int64_t K,
+                                     const float* lights, int64_t num_lights, const Maps& mp, const std::vector<Entry>& es, int64_t K,
                                      const int32_t* tri, int64_t num_verts, const float* corners, int64_t n,
                                      int64_t p0, int64_t p1, float* value, float* out) {
   const float* eye = params + 2 * kMat + 3;
@@ -1413,8 +1412,8 @@ std::shared_ptr<const Packing> Pack(ffi::ThreadPool& pool, int64_t nthreads, Map
 // The inputs both kernels share: their shapes checked, the maps read (their pyramids built)
 // and the face table (in scratch kept per calling thread between calls; every entry is written).
 struct Scene {
-  int64_t n = 0, width = 0, num_lights = 0, nthreads = 1;
-  Pixels px = {};
+  Pixels px = {};  // (its n: the number of pixels)
+  int64_t num_lights = 0, nthreads = 1;
   Maps mp;
   std::shared_ptr<const Packing> packing;  // (what mp's levels point into)
   const float* table = nullptr;
@@ -1437,8 +1436,8 @@ const char* Prepare(ffi::ThreadPool& pool, ffi::Buffer<ffi::S32>& ids, ffi::Buff
   if (grid ? width * ys.element_count() != n : (width != n || ys.element_count() != n)) {
     return "pixel centres do not match the ids";
   }
-  sc.n = n, sc.width = width, sc.num_lights = lights.element_count() / kLight;
   sc.px = Pixels{ids.typed_data(), xs.typed_data(), ys.typed_data(), grid != 0, width, n};
+  sc.num_lights = lights.element_count() / kLight;
   unsigned hw = std::thread::hardware_concurrency();
   sc.nthreads = n < 16384 ? 1 : std::min<int64_t>(hw == 0 ? 1 : hw, 8);  // (small images: one thread)
   Maps& mp = sc.mp;
@@ -1478,12 +1477,12 @@ ffi::Error ShadeImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Buffe
                                 parts, grid, sc)) {
     return ffi::Error::InvalidArgument(std::string("diffshade_shade: ") + bad);
   }
-  if (out->element_count() != 3 * sc.n) return ffi::Error::InvalidArgument("diffshade_shade: bad shapes");
+  if (out->element_count() != 3 * sc.px.n) return ffi::Error::InvalidArgument("diffshade_shade: bad shapes");
   const Config cfg{specular, fresnel, flags, fog};
-  const int64_t n = sc.n, chunks = sc.nthreads * 4;
+  const int64_t n = sc.px.n, chunks = sc.nthreads * 4;
   diffshade::ParallelFor(pool, chunks, [&](int64_t k) {
-    ShadeRange(cfg, sc.px, sc.table, params.typed_data(), lights.typed_data(), sc.num_lights, sc.mp, n * k / chunks, n * (k + 1) / chunks,
-               out->typed_data());
+    ShadeRange(cfg, sc.px, sc.table, params.typed_data(), lights.typed_data(), sc.num_lights, sc.mp, n * k / chunks,
+               n * (k + 1) / chunks, out->typed_data());
   });
   return ffi::Error::Success();
 }
@@ -1504,7 +1503,7 @@ ffi::Error PartialsImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Bu
     return ffi::Error::InvalidArgument(std::string("diffshade_shade_partials: ") + bad);
   }
   const Config cfg{specular, fresnel, flags, fog};
-  const int64_t n = sc.n, row = kParams + sc.num_lights * kLight;
+  const int64_t n = sc.px.n, row = kParams + sc.num_lights * kLight;
   const int64_t K = dirs.element_count() / row;
   const int64_t num_verts = clip.element_count() / 4;
   const bool gouraud = cfg.Flag(8);
@@ -1527,8 +1526,9 @@ ffi::Error PartialsImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Bu
   }
   const int64_t chunks = sc.nthreads * 4;
   diffshade::ParallelFor(pool, chunks, [&](int64_t k) {
-    PartialsRange(cfg, sc.px, sc.table, params.typed_data(), lights.typed_data(), sc.num_lights, sc.mp, es, K, tri.typed_data(), num_verts,
-                  corners.typed_data(), n, n * k / chunks, n * (k + 1) / chunks, value->typed_data(), out->typed_data());
+    PartialsRange(cfg, sc.px, sc.table, params.typed_data(), lights.typed_data(), sc.num_lights, sc.mp, es, K,
+                  tri.typed_data(), num_verts, corners.typed_data(), n, n * k / chunks, n * (k + 1) / chunks,
+                  value->typed_data(), out->typed_data());
   });
   return ffi::Error::Success();
 }
