@@ -213,13 +213,31 @@ class AlbedoProblem:
 RIDGE = 1e-10  # relative to a scalar's information, floored at the seen scalars' mean: holds null directions
 MAX_NEWTON = 30  # projected Newton steps of one bounded solve
 MAX_HOLDS = 8  # bounds a Newton step may meet and hold before it is projected instead
-PROXIMAL_ROUNDS = 6  # bounded solves, each with its ridge centred on the last one's optimum
+PROXIMAL_ROUNDS = 6  # bounded solves under the noise ridge, each centred on the last one's optimum
+MAX_CONJUGATE = 24  # conjugate-gradient steps of a noise-free bounded solve
+STALL = 0.01  # a conjugate-gradient step that lowers the cost by under this share: free what the gradient lets go
 ROUND_GAIN = 5e-4  # a round that lowers the cost by under this × σ² per seen scalar (χ² by 1e-3) is the last
 NOISY = 0.01  # the share of a large block a first step throws against the bounds that tells noise
 TIGHT = 1e-13  # the ridge of the rounds after the first, relative as RIDGE
 BLOCK = 1000  # scalars of a connected block of G factorised on its own (and of a block the noise ridge serves)
 CAPACITY = 32  # scalars a face may differ by from the factorised one before it is factorised anew
 JUDGED = 0.05  # the share of the residuals' degrees of freedom a fit must leave for its verdict to judge it
+
+
+def _first_bound(x, p, a, free):
+    """``x + a p``, or where that leaves the box on a free scalar, the point as far along ``p`` as
+    the first bound it meets: ``(point, step length, the scalars that reached their bound or
+    None)``."""
+    x_new = x + a * p
+    out = np.flatnonzero(free & ((x_new < 0) | (x_new > 1)))
+    if not len(out):
+        return x_new, a, None
+    reach = np.where(p[out] < 0, -x[out], 1 - x[out]) / p[out]
+    a = float(np.clip(reach.min(), 0.0, a))
+    hit = out[reach <= a * (1 + 1e-9) + 1e-300]
+    x_new = np.clip(x + a * p, 0.0, 1.0)
+    x_new[hit] = np.where(p[hit] < 0, 0.0, 1.0)
+    return x_new, a, hit
 
 
 class _Face:
@@ -368,7 +386,7 @@ class _AlbedoSolver:
         pset = ap.prob.pset
         self.ap, self.rtol, self.verbose = ap, rtol, verbose
         self._gram = None
-        self.unsettled = None  # the last proximal round's share of the cost, where the rounds ran out
+        self.unsettled = None  # (share of the cost the last step lowered it by, what ran out), where the steps ran out
         self.y = ap.target()
         self.Lp = ap.prior() if smoothness > 0 else None
         self.lo = np.concatenate([np.full(p.size, p.box[0]) for p in pset.params])[ap.other]
@@ -407,13 +425,15 @@ class _AlbedoSolver:
         worse than the box's width), estimated from that step's residual, its degrees of freedom
         counted, and the solve begins again from the start (from the step, it took a third
         longer, to a higher cost).
-        The ridge's pull is then removed by proximal rounds, each a bounded solve with the ridge
-        centred on the last round's optimum (iterated Tikhonov) and, after the first, a ridge a
-        thousandth as strong (or the noise variance), at most :data:`PROXIMAL_ROUNDS`: the
-        rounds converge fast where the images determine the scalars, slowly only where they
-        barely do, so they stop when a round lowers :math:`\chi^2` by under 1e-3 per seen
-        scalar (:data:`ROUND_GAIN`), :math:`\sigma^2` estimated from each round's residual, its
-        degrees of freedom counted."""
+        Where the first step does not tell noise, the ridge's pull is then removed by conjugate gradients on the
+        unregularised least squares, preconditioned by a factorisation with a ridge a
+        thousandth as strong (:meth:`_conjugate`). Under the noise ridge it is removed by
+        proximal rounds, each a bounded solve with the ridge centred on the last round's optimum
+        (iterated Tikhonov: a regularisation that stops early), at most
+        :data:`PROXIMAL_ROUNDS`: the rounds converge fast where the images determine the scalars,
+        slowly only where they barely do, so they stop when a round lowers :math:`\chi^2` by
+        under 1e-3 per seen scalar (:data:`ROUND_GAIN`), :math:`\sigma^2` estimated from each
+        round's residual, its degrees of freedom counted."""
         G = self.gram(A)
         dg = G.diagonal()
         n_seen = int(np.count_nonzero(seen))
@@ -432,18 +452,24 @@ class _AlbedoSolver:
             face = _Faces(self.ap.sp, G, rho, seen, self.ap.orders)
             x, cost = start, self.data(start, A, b)  # the step the noise threw is not a start
         self.unsettled = None
-        for _ in range(PROXIMAL_ROUNDS):
+        if not noisy:  # the unregularised optimum, by conjugate gradients on the tight ridge's factorisation
+            tight = TIGHT * info
+            if np.any(rho > 10 * tight):
+                rho, face = tight, _Faces(self.ap.sp, G, tight, seen, self.ap.orders)
+            x = self._conjugate(x, A, b, seen, face, s2, dof, n_seen)
+        for _ in range(PROXIMAL_ROUNDS if noisy else 0):
             x, face = self._newton(x, x.copy(), A, b, seen, rho, face)
             rounds += 1
             cost, last = self.data(x, A, b), cost
             s2 = min(s2, 2 * cost / dof)
             if last - cost <= ROUND_GAIN * s2 * n_seen + 1e-15 * last:
                 break
-            tight = np.maximum(TIGHT * info, s2 if noisy else 0.0)
+            tight = np.maximum(TIGHT * info, s2)
             if np.any(rho > 10 * tight):  # a new factorisation pays for itself
                 rho, face, rounds = tight, _Faces(self.ap.sp, G, tight, seen, self.ap.orders), 0
         else:  # the last round still lowered the cost: what share of it
-            self.unsettled = (last - cost) / max(last, 1e-300)
+            if noisy:
+                self.unsettled = ((last - cost) / max(last, 1e-300), f"{PROXIMAL_ROUNDS} proximal rounds")
         g = self.grad(x, A, b)
         free = seen & ~(((x <= 0) & (g > 0)) | ((x >= 1) & (g < 0)))
         idx = np.flatnonzero(free)
@@ -452,6 +478,87 @@ class _AlbedoSolver:
 
         # with what the rounds filtered the normal equations by (a tiny ridge: nothing)
         return x, free, _FreeInverse(face, free, rho[idx], max(rounds, 1) if noisy else 1)
+
+    def _conjugate(self, x, A, b, seen, face, s2, dof, n_seen):
+        r"""The bounded least squares (no ridge) from ``x`` by conjugate gradients on the face of
+        the box, preconditioned by the face's factorisation of :math:`G + \mathrm{diag}(\rho)`
+        (the tight ridge). The preconditioned matrix is the identity but for the directions whose
+        information is below the ridge, so the few of those that matter converge in a few steps,
+        where proximal rounds (iterated Tikhonov, each a bounded solve) lowered their error by a
+        factor of 2-4 per round. A step that would leave the box goes as far as the first bound it
+        meets and holds the scalars that reached theirs (Lawson–Hanson); the gradients then begin
+        again on the smaller face. Held scalars whose gradient points into the box are freed
+        (and the gradients begin again) where the face has stalled or where freeing them would
+        gain more than the face has left (Dostál's proportioning). At most
+        :data:`MAX_CONJUGATE` steps; they stop at the face's optimum, where a step lowers
+        :math:`\chi^2` by under 1e-3 per seen scalar (:data:`ROUND_GAIN`, :math:`\sigma^2` from
+        the residual, its degrees of freedom counted) and no held scalar would move. Where they
+        run out with the cost still falling, ``self.unsettled`` says by what share the last
+        step lowered it."""
+        dg = np.maximum(self.gram(A).diagonal(), 1e-300)
+        f, restart, free, last, gained = self.data(x, A, b), True, None, None, np.inf
+
+        def held(z, g):
+            return ((z <= 0) & (g > 0)) | ((z >= 1) & (g < 0))
+
+        for _ in range(MAX_CONJUGATE):
+            if restart:
+                g = self.grad(x, A, b)
+                if free is None:  # the face: the scalars no bound holds against their gradient
+                    free = seen & ~held(x, g)
+                if not free.any():
+                    return x
+                r = np.where(free, -g, 0.0)
+                z = face.step(r, free)
+                p, rz = z, float(r @ z)
+            # held scalars whose gradient points into the box, and what freeing them would gain
+            # against what the face has left (Dostál's proportioning): a new face where they win
+            loose = seen & ~free & ~held(x, g)
+            if loose.any() and (gained < STALL * f or float(np.sum(g[loose] ** 2 / dg[loose])) > min(rz, 2 * gained)):
+                free, restart, gained = None, True, np.inf
+                continue
+            q, pq = self._curvature(A, p)
+            if rz <= 0 or pq <= 0:  # nothing left to gain at float precision
+                return x
+            x_new, a, hit = _first_bound(x, p, rz / pq, free)
+            restart = hit is not None
+            if restart:  # the face loses what reached its bound
+                free = free.copy()
+                free[hit] = False
+            f_new = self.data(x_new, A, b)
+            if f_new > f or (f_new == f and not restart):  # no decrease left on this face
+                if not loose.any():
+                    return x
+                free, restart, gained = None, True, np.inf
+                continue
+            x, f, last = x_new, f_new, f
+            gained = last - f if not restart else np.inf
+            s2 = min(s2, 2 * f / dof)
+            if not restart:
+                if last - f <= ROUND_GAIN * s2 * n_seen + 1e-15 * last:  # the optimum on this face
+                    if not loose.any():
+                        return x
+                    free, restart, gained = None, True, np.inf
+                    continue
+                g = g + a * q
+                r = np.where(free, r - a * q, 0.0)
+                z = face.step(r, free)
+                rz, rz_last = float(r @ z), rz
+                p = z + (rz / rz_last) * p
+        if last is None:
+            return x
+        self.unsettled = ((last - f) / max(last, 1e-300), f"{MAX_CONJUGATE} conjugate-gradient steps")
+        return x
+
+    def _curvature(self, A, p):
+        """``(G p, pᵀ G p)``, the second as :math:`|Ap|^2` (+ the prior's): G's own rounding
+        makes it negative along directions the images barely see."""
+        Ap = A @ p
+        q, pq = A.T @ Ap, float(Ap @ Ap)
+        if self.Lp is not None:
+            Lp = self.Lp @ p
+            q, pq = q + self.Lp.T @ Lp, pq + float(Lp @ Lp)
+        return q, pq
 
     def _newton(self, x, c, A, b, seen, rho, face, steps=MAX_NEWTON):
         """Projected Newton (Bertsekas, 1982) on the least squares plus the ridge centred at ``c``:
@@ -722,7 +829,7 @@ def _block_verdict(ap, solver, converged, max_steps, ratio, sigma, source, n2: i
     if not successful and solver.unsettled is not None:
         msg = (
             f"the residual is {ratio:.3g}× the noise (σ = {sigma:.3g}, {source}), and the bounded solve's "
-            f"{PROXIMAL_ROUNDS} proximal rounds ended with the cost still falling ({solver.unsettled:.2g} of "
+            f"{solver.unsettled[1]} ended with the cost still falling ({solver.unsettled[0]:.2g} of "
             "it in the last round): directions the images barely see had not settled"
         )
         return False, msg, False

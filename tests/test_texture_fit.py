@@ -348,18 +348,21 @@ def test_the_degrees_of_freedom_of_a_block_stopped_by_its_rounds():
     assert abs(effective_dof(red, probes=64) - exact) < 0.05 * exact
 
 
-def test_a_solve_whose_rounds_ran_out_says_so(monkeypatch):
-    """Noise-free targets and a single proximal round: the ridge's pull is not yet removed, so the
-    residual is far above float rounding. The verdict names the rounds that ran out with the
-    cost still falling, not a local minimum or a model that cannot explain the images (with the
-    default six rounds this fit settles and is successful)."""
+def test_a_solve_whose_steps_ran_out_says_so(monkeypatch):
+    """Noise-free targets, a ridge of a hundredth of each texel's information and a single
+    conjugate-gradient step to remove its pull: the residual is still far above float rounding.
+    The verdict names the steps that ran out with the cost still falling, not a local minimum or
+    a model that cannot explain the images (with the default ridge and steps this fit settles
+    and is successful: test_determined_texels_are_recovered_and_the_others_named)."""
     import fitting._albedo as albedo
 
     starts, targets, truth, opts = _views(16, "bilinear")
-    monkeypatch.setattr(albedo, "PROXIMAL_ROUNDS", 1)
+    for name, value in (("RIDGE", 1e-2), ("TIGHT", 1e-2), ("MAX_CONJUGATE", 1)):
+        monkeypatch.setattr(albedo, name, value)
     r = fitting.fit(starts[0], opts, fitting.Observations(targets, views=starts), ["material.diffuse_map"])
     assert not r.successful and not r.converged
-    assert "proximal rounds ended with the cost still falling" in r.result and "local minimum" not in r.result
+    assert "1 conjugate-gradient steps ended with the cost still falling" in r.result
+    assert "local minimum" not in r.result
 
 
 def test_a_map_that_takes_every_degree_of_freedom_cannot_be_judged():
