@@ -16,11 +16,13 @@ unit sphere.
 import argparse
 import dataclasses
 import os
+import sys
 import time
 
 import jax
 
-jax.config.update("jax_enable_x64", True)
+if "--float32" not in sys.argv:  # (float32: the kernel renders, as in a fit a user runs by default)
+    jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
@@ -51,7 +53,7 @@ def mesh_for(name, sphere):
     return ds.Mesh(v, m.faces, normals=m.normals, uv=uv)
 
 
-def case(seed, res, size, filt, views=None, mesh="sphere", max_views=4):
+def case(seed, res, size, filt, views=None, mesh="sphere", max_views=4, kinds=("noise-free", "8-bit")):
     rng = np.random.default_rng(seed)
     scene, opts = ds.default_scene()
     mesh = mesh_for(mesh, scene.mesh)
@@ -70,11 +72,13 @@ def case(seed, res, size, filt, views=None, mesh="sphere", max_views=4):
         clean.append(np.asarray(ds.render(s, opts)))
         starts.append(dataclasses.replace(s, material=start_mat))
     out = {}
+    noisy = [np.round(np.clip(t + rng.normal(0, 2 / 255, t.shape), 0, 1) * 255) / 255 for t in clean]
     for kind in ("noise-free", "8-bit"):
+        if kind not in kinds:
+            continue
         if kind == "noise-free":
             obs = fitting.Observations(clean, views=starts)
         else:
-            noisy = [np.round(np.clip(t + rng.normal(0, 2 / 255, t.shape), 0, 1) * 255) / 255 for t in clean]
             obs = fitting.Observations(noisy, views=starts, saturation=1.0, quantum=1 / 255)
         t0 = time.perf_counter()
         r = fitting.fit(starts[0], opts, obs, ["material.diffuse_map"], intervals=False)
@@ -106,11 +110,13 @@ def main():
     ap.add_argument("--views", type=int, default=None, help="views per case (default: 2 to --max-views at random)")
     ap.add_argument("--max-views", type=int, default=4)
     ap.add_argument("--meshes", nargs="+", default=["sphere"], choices=["sphere", "fuze", "rabbit"])
+    ap.add_argument("--float32", action="store_true", help="render in float32 (JAX's default) instead of float64")
+    ap.add_argument("--kinds", nargs="+", default=["noise-free", "8-bit"], choices=["noise-free", "8-bit"])
     a = ap.parse_args()
     for mesh in a.meshes:
         for res in a.res:
             for seed in range(a.cases):
-                report(mesh, res, seed, case(1000 + seed, res, a.size, a.filter, a.views, mesh, a.max_views))
+                report(mesh, res, seed, case(1000 + seed, res, a.size, a.filter, a.views, mesh, a.max_views, a.kinds))
 
 
 def report(mesh, res, seed, o):
