@@ -440,7 +440,7 @@ class _AlbedoSolver:
         info = np.maximum(dg, dg[seen].mean() if n_seen else 0.0)
         dof = max(int(np.count_nonzero(np.diff(A.tocsr().indptr))) - n_seen, 1)
         rho = RIDGE * info
-        face, start = _Faces(self.ap.sp, G, rho, seen, self.ap.orders), x.copy()
+        face, start, free = _Faces(self.ap.sp, G, rho, seen, self.ap.orders), x.copy(), None
         x, face = self._newton(x, x.copy(), A, b, seen, rho, face, steps=1)
         rounds = 1  # with the present ridge
         cost = self.data(x, A, b)
@@ -456,7 +456,7 @@ class _AlbedoSolver:
             tight = TIGHT * info
             if np.any(rho > 10 * tight):
                 rho, face = tight, _Faces(self.ap.sp, G, tight, seen, self.ap.orders)
-            x = self._conjugate(x, A, b, seen, face, s2, dof, n_seen)
+            x, free = self._conjugate(x, A, b, seen, face, s2, dof, n_seen)
         for _ in range(PROXIMAL_ROUNDS if noisy else 0):
             x, face = self._newton(x, x.copy(), A, b, seen, rho, face)
             rounds += 1
@@ -470,8 +470,9 @@ class _AlbedoSolver:
         else:  # the last round still lowered the cost: what share of it
             if noisy:
                 self.unsettled = ((last - cost) / max(last, 1e-300), f"{PROXIMAL_ROUNDS} proximal rounds")
-        g = self.grad(x, A, b)
-        free = seen & ~(((x <= 0) & (g > 0)) | ((x >= 1) & (g < 0)))
+        if noisy or free is None:  # (the conjugate gradients' last face: its factorisation's, so no border solves)
+            g = self.grad(x, A, b)
+            free = seen & ~(((x <= 0) & (g > 0)) | ((x >= 1) & (g < 0)))
         idx = np.flatnonzero(free)
         if not len(idx):
             return x, free, None
@@ -494,7 +495,8 @@ class _AlbedoSolver:
         :math:`\chi^2` by under 1e-3 per seen scalar (:data:`ROUND_GAIN`, :math:`\sigma^2` from
         the residual, its degrees of freedom counted) and no held scalar would move. Where they
         run out with the cost still falling, ``self.unsettled`` says by what share the last
-        step lowered it."""
+        step lowered it. ``(x, the face it ended on)`` (the face ``None`` where it ended freeing
+        scalars)."""
         dg = np.maximum(self.gram(A).diagonal(), 1e-300)
         f, restart, free, last, gained = self.data(x, A, b), True, None, None, np.inf
 
@@ -507,7 +509,7 @@ class _AlbedoSolver:
                 if free is None:  # the face: the scalars no bound holds against their gradient
                     free = seen & ~held(x, g)
                 if not free.any():
-                    return x
+                    return x, free
                 r = np.where(free, -g, 0.0)
                 z = face.step(r, free)
                 p, rz = z, float(r @ z)
@@ -519,7 +521,7 @@ class _AlbedoSolver:
                 continue
             q, pq = self._curvature(A, p)
             if rz <= 0 or pq <= 0:  # nothing left to gain at float precision
-                return x
+                return x, free
             x_new, a, hit = _first_bound(x, p, rz / pq, free)
             restart = hit is not None
             if restart:  # the face loses what reached its bound
@@ -528,7 +530,7 @@ class _AlbedoSolver:
             f_new = self.data(x_new, A, b)
             if f_new > f or (f_new == f and not restart):  # no decrease left on this face
                 if not loose.any():
-                    return x
+                    return x, free
                 free, restart, gained = None, True, np.inf
                 continue
             x, f, last = x_new, f_new, f
@@ -537,7 +539,7 @@ class _AlbedoSolver:
             if not restart:
                 if last - f <= ROUND_GAIN * s2 * n_seen + 1e-15 * last:  # the optimum on this face
                     if not loose.any():
-                        return x
+                        return x, free
                     free, restart, gained = None, True, np.inf
                     continue
                 g = g + a * q
@@ -546,9 +548,9 @@ class _AlbedoSolver:
                 rz, rz_last = float(r @ z), rz
                 p = z + (rz / rz_last) * p
         if last is None:
-            return x
+            return x, free
         self.unsettled = ((last - f) / max(last, 1e-300), f"{MAX_CONJUGATE} conjugate-gradient steps")
-        return x
+        return x, free
 
     def _curvature(self, A, p):
         """``(G p, pᵀ G p)``, the second as :math:`|Ap|^2` (+ the prior's): G's own rounding
