@@ -148,7 +148,7 @@ class AlbedoProblem:
         imgs, rows, cols, vals, Jo, ws, off = [], [], [], [], [], [], 0
         for vd, (img, T) in zip(self.prob.data, outs):
             img, T = np.asarray(img, np.float64), np.asarray(T, np.float64)
-            w = np.asarray(vd.weight, np.float64) * ~np.asarray(vd.hi | vd.lo)  # [N, 3]
+            w = np.asarray(vd.weight, np.float64) * ~(np.asarray(vd.hi) | np.asarray(vd.lo))  # [N, 3]
             n = img.shape[0]
             tri = np.asarray(vd.ids)[0, 0]  # [N] the triangle each compacted pixel sees (-1: padding)
             ok = tri >= 0
@@ -179,7 +179,9 @@ class AlbedoProblem:
         return np.concatenate(
             [
                 (
-                    np.asarray(vd.target, np.float64) * np.asarray(vd.weight, np.float64) * ~np.asarray(vd.hi | vd.lo)
+                    np.asarray(vd.target, np.float64)
+                    * np.asarray(vd.weight, np.float64)
+                    * ~(np.asarray(vd.hi) | np.asarray(vd.lo))
                 ).reshape(-1)
                 for vd in self.prob.data
             ]

@@ -39,7 +39,7 @@ import diffshade as ds
 from . import _options
 from ._cache import compiled
 from ._params import LINEAR_MAPS, is_map
-from ._problem import FitError, Problem, tangent_images
+from ._problem import FitError, Problem, on_device, tangent_images
 from ._sparse import Factor, Orderings, in_threads
 
 PROBE_DISTANCE = 8  # texels between the texels of one probing class
@@ -157,16 +157,16 @@ class MapProblem:
                 return [self._view(vd, th, E) for vd in data]
             return prob.map_views(lambda vd, t, e: self._view(vd, t, e), data, th, E)
 
-        args = (jnp.asarray(theta, prob.dtype), jnp.asarray(self.E, prob.dtype), prob.device_data())
+        args = (on_device(theta, prob.dtype), on_device(self.E, prob.dtype), prob.device_data())
         self._fn, seconds = compiled(prob, "maps", evaluate, *args)
         self._drop = [np.zeros(vd.target.shape[0], bool) for vd in prob.data]
         self._drop = [self._coarse(o) for o in self._outputs(theta)]
         return seconds
 
     def _outputs(self, theta):
-        out = self._fn(
-            jnp.asarray(theta, self.prob.dtype), jnp.asarray(self.E, self.prob.dtype), self.prob.device_data()
-        )
+        out = self._fn(on_device(theta, self.prob.dtype), on_device(self.E, self.prob.dtype), self.prob.device_data())
+        if not isinstance(out, list):  # (stacked views: split on the host; a JAX array's iteration compiles)
+            out = np.asarray(out, np.float64)
         return [np.asarray(o, np.float64) for o in out]
 
     def _coarse(self, o) -> np.ndarray:
@@ -177,7 +177,7 @@ class MapProblem:
 
     def _weights(self, k, vd) -> np.ndarray:
         """View ``k``'s weights ``[N, 3]``: 0 where censored or past :data:`MAX_LOD`."""
-        w = np.asarray(vd.weight, np.float64) * ~np.asarray(vd.hi | vd.lo)
+        w = np.asarray(vd.weight, np.float64) * ~(np.asarray(vd.hi) | np.asarray(vd.lo))
         return w * ~self._drop[k][:, None]
 
     def evaluate(self, theta):

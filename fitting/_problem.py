@@ -222,12 +222,19 @@ def view_devices(devices, n_views: int) -> tuple:
     return tuple(devs[:d])
 
 
+def on_device(x, dtype=None):
+    """``jnp.asarray(x, dtype)`` of a host array without a compile: JAX (0.10) lifts a host array
+    through a program of its own per shape and dtype (``lax.stage``), 15-30 ms each on a CPU, two
+    dozen of them in a fit's set-up; ``jax.device_put`` copies it."""
+    return jax.device_put(np.asarray(x, dtype))
+
+
 def place(tree, devices: tuple):
     """``tree`` (leaves with a leading view axis) on ``devices``: sharded along that axis over
     several (through :func:`jax.make_array_from_callback`, so that with several processes each
     builds only the shards of its own devices), on the default device otherwise."""
     if len(devices) <= 1:
-        return jax.tree.map(jnp.asarray, tree)
+        return jax.tree.map(lambda x: x if isinstance(x, jax.Array) else on_device(x), tree)
     from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
     mesh = Mesh(np.asarray(devices), ("views",))
@@ -352,37 +359,28 @@ def _compact(k, c: _Cover, codes, n, dtype, opts):
     padn = lambda a, val: np.concatenate([a, np.full((pad, *a.shape[1:]), val, a.dtype)])  # noqa: E731
     kids = ids.reshape(ids.shape[0], h * w)[:, rows]
     kids = np.concatenate([kids, np.full((ids.shape[0], pad), -1, kids.dtype)], axis=1)[:, None, :]
-    px_c, py_c = jnp.asarray(padn(xs[c_idx], 0.0)[None], dtype), jnp.asarray(padn(ys[r_idx], 0.0)[None], dtype)
+    px_c, py_c = on_device(padn(xs[c_idx], 0.0)[None], dtype), on_device(padn(ys[r_idx], 0.0)[None], dtype)
     right_c, down_c = padn(right, -1)[None], padn(down, -1)[None]
     edges = (
         np.asarray(
-            run(
-                ("silhouette edges",),
-                _edges_at,
-                v,
-                jnp.asarray(kids),
-                px_c,
-                py_c,
-                jnp.asarray(right_c),
-                jnp.asarray(down_c),
-            )
+            run(("silhouette edges",), _edges_at, v, on_device(kids), px_c, py_c, on_device(right_c), on_device(down_c))
         )
         if _options.antialias(opts)
         else np.full((2, 2, n), -1, np.int32)
     )
     vd = ViewData(
         scene=v,
-        ids=jnp.asarray(kids),
+        ids=on_device(kids),
         px=px_c,
         py=py_c,
-        target=jnp.asarray(padn(flat(c.t), 0.0), dtype),
-        weight=jnp.asarray(padn(flat(cw), 0.0), dtype),
-        hi=jnp.asarray(padn(flat(c.hi), False)),
-        lo=jnp.asarray(padn(flat(c.lo), False)),
-        right=jnp.asarray(right_c),
-        down=jnp.asarray(down_c),
-        edges=jnp.asarray(edges),
-        index=jnp.asarray(k, jnp.int32),
+        target=on_device(padn(flat(c.t), 0.0), dtype),
+        weight=on_device(padn(flat(cw), 0.0), dtype),
+        hi=on_device(padn(flat(c.hi), False)),
+        lo=on_device(padn(flat(c.lo), False)),
+        right=on_device(right_c),
+        down=on_device(down_c),
+        edges=on_device(edges),
+        index=on_device(k, np.int32),
     )
     # what the model shows where no surface is (the camera's gain at its start values)
     bg = np.broadcast_to(np.asarray(v.background, np.float64) * np.asarray(v.camera.gain(), np.float64), c.t.shape)
@@ -500,7 +498,7 @@ class Problem:
             floor = (self.quantum or 1 / 255) / 2
             e = np.asarray(color.encode(np.clip(I, 0.0, None), b.encoding), np.float64)
             slope = color.decode_slope(np.clip(e, 0.0, 1.0), b.encoding, floor=floor)  # dL/dv at the model
-            cens = np.asarray(vd.hi | vd.lo)
+            cens = np.asarray(vd.hi) | np.asarray(vd.lo)
             t_new = np.where(cens, np.asarray(vd.target, np.float64), I + (b.codes - e) * slope)
             w_new = np.where(cens, np.asarray(vd.weight, np.float64), b.sqrt_mask / slope)
             self.data[k] = eqx.tree_at(
@@ -638,7 +636,7 @@ class Problem:
         c = 0
         for vd in self.data:
             w = np.broadcast_to(np.asarray(vd.weight) > 0, vd.hi.shape)
-            c += int((w & np.asarray(vd.hi | vd.lo)).sum())
+            c += int((w & (np.asarray(vd.hi) | np.asarray(vd.lo))).sum())
         return int(self.two_sided().sum()), c
 
     def two_sided(self) -> np.ndarray:
@@ -647,7 +645,7 @@ class Problem:
         out = []
         for vd in self.data:
             w = np.broadcast_to(np.asarray(vd.weight) > 0, vd.hi.shape)
-            out.append((w & ~np.asarray(vd.hi | vd.lo)).reshape(-1))
+            out.append((w & ~(np.asarray(vd.hi) | np.asarray(vd.lo))).reshape(-1))
         return np.concatenate(out)
 
     def inside_range(self, img_flat, margin: float) -> np.ndarray | None:
