@@ -427,9 +427,10 @@ class _AlbedoSolver:
         worse than the box's width), estimated from that step's residual, its degrees of freedom
         counted, and the solve begins again from the start (from the step, it took a third
         longer, to a higher cost).
-        Where the first step does not tell noise, the ridge's pull is then removed by conjugate gradients on the
-        unregularised least squares, preconditioned by a factorisation with a ridge a
-        thousandth as strong (:meth:`_conjugate`). Under the noise ridge it is removed by
+        Where the first step does not tell noise, a factorisation with a ridge a thousandth as
+        strong serves a proximal round of projected Newton (the bounds settle: conjugate
+        gradients alone hold one per step) and then conjugate gradients on the unregularised
+        least squares, which it preconditions (:meth:`_conjugate`). Under the noise ridge it is removed by
         proximal rounds, each a bounded solve with the ridge centred on the last round's optimum
         (iterated Tikhonov: a regularisation that stops early), at most
         :data:`PROXIMAL_ROUNDS`: the rounds converge fast where the images determine the scalars,
@@ -458,6 +459,7 @@ class _AlbedoSolver:
             tight = TIGHT * info
             if np.any(rho > 10 * tight):
                 rho, face = tight, _Faces(self.ap.sp, G, tight, seen, self.ap.orders)
+            x, face = self._newton(x, x.copy(), A, b, seen, rho, face)  # a proximal round: the bounds settle
             x, free = self._conjugate(x, A, b, seen, face, s2, dof, n_seen)
         for _ in range(PROXIMAL_ROUNDS if noisy else 0):
             x, face = self._newton(x, x.copy(), A, b, seen, rho, face)

@@ -268,6 +268,33 @@ def test_the_bounded_solve_is_the_bounded_least_squares_optimum():
         np.testing.assert_array_equal(free, (ref > 0) & (ref < 1))
 
 
+def test_a_noise_free_bounded_solve_with_many_bounds_is_the_optimum():
+    """A consistent problem (no noise: the conjugate-gradient path) whose columns are seen from
+    strongly to barely (scales 1e-3 to 1) and a few of whose true values lie outside [0, 1]: the
+    clamped ones pull tens of neighbours onto the bounds. Against BVLS. Conjugate gradients alone
+    hold one bound per step and ran out 0.5-1 off the optimum here; a proximal round of projected
+    Newton settles the bounds first."""
+    from scipy.optimize import lsq_linear
+
+    from fitting._albedo import _AlbedoSolver
+
+    for seed in range(2):
+        rng = np.random.default_rng(seed)
+        n, m = 400, 1000
+        A = sp.random(m, n, density=3 / n, random_state=rng, format="csr") + sp.eye(m, n, format="csr")
+        A = (A @ sp.diags(10 ** rng.uniform(-3, 0, n))).tocsr()
+        truth = rng.uniform(0.05, 0.95, n)
+        truth[rng.choice(n, 8, replace=False)] = rng.choice([-0.3, 1.3], 8)
+        y = A @ truth
+        solver = _AlbedoSolver.__new__(_AlbedoSolver)
+        solver.ap, solver.Lp, solver.y, solver._gram = types.SimpleNamespace(sp=sp, orders=Orderings()), None, y, None
+        x, free, _ = solver.bounded(np.full(n, 0.5), A, np.zeros(m), np.ones(n, bool))
+        ref = lsq_linear(A.toarray(), y, bounds=(0, 1), method="bvls", tol=1e-14).x
+        assert ((ref <= 0) | (ref >= 1)).sum() > 40
+        assert solver.unsettled is None
+        np.testing.assert_allclose(x, ref, atol=1e-7)
+
+
 def test_a_coarse_shininess_map_is_fitted_as_nonlinear_parameters():
     """A shininess map is not linear in the image: its texels are fitted like any nonlinear
     parameter (Levenberg–Marquardt beside the linear block), so at a coarse resolution: here a
