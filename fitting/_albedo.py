@@ -835,8 +835,8 @@ def _block_verdict(ap, solver, converged, max_steps, ratio, sigma, source, n2: i
     if not successful and solver.unsettled is not None:
         msg = (
             f"the residual is {ratio:.3g}× the noise (σ = {sigma:.3g}, {source}), and the bounded solve's "
-            f"{solver.unsettled[1]} ended with the cost still falling ({solver.unsettled[0]:.2g} of "
-            "it in the last round): directions the images barely see had not settled"
+            f"{solver.unsettled[1]} ended with the cost still falling (the last lowered it by "
+            f"{solver.unsettled[0]:.2g} of itself): directions the images barely see had not settled"
         )
         return False, msg, False
     return successful, msg, converged
