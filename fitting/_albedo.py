@@ -497,12 +497,13 @@ class _AlbedoSolver:
         gain more than the face has left (Dostál's proportioning). At most
         :data:`MAX_CONJUGATE` steps; they stop at the face's optimum, where a step lowers
         :math:`\chi^2` by under 1e-3 per seen scalar (:data:`ROUND_GAIN`, :math:`\sigma^2` from
-        the residual, its degrees of freedom counted) and no held scalar would move. Where they
+        the residual, its degrees of freedom counted; or the cost by under 1e-3 of itself, where
+        those are few and say little of :math:`\sigma^2`) and no held scalar would move. Where they
         run out with the cost still falling, ``self.unsettled`` says by what share the last
         step lowered it. ``(x, the face it ended on)`` (the face ``None`` where it ended freeing
         scalars)."""
         dg = np.maximum(self.gram(A).diagonal(), 1e-300)
-        f, restart, free, last, gained = self.data(x, A, b), True, None, None, np.inf
+        f, restart, free, last, gained, falling = self.data(x, A, b), True, None, None, np.inf, False
 
         def held(z, g):
             return ((z <= 0) & (g > 0)) | ((z >= 1) & (g < 0))
@@ -540,8 +541,11 @@ class _AlbedoSolver:
             x, f, last = x_new, f_new, f
             gained = last - f if not restart else np.inf
             s2 = min(s2, 2 * f / dof)
+            # (χ² by 1e-3 per seen scalar; where the residuals' degrees of freedom are few, that σ²
+            # says little: 1e-3 of the cost)
+            falling = last - f > min(ROUND_GAIN * s2 * n_seen, 1e-3 * last) + 1e-15 * last
             if not restart:
-                if last - f <= ROUND_GAIN * s2 * n_seen + 1e-15 * last:  # the optimum on this face
+                if not falling:  # the optimum on this face
                     if not loose.any():
                         return x, free
                     free, restart, gained = None, True, np.inf
@@ -551,9 +555,8 @@ class _AlbedoSolver:
                 z = face.step(r, free)
                 rz, rz_last = float(r @ z), rz
                 p = z + (rz / rz_last) * p
-        if last is None:
-            return x, free
-        self.unsettled = ((last - f) / max(last, 1e-300), f"{MAX_CONJUGATE} conjugate-gradient steps")
+        if last is not None and falling:
+            self.unsettled = ((last - f) / max(last, 1e-300), f"{MAX_CONJUGATE} conjugate-gradient steps")
         return x, free
 
     def _curvature(self, A, p):
