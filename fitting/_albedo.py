@@ -42,7 +42,7 @@ import numpy as np
 from . import _options
 from ._cache import compiled
 from ._polish import RELINEARISE_PASSES
-from ._problem import FitError, Problem, tangent_images
+from ._problem import FitError, Problem, censored, tangent_images
 from ._report import (
     Diagnostics,
     FitResult,
@@ -148,7 +148,7 @@ class AlbedoProblem:
         imgs, rows, cols, vals, Jo, ws, off = [], [], [], [], [], [], 0
         for vd, (img, T) in zip(self.prob.data, outs):
             img, T = np.asarray(img, np.float64), np.asarray(T, np.float64)
-            w = np.asarray(vd.weight, np.float64) * ~(np.asarray(vd.hi) | np.asarray(vd.lo))  # [N, 3]
+            w = np.asarray(vd.weight, np.float64) * ~censored(vd)  # [N, 3]
             n = img.shape[0]
             tri = np.asarray(vd.ids)[0, 0]  # [N] the triangle each compacted pixel sees (-1: padding)
             ok = tri >= 0
@@ -178,11 +178,7 @@ class AlbedoProblem:
     def target(self):
         return np.concatenate(
             [
-                (
-                    np.asarray(vd.target, np.float64)
-                    * np.asarray(vd.weight, np.float64)
-                    * ~(np.asarray(vd.hi) | np.asarray(vd.lo))
-                ).reshape(-1)
+                (np.asarray(vd.target, np.float64) * np.asarray(vd.weight, np.float64) * ~censored(vd)).reshape(-1)
                 for vd in self.prob.data
             ]
         )
@@ -226,14 +222,21 @@ CAPACITY = 32  # scalars a face may differ by from the factorised one before it 
 JUDGED = 0.05  # the share of the residuals' degrees of freedom a fit must leave for its verdict to judge it
 
 
-def _first_bound(x, p, a, free):
+def _held(x, g):
+    """The scalars on a bound (0 or 1) that their gradient ``g`` pushes against."""
+    return ((x <= 0) & (g > 0)) | ((x >= 1) & (g < 0))
+
+
+def _first_bound(x, p, a, free, most=None):
     """``x + a p``, or where that leaves the box on a free scalar, the point as far along ``p`` as
     the first bound it meets: ``(point, step length, the scalars that reached their bound or
-    None)``."""
+    None)``; ``None`` where more than ``most`` free scalars would leave."""
     x_new = x + a * p
     out = np.flatnonzero(free & ((x_new < 0) | (x_new > 1)))
     if not len(out):
         return x_new, a, None
+    if most is not None and len(out) > most:
+        return None
     reach = np.where(p[out] < 0, -x[out], 1 - x[out]) / p[out]
     a = float(np.clip(reach.min(), 0.0, a))
     hit = out[reach <= a * (1 + 1e-9) + 1e-300]
@@ -476,7 +479,7 @@ class _AlbedoSolver:
                 self.unsettled = ((last - cost) / max(last, 1e-300), f"{PROXIMAL_ROUNDS} proximal rounds")
         if noisy or free is None:  # (the conjugate gradients' last face: its factorisation's, so no border solves)
             g = self.grad(x, A, b)
-            free = seen & ~(((x <= 0) & (g > 0)) | ((x >= 1) & (g < 0)))
+            free = seen & ~_held(x, g)
         idx = np.flatnonzero(free)
         if not len(idx):
             return x, free, None
@@ -504,15 +507,11 @@ class _AlbedoSolver:
         scalars)."""
         dg = np.maximum(self.gram(A).diagonal(), 1e-300)
         f, restart, free, last, gained, falling = self.data(x, A, b), True, None, None, np.inf, False
-
-        def held(z, g):
-            return ((z <= 0) & (g > 0)) | ((z >= 1) & (g < 0))
-
         for _ in range(MAX_CONJUGATE):
             if restart:
                 g = self.grad(x, A, b)
                 if free is None:  # the face: the scalars no bound holds against their gradient
-                    free = seen & ~held(x, g)
+                    free = seen & ~_held(x, g)
                 if not free.any():
                     return x, free
                 r = np.where(free, -g, 0.0)
@@ -520,7 +519,7 @@ class _AlbedoSolver:
                 p, rz = z, float(r @ z)
             # held scalars whose gradient points into the box, and what freeing them would gain
             # against what the face has left (Dostál's proportioning): a new face where they win
-            loose = seen & ~free & ~held(x, g)
+            loose = seen & ~free & ~_held(x, g)
             if loose.any() and (gained < STALL * f or float(np.sum(g[loose] ** 2 / dg[loose])) > min(rz, 2 * gained)):
                 free, restart, gained = None, True, np.inf
                 continue
@@ -581,7 +580,7 @@ class _AlbedoSolver:
         def held_by_bound(z):
             """The scalars on a bound that their gradient pushes against, and the gradient."""
             g = self.grad(z, A, b) + rho * (z - c)
-            return ((z <= 0) & (g > 0)) | ((z >= 1) & (g < 0)), g
+            return _held(z, g), g
 
         f = objective(x)
         for _ in range(steps):
@@ -593,14 +592,10 @@ class _AlbedoSolver:
             for _ in range(MAX_HOLDS):
                 # Lawson–Hanson: go as far as the first bound the step meets, hold the scalars that
                 # reached theirs, and solve again on the smaller face
-                out = np.flatnonzero(free & ((x + step < 0) | (x + step > 1)))
-                if not len(out) or len(out) > MAX_HOLDS:  # many: projected instead
+                met = _first_bound(x, step, 1.0, free, most=MAX_HOLDS)
+                if met is None or met[2] is None:  # none met (or many: projected instead)
                     break
-                reach = np.where(step[out] < 0, -x[out], 1 - x[out]) / step[out]
-                t = float(np.clip(reach.min(), 0.0, 1.0))
-                hit = out[reach <= t * (1 + 1e-9) + 1e-300]
-                x = np.clip(x + t * step, 0.0, 1.0)
-                x[hit] = np.where(step[hit] < 0, 0.0, 1.0)
+                x, _, hit = met
                 free[hit] = False
                 f, g = objective(x), self.grad(x, A, b) + rho * (x - c)
                 step = -face.step(g, free)

@@ -39,7 +39,7 @@ import diffshade as ds
 from . import _options
 from ._cache import compiled
 from ._params import LINEAR_MAPS, is_map
-from ._problem import FitError, Problem, on_device, tangent_images
+from ._problem import FitError, Problem, censored, on_device, tangent_images
 from ._sparse import Factor, Orderings, in_threads
 
 PROBE_DISTANCE = 8  # texels between the texels of one probing class
@@ -177,7 +177,7 @@ class MapProblem:
 
     def _weights(self, k, vd) -> np.ndarray:
         """View ``k``'s weights ``[N, 3]``: 0 where censored or past :data:`MAX_LOD`."""
-        w = np.asarray(vd.weight, np.float64) * ~(np.asarray(vd.hi) | np.asarray(vd.lo))
+        w = np.asarray(vd.weight, np.float64) * ~censored(vd)
         return w * ~self._drop[k][:, None]
 
     def evaluate(self, theta):

@@ -229,12 +229,17 @@ def on_device(x, dtype=None):
     return jax.device_put(np.asarray(x, dtype))
 
 
+def censored(vd: ViewData) -> np.ndarray:
+    """View data's censored entries (clipped high or low), on the host."""
+    return np.asarray(vd.hi) | np.asarray(vd.lo)
+
+
 def place(tree, devices: tuple):
     """``tree`` (leaves with a leading view axis) on ``devices``: sharded along that axis over
     several (through :func:`jax.make_array_from_callback`, so that with several processes each
     builds only the shards of its own devices), on the default device otherwise."""
     if len(devices) <= 1:
-        return jax.tree.map(lambda x: x if isinstance(x, jax.Array) else on_device(x), tree)
+        return jax.device_put(tree)  # (host arrays without a compile each: on_device)
     from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
     mesh = Mesh(np.asarray(devices), ("views",))
@@ -498,13 +503,13 @@ class Problem:
             floor = (self.quantum or 1 / 255) / 2
             e = np.asarray(color.encode(np.clip(I, 0.0, None), b.encoding), np.float64)
             slope = color.decode_slope(np.clip(e, 0.0, 1.0), b.encoding, floor=floor)  # dL/dv at the model
-            cens = np.asarray(vd.hi) | np.asarray(vd.lo)
+            cens = censored(vd)
             t_new = np.where(cens, np.asarray(vd.target, np.float64), I + (b.codes - e) * slope)
             w_new = np.where(cens, np.asarray(vd.weight, np.float64), b.sqrt_mask / slope)
             self.data[k] = eqx.tree_at(
                 lambda d: (d.target, d.weight),
                 vd,
-                (jnp.asarray(t_new, vd.target.dtype), jnp.asarray(w_new, vd.weight.dtype)),
+                (on_device(t_new, vd.target.dtype), on_device(w_new, vd.weight.dtype)),
             )
         self._placed.clear()
 
@@ -636,7 +641,7 @@ class Problem:
         c = 0
         for vd in self.data:
             w = np.broadcast_to(np.asarray(vd.weight) > 0, vd.hi.shape)
-            c += int((w & (np.asarray(vd.hi) | np.asarray(vd.lo))).sum())
+            c += int((w & censored(vd)).sum())
         return int(self.two_sided().sum()), c
 
     def two_sided(self) -> np.ndarray:
@@ -645,7 +650,7 @@ class Problem:
         out = []
         for vd in self.data:
             w = np.broadcast_to(np.asarray(vd.weight) > 0, vd.hi.shape)
-            out.append((w & ~(np.asarray(vd.hi) | np.asarray(vd.lo))).reshape(-1))
+            out.append((w & ~censored(vd)).reshape(-1))
         return np.concatenate(out)
 
     def inside_range(self, img_flat, margin: float) -> np.ndarray | None:
