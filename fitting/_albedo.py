@@ -208,7 +208,7 @@ class AlbedoProblem:
         return sp.csr_matrix((vals, (rows, cols)), shape=(3 * m, self.n_alb))
 
 
-RIDGE = 1e-10  # relative to a scalar's information, floored at the seen scalars' mean: holds null directions
+RIDGE = 1e-13  # relative to a scalar's information, floored at the seen scalars' mean: holds null directions
 MAX_NEWTON = 30  # projected Newton steps of one bounded solve
 MAX_HOLDS = 8  # bounds a Newton step may meet and hold before it is projected instead
 PROXIMAL_ROUNDS = 6  # bounded solves under the noise ridge, each centred on the last one's optimum
@@ -216,7 +216,6 @@ MAX_CONJUGATE = 24  # conjugate-gradient steps of a noise-free bounded solve
 STALL = 0.01  # a conjugate-gradient step that lowers the cost by under this share: free what the gradient lets go
 ROUND_GAIN = 5e-4  # a round that lowers the cost by under this × σ² per seen scalar (χ² by 1e-3) is the last
 NOISY = 0.01  # the share of a large block a first step throws against the bounds that tells noise
-TIGHT = 1e-13  # the ridge of the rounds after the first, relative as RIDGE
 BLOCK = 1000  # scalars of a connected block of G factorised on its own (and of a block the noise ridge serves)
 CAPACITY = 32  # scalars a face may differ by from the factorised one before it is factorised anew
 JUDGED = 0.05  # the share of the residuals' degrees of freedom a fit must leave for its verdict to judge it
@@ -430,8 +429,8 @@ class _AlbedoSolver:
         worse than the box's width), estimated from that step's residual, its degrees of freedom
         counted, and the solve begins again from the start (from the step, it took a third
         longer, to a higher cost).
-        Where the first step does not tell noise, a factorisation with a ridge a thousandth as
-        strong serves a proximal round of projected Newton (the bounds settle: conjugate
+        Where the first step does not tell noise, its factorisation (the ridge as weak as the
+        factorisation stays accurate: 1e-13, :data:`RIDGE`) serves a proximal round of projected Newton (the bounds settle: conjugate
         gradients alone hold one per step) and then conjugate gradients on the unregularised
         least squares, which it preconditions (:meth:`_conjugate`). Under the noise ridge it is removed by
         proximal rounds, each a bounded solve with the ridge centred on the last round's optimum
@@ -458,10 +457,7 @@ class _AlbedoSolver:
             face = _Faces(self.ap.sp, G, rho, seen, self.ap.orders)
             x, cost = start, self.data(start, A, b)  # the step the noise threw is not a start
         self.unsettled = None
-        if not noisy:  # the unregularised optimum, by conjugate gradients on the tight ridge's factorisation
-            tight = TIGHT * info
-            if np.any(rho > 10 * tight):
-                rho, face = tight, _Faces(self.ap.sp, G, tight, seen, self.ap.orders)
+        if not noisy:  # the unregularised optimum, by conjugate gradients on the first step's factorisation
             x, face = self._newton(x, x.copy(), A, b, seen, rho, face)  # a proximal round: the bounds settle
             x, free = self._conjugate(x, A, b, seen, face, s2, dof, n_seen)
         for _ in range(PROXIMAL_ROUNDS if noisy else 0):
@@ -471,7 +467,7 @@ class _AlbedoSolver:
             s2 = min(s2, 2 * cost / dof)
             if last - cost <= ROUND_GAIN * s2 * n_seen + 1e-15 * last:
                 break
-            tight = np.maximum(TIGHT * info, s2)
+            tight = np.maximum(RIDGE * info, s2)
             if np.any(rho > 10 * tight):  # a new factorisation pays for itself
                 rho, face, rounds = tight, _Faces(self.ap.sp, G, tight, seen, self.ap.orders), 0
         else:  # the last round still lowered the cost: what share of it
@@ -490,7 +486,7 @@ class _AlbedoSolver:
     def _conjugate(self, x, A, b, seen, face, s2, dof, n_seen):
         r"""The bounded least squares (no ridge) from ``x`` by conjugate gradients on the face of
         the box, preconditioned by the face's factorisation of :math:`G + \mathrm{diag}(\rho)`
-        (the tight ridge). The preconditioned matrix is the identity but for the directions whose
+        (the ridge :data:`RIDGE`). The preconditioned matrix is the identity but for the directions whose
         information is below the ridge, so the few of those that matter converge in a few steps,
         where proximal rounds (iterated Tikhonov, each a bounded solve) lowered their error by a
         factor of 2-4 per round. A step that would leave the box goes as far as the first bound it

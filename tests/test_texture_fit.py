@@ -384,7 +384,7 @@ def test_a_solve_whose_steps_ran_out_says_so(monkeypatch):
     import fitting._albedo as albedo
 
     starts, targets, truth, opts = _views(16, "bilinear")
-    for name, value in (("RIDGE", 1e-2), ("TIGHT", 1e-2), ("MAX_CONJUGATE", 1)):
+    for name, value in (("RIDGE", 1e-2), ("MAX_CONJUGATE", 1)):
         monkeypatch.setattr(albedo, name, value)
     r = fitting.fit(starts[0], opts, fitting.Observations(targets, views=starts), ["material.diffuse_map"])
     assert not r.successful and not r.converged
