@@ -76,7 +76,9 @@ class MapProblem:
         off = pset.offsets
         self.sl = np.concatenate([np.arange(off[k], off[k + 1]) for k in self.maps])
         self.n_alb = len(self.sl)
-        self.other = np.setdiff1d(np.arange(int(off[-1])), self.sl)
+        other = np.ones(int(off[-1]), bool)
+        other[self.sl] = False
+        self.other = np.flatnonzero(other)  # (np.setdiff1d's hashing: 0.22 s over a 256² map)
         mat = prob.data[0].scene.material
         self.textures = [getattr(mat, pset.params[k].path[1]) for k in self.maps]
         self.shapes = [pset.params[k].shape for k in self.maps]
