@@ -429,13 +429,13 @@ class _AlbedoSolver:
         worse than the box's width), estimated from that step's residual, its degrees of freedom
         counted, and the solve begins again from the start (from the step, it took a third
         longer, to a higher cost).
-        Where the first step does not tell noise, its factorisation (the ridge as weak as the
-        factorisation stays accurate: 1e-13, :data:`RIDGE`) serves a proximal round of projected Newton (the bounds settle: conjugate
-        gradients alone hold one per step) and then conjugate gradients on the unregularised
-        least squares, which it preconditions (:meth:`_conjugate`). Under the noise ridge it is removed by
-        proximal rounds, each a bounded solve with the ridge centred on the last round's optimum
-        (iterated Tikhonov: a regularisation that stops early), at most
-        :data:`PROXIMAL_ROUNDS`: the rounds converge fast where the images determine the scalars,
+        Where the first step does not tell noise, its factorisation (:data:`RIDGE`, as weak a
+        ridge as keeps the factorisation accurate) serves a proximal round of projected Newton
+        (the bounds settle: conjugate gradients alone hold one per step) and then conjugate
+        gradients on the unregularised least squares, which it preconditions
+        (:meth:`_conjugate`). Under the noise ridge it is removed by proximal rounds, each a
+        bounded solve with the ridge centred on the last round's optimum (iterated Tikhonov: a
+        regularisation that stops early), at most :data:`PROXIMAL_ROUNDS`: the rounds converge fast where the images determine the scalars,
         slowly only where they barely do, so they stop when a round lowers :math:`\chi^2` by
         under 1e-3 per seen scalar (:data:`ROUND_GAIN`), :math:`\sigma^2` estimated from each
         round's residual, its degrees of freedom counted."""
@@ -779,7 +779,7 @@ def effective_dof(red: _Reduced, probes: int = 2) -> float:
 def hat_statistics(prob, red: _Reduced, leverage: bool = True, dof: bool = True, probes: int = 2):
     """``(κ, degrees of freedom)``: :func:`difference_leverage` (1 where not ``leverage``) and
     :func:`effective_dof` (``None`` where not ``dof``), their probes' solves taken together (one
-    multi-column solve per round of the filtered inverse: a third less time than apart)."""
+    multi-column solve per round of the filtered inverse, not one for each)."""
     n_free = int(red.free.sum())
     kappa, taken = 1.0, (float(n_free) if dof else None)
     parts = []  # (what, probe columns over the free scalars, what the estimate needs of them)
