@@ -435,10 +435,11 @@ class _AlbedoSolver:
         gradients on the unregularised least squares, which it preconditions
         (:meth:`_conjugate`). Under the noise ridge it is removed by proximal rounds, each a
         bounded solve with the ridge centred on the last round's optimum (iterated Tikhonov: a
-        regularisation that stops early), at most :data:`PROXIMAL_ROUNDS`: the rounds converge fast where the images determine the scalars,
-        slowly only where they barely do, so they stop when a round lowers :math:`\chi^2` by
-        under 1e-3 per seen scalar (:data:`ROUND_GAIN`), :math:`\sigma^2` estimated from each
-        round's residual, its degrees of freedom counted."""
+        regularisation that stops early), at most :data:`PROXIMAL_ROUNDS`: the rounds converge
+        fast where the images determine the scalars, slowly only where they barely do, so they
+        stop when a round lowers :math:`\chi^2` by under 1e-3 per seen scalar
+        (:data:`ROUND_GAIN`), :math:`\sigma^2` estimated from each round's residual, its degrees
+        of freedom counted."""
         G = self.gram(A)
         dg = G.diagonal()
         n_seen = int(np.count_nonzero(seen))
@@ -486,8 +487,8 @@ class _AlbedoSolver:
     def _conjugate(self, x, A, b, seen, face, s2, dof, n_seen):
         r"""The bounded least squares (no ridge) from ``x`` by conjugate gradients on the face of
         the box, preconditioned by the face's factorisation of :math:`G + \mathrm{diag}(\rho)`
-        (the ridge :data:`RIDGE`). The preconditioned matrix is the identity but for the directions whose
-        information is below the ridge, so the few of those that matter converge in a few steps,
+        (the ridge :data:`RIDGE`). The preconditioned matrix is the identity but for the
+        directions whose information is below the ridge, so the few of those that matter converge in a few steps,
         where proximal rounds (iterated Tikhonov, each a bounded solve) lowered their error by a
         factor of 2-4 per round. A step that would leave the box goes as far as the first bound it
         meets and holds the scalars that reached theirs (Lawson–Hanson); the gradients then begin
@@ -782,7 +783,7 @@ def hat_statistics(prob, red: _Reduced, leverage: bool = True, dof: bool = True,
     multi-column solve per round of the filtered inverse, not one for each)."""
     n_free = int(red.free.sum())
     kappa, taken = 1.0, (float(n_free) if dof else None)
-    parts = []  # (what, probe columns over the free scalars, what the estimate needs of them)
+    W_lev = W_dof = None  # each estimate's probe columns over the free scalars
     if leverage and red.solve is not None and red.free.any():
         n_r = red.A.shape[0]
         index = prob.images_of(np.arange(1, n_r + 1, dtype=np.int64))  # 0: an entry the block does not have
@@ -793,25 +794,23 @@ def hat_statistics(prob, red: _Reduced, leverage: bool = True, dof: bool = True,
             for j in range(probes):  # zᵀ D A_F F A_Fᵀ Dᵀ z, with Dᵀz on the residual's entries
                 z = rng.choice([-1.0, 1.0], len(ia))
                 dz[:, j] = (np.bincount(ia, z, n_r + 1) - np.bincount(ib, z, n_r + 1))[1:]
-            parts.append(("leverage", np.asarray(red.A.T @ dz)[red.free], len(ia)))
+            W_lev = np.asarray(red.A.T @ dz)[red.free]
     if dof and red.solve is not None and red.solve.rounds > 1:
         Z = np.random.default_rng(1).choice([-1.0, 1.0], (red.A.shape[0], probes))
-        parts.append(("dof", np.asarray(red.A.T @ Z)[red.free], Z))
-    if not parts:
+        W_dof = np.asarray(red.A.T @ Z)[red.free]
+    cols = [W for W in (W_lev, W_dof) if W is not None]
+    if not cols:
         return kappa, taken
-    W = np.concatenate([w for _, w, _ in parts], axis=1)
-    X = _filtered_inverse(red, W)
-    at = 0
-    for what, w, extra in parts:
-        x, at = X[:, at : at + w.shape[1]], at + w.shape[1]
-        if what == "leverage":
-            t = float(np.sum(w * x)) / probes
-            kappa = float(np.clip(1.0 - t / (2.0 * extra), 1e-3, 1.0))
-        else:
-            full = np.zeros((red.A.shape[1], probes))
-            full[red.free] = x
-            HZ = np.asarray(red.A @ full)
-            taken = float(np.clip((2 * np.sum(extra * HZ) - np.sum(HZ * HZ)) / probes, 0.0, n_free))
+    X = _filtered_inverse(red, np.concatenate(cols, axis=1))
+    if W_lev is not None:
+        t = float(np.sum(W_lev * X[:, :probes])) / probes
+        kappa = float(np.clip(1.0 - t / (2.0 * len(ia)), 1e-3, 1.0))
+        X = X[:, probes:]
+    if W_dof is not None:
+        full = np.zeros((red.A.shape[1], probes))
+        full[red.free] = X
+        HZ = np.asarray(red.A @ full)
+        taken = float(np.clip((2 * np.sum(Z * HZ) - np.sum(HZ * HZ)) / probes, 0.0, n_free))
     return kappa, taken
 
 
