@@ -375,6 +375,36 @@ def test_the_degrees_of_freedom_of_a_block_stopped_by_its_rounds():
     assert abs(effective_dof(red, probes=64) - exact) < 0.05 * exact
 
 
+def test_a_round_is_skipped_only_where_its_gain_extrapolated_is_far_under_the_floor():
+    """The proximal rounds' gains, extrapolated geometrically from the two before, fall short of
+    the next one's (iterated Tikhonov on a fixed face: a sum of geometric sequences, whose ratio
+    only grows), so the rounds skip one only where the extrapolation is under the floor by
+    ROUND_MARGIN. Measured gains: the 256² floor case's seed 0 (8.4e-2, 1.05e-2; the next one
+    gained 3.6e-3 under its floor 5.9e-3) stops; the 128² sphere's seed 1 (3.0e-2, 4.7e-3; the
+    next one gained 1.6e-3 over its floor 1.08e-3) goes on."""
+    from fitting._albedo import ROUND_MARGIN, _next_round_pays
+
+    assert not _next_round_pays([8.37e-2, 1.054e-2], 5.89e-3)
+    assert _next_round_pays([2.97e-2, 4.68e-3], 1.08e-3)
+    assert _next_round_pays([1.0e-2], 1.0)  # one gain: no ratio yet
+    assert _next_round_pays([1.0e-3, 2.0e-3], 1.0)  # not falling
+    # the premise, on a dense problem: k rounds x_k = argmin |Ax - y|² + R |x - x_{k-1}|²
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(400, 60)) * np.logspace(-2.5, 0, 60)
+    y = A @ rng.uniform(0, 1, 60) + rng.normal(0, 0.05, 400)
+    G, R = A.T @ A, 1e-2 * np.eye(60)
+    x, cost, gains = np.zeros(60), float(y @ y), []
+    for _ in range(8):
+        x = np.linalg.solve(G + R, A.T @ y + R @ x)
+        r = A @ x - y
+        cost, last = float(r @ r), cost
+        gains.append(last - cost)
+    gains = gains[1:]  # (the first round's began at the start)
+    for k in range(2, len(gains)):
+        assert gains[k] >= gains[k - 1] ** 2 / gains[k - 2] * (1 - 1e-9)  # the extrapolation falls short
+    assert any(gains[k] < ROUND_MARGIN * gains[k - 1] ** 2 / gains[k - 2] for k in range(2, len(gains)))
+
+
 def test_a_solve_whose_steps_ran_out_says_so(monkeypatch):
     """Noise-free targets, a ridge of a hundredth of each texel's information and a single
     conjugate-gradient step to remove its pull: the residual is still far above float rounding.
