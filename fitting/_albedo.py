@@ -232,7 +232,9 @@ def _next_round_pays(gains, floor) -> bool:
     what the rounds before it lowered it by (under one ridge, each from the last one's optimum):
     no where the last two fall geometrically to under ``floor`` / :data:`ROUND_MARGIN` at the
     next. On a fixed face the gains are a sum of geometric sequences (one per direction of the
-    normal matrix), whose ratio only grows: the extrapolation falls short of the next gain."""
+    normal matrix), whose ratio only grows: the extrapolation falls short of the next gain (a
+    fourth round's by 1.8-2.8×, from the second and third, over the randomised map fits' 8-bit
+    cases)."""
     if len(gains) < 2 or gains[-1] >= gains[-2]:
         return True
     return ROUND_MARGIN * gains[-1] ** 2 / gains[-2] > floor
@@ -451,11 +453,8 @@ class _AlbedoSolver:
         fast where the images determine the scalars, slowly only where they barely do, so they
         stop when a round lowers :math:`\chi^2` by under 1e-3 per seen scalar
         (:data:`ROUND_GAIN`), :math:`\sigma^2` estimated from each round's residual, its degrees
-        of freedom counted, or before a round whose gain, extrapolated from the two before it,
-        would be under that by :data:`ROUND_MARGIN`. (The gains are a sum of geometric
-        sequences, one per direction, so their ratio only grows and the extrapolation falls short:
-        by 1.8-2.8× for a fourth round, from the second and third, over the randomised map
-        fits' 8-bit cases.)"""
+        of freedom counted, or before a round that, extrapolated, would gain under that by
+        :data:`ROUND_MARGIN` (:func:`_next_round_pays`)."""
         G = self.gram(A)
         dg = G.diagonal()
         n_seen = int(np.count_nonzero(seen))
@@ -486,7 +485,8 @@ class _AlbedoSolver:
             floor = ROUND_GAIN * s2 * n_seen + 1e-15 * last
             if last - cost <= floor:
                 break
-            gains += [last - cost] if k else []  # (not the first round's: it began at the start)
+            if k:  # (not the first round's gain: it began at the start)
+                gains.append(last - cost)
             if not _next_round_pays(gains, floor):
                 break
             tight = np.maximum(RIDGE * info, s2)
