@@ -33,6 +33,7 @@ view, an attenuation seen at one distance only) shows as a near-singular
 
 from __future__ import annotations
 
+import copy
 import time
 from typing import NamedTuple
 
@@ -346,7 +347,16 @@ class _Faces:
         self.groups = [idx[comp == k] for k in np.unique(comp)]
         self.blocks = [M[comp == k][:, comp == k].tocsc() for k in np.unique(comp)]
         self.orders = [orders.of(B) for B in self.blocks]  # METIS's, for the large blocks (fitting._sparse)
-        self.sp, self.faces = sp, [None] * len(self.groups)
+        self.sp, self.faces, self.rho = sp, [None] * len(self.groups), rho
+
+    def with_ridge(self, rho) -> _Faces:
+        """The same blocks under the ridge ``rho`` instead, no face factorised yet: only their
+        diagonals change, so the blocks, their orderings and the components are not taken again
+        (0.01 against 0.15 s for the three channels of a 256² map)."""
+        new = copy.copy(self)
+        new.blocks = [(B + self.sp.diags(rho[g] - self.rho[g])).tocsc() for B, g in zip(self.blocks, self.groups)]
+        new.faces, new.rho = [None] * len(self.groups), rho
+        return new
 
     def step(self, r, free):
         """``s`` with ``M_FF s_F = r_F`` on the free scalars ``F``, zero elsewhere (``r``: a vector,
@@ -470,7 +480,7 @@ class _AlbedoSolver:
         noisy = n_seen >= BLOCK and on_bound > max(CAPACITY, NOISY * n_seen)
         if noisy:
             rho, rounds = np.maximum(rho, s2), 0
-            face = _Faces(self.ap.sp, G, rho, seen, self.ap.orders)
+            face = face.with_ridge(rho)
             x, cost = start, self.data(start, A, b)  # the step the noise threw is not a start
         self.unsettled = None
         if not noisy:  # the unregularised optimum, by conjugate gradients on the first step's factorisation
@@ -491,7 +501,7 @@ class _AlbedoSolver:
                 break
             tight = np.maximum(RIDGE * info, s2)
             if np.any(rho > 10 * tight):  # a new factorisation pays for itself
-                rho, face, rounds, gains = tight, _Faces(self.ap.sp, G, tight, seen, self.ap.orders), 0, []
+                rho, face, rounds, gains = tight, face.with_ridge(tight), 0, []
         else:  # the last round still lowered the cost: what share of it
             if noisy:
                 self.unsettled = ((last - cost) / max(last, 1e-300), f"{PROXIMAL_ROUNDS} proximal rounds")

@@ -268,6 +268,30 @@ def test_the_bounded_solve_is_the_bounded_least_squares_optimum():
         np.testing.assert_array_equal(free, (ref > 0) & (ref < 1))
 
 
+def test_faces_under_another_ridge_solve_as_ones_built_for_it():
+    """The noise ridge's faces are the first step's blocks with their diagonals moved
+    (:meth:`_Faces.with_ridge`): a solve on a face, held scalars and all, is the one faces built
+    for that ridge give, and the first step's faces are left as they were."""
+    from fitting._albedo import _Faces
+
+    rng = np.random.default_rng(3)
+    parts = []
+    for k in (1200, 1100, 200):  # two blocks of BLOCK scalars or more, and a small one
+        Ak = sp.random(3 * k, k, density=4 / k, random_state=rng, format="csr") + sp.eye(3 * k, k, format="csr")
+        parts.append(Ak.T @ Ak)
+    G = sp.block_diag(parts).tocsc()
+    n = G.shape[0]
+    seen = rng.uniform(size=n) < 0.95
+    weak, ridge = rng.uniform(0.01, 0.1, n), rng.uniform(0.1, 1.0, n)
+    first = _Faces(sp, G, weak, seen, Orderings())
+    assert sorted(len(g) for g in first.groups)[-2] >= 1000
+    r, free = rng.normal(size=n), seen & (rng.uniform(size=n) < 0.9)
+    before = first.step(r, free)
+    moved, built = first.with_ridge(ridge), _Faces(sp, G, ridge, seen, Orderings())
+    np.testing.assert_allclose(moved.step(r, free), built.step(r, free), rtol=1e-10, atol=1e-12)
+    np.testing.assert_array_equal(first.step(r, free), before)
+
+
 def test_a_noise_free_bounded_solve_with_many_bounds_is_the_optimum():
     """A consistent problem (no noise: the conjugate-gradient path) whose columns are seen from
     strongly to barely (scales 1e-3 to 1) and a few of whose true values lie outside [0, 1]: the
