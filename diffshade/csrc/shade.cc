@@ -180,10 +180,10 @@ struct Maps {
   bool derivatives = false;  // a trilinear map needs the coordinates' derivatives
   float sx = 0, sy = 0;      // NDC per pixel step (2 / width, 2 / height)
   Map map[kMaxMaps];
-  const float* uv = nullptr;       // [V, 2]
-  const int32_t* tri = nullptr;    // [F, 3]
-  const float* parts_at = nullptr;  // Gouraud: [parts, 2 (front, back), V, 3]
-  int64_t num_verts = 0;
+  // per face, face_floats floats (MapTable, from the coordinates [V, 2] and Gouraud's parts
+  // [parts, 2 (front, back), V, 3]): what FaceMap reads
+  const float* faces = nullptr;
+  int face_floats = 0;
   bool any() const { return count > 0; }
 };
 
@@ -462,24 +462,40 @@ __attribute__((noinline)) DIFFSHADE_CLONES void AddLight(const Config& cfg, cons
 // barycentrics b_i = E_i / sum E of its planes c) and, for trilinear maps, what their derivatives
 // per pixel step need (_texture.pixel_derivatives: with the planes' x and y slopes a_i, b_i,
 // du/dx = (sum a_i u_i - u sum a_i) w / det, and w / det = 1 / sum E); Gouraud: its corners'
-// colours of each mapped part on the side lit (interpolated as the coordinates).
+// colours of each mapped part on the side lit (interpolated as the coordinates). Per face, once
+// a render (MapTable: a face's runs of pixels read it, 3.6 a face at 512², where taking it per
+// run was a quarter of the textured shading's own work): U (3), V (3), axu, axv, ayu, ayv, sx,
+// sy, then per part its corners' colours (3 x 3).
+constexpr int kFaceMapHead = 12;
 struct FaceMap {
-  int64_t vid[3];
-  float U[3], V[3];
-  float axu, axv, ayu, ayv, sx, sy;
-  void Of(const Maps& mp, int32_t t, const float* c) {
+  const float* r;
+  const float* U() const { return r; }
+  const float* V() const { return r + 3; }
+  // The record of face t (faces: its kFace floats) into r.
+  static void Of(const Maps& mp, const float* uv, const int32_t* tri, const float* parts, int64_t num_verts,
+                 bool two_sided, int64_t t, const float* c, float* r) {
+    int64_t vid[3];
+    float U[3], V[3];
     for (int j = 0; j < 3; ++j) {
-      vid[j] = std::min<int64_t>(std::max<int32_t>(mp.tri[3 * static_cast<int64_t>(t) + j], 0), mp.num_verts - 1);
-      U[j] = mp.uv[2 * vid[j]], V[j] = mp.uv[2 * vid[j] + 1];
+      vid[j] = std::min<int64_t>(std::max<int32_t>(tri[3 * t + j], 0), num_verts - 1);
+      U[j] = uv[2 * vid[j]], V[j] = uv[2 * vid[j] + 1];
+      r[j] = U[j], r[3 + j] = V[j];
     }
-    axu = (c[1] * U[0] + c[4] * U[1]) + c[7] * U[2], axv = (c[1] * V[0] + c[4] * V[1]) + c[7] * V[2];
-    ayu = (c[2] * U[0] + c[5] * U[1]) + c[8] * U[2], ayv = (c[2] * V[0] + c[5] * V[1]) + c[8] * V[2];
-    sx = ((c[1] + c[4]) + c[7]) * mp.sx, sy = ((c[2] + c[5]) + c[8]) * mp.sy;  // (and NDC per pixel step)
-    axu *= mp.sx, axv *= mp.sx, ayu *= mp.sy, ayv *= mp.sy;
+    float axu = (c[1] * U[0] + c[4] * U[1]) + c[7] * U[2], axv = (c[1] * V[0] + c[4] * V[1]) + c[7] * V[2];
+    float ayu = (c[2] * U[0] + c[5] * U[1]) + c[8] * U[2], ayv = (c[2] * V[0] + c[5] * V[1]) + c[8] * V[2];
+    r[10] = ((c[1] + c[4]) + c[7]) * mp.sx, r[11] = ((c[2] + c[5]) + c[8]) * mp.sy;  // (and NDC per pixel step)
+    r[6] = axu * mp.sx, r[7] = axv * mp.sx, r[8] = ayu * mp.sy, r[9] = ayv * mp.sy;
+    const bool back = two_sided && !(c[31] > 0);  // (PointsOf's side)
+    for (int g = 0; g < mp.parts; ++g) {
+      const float* at = parts + (2 * g + (back ? 1 : 0)) * num_verts * 3;
+      for (int j = 0; j < 3; ++j) {
+        for (int ch = 0; ch < 3; ++ch) r[kFaceMapHead + 9 * g + 3 * j + ch] = at[3 * vid[j] + ch];
+      }
+    }
   }
   // The mapped parts' colours at a run of n pixels (the block's entry m on: its barycentrics),
   // eight at a time (PointsOf).
-  inline void Parts(const Maps& mp, bool back, Block& k, int m, int n) const;
+  inline void Parts(const Maps& mp, Block& k, int m, int n) const;
 };
 
 // Phong: the material at the block's pixels, the lit side's constants (the back material on the
@@ -545,14 +561,14 @@ inline V8 Load8Upto(const float* p, int64_t avail) {
   return Load8<V8>(r);
 }
 
-__attribute__((always_inline)) inline void FaceMap::Parts(const Maps& mp, bool back, Block& k, int m, int n) const {
+__attribute__((always_inline)) inline void FaceMap::Parts(const Maps& mp, Block& k, int m, int n) const {
   for (int g = 0; g < mp.parts; ++g) {
-    const float* at = mp.parts_at + (2 * g + (back ? 1 : 0)) * mp.num_verts * 3;
+    const float* at = r + kFaceMapHead + 9 * g;
     for (int i = 0; i < n; i += 8) {
       const int q = m + i;
       const V8 b0 = Load8<V8>(k.b0 + q), b1 = Load8<V8>(k.b1 + q), b2 = Load8<V8>(k.b2 + q);
       for (int ch = 0; ch < 3; ++ch) {
-        const float p0 = at[3 * vid[0] + ch], p1 = at[3 * vid[1] + ch], p2 = at[3 * vid[2] + ch];
+        const float p0 = at[ch], p1 = at[3 + ch], p2 = at[6 + ch];
         Store8(k.part[g][ch] + q, (p0 * b0 + p1 * b1) + p2 * b2);
       }
     }
@@ -628,16 +644,10 @@ __attribute__((always_inline)) inline int PointsOf(const Pixels& px, const float
       const int64_t tn = std::max(ids[r], 0);
       const char* next = reinterpret_cast<const char*>(faces + tn * kFace);
       __builtin_prefetch(next), __builtin_prefetch(next + 64), __builtin_prefetch(next + 128);
-      if (uvs) {  // and its corners' texture coordinates and (Gouraud) mapped parts
-        for (int j = 0; j < 3; ++j) {
-          const int64_t vj = std::min<int64_t>(std::max<int32_t>(mp.tri[3 * tn + j], 0), mp.num_verts - 1);
-          __builtin_prefetch(mp.uv + 2 * vj);
-          for (int g = 0; g < mp.parts; ++g) {  // (the front side's; two-sided, the back's too)
-            const float* at = mp.parts_at + 2 * g * mp.num_verts * 3 + 3 * vj;
-            __builtin_prefetch(at);
-            if (two_sided) __builtin_prefetch(at + mp.num_verts * 3);
-          }
-        }
+      if (uvs) {  // and its FaceMap record
+        const char* rec = reinterpret_cast<const char*>(mp.faces + tn * mp.face_floats);
+        for (int b = 0; b < mp.face_floats * 4; b += 64) __builtin_prefetch(rec + b);
+        __builtin_prefetch(rec + mp.face_floats * 4 - 1);
       }
     }
     const int n = i1 - i0;
@@ -651,8 +661,7 @@ __attribute__((always_inline)) inline int PointsOf(const Pixels& px, const float
       const int64_t avail = (grid ? width : px.n) - at;  // (centres there)
       const float* __restrict xr = px.xs + at;
       const float* __restrict yr = px.ys + (grid ? row : p);
-      FaceMap fm;
-      if (uvs) fm.Of(mp, t, c);
+      const FaceMap fm{uvs ? mp.faces + static_cast<int64_t>(t) * mp.face_floats : nullptr};
       for (int i = 0; i < n; i += 8) {
         const int q = m + i;
         const V8 x = Load8Upto(xr + i, avail - i);
@@ -678,17 +687,20 @@ __attribute__((always_inline)) inline int PointsOf(const Pixels& px, const float
         Store8(k.pix + q, (p + i) + L8{0, 1, 2, 3, 4, 5, 6, 7});
         Store8(k.face + q, I8{} + t);
         if (uvs) {
-          const V8 ui = (fm.U[0] * b0 + fm.U[1] * b1) + fm.U[2] * b2;
-          const V8 vi = (fm.V[0] * b0 + fm.V[1] * b1) + fm.V[2] * b2;
+          const float* U = fm.U();
+          const float* V = fm.V();
+          const V8 ui = (U[0] * b0 + U[1] * b1) + U[2] * b2;
+          const V8 vi = (V[0] * b0 + V[1] * b1) + V[2] * b2;
           Store8(k.u + q, ui), Store8(k.v + q, vi);
           if (derivatives) {  // (1 / sum E; 0 on an empty face)
             const V8 scale = c[12] != 0 ? (ok ? wi / c[12] : V8{}) : V8{};
-            Store8(k.dux + q, (fm.axu - ui * fm.sx) * scale), Store8(k.dvx + q, (fm.axv - vi * fm.sx) * scale);
-            Store8(k.duy + q, (fm.ayu - ui * fm.sy) * scale), Store8(k.dvy + q, (fm.ayv - vi * fm.sy) * scale);
+            const float* a = fm.r + 6;  // axu, axv, ayu, ayv, sx, sy
+            Store8(k.dux + q, (a[0] - ui * a[4]) * scale), Store8(k.dvx + q, (a[1] - vi * a[4]) * scale);
+            Store8(k.duy + q, (a[2] - ui * a[5]) * scale), Store8(k.dvy + q, (a[3] - vi * a[5]) * scale);
           }
         }
       }
-      if (uvs && mp.parts > 0) fm.Parts(mp, back > 0, k, m, n);
+      if (uvs && mp.parts > 0) fm.Parts(mp, k, m, n);
       m += n;
     }
     if (grid) {
@@ -1410,7 +1422,8 @@ std::shared_ptr<const Packing> Pack(ffi::ThreadPool& pool, int64_t nthreads, Map
 }
 
 // The inputs both kernels share: their shapes checked, the maps read (their pyramids built)
-// and the face table (in scratch kept per calling thread between calls; every entry is written).
+// and the face tables, FaceTable's and (maps) FaceMap's (in scratch kept per calling thread
+// between calls; every entry is written).
 struct Scene {
   Pixels px = {};  // (its n: the number of pixels)
   int64_t num_lights = 0, nthreads = 1;
@@ -1424,7 +1437,7 @@ const char* Prepare(ffi::ThreadPool& pool, ffi::Buffer<ffi::S32>& ids, ffi::Buff
                     ffi::Buffer<ffi::F32>& normals, ffi::Buffer<ffi::F32>& points, ffi::Buffer<ffi::F32>& back,
                     ffi::Buffer<ffi::F32>& params, ffi::Buffer<ffi::F32>& lights, ffi::Buffer<ffi::F32>& uv,
                     ffi::Buffer<ffi::F32>& texels, ffi::Buffer<ffi::S32>& maps, ffi::Buffer<ffi::F32>& parts,
-                    int32_t grid, Scene& sc) {
+                    int32_t grid, bool two_sided, Scene& sc) {
   const int64_t n = ids.element_count();
   const int64_t num_verts = clip.element_count() / 4, num_faces = tri.element_count() / 3;
   if (params.element_count() != kParams || lights.element_count() % kLight != 0 ||
@@ -1450,16 +1463,24 @@ const char* Prepare(ffi::ThreadPool& pool, ffi::Buffer<ffi::S32>& ids, ffi::Buff
       return "texture coordinates or parts do not match the mesh";
     }
     sc.packing = Pack(pool, sc.nthreads, mp, maps.typed_data(), maps.element_count(), texels.typed_data(), packed);
-    mp.uv = uv.typed_data(), mp.tri = tri.typed_data();
-    mp.parts_at = parts.typed_data(), mp.num_verts = num_verts;
+    mp.face_floats = kFaceMapHead + 9 * mp.parts;
   }
-  thread_local std::vector<float> table;
+  thread_local std::vector<float> table, map_table;
   table.resize(static_cast<size_t>(num_faces * kFace));
+  map_table.resize(static_cast<size_t>(num_faces * mp.face_floats));
   float* tab = table.data();
+  float* mtab = map_table.data();
+  mp.faces = mtab;
   const int64_t ft = num_faces < 4096 ? 1 : sc.nthreads;
   diffshade::ParallelFor(pool, ft, [&](int64_t k) {
+    const int64_t f0 = num_faces * k / ft, f1 = num_faces * (k + 1) / ft;
     FaceTable(clip.typed_data(), tri.typed_data(), normals.typed_data(), points.typed_data(), back.typed_data(),
-              num_verts, num_faces * k / ft, num_faces * (k + 1) / ft, tab);
+              num_verts, f0, f1, tab);
+    if (!mp.any()) return;
+    for (int64_t f = f0; f < f1; ++f) {
+      FaceMap::Of(mp, uv.typed_data(), tri.typed_data(), parts.typed_data(), num_verts, two_sided, f,
+                  tab + f * kFace, mtab + f * mp.face_floats);
+    }
   });
   sc.table = tab;
   return nullptr;
@@ -1474,7 +1495,7 @@ ffi::Error ShadeImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Buffe
                      int32_t fresnel, int32_t flags, int32_t fog, int32_t grid) {
   Scene sc;
   if (const char* bad = Prepare(pool, ids, xs, ys, clip, tri, normals, points, back, params, lights, uv, texels, maps,
-                                parts, grid, sc)) {
+                                parts, grid, (flags >> 4) & 1, sc)) {
     return ffi::Error::InvalidArgument(std::string("diffshade_shade: ") + bad);
   }
   if (out->element_count() != 3 * sc.px.n) return ffi::Error::InvalidArgument("diffshade_shade: bad shapes");
@@ -1499,7 +1520,7 @@ ffi::Error PartialsImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Bu
                         int32_t fresnel, int32_t flags, int32_t fog, int32_t grid) {
   Scene sc;
   if (const char* bad = Prepare(pool, ids, xs, ys, clip, tri, normals, points, back, params, lights, uv, texels, maps,
-                                parts, grid, sc)) {
+                                parts, grid, (flags >> 4) & 1, sc)) {
     return ffi::Error::InvalidArgument(std::string("diffshade_shade_partials: ") + bad);
   }
   const Config cfg{specular, fresnel, flags, fog};
