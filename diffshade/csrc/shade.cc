@@ -180,8 +180,8 @@ struct Maps {
   bool derivatives = false;  // a trilinear map needs the coordinates' derivatives
   float sx = 0, sy = 0;      // NDC per pixel step (2 / width, 2 / height)
   Map map[kMaxMaps];
-  // per face, face_floats floats (MapTable, from the coordinates [V, 2] and Gouraud's parts
-  // [parts, 2 (front, back), V, 3]): what FaceMap reads
+  // per face, face_floats floats (FaceMap::Of's, in Prepare, from the coordinates [V, 2] and
+  // Gouraud's parts [parts, 2 (front, back), V, 3]): what FaceMap reads
   const float* faces = nullptr;
   int face_floats = 0;
   bool any() const { return count > 0; }
@@ -285,8 +285,8 @@ inline void BlendFrom(const Map& map, const int32_t* __restrict lv, const Block&
 #if DIFFSHADE_HAS_CLONES
 // AVX2: eight samples at a time, pixels i and i + 4 in the two halves of one register (the same
 // operations on the same numbers: the same bits), their channels then transposed into three
-// vectors of eight (one store per channel, not three a pixel: Blend was a third of a map's
-// price in a Gouraud render).
+// vectors of eight (one store per channel, not three a pixel: Blend was a quarter of what a map
+// added to a 512² Gouraud render).
 __attribute__((target("avx2"))) void Blend3(const Map& map, const int32_t* __restrict lv, const Block& k, int n,
                                             float (*out)[kBlock]) {
   int j = 0;
@@ -516,10 +516,11 @@ __attribute__((noinline)) DIFFSHADE_CLONES void AddLight(const Config& cfg, cons
 // barycentrics b_i = E_i / sum E of its planes c) and, for trilinear maps, what their derivatives
 // per pixel step need (_texture.pixel_derivatives: with the planes' x and y slopes a_i, b_i,
 // du/dx = (sum a_i u_i - u sum a_i) w / det, and w / det = 1 / sum E); Gouraud: its corners'
-// colours of each mapped part on the side lit (interpolated as the coordinates). Per face, once
-// a render (MapTable: a face's runs of pixels read it, 3.6 a face at 512², where taking it per
-// run was a quarter of the textured shading's own work): U (3), V (3), axu, axv, ayu, ayv, sx,
-// sy, then per part its corners' colours (3 x 3).
+// colours of each mapped part on the side lit (interpolated as the coordinates). Taken per face,
+// once a render (Of, in Prepare's threads), and read by each of the face's runs of pixels: taken
+// per run, with the prefetches of the next run's corners, it was about a quarter of ShadeRange's
+// time in a 512² Gouraud render with a map. The record: U (3), V (3), axu, axv, ayu, ayv, sx, sy,
+// then per part its corners' colours (3 x 3).
 constexpr int kFaceMapHead = 12;
 struct FaceMap {
   const float* r;
