@@ -526,6 +526,7 @@ struct FaceMap {
   const float* r;
   const float* U() const { return r; }
   const float* V() const { return r + 3; }
+  const float* Slopes() const { return r + 6; }  // axu, axv, ayu, ayv, sx, sy
   // The record of face t (faces: its kFace floats) into r.
   static void Of(const Maps& mp, const float* uv, const int32_t* tri, const float* parts, int64_t num_verts,
                  bool two_sided, int64_t t, const float* c, float* r) {
@@ -749,7 +750,7 @@ __attribute__((always_inline)) inline int PointsOf(const Pixels& px, const float
           Store8(k.u + q, ui), Store8(k.v + q, vi);
           if (derivatives) {  // (1 / sum E; 0 on an empty face)
             const V8 scale = c[12] != 0 ? (ok ? wi / c[12] : V8{}) : V8{};
-            const float* a = fm.r + 6;  // axu, axv, ayu, ayv, sx, sy
+            const float* a = fm.Slopes();
             Store8(k.dux + q, (a[0] - ui * a[4]) * scale), Store8(k.dvx + q, (a[1] - vi * a[4]) * scale);
             Store8(k.duy + q, (a[2] - ui * a[5]) * scale), Store8(k.dvy + q, (a[3] - vi * a[5]) * scale);
           }
@@ -1363,6 +1364,13 @@ void Border(float* base, const Level& a, int C, bool clamp) {
   std::memcpy(base + (int64_t{a.h} + 1) * stride, base + (clamp ? a.h : 1) * stride, stride * sizeof(float));
 }
 
+// How a level's rows are split among threads (PackMaps' and Packed's): into RowParts parts, one
+// for a small level and one per thread for a large one; part q begins at row RowsFrom(a, q, parts).
+int64_t RowParts(const Level& a, int64_t nthreads) {
+  return int64_t{a.w} * a.h < 16384 ? 1 : std::min<int64_t>(nthreads, a.h);
+}
+inline int RowsFrom(const Level& a, int64_t q, int64_t parts) { return static_cast<int>(a.h * q / parts); }
+
 // Each map's levels in the scratch (laid out by ReadMaps): level 0 copied from the texels, the
 // others built from the level before (Downsample), each then given its border (a large level's
 // rows in threads).
@@ -1374,9 +1382,9 @@ void PackMaps(ffi::ThreadPool& pool, int64_t nthreads, Maps& mp, const float* te
       const Level& b = t.lv[j];
       t.base[j] = packed + b.off;
       float* inside = packed + b.off + b.Inside(C);
-      const int64_t parts = int64_t{b.w} * b.h < 16384 ? 1 : std::min<int64_t>(nthreads, b.h);
+      const int64_t parts = RowParts(b, nthreads);
       diffshade::ParallelFor(pool, parts, [&](int64_t q) {
-        const int y0 = static_cast<int>(b.h * q / parts), y1 = static_cast<int>(b.h * (q + 1) / parts);
+        const int y0 = RowsFrom(b, q, parts), y1 = RowsFrom(b, q + 1, parts);
         if (j > 0) {
           const Level& a = t.lv[j - 1];
           Downsample(t.base[j - 1] + a.Inside(C), a, inside, b, C, y0, y1);
@@ -1401,10 +1409,10 @@ bool Packed(ffi::ThreadPool& pool, int64_t nthreads, const Maps& mp, const float
     const Level& a = t.lv[0];
     const int64_t row = int64_t{a.w} * t.channels, stride = a.Stride(t.channels);
     const float* level = packed + a.off + a.Inside(t.channels);
-    const int64_t parts = int64_t{a.w} * a.h < 16384 ? 1 : std::min<int64_t>(nthreads, a.h);
+    const int64_t parts = RowParts(a, nthreads);
     std::atomic<bool> differ{false};
     diffshade::ParallelFor(pool, parts, [&](int64_t q) {
-      const int y0 = static_cast<int>(a.h * q / parts), y1 = static_cast<int>(a.h * (q + 1) / parts);
+      const int y0 = RowsFrom(a, q, parts), y1 = RowsFrom(a, q + 1, parts);
       for (int y = y0; y < y1 && !differ.load(std::memory_order_relaxed); ++y) {
         if (std::memcmp(level + y * stride, texels + t.given + y * row, row * sizeof(float)) != 0) differ = true;
       }
@@ -1556,13 +1564,13 @@ ffi::Error ShadeImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Buffe
                      ffi::Buffer<ffi::F32> texels, ffi::Buffer<ffi::S32> maps, ffi::Buffer<ffi::F32> parts,
                      ffi::ResultBuffer<ffi::F32> out, int32_t specular,
                      int32_t fresnel, int32_t flags, int32_t fog, int32_t grid) {
+  const Config cfg{specular, fresnel, flags, fog};
   Scene sc;
   if (const char* bad = Prepare(pool, ids, xs, ys, clip, tri, normals, points, back, params, lights, uv, texels, maps,
-                                parts, grid, (flags >> 4) & 1, sc)) {
+                                parts, grid, cfg.Flag(4), sc)) {
     return ffi::Error::InvalidArgument(std::string("diffshade_shade: ") + bad);
   }
   if (out->element_count() != 3 * sc.px.n) return ffi::Error::InvalidArgument("diffshade_shade: bad shapes");
-  const Config cfg{specular, fresnel, flags, fog};
   const int64_t n = sc.px.n, chunks = sc.nthreads * 4;
   diffshade::ParallelFor(pool, chunks, [&](int64_t k) {
     ShadeRange(cfg, sc.px, sc.table, params.typed_data(), lights.typed_data(), sc.num_lights, sc.mp, n * k / chunks,
@@ -1581,12 +1589,12 @@ ffi::Error PartialsImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::S32> ids, ffi::Bu
                         ffi::Buffer<ffi::F32> dirs, ffi::Buffer<ffi::F32> corners, ffi::ResultBuffer<ffi::F32> value,
                         ffi::ResultBuffer<ffi::F32> out, int32_t specular,
                         int32_t fresnel, int32_t flags, int32_t fog, int32_t grid) {
+  const Config cfg{specular, fresnel, flags, fog};
   Scene sc;
   if (const char* bad = Prepare(pool, ids, xs, ys, clip, tri, normals, points, back, params, lights, uv, texels, maps,
-                                parts, grid, (flags >> 4) & 1, sc)) {
+                                parts, grid, cfg.Flag(4), sc)) {
     return ffi::Error::InvalidArgument(std::string("diffshade_shade_partials: ") + bad);
   }
-  const Config cfg{specular, fresnel, flags, fog};
   const int64_t n = sc.px.n, row = kParams + sc.num_lights * kLight;
   const int64_t K = dirs.element_count() / row;
   const int64_t num_verts = clip.element_count() / 4;
