@@ -56,25 +56,36 @@ def _cache_dir() -> Path:
     return Path(base) / "diffshade"
 
 
-def _build() -> Path:
-    src = b"".join(p.read_bytes() for p in _SOURCES + _HEADERS)
+def build_library(stem: str, sources: list[Path], headers: list[Path] = (), ffi: bool = False, libs=()) -> Path:
+    """Compile ``sources`` into the shared library ``<stem>-<key>.so`` in the cache (once: the key
+    hashes the sources, the headers, the jaxlib version and the flags), against the XLA FFI headers
+    where ``ffi``, linked with ``libs`` (``-l`` flags); returns its path or raises NativeUnavailable
+    with the compiler's error."""
+    src = b"".join(p.read_bytes() for p in [*sources, *headers])
     cxx = os.environ.get("CXX") or shutil.which("g++") or shutil.which("c++") or shutil.which("clang++")
     if cxx is None:
         raise NativeUnavailable("no C++ compiler found (set CXX or install g++)")
-    key = hashlib.sha256(src + jaxlib.__version__.encode() + " ".join(_FLAGS + [cxx]).encode()).hexdigest()[:16]
-    out = _cache_dir() / f"kernels-{key}.so"
+    key = hashlib.sha256(
+        src + jaxlib.__version__.encode() + " ".join(_FLAGS + list(libs) + [cxx]).encode()
+    ).hexdigest()[:16]
+    out = _cache_dir() / f"{stem}-{key}.so"
     if out.exists():
         return out
     out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=out.parent) as tmp:
         tmp_so = Path(tmp) / out.name
-        cmd = [cxx, *_FLAGS, "-I", jax.ffi.include_dir(), *map(str, _SOURCES), "-o", str(tmp_so)]
+        include = ["-I", jax.ffi.include_dir()] if ffi else []
+        cmd = [cxx, *_FLAGS, *include, *map(str, sources), *libs, "-o", str(tmp_so)]
         proc = subprocess.run(cmd, capture_output=True, text=True)
         if proc.returncode != 0:
-            names = " and ".join(p.name for p in _SOURCES)
+            names = " and ".join(p.name for p in sources)
             raise NativeUnavailable(f"compiling {names} failed:\n{proc.stderr[-2000:]}")
         os.replace(tmp_so, out)  # atomic: concurrent builders never see a half-written file
     return out
+
+
+def _build() -> Path:
+    return build_library("kernels", _SOURCES, _HEADERS, ffi=True)
 
 
 def ensure_registered(target: str = "diffshade_raster") -> str:

@@ -1,5 +1,7 @@
 """Sparse factorisations of the linear blocks' normal matrices (:mod:`fitting._albedo`,
-:mod:`fitting._maps`): SuperLU in its symmetric mode, several blocks at once in threads.
+:mod:`fitting._maps`), several blocks at once in threads: a block large enough for its own
+ordering (below) by the supernodal Cholesky factorisation of :mod:`fitting._cholesky`, the others
+(and any that one cannot factorise) by SuperLU in its symmetric mode.
 
 **The ordering.** A block of :data:`ORDERED` scalars or more (a channel of a texture map: the
 graph of a 2-D grid) is factorised in METIS's nested-dissection ordering (PyMETIS), computed once
@@ -12,8 +14,10 @@ ordering: METIS's time is not repaid there.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -26,6 +30,29 @@ except ImportError:
     HAVE_METIS = False
 
 ORDERED = 10000  # scalars from which a block is factorised in METIS's nested-dissection ordering
+
+
+@functools.cache
+def use_cholesky() -> bool:
+    """Whether the large blocks take the supernodal Cholesky factorisation: where its library
+    builds, unless ``DIFFSHADE_SPARSE=superlu`` (the benchmarks' baseline) says otherwise."""
+    if os.environ.get("DIFFSHADE_SPARSE", "").lower() == "superlu":
+        return False
+    from diffshade._native import NativeUnavailable
+
+    from ._cholesky import _library
+
+    try:
+        _library()
+    except NativeUnavailable as exc:
+        warnings.warn(
+            f"fitting's sparse Cholesky factorisation is unavailable, so large linear blocks take SuperLU "
+            f"(the same solutions, about three times slower): {exc}",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+        return False
+    return True
 
 
 def _graph(M):
@@ -78,14 +105,24 @@ class Orderings:
 
 
 class Factor:
-    """:math:`M^{-1}` of a symmetric positive definite ``M`` (CSC) through SuperLU in its symmetric
-    mode (no pivoting): in the given ordering (a permutation of ``M``'s rows), or in SuperLU's
-    minimum-degree ordering of :math:`M + M^T` where none is given."""
+    """:math:`M^{-1}` of a symmetric positive definite ``M`` (CSC). Where an ordering is given (a
+    permutation of ``M``'s rows: a large block's nested dissection), by the supernodal Cholesky
+    factorisation of :mod:`fitting._cholesky` in it; otherwise, or where that one cannot be built
+    or meets a pivot that is not positive, by SuperLU in its symmetric mode (no pivoting): in the
+    given ordering, or in SuperLU's minimum-degree ordering of :math:`M + M^T`."""
 
     def __init__(self, M, order: np.ndarray | None = None):
+        self.order, self.lu, self.chol = order, None, None
+        if order is not None and use_cholesky():
+            from ._cholesky import Cholesky, NotPositiveDefinite
+
+            try:
+                self.chol = Cholesky(M, order)
+                return
+            except NotPositiveDefinite:
+                pass
         from scipy.sparse.linalg import splu
 
-        self.order = order
         if order is None:
             spec = "MMD_AT_PLUS_A"
         else:
@@ -94,6 +131,8 @@ class Factor:
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """``M⁻¹ b`` (a vector, or a matrix of columns)."""
+        if self.chol is not None:
+            return self.chol.solve(b)
         if self.order is None:
             return self.lu.solve(b)
         x = np.empty_like(b, dtype=np.float64)

@@ -1,0 +1,577 @@
+// A supernodal multifrontal Cholesky factorisation of a sparse symmetric positive definite matrix,
+// and its solves (fitting/_sparse.py's Factor). The dense work of each supernode goes through
+// BLAS and LAPACK: their function pointers are handed in by the caller (SciPy's, from
+// scipy.linalg.cython_blas / cython_lapack), so nothing here links against a BLAS of its own.
+//
+// The steps (Liu, "The multifrontal method for sparse matrix solution", SIAM Review 1992; Davis,
+// "Direct Methods for Sparse Linear Systems", 2006, for the elimination tree and the counts):
+//   1. the caller's fill-reducing ordering (METIS's nested dissection) is composed with a postorder
+//      of the elimination tree, so that every supernode is a range of consecutive columns and every
+//      subtree too;
+//   2. column counts from the row subtrees, fundamental supernodes, then relaxed amalgamation
+//      (a child merged into its parent where few explicit zeros result, as CHOLMOD's defaults);
+//   3. for each supernode in postorder, its frontal matrix: the matrix's columns and the children's
+//      update matrices added in (extend-add), then POTRF on the diagonal block, TRSM below it and
+//      SYRK for the update matrix the parent takes;
+//   4. the solves, forward and backward over the supernodes: TRSV/GEMV for one column, TRSM/GEMM
+//      for several.
+// A pivot that is not positive (POTRF's info) fails the factorisation, and the caller falls back.
+#include <dlfcn.h>
+
+#include <algorithm>
+#include <cstdint>
+#include <cstring>
+#include <memory>
+#include <mutex>
+#include <new>
+#include <string>
+#include <vector>
+
+namespace {
+
+using i64 = int64_t;
+
+typedef void (*dgemm_t)(const char*, const char*, const int*, const int*, const int*, const double*,
+                        const double*, const int*, const double*, const int*, const double*, double*,
+                        const int*);
+typedef void (*dsyrk_t)(const char*, const char*, const int*, const int*, const double*, const double*,
+                        const int*, const double*, double*, const int*);
+typedef void (*dtrsm_t)(const char*, const char*, const char*, const char*, const int*, const int*,
+                        const double*, const double*, const int*, double*, const int*);
+typedef void (*dgemv_t)(const char*, const int*, const int*, const double*, const double*, const int*,
+                        const double*, const int*, const double*, double*, const int*);
+typedef void (*dtrsv_t)(const char*, const char*, const char*, const int*, const double*, const int*,
+                        double*, const int*);
+typedef void (*dpotrf_t)(const char*, const int*, double*, const int*, int*);
+
+struct Blas {
+  dgemm_t gemm = nullptr;
+  dsyrk_t syrk = nullptr;
+  dtrsm_t trsm = nullptr;
+  dgemv_t gemv = nullptr;
+  dtrsv_t trsv = nullptr;
+  dpotrf_t potrf = nullptr;
+};
+Blas blas;
+
+// OpenBLAS's thread count, held at one while any factorisation or solve runs: the caller runs
+// several in threads of its own, and OpenBLAS's workers, spinning between calls, would take the
+// cores from them (a 55k-scalar channel's factorisation, three in threads on two cores: 0.23 s
+// against 0.10 s). Found beside the BLAS handed in; absent (another BLAS), nothing is done.
+typedef void (*set_threads_t)(int);
+typedef int (*get_threads_t)();
+set_threads_t set_threads = nullptr;
+get_threads_t get_threads = nullptr;
+std::mutex threads_mutex;
+int threads_users = 0, threads_before = 0;
+
+void FindThreadControl(void* fn) {
+  Dl_info info;
+  if (!dladdr(fn, &info) || !info.dli_fname) return;
+  void* lib = dlopen(info.dli_fname, RTLD_LAZY | RTLD_NOLOAD);
+  if (!lib) return;
+  for (const char* prefix : {"scipy_openblas", "openblas"}) {
+    const std::string set = std::string(prefix) + "_set_num_threads", get = std::string(prefix) + "_get_num_threads";
+    auto s = reinterpret_cast<set_threads_t>(dlsym(lib, set.c_str()));
+    auto g = reinterpret_cast<get_threads_t>(dlsym(lib, get.c_str()));
+    if (s && g) {
+      set_threads = s;
+      get_threads = g;
+      return;
+    }
+  }
+}
+
+struct OneBlasThread {
+  OneBlasThread() {
+    if (!set_threads) return;
+    std::lock_guard<std::mutex> hold(threads_mutex);
+    if (threads_users++ == 0) {
+      threads_before = get_threads();
+      if (threads_before != 1) set_threads(1);
+    }
+  }
+  ~OneBlasThread() {
+    if (!set_threads) return;
+    std::lock_guard<std::mutex> hold(threads_mutex);
+    if (--threads_users == 0 && threads_before != 1) set_threads(threads_before);
+  }
+};
+
+// supernodes whose block times the columns solved is below this are solved by hand, not by BLAS
+i64 kBlasSolve = 1024;
+
+// A supernode: columns [first, first + ncols) of the permuted matrix; its front's rows are those
+// columns, then `below` (sorted, all past the last column). L's block is rows × ncols, column-major.
+struct Super {
+  i64 first = 0, ncols = 0;
+  i64 below_at = 0, nbelow = 0;  // its rows below, in Factor::rows
+  i64 lx_at = 0;                 // its block, in Factor::lx
+  i64 parent = -1;
+  i64 nchildren = 0;
+  i64 rows() const { return ncols + nbelow; }
+};
+
+struct Factor {
+  i64 n = 0;
+  std::vector<i64> perm;  // new index -> the caller's index
+  std::vector<Super> supers;
+  std::vector<i64> rows;  // every supernode's rows below
+  std::vector<double> lx;
+  i64 max_below = 0;
+};
+
+// The pattern of one triangle of P M Pᵀ by columns: for new column c, the new rows r with
+// r < c (upper = true) or r >= c (upper = false, with the values).
+void Triangle(i64 n, const i64* colptr, const i64* rowind, const double* val, const std::vector<i64>& inv,
+              bool upper, std::vector<i64>& ptr, std::vector<i64>& idx, std::vector<double>* x) {
+  ptr.assign(n + 1, 0);
+  for (i64 j = 0; j < n; ++j)
+    for (i64 p = colptr[j]; p < colptr[j + 1]; ++p) {
+      const i64 r = inv[rowind[p]], c = inv[j];
+      if (upper ? r < c : r >= c) ++ptr[c + 1];
+    }
+  for (i64 c = 0; c < n; ++c) ptr[c + 1] += ptr[c];
+  idx.resize(ptr[n]);
+  if (x) x->resize(ptr[n]);
+  std::vector<i64> next(ptr.begin(), ptr.end() - 1);
+  for (i64 j = 0; j < n; ++j)
+    for (i64 p = colptr[j]; p < colptr[j + 1]; ++p) {
+      const i64 r = inv[rowind[p]], c = inv[j];
+      if (upper ? r < c : r >= c) {
+        const i64 q = next[c]++;
+        idx[q] = r;
+        if (x) (*x)[q] = val[p];
+      }
+    }
+}
+
+// The elimination tree from the upper triangle's pattern (Liu's algorithm, path compression).
+std::vector<i64> Etree(i64 n, const std::vector<i64>& ptr, const std::vector<i64>& idx) {
+  std::vector<i64> parent(n, -1), ancestor(n, -1);
+  for (i64 k = 0; k < n; ++k)
+    for (i64 p = ptr[k]; p < ptr[k + 1]; ++p) {
+      i64 i = idx[p];
+      while (i != -1 && i < k) {
+        const i64 up = ancestor[i];
+        ancestor[i] = k;
+        if (up == -1) parent[i] = k;
+        i = up;
+      }
+    }
+  return parent;
+}
+
+// A postorder of the forest `parent`: post[k] is the k-th node visited (children in index order).
+std::vector<i64> Postorder(i64 n, const std::vector<i64>& parent) {
+  std::vector<i64> head(n, -1), next(n, -1), post(n), stack;
+  for (i64 j = n - 1; j >= 0; --j)
+    if (parent[j] != -1) {
+      next[j] = head[parent[j]];
+      head[parent[j]] = j;
+    }
+  i64 k = 0;
+  stack.reserve(n);
+  for (i64 root = 0; root < n; ++root) {
+    if (parent[root] != -1) continue;
+    stack.push_back(root);
+    while (!stack.empty()) {
+      const i64 p = stack.back();
+      const i64 child = head[p];
+      if (child == -1) {
+        stack.pop_back();
+        post[k++] = p;
+      } else {
+        head[p] = next[child];
+        stack.push_back(child);
+      }
+    }
+  }
+  return post;
+}
+
+bool Relax(i64 ncols, double zeros, double stored) {
+  // CHOLMOD's default amalgamation: always up to 4 columns, then within a share of explicit zeros
+  const double share = stored > 0 ? zeros / stored : 0.0;
+  return ncols <= 4 || (ncols <= 16 && share < 0.8) || (ncols <= 48 && share < 0.1) || share < 0.05;
+}
+
+// The symbolic analysis: the postordered permutation, the supernodes and their rows.
+// `lower` receives P M Pᵀ's lower triangle (values) in the final ordering.
+void Analyse(Factor& f, i64 n, const i64* colptr, const i64* rowind, const double* val, const i64* order,
+             std::vector<i64>& lptr, std::vector<i64>& lidx, std::vector<double>& lval) {
+  std::vector<i64> inv(n), uptr, uidx;
+  for (i64 k = 0; k < n; ++k) inv[order[k]] = k;
+  Triangle(n, colptr, rowind, val, inv, true, uptr, uidx, nullptr);
+  const std::vector<i64> post = Postorder(n, Etree(n, uptr, uidx));
+  f.perm.resize(n);
+  for (i64 k = 0; k < n; ++k) f.perm[k] = order[post[k]];
+  for (i64 k = 0; k < n; ++k) inv[f.perm[k]] = k;
+  Triangle(n, colptr, rowind, val, inv, true, uptr, uidx, nullptr);
+  Triangle(n, colptr, rowind, val, inv, false, lptr, lidx, &lval);
+  const std::vector<i64> parent = Etree(n, uptr, uidx);
+
+  // column counts (with the diagonal): row k of L is the union of the paths from each j < k with
+  // M(k, j) != 0 up the tree to k
+  std::vector<i64> count(n, 1), flag(n, -1);
+  for (i64 k = 0; k < n; ++k) {
+    flag[k] = k;
+    for (i64 p = uptr[k]; p < uptr[k + 1]; ++p)
+      for (i64 j = uidx[p]; flag[j] != k; j = parent[j]) {
+        ++count[j];
+        flag[j] = k;
+      }
+  }
+
+  // fundamental supernodes (a column joins the one before where it is that column's parent and
+  // their structures agree), amalgamated with the supernode before where that is a child of it
+  struct Node {
+    i64 first, ncols, nbelow;
+    double nnz;  // the structural non-zeros of its columns
+  };
+  std::vector<Node> nodes;
+  std::vector<i64> owner(n);  // column -> fundamental supernode, then -> final supernode
+  for (i64 j = 0; j < n; ++j) {
+    if (j > 0 && parent[j - 1] == j && count[j - 1] == count[j] + 1) {
+      Node& s = nodes.back();
+      ++s.ncols;
+      s.nbelow = count[j] - 1;
+      s.nnz += double(count[j]);
+    } else {
+      nodes.push_back({j, 1, count[j] - 1, double(count[j])});
+    }
+    owner[j] = i64(nodes.size()) - 1;
+  }
+  std::vector<Node> merged;
+  std::vector<i64> to_merged(nodes.size());
+  for (size_t s = 0; s < nodes.size(); ++s) {
+    const Node& p = nodes[s];
+    if (!merged.empty()) {
+      Node& c = merged.back();
+      const i64 last = c.first + c.ncols - 1;
+      if (last + 1 == p.first && parent[last] != -1 && owner[parent[last]] == i64(s)) {
+        const i64 nc = c.ncols + p.ncols, rows = nc + p.nbelow;
+        const double stored = double(nc) * double(rows) - 0.5 * double(nc) * double(nc - 1);
+        if (Relax(nc, stored - (c.nnz + p.nnz), stored)) {
+          c.ncols = nc;
+          c.nbelow = p.nbelow;
+          c.nnz += p.nnz;
+          to_merged[s] = i64(merged.size()) - 1;
+          continue;
+        }
+      }
+    }
+    merged.push_back(p);
+    to_merged[s] = i64(merged.size()) - 1;
+  }
+  const i64 ns = i64(merged.size());
+  for (i64 j = 0; j < n; ++j) owner[j] = to_merged[owner[j]];
+  f.supers.resize(ns);
+  for (i64 s = 0; s < ns; ++s) {
+    Super& S = f.supers[s];
+    S.first = merged[s].first;
+    S.ncols = merged[s].ncols;
+    const i64 last = S.first + S.ncols - 1;
+    S.parent = parent[last] == -1 ? -1 : owner[parent[last]];
+    if (S.parent != -1) ++f.supers[S.parent].nchildren;
+  }
+
+  // each supernode's rows below: its columns' entries past its last column, and its children's
+  // rows below past it (children come first in postorder)
+  std::vector<i64> head(ns, -1), next(ns, -1);
+  for (i64 s = ns - 1; s >= 0; --s) {
+    const i64 p = f.supers[s].parent;
+    if (p != -1) {
+      next[s] = head[p];
+      head[p] = s;
+    }
+  }
+  std::fill(flag.begin(), flag.end(), -1);
+  std::vector<i64> rows;
+  f.rows.clear();
+  for (i64 s = 0; s < ns; ++s) {
+    Super& S = f.supers[s];
+    const i64 last = S.first + S.ncols - 1;
+    rows.clear();
+    for (i64 j = S.first; j <= last; ++j)
+      for (i64 p = lptr[j]; p < lptr[j + 1]; ++p) {
+        const i64 r = lidx[p];
+        if (r > last && flag[r] != s) {
+          flag[r] = s;
+          rows.push_back(r);
+        }
+      }
+    for (i64 c = head[s]; c != -1; c = next[c]) {
+      const Super& C = f.supers[c];
+      for (i64 q = C.below_at; q < C.below_at + C.nbelow; ++q) {
+        const i64 r = f.rows[q];
+        if (r > last && flag[r] != s) {
+          flag[r] = s;
+          rows.push_back(r);
+        }
+      }
+    }
+    std::sort(rows.begin(), rows.end());
+    S.below_at = i64(f.rows.size());
+    S.nbelow = i64(rows.size());
+    f.rows.insert(f.rows.end(), rows.begin(), rows.end());
+    f.max_below = std::max(f.max_below, S.nbelow);
+  }
+  i64 at = 0;
+  for (Super& S : f.supers) {
+    S.lx_at = at;
+    at += S.rows() * S.ncols;
+  }
+  f.lx.assign(at, 0.0);
+}
+
+// The numeric factorisation: 0, or the (1-based) column whose pivot is not positive.
+i64 Numeric(Factor& f, const std::vector<i64>& lptr, const std::vector<i64>& lidx, const std::vector<double>& lval) {
+  const i64 n = f.n;
+  std::vector<i64> local(n, 0);  // row -> its place in the current front, past the supernode's columns
+  struct Update {
+    i64 super;
+    std::vector<double> u;  // nbelow × nbelow, column-major, lower triangle
+  };
+  std::vector<Update> stack;
+  std::vector<i64> map;
+  const char lo = 'L', no = 'N', tr = 'T', right = 'R';
+  const double one = 1.0, minus = -1.0;
+  for (i64 s = 0; s < i64(f.supers.size()); ++s) {
+    const Super& S = f.supers[s];
+    const i64 nc = S.ncols, nb = S.nbelow, m = S.rows(), last = S.first + nc - 1;
+    const i64* below = f.rows.data() + S.below_at;
+    for (i64 q = 0; q < nb; ++q) local[below[q]] = nc + q;
+    double* L = f.lx.data() + S.lx_at;  // m × nc, zeroed at allocation
+    std::vector<double> U(size_t(nb) * size_t(nb), 0.0);
+    for (i64 j = S.first; j <= last; ++j) {
+      double* col = L + (j - S.first) * m;
+      for (i64 p = lptr[j]; p < lptr[j + 1]; ++p) {
+        const i64 r = lidx[p];
+        col[r <= last ? r - S.first : local[r]] += lval[p];
+      }
+    }
+    // the children's update matrices: the last nchildren on the stack
+    const i64 nch = S.nchildren;
+    for (i64 c = i64(stack.size()) - nch; c < i64(stack.size()); ++c) {
+      const Super& C = f.supers[stack[c].super];
+      const i64 cb = C.nbelow;
+      const i64* crow = f.rows.data() + C.below_at;
+      map.resize(cb);
+      for (i64 q = 0; q < cb; ++q) map[q] = crow[q] <= last ? crow[q] - S.first : local[crow[q]];
+      const double* cu = stack[c].u.data();
+      for (i64 b = 0; b < cb; ++b) {
+        const i64 col = map[b];
+        const double* src = cu + b * cb;
+        if (col < nc) {
+          double* dst = L + col * m;
+          for (i64 a = b; a < cb; ++a) dst[map[a]] += src[a];
+        } else {
+          double* dst = U.data() + (col - nc) * nb - nc;
+          for (i64 a = b; a < cb; ++a) dst[map[a]] += src[a];
+        }
+      }
+    }
+    stack.resize(stack.size() - nch);
+    const int inc = int(nc), inm = int(m), inb = int(nb);
+    int info = 0;
+    blas.potrf(&lo, &inc, L, &inm, &info);
+    if (info != 0) return S.first + (info > 0 ? info : 1);
+    if (nb > 0) {
+      blas.trsm(&right, &lo, &tr, &no, &inb, &inc, &one, L, &inm, L + nc, &inm);
+      const double beta = 1.0;
+      blas.syrk(&lo, &no, &inb, &inc, &minus, L + nc, &inm, &beta, U.data(), &inb);
+    }
+    if (S.parent != -1) stack.push_back({s, std::move(U)});
+  }
+  return 0;
+}
+
+// x's rows `below` less t's (nb × k, row-major)
+void Scatter(double* x, const i64* below, i64 nb, i64 k, const double* t) {
+  if (k == 1) {
+    for (i64 q = 0; q < nb; ++q) x[below[q]] -= t[q];
+    return;
+  }
+  for (i64 q = 0; q < nb; ++q) {
+    double* xr = x + below[q] * k;
+    const double* tq = t + q * k;
+    for (i64 c = 0; c < k; ++c) xr[c] -= tq[c];
+  }
+}
+
+// a · b over n entries, in four partial sums
+double Dot(const double* a, const double* b, i64 n) {
+  double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0;
+  i64 i = 0;
+  for (; i + 4 <= n; i += 4) {
+    s0 += a[i] * b[i];
+    s1 += a[i + 1] * b[i + 1];
+    s2 += a[i + 2] * b[i + 2];
+    s3 += a[i + 3] * b[i + 3];
+  }
+  for (; i < n; ++i) s0 += a[i] * b[i];
+  return (s0 + s1) + (s2 + s3);
+}
+
+}  // namespace
+
+extern "C" {
+
+// The BLAS and LAPACK routines (Fortran interface): gemm, syrk, trsm, gemv, trsv, potrf.
+void diffshade_chol_set_blas(void** fn) {
+  blas.gemm = reinterpret_cast<dgemm_t>(fn[0]);
+  blas.syrk = reinterpret_cast<dsyrk_t>(fn[1]);
+  blas.trsm = reinterpret_cast<dtrsm_t>(fn[2]);
+  blas.gemv = reinterpret_cast<dgemv_t>(fn[3]);
+  blas.trsv = reinterpret_cast<dtrsv_t>(fn[4]);
+  blas.potrf = reinterpret_cast<dpotrf_t>(fn[5]);
+  FindThreadControl(fn[0]);
+}
+
+// Whether OpenBLAS's thread count is held at one during the work (its functions were found).
+int diffshade_chol_holds_threads() { return set_threads != nullptr; }
+
+// OpenBLAS's thread count now (-1 where its functions were not found).
+int diffshade_chol_blas_threads() { return get_threads ? get_threads() : -1; }
+
+// Factorise the symmetric n × n matrix (CSC, both triangles; only the entries on or below the
+// diagonal of the permuted matrix are read) in the ordering `order` (new -> old) composed with a
+// postorder. Returns the factor, or null with *status the failing column (1-based; -1: no memory).
+void* diffshade_chol_factor(i64 n, const i64* colptr, const i64* rowind, const double* val, const i64* order,
+                            i64* status) {
+  *status = 0;
+  OneBlasThread single;
+  try {
+    std::unique_ptr<Factor> f(new Factor());
+    f->n = n;
+    std::vector<i64> lptr, lidx;
+    std::vector<double> lval;
+    Analyse(*f, n, colptr, rowind, val, order, lptr, lidx, lval);
+    const i64 bad = Numeric(*f, lptr, lidx, lval);
+    if (bad != 0) {
+      *status = bad;
+      return nullptr;
+    }
+    return f.release();
+  } catch (const std::bad_alloc&) {
+    *status = -1;
+    return nullptr;
+  }
+}
+
+// The final ordering (new -> the caller's index), n entries.
+void diffshade_chol_perm(void* h, i64* out) {
+  const Factor& f = *static_cast<Factor*>(h);
+  std::copy(f.perm.begin(), f.perm.end(), out);
+}
+
+// Stored entries of L (explicit zeros of the amalgamation included) and the number of supernodes.
+void diffshade_chol_stats(void* h, i64* out) {
+  const Factor& f = *static_cast<Factor*>(h);
+  out[0] = i64(f.lx.size());
+  out[1] = i64(f.supers.size());
+}
+
+// Solve L Lᵀ x = b in place for k columns (x: n × k, row-major: a row's k values together, in the
+// final ordering). Small supernodes are solved by hand, row by row of k values; large ones through
+// BLAS on xᵀ (k × n, column-major). Returns 0, or -1 without memory.
+int diffshade_chol_solve(void* h, double* x, i64 k) {
+  const Factor& f = *static_cast<Factor*>(h);
+  OneBlasThread single;
+  std::vector<double> t;
+  try {
+    t.resize(size_t(std::max<i64>(f.max_below, 1)) * size_t(k));
+  } catch (const std::bad_alloc&) {
+    return -1;
+  }
+  const char lo = 'L', no = 'N', tr = 'T', right = 'R';
+  const double one = 1.0, zero = 0.0, minus = -1.0;
+  const int ik = int(k);
+  // forward: L y = b
+  for (const Super& S : f.supers) {
+    const i64 nc = S.ncols, nb = S.nbelow, m = S.rows();
+    const double* L = f.lx.data() + S.lx_at;
+    const i64* below = f.rows.data() + S.below_at;
+    double* xs = x + S.first * k;
+    if (k == 1 || nc * m * k < kBlasSolve) {
+      for (i64 j = 0; j < nc; ++j) {  // the diagonal block
+        const double* col = L + j * m;
+        double* xj = xs + j * k;
+        const double d = col[j];
+        for (i64 c = 0; c < k; ++c) xj[c] /= d;
+        for (i64 i = j + 1; i < nc; ++i) {
+          double* xi = xs + i * k;
+          const double l = col[i];
+          for (i64 c = 0; c < k; ++c) xi[c] -= l * xj[c];
+        }
+      }
+      if (nb == 0) continue;
+      double* tq = t.data();  // t = L21 x_s, then scattered
+      std::fill(tq, tq + nb * k, 0.0);
+      for (i64 j = 0; j < nc; ++j) {
+        const double* col = L + j * m + nc;
+        const double* xj = xs + j * k;
+        if (k == 1) {
+          const double v = xj[0];
+          for (i64 q = 0; q < nb; ++q) tq[q] += col[q] * v;
+        } else {
+          for (i64 q = 0; q < nb; ++q)
+            for (i64 c = 0; c < k; ++c) tq[q * k + c] += col[q] * xj[c];
+        }
+      }
+      Scatter(x, below, nb, k, tq);
+      continue;
+    }
+    const int inc = int(nc), inm = int(m), inb = int(nb);
+    blas.trsm(&right, &lo, &tr, &no, &ik, &inc, &one, L, &inm, xs, &ik);
+    if (nb == 0) continue;
+    blas.gemm(&no, &tr, &ik, &inb, &inc, &one, xs, &ik, L + nc, &inm, &zero, t.data(), &ik);
+    Scatter(x, below, nb, k, t.data());
+  }
+  // backward: Lᵀ x = y
+  for (i64 s = i64(f.supers.size()) - 1; s >= 0; --s) {
+    const Super& S = f.supers[s];
+    const i64 nc = S.ncols, nb = S.nbelow, m = S.rows();
+    const double* L = f.lx.data() + S.lx_at;
+    const i64* below = f.rows.data() + S.below_at;
+    double* xs = x + S.first * k;
+    if (k == 1 || nc * m * k < kBlasSolve) {
+      double* tq = t.data();  // x's rows below, gathered
+      for (i64 q = 0; q < nb; ++q) std::memcpy(tq + q * k, x + below[q] * k, sizeof(double) * size_t(k));
+      for (i64 j = nc - 1; j >= 0; --j) {
+        const double* col = L + j * m;
+        double* xj = xs + j * k;
+        if (k == 1) {
+          xj[0] = (xj[0] - Dot(col + nc, tq, nb) - Dot(col + j + 1, xj + 1, nc - j - 1)) / col[j];
+          continue;
+        }
+        for (i64 q = 0; q < nb; ++q) {
+          const double l = col[nc + q];
+          for (i64 c = 0; c < k; ++c) xj[c] -= l * tq[q * k + c];
+        }
+        for (i64 i = j + 1; i < nc; ++i) {
+          const double* xi = xs + i * k;
+          const double l = col[i];
+          for (i64 c = 0; c < k; ++c) xj[c] -= l * xi[c];
+        }
+        const double d = col[j];
+        for (i64 c = 0; c < k; ++c) xj[c] /= d;
+      }
+      continue;
+    }
+    const int inc = int(nc), inm = int(m), inb = int(nb);
+    if (nb > 0) {
+      for (i64 q = 0; q < nb; ++q) std::memcpy(t.data() + q * k, x + below[q] * k, sizeof(double) * size_t(k));
+      blas.gemm(&no, &no, &ik, &inc, &inb, &minus, t.data(), &ik, L + nc, &inm, &one, xs, &ik);
+    }
+    blas.trsm(&right, &lo, &no, &no, &ik, &inc, &one, L, &inm, xs, &ik);
+  }
+  return 0;
+}
+
+void diffshade_chol_tune(i64 blas_solve) { kBlasSolve = blas_solve; }
+
+void diffshade_chol_free(void* h) { delete static_cast<Factor*>(h); }
+
+}  // extern "C"

@@ -1,0 +1,169 @@
+"""The supernodal sparse Cholesky factorisation of the large linear blocks (fitting._cholesky),
+against dense solves and SuperLU: grid graphs as a texture map's channels make them, random sparse
+graphs, disconnected blocks, duplicate entries, every ordering; one and many right-hand sides
+(the hand-written and the BLAS paths); what it refuses, and the fallback to SuperLU where a pivot
+is not positive."""
+
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from fitting import _cholesky, _sparse
+
+pytestmark = pytest.mark.skipif(not _cholesky.available(), reason="the Cholesky library does not build here")
+
+
+def _grid(n, rng, stencil=9):
+    """A texture channel's normal matrix: a 2-D grid, 5- or 9-point, random positive weights."""
+    T = sp.diags([-0.3, 1.0, -0.3], [-1, 0, 1], (n, n))
+    if stencil == 5:
+        G = sp.kron(sp.identity(n), T) + sp.kron(T, sp.identity(n))
+    else:
+        G = sp.kron(T, T)
+    return (G + sp.diags(rng.uniform(0.01, 0.1, n * n))).tocsc()
+
+
+def _random_spd(n, density, rng):
+    """A random sparse symmetric positive definite matrix (diagonally dominant, off-diagonals of
+    both signs)."""
+    A = sp.random(n, n, density=density, random_state=rng, data_rvs=lambda k: rng.uniform(-1, 1, k))
+    A = A + A.T
+    d = np.asarray(abs(A).sum(axis=1)).ravel() + rng.uniform(0.1, 1.0, n)
+    return (A + sp.diags(d)).tocsc()
+
+
+def _disconnected(rng):
+    """Three blocks that never meet (a forest of elimination trees), one of them a single scalar."""
+    return sp.block_diag([_grid(9, rng), _random_spd(40, 0.2, rng), sp.identity(1) * 3.0]).tocsc()
+
+
+def _orders(M, rng):
+    n = M.shape[0]
+    out = {"identity": np.arange(n), "random": rng.permutation(n)}
+    if _sparse.HAVE_METIS and n > 1:
+        out["nested dissection"] = _sparse.nested_dissection(_sparse._graph(M))
+    return out
+
+
+CASES = {
+    "grid 9-point 30²": lambda rng: _grid(30, rng),
+    "grid 5-point 23²": lambda rng: _grid(23, rng, stencil=5),
+    "random sparse": lambda rng: _random_spd(700, 0.01, rng),
+    "random dense-ish": lambda rng: _random_spd(90, 0.5, rng),
+    "disconnected": _disconnected,
+    "one scalar": lambda rng: sp.csc_matrix([[2.5]]),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_the_solves_are_the_dense_solves(case):
+    """Every ordering, one and many columns, a vector and a column alike: the dense solve to
+    1e-12 of its size; the factor stores at least every non-zero of the dense factor in its
+    ordering (the supernodes' structure misses none)."""
+    rng = np.random.default_rng(abs(hash(case)) % 2**32)
+    M = CASES[case](rng)
+    n = M.shape[0]
+    dense = M.toarray()
+    for name, order in _orders(M, rng).items():
+        c = _cholesky.Cholesky(M, order)
+        assert sorted(c.perm) == list(range(n)), name
+        L = np.linalg.cholesky(dense[np.ix_(c.perm, c.perm)])
+        assert c.stored >= np.count_nonzero(np.abs(L) > 1e-300), name
+        for k in (1, 3, 40):  # 40 columns take the BLAS path on the larger supernodes
+            b = rng.normal(size=(n, k))
+            want = np.linalg.solve(dense, b)
+            got = c.solve(b)
+            np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.abs(want).max(), err_msg=f"{name}, {k}")
+        v = rng.normal(size=n)
+        np.testing.assert_allclose(c.solve(v), c.solve(v[:, None])[:, 0], rtol=0, atol=1e-14 * np.abs(c.solve(v)).max())
+        assert c.solve(v).shape == (n,)
+
+
+def test_a_large_grid_matches_superlu_and_in_threads_bit_for_bit():
+    """A 120² grid (past the size at which Factor takes this factorisation) in METIS's ordering:
+    SuperLU's solution to 1e-10; three factorisations at once in threads give the serial
+    factorisation's solutions to the bit, and OpenBLAS's thread count is what it was before."""
+    rng = np.random.default_rng(5)
+    M = _grid(120, rng)
+    order = _sparse.Orderings().of(M)
+    assert order is not None or not _sparse.HAVE_METIS
+    order = np.arange(M.shape[0]) if order is None else order
+    f = _sparse.Factor(M, order)
+    assert f.chol is not None and f.lu is None
+    b = rng.normal(size=(M.shape[0], 5))
+    from scipy.sparse.linalg import splu
+
+    want = splu(M, diag_pivot_thresh=0.0, options=dict(SymmetricMode=True)).solve(b)
+    np.testing.assert_allclose(f.solve(b), want, rtol=0, atol=1e-10 * np.abs(want).max())
+    lib = _cholesky._library()
+    before = lib.diffshade_chol_blas_threads()
+    serial = f.solve(b)
+    mats = [M, (2 * M).tocsc(), M]
+    with ThreadPoolExecutor(3) as ex:
+        facs = list(ex.map(lambda A: _cholesky.Cholesky(A, order), mats))
+        sols = list(ex.map(lambda c: c.solve(b), facs))
+    np.testing.assert_array_equal(sols[0], serial)
+    np.testing.assert_array_equal(sols[2], serial)
+    np.testing.assert_allclose(sols[1], serial / 2, rtol=0, atol=1e-13 * np.abs(serial).max())
+    assert lib.diffshade_chol_blas_threads() == before
+
+
+def test_duplicate_and_unsorted_entries_are_summed():
+    """A CSC matrix whose columns repeat a row and are not sorted: the entries are summed, as
+    SciPy reads them."""
+    rng = np.random.default_rng(1)
+    M = _random_spd(60, 0.1, rng)
+    coo = M.tocoo()
+    half = coo.data / 2
+    rows, cols, data = [np.concatenate([a, a]) for a in (coo.row, coo.col, half)]
+    shuffle = rng.permutation(len(rows))
+    order = np.lexsort((shuffle, cols))  # by column, rows in a random order within each
+    rows, cols, data = rows[order], cols[order], data[order]
+    indptr = np.searchsorted(cols, np.arange(61))
+    messy = sp.csc_matrix((data, rows, indptr), shape=M.shape)
+    assert not messy.has_canonical_format
+    b = rng.normal(size=60)
+    np.testing.assert_allclose(
+        _cholesky.Cholesky(messy, np.arange(60)).solve(b), np.linalg.solve(M.toarray(), b), rtol=1e-10
+    )
+
+
+def test_not_positive_definite_is_refused_and_factor_falls_back_to_superlu():
+    """An indefinite symmetric matrix: the Cholesky factorisation says which pivot failed; Factor
+    then solves it by SuperLU's LU, as it did before."""
+    rng = np.random.default_rng(2)
+    M = _grid(20, rng)
+    M = (M - sp.diags(np.where(np.arange(400) == 233, 5.0, 0.0))).tocsc()  # one negative direction
+    order = np.arange(400)
+    with pytest.raises(_cholesky.NotPositiveDefinite, match="pivot .* is not positive"):
+        _cholesky.Cholesky(M, order)
+    f = _sparse.Factor(M, order)
+    assert f.chol is None and f.lu is not None
+    b = rng.normal(size=400)
+    np.testing.assert_allclose(M @ f.solve(b), b, atol=1e-10)
+
+
+def test_bad_orderings_and_right_hand_sides_are_refused():
+    M = _grid(5, np.random.default_rng(0))
+    with pytest.raises(ValueError, match="not a permutation"):
+        _cholesky.Cholesky(M, np.arange(24))
+    with pytest.raises(ValueError, match="repeats a row"):
+        _cholesky.Cholesky(M, np.r_[np.arange(24), 3])
+    with pytest.raises(ValueError, match="not a permutation"):
+        _cholesky.Cholesky(M, np.r_[np.arange(24), 25])
+    c = _cholesky.Cholesky(M, np.arange(25))
+    with pytest.raises(ValueError, match="right-hand side has shape"):
+        c.solve(np.ones(24))
+    assert c.solve(np.ones((25, 0))).shape == (25, 0)
+
+
+def test_a_library_that_does_not_build_is_said_and_superlu_serves(monkeypatch):
+    """Where the library cannot be built, the fit says so once, as a warning that carries why,
+    and the large blocks take SuperLU."""
+    monkeypatch.setitem(_cholesky._state, "error", "compiling cholesky.cc failed: (a test)")
+    with pytest.warns(RuntimeWarning, match="take SuperLU.*a test"):
+        assert _sparse.use_cholesky.__wrapped__() is False
+    monkeypatch.setenv("DIFFSHADE_SPARSE", "superlu")
+    assert _sparse.use_cholesky.__wrapped__() is False
