@@ -372,9 +372,10 @@ class _Faces:
             new, in_threads(lambda k: _Face(self.sp, self.blocks[k], free[self.groups[k]], order[k]), new)
         ):
             self.faces[k] = face
-        for k, g in enumerate(self.groups):
-            if free[g].any():
-                s[g] = self.faces[k].step(r[g], free[g])
+        active = [k for k, g in enumerate(self.groups) if free[g].any()]
+        steps = in_threads(lambda k: self.faces[k].step(r[self.groups[k]], free[self.groups[k]]), active)
+        for k, sk in zip(active, steps):  # (the blocks' solves in threads: they release the GIL)
+            s[self.groups[k]] = sk
         return s
 
 

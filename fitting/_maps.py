@@ -270,8 +270,13 @@ class MapProblem:
         big = list(zip(cuts[:-1][sizes > DENSE_LIMIT], cuts[1:][sizes > DENSE_LIMIT]))
         ridged = [(Gs[a:b, a:b] + self.sp.identity(b - a) * INVERSE_RIDGE).tocsc() for a, b in big]
         orders = [self.orders.of(M) for (a, b), M in zip(big, ridged)]
-        for (a, b), lu in zip(big, in_threads(lambda k: Factor(ridged[k], orders[k]), range(len(big)))):
-            inv[a:b] = _probed_inverse_diagonal(lu, np.unique(cls[a:b], return_inverse=True)[1])
+
+        def probed(k):  # a block's factorisation and its probes, in one thread (the solves release the GIL)
+            a, b = big[k]
+            return _probed_inverse_diagonal(Factor(ridged[k], orders[k]), np.unique(cls[a:b], return_inverse=True)[1])
+
+        for (a, b), diag in zip(big, in_threads(probed, range(len(big)))):
+            inv[a:b] = diag
         out = np.zeros(G.shape[0])
         out[order] = inv
         # the variance inflation: beyond UNDETERMINED, a direction of G is (nearly) null (a texel

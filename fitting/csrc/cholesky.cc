@@ -117,41 +117,39 @@ struct Factor {
   std::vector<i64> perm;  // new index -> the caller's index
   std::vector<Super> supers;
   std::vector<i64> rows;  // every supernode's rows below
-  std::vector<double> lx;
+  std::unique_ptr<double[]> lx;  // every supernode's block (not zeroed here: Numeric zeroes each)
+  i64 lx_size = 0;
   i64 max_below = 0;
 };
 
-// The pattern of one triangle of P M Pᵀ by columns: for new column c, the new rows r with
-// r < c (upper = true) or r >= c (upper = false, with the values).
-void Triangle(i64 n, const i64* colptr, const i64* rowind, const double* val, const std::vector<i64>& inv,
-              bool upper, std::vector<i64>& ptr, std::vector<i64>& idx, std::vector<double>* x) {
-  ptr.assign(n + 1, 0);
-  for (i64 j = 0; j < n; ++j)
-    for (i64 p = colptr[j]; p < colptr[j + 1]; ++p) {
-      const i64 r = inv[rowind[p]], c = inv[j];
-      if (upper ? r < c : r >= c) ++ptr[c + 1];
-    }
-  for (i64 c = 0; c < n; ++c) ptr[c + 1] += ptr[c];
-  idx.resize(ptr[n]);
-  if (x) x->resize(ptr[n]);
-  std::vector<i64> next(ptr.begin(), ptr.end() - 1);
-  for (i64 j = 0; j < n; ++j)
-    for (i64 p = colptr[j]; p < colptr[j + 1]; ++p) {
-      const i64 r = inv[rowind[p]], c = inv[j];
-      if (upper ? r < c : r >= c) {
-        const i64 q = next[c]++;
-        idx[q] = r;
-        if (x) (*x)[q] = val[p];
-      }
-    }
-}
+// The caller's matrix M (CSC, both triangles) seen in an ordering: column k of P M Pᵀ is M's
+// column perm[k], its rows relabelled by inv (perm's inverse). Nothing is copied.
+struct Permuted {
+  const i64 *colptr, *rowind;
+  const double* val;
+  std::vector<i64> perm, inv;
+  Permuted(i64 n, const i64* cp, const i64* ri, const double* v, const i64* order)
+      : colptr(cp), rowind(ri), val(v), perm(order, order + n), inv(n) {
+    for (i64 k = 0; k < n; ++k) inv[perm[k]] = k;
+  }
+  void Reorder(const std::vector<i64>& post) {  // compose with post (new -> current)
+    std::vector<i64> p(perm.size());
+    for (size_t k = 0; k < p.size(); ++k) p[k] = perm[post[k]];
+    perm.swap(p);
+    for (size_t k = 0; k < perm.size(); ++k) inv[perm[k]] = i64(k);
+  }
+  i64 begin(i64 k) const { return colptr[perm[k]]; }
+  i64 end(i64 k) const { return colptr[perm[k] + 1]; }
+  i64 row(i64 p) const { return inv[rowind[p]]; }
+};
 
-// The elimination tree from the upper triangle's pattern (Liu's algorithm, path compression).
-std::vector<i64> Etree(i64 n, const std::vector<i64>& ptr, const std::vector<i64>& idx) {
+// The elimination tree of P M Pᵀ (Liu's algorithm, path compression), from the rows above the
+// diagonal of each column.
+std::vector<i64> Etree(i64 n, const Permuted& A) {
   std::vector<i64> parent(n, -1), ancestor(n, -1);
   for (i64 k = 0; k < n; ++k)
-    for (i64 p = ptr[k]; p < ptr[k + 1]; ++p) {
-      i64 i = idx[p];
+    for (i64 p = A.begin(k); p < A.end(k); ++p) {
+      i64 i = A.row(p);
       while (i != -1 && i < k) {
         const i64 up = ancestor[i];
         ancestor[i] = k;
@@ -190,34 +188,34 @@ std::vector<i64> Postorder(i64 n, const std::vector<i64>& parent) {
   return post;
 }
 
+double kRelax[7] = {4, 16, 0.8, 48, 0.1, 0.05, 0};
 bool Relax(i64 ncols, double zeros, double stored) {
   // CHOLMOD's default amalgamation: always up to 4 columns, then within a share of explicit zeros
   const double share = stored > 0 ? zeros / stored : 0.0;
-  return ncols <= 4 || (ncols <= 16 && share < 0.8) || (ncols <= 48 && share < 0.1) || share < 0.05;
+  return ncols <= kRelax[0] || (ncols <= kRelax[1] && share < kRelax[2]) || (ncols <= kRelax[3] && share < kRelax[4]) || share < kRelax[5];
 }
 
-// The symbolic analysis: the postordered permutation, the supernodes and their rows.
-// `lower` receives P M Pᵀ's lower triangle (values) in the final ordering.
-void Analyse(Factor& f, i64 n, const i64* colptr, const i64* rowind, const double* val, const i64* order,
-             std::vector<i64>& lptr, std::vector<i64>& lidx, std::vector<double>& lval) {
-  std::vector<i64> inv(n), uptr, uidx;
-  for (i64 k = 0; k < n; ++k) inv[order[k]] = k;
-  Triangle(n, colptr, rowind, val, inv, true, uptr, uidx, nullptr);
-  const std::vector<i64> post = Postorder(n, Etree(n, uptr, uidx));
-  f.perm.resize(n);
-  for (i64 k = 0; k < n; ++k) f.perm[k] = order[post[k]];
-  for (i64 k = 0; k < n; ++k) inv[f.perm[k]] = k;
-  Triangle(n, colptr, rowind, val, inv, true, uptr, uidx, nullptr);
-  Triangle(n, colptr, rowind, val, inv, false, lptr, lidx, &lval);
-  const std::vector<i64> parent = Etree(n, uptr, uidx);
+// The symbolic analysis: the ordering composed with a postorder (A is reordered), the supernodes
+// and their rows.
+void Analyse(Factor& f, i64 n, Permuted& A) {
+  std::vector<i64> parent = Etree(n, A);
+  {
+    const std::vector<i64> post = Postorder(n, parent);
+    std::vector<i64> place(n), relabelled(n);  // a postorder relabels the tree, not its shape
+    for (i64 k = 0; k < n; ++k) place[post[k]] = k;
+    for (i64 j = 0; j < n; ++j) relabelled[place[j]] = parent[j] == -1 ? -1 : place[parent[j]];
+    A.Reorder(post);
+    parent.swap(relabelled);
+  }
+  f.perm = A.perm;
 
   // column counts (with the diagonal): row k of L is the union of the paths from each j < k with
   // M(k, j) != 0 up the tree to k
   std::vector<i64> count(n, 1), flag(n, -1);
   for (i64 k = 0; k < n; ++k) {
     flag[k] = k;
-    for (i64 p = uptr[k]; p < uptr[k + 1]; ++p)
-      for (i64 j = uidx[p]; flag[j] != k; j = parent[j]) {
+    for (i64 p = A.begin(k); p < A.end(k); ++p)
+      for (i64 j = A.row(p); j < k && flag[j] != k; j = parent[j]) {
         ++count[j];
         flag[j] = k;
       }
@@ -294,8 +292,8 @@ void Analyse(Factor& f, i64 n, const i64* colptr, const i64* rowind, const doubl
     const i64 last = S.first + S.ncols - 1;
     rows.clear();
     for (i64 j = S.first; j <= last; ++j)
-      for (i64 p = lptr[j]; p < lptr[j + 1]; ++p) {
-        const i64 r = lidx[p];
+      for (i64 p = A.begin(j); p < A.end(j); ++p) {
+        const i64 r = A.row(p);
         if (r > last && flag[r] != s) {
           flag[r] = s;
           rows.push_back(r);
@@ -322,67 +320,77 @@ void Analyse(Factor& f, i64 n, const i64* colptr, const i64* rowind, const doubl
     S.lx_at = at;
     at += S.rows() * S.ncols;
   }
-  f.lx.assign(at, 0.0);
+  f.lx.reset(new double[size_t(at)]);
+  f.lx_size = at;
 }
 
 // The numeric factorisation: 0, or the (1-based) column whose pivot is not positive.
-i64 Numeric(Factor& f, const std::vector<i64>& lptr, const std::vector<i64>& lidx, const std::vector<double>& lval) {
+i64 Numeric(Factor& f, const Permuted& A) {
   const i64 n = f.n;
   std::vector<i64> local(n, 0);  // row -> its place in the current front, past the supernode's columns
   struct Update {
     i64 super;
-    std::vector<double> u;  // nbelow × nbelow, column-major, lower triangle
+    std::unique_ptr<double[]> u;  // nbelow × nbelow, column-major, its lower triangle
+    std::vector<i64> place;
   };
   std::vector<Update> stack;
-  std::vector<i64> map;
   const char lo = 'L', no = 'N', tr = 'T', right = 'R';
-  const double one = 1.0, minus = -1.0;
+  const double one = 1.0, minus = -1.0, zero = 0.0;
   for (i64 s = 0; s < i64(f.supers.size()); ++s) {
     const Super& S = f.supers[s];
     const i64 nc = S.ncols, nb = S.nbelow, m = S.rows(), last = S.first + nc - 1;
     const i64* below = f.rows.data() + S.below_at;
     for (i64 q = 0; q < nb; ++q) local[below[q]] = nc + q;
-    double* L = f.lx.data() + S.lx_at;  // m × nc, zeroed at allocation
-    std::vector<double> U(size_t(nb) * size_t(nb), 0.0);
+    double* L = f.lx.get() + S.lx_at;  // m × nc
+    std::fill(L, L + m * nc, 0.0);
     for (i64 j = S.first; j <= last; ++j) {
       double* col = L + (j - S.first) * m;
-      for (i64 p = lptr[j]; p < lptr[j + 1]; ++p) {
-        const i64 r = lidx[p];
-        col[r <= last ? r - S.first : local[r]] += lval[p];
+      for (i64 p = A.begin(j); p < A.end(j); ++p) {
+        const i64 r = A.row(p);
+        if (r >= j) col[r <= last ? r - S.first : local[r]] += A.val[p];
       }
     }
-    // the children's update matrices: the last nchildren on the stack
-    const i64 nch = S.nchildren;
-    for (i64 c = i64(stack.size()) - nch; c < i64(stack.size()); ++c) {
+    // the children's update matrices (the last nchildren on the stack): their columns within the
+    // supernode's now, the rest once the update matrix U = -L21 L21ᵀ is made
+    const i64 nch = S.nchildren, from = i64(stack.size()) - nch;
+    for (i64 c = from; c < i64(stack.size()); ++c) {
       const Super& C = f.supers[stack[c].super];
       const i64 cb = C.nbelow;
       const i64* crow = f.rows.data() + C.below_at;
-      map.resize(cb);
-      for (i64 q = 0; q < cb; ++q) map[q] = crow[q] <= last ? crow[q] - S.first : local[crow[q]];
-      const double* cu = stack[c].u.data();
-      for (i64 b = 0; b < cb; ++b) {
-        const i64 col = map[b];
+      std::vector<i64>& place = stack[c].place;  // the child's rows' places in this front
+      place.resize(cb);
+      for (i64 q = 0; q < cb; ++q) place[q] = crow[q] <= last ? crow[q] - S.first : local[crow[q]];
+      const double* cu = stack[c].u.get();
+      for (i64 b = 0; b < cb && place[b] < nc; ++b) {
+        double* dst = L + place[b] * m;
         const double* src = cu + b * cb;
-        if (col < nc) {
-          double* dst = L + col * m;
-          for (i64 a = b; a < cb; ++a) dst[map[a]] += src[a];
-        } else {
-          double* dst = U.data() + (col - nc) * nb - nc;
-          for (i64 a = b; a < cb; ++a) dst[map[a]] += src[a];
-        }
+        for (i64 a = b; a < cb; ++a) dst[place[a]] += src[a];
       }
     }
-    stack.resize(stack.size() - nch);
     const int inc = int(nc), inm = int(m), inb = int(nb);
     int info = 0;
     blas.potrf(&lo, &inc, L, &inm, &info);
     if (info != 0) return S.first + (info > 0 ? info : 1);
+    std::unique_ptr<double[]> U;
     if (nb > 0) {
+      U.reset(new double[size_t(nb) * size_t(nb)]);
       blas.trsm(&right, &lo, &tr, &no, &inb, &inc, &one, L, &inm, L + nc, &inm);
-      const double beta = 1.0;
-      blas.syrk(&lo, &no, &inb, &inc, &minus, L + nc, &inm, &beta, U.data(), &inb);
+      blas.syrk(&lo, &no, &inb, &inc, &minus, L + nc, &inm, &zero, U.get(), &inb);
     }
-    if (S.parent != -1) stack.push_back({s, std::move(U)});
+    for (i64 c = from; c < i64(stack.size()); ++c) {
+      const i64 cb = f.supers[stack[c].super].nbelow;
+      const i64* place = stack[c].place.data();
+      const double* cu = stack[c].u.get();
+      i64 b0 = 0;
+      while (b0 < cb && place[b0] < nc) ++b0;
+      for (i64 b = b0; b < cb; ++b) {  // (a place past the supernode's columns is U's row or column + nc)
+        double* dst = U.get() + (place[b] - nc) * nb;
+        const double* src = cu + b * cb;
+        for (i64 a = b; a < cb; ++a) dst[place[a] - nc] += src[a];
+      }
+    }
+    stack.resize(stack.size() - nch);
+    if (S.parent != -1) stack.push_back({s, std::move(U), {}});
   }
   return 0;
 }
@@ -445,10 +453,9 @@ void* diffshade_chol_factor(i64 n, const i64* colptr, const i64* rowind, const d
   try {
     std::unique_ptr<Factor> f(new Factor());
     f->n = n;
-    std::vector<i64> lptr, lidx;
-    std::vector<double> lval;
-    Analyse(*f, n, colptr, rowind, val, order, lptr, lidx, lval);
-    const i64 bad = Numeric(*f, lptr, lidx, lval);
+    Permuted A(n, colptr, rowind, val, order);
+    Analyse(*f, n, A);
+    const i64 bad = Numeric(*f, A);
     if (bad != 0) {
       *status = bad;
       return nullptr;
@@ -469,7 +476,7 @@ void diffshade_chol_perm(void* h, i64* out) {
 // Stored entries of L (explicit zeros of the amalgamation included) and the number of supernodes.
 void diffshade_chol_stats(void* h, i64* out) {
   const Factor& f = *static_cast<Factor*>(h);
-  out[0] = i64(f.lx.size());
+  out[0] = f.lx_size;
   out[1] = i64(f.supers.size());
 }
 
@@ -491,7 +498,7 @@ int diffshade_chol_solve(void* h, double* x, i64 k) {
   // forward: L y = b
   for (const Super& S : f.supers) {
     const i64 nc = S.ncols, nb = S.nbelow, m = S.rows();
-    const double* L = f.lx.data() + S.lx_at;
+    const double* L = f.lx.get() + S.lx_at;
     const i64* below = f.rows.data() + S.below_at;
     double* xs = x + S.first * k;
     if (k == 1 || nc * m * k < kBlasSolve) {
@@ -533,7 +540,7 @@ int diffshade_chol_solve(void* h, double* x, i64 k) {
   for (i64 s = i64(f.supers.size()) - 1; s >= 0; --s) {
     const Super& S = f.supers[s];
     const i64 nc = S.ncols, nb = S.nbelow, m = S.rows();
-    const double* L = f.lx.data() + S.lx_at;
+    const double* L = f.lx.get() + S.lx_at;
     const i64* below = f.rows.data() + S.below_at;
     double* xs = x + S.first * k;
     if (k == 1 || nc * m * k < kBlasSolve) {
@@ -571,6 +578,7 @@ int diffshade_chol_solve(void* h, double* x, i64 k) {
 }
 
 void diffshade_chol_tune(i64 blas_solve) { kBlasSolve = blas_solve; }
+void diffshade_chol_relax(const double* r) { for (int i = 0; i < 6; ++i) kRelax[i] = r[i]; }
 
 void diffshade_chol_free(void* h) { delete static_cast<Factor*>(h); }
 
