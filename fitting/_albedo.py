@@ -14,7 +14,7 @@ scalar :math:`\theta` (exponent, attenuation, gains, light position, …).
 
 **The solve** is variable projection on the host in float64: for given :math:`\theta` the
 albedo is the bounded sparse least-squares optimum (``0 ≤ x ≤ 1``: projected Newton, Bertsekas
-1982, whose steps are sparse solves, SuperLU's symmetric mode on each connected block, updated
+1982, whose steps are sparse solves, a factorisation of each connected block (:mod:`fitting._sparse`), updated
 by a bordered system while a face differs by a few scalars, with a backtracking line search
 along the projection onto the box; see :meth:`_AlbedoSolver.bounded`; with an
 optional smoothness prior :math:`\lambda \sum_{(i,j) \in \text{edges}} (x_i - x_j)^2`
@@ -261,8 +261,8 @@ def _first_bound(x, p, a, free, most=None):
 
 class _Face:
     r"""Newton steps on the faces of the box from one sparse factorisation. :math:`M = G +
-    \mathrm{diag}(\rho)` is factorised once over a base set :math:`B` (SuperLU in its symmetric
-    mode: M is positive definite, so no pivoting, and an ordering of :math:`M + M^T`). A later
+    \mathrm{diag}(\rho)` is factorised once over a base set :math:`B` (:class:`fitting._sparse.Factor`:
+    M is positive definite, so no pivoting). A later
     face holds some scalars :math:`K` of the base at their bounds and frees some :math:`J` outside
     it; its step solves the bordered system, whose border needs :math:`M_{BB}^{-1}` of one column
     per changed scalar (:math:`e_k`, :math:`M_{Bj}`), kept across steps: a face that differs from

@@ -141,9 +141,8 @@ class Factor:
 
 
 def in_threads(fn, items) -> list:
-    """``[fn(x) for x in items]``, in threads where there are several: SuperLU's factorisation
-    releases the GIL for part of its work (three 55k-scalar blocks on two cores: 0.74 s serially,
-    0.55 s in threads; its solves do not gain, so they stay serial)."""
+    """``[fn(x) for x in items]``, in threads where there are several: the Cholesky factorisation
+    and its solves release the GIL for all their work, SuperLU's factorisation for part of it."""
     items = list(items)
     workers = min(len(items), os.cpu_count() or 1)
     if workers <= 1:

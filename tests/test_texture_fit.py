@@ -239,7 +239,9 @@ def test_the_nested_dissection_ordering_solves_as_superlus_own():
     assert ours.chol is not None or not _sparse.use_cholesky()  # the supernodal Cholesky where it builds
     np.testing.assert_allclose(ours.solve(b), own.solve(b), rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(M @ ours.solve(b[:, 0]), b[:, 0], atol=1e-9)
-    ordered = splu(M[order][:, order].tocsc(), permc_spec="NATURAL", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+    ordered = splu(
+        M[order][:, order].tocsc(), permc_spec="NATURAL", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True)
+    )
     assert ordered.L.nnz + ordered.U.nnz < own.lu.L.nnz + own.lu.U.nnz
     keep = rng.uniform(size=n * n) < 0.9
     sub = M[keep][:, keep].tocsc()
