@@ -304,18 +304,27 @@ class _Face:
         nb, B = len(self.base), self.base
         K = np.flatnonzero(~free[B])  # held, positions in the base
         J = np.flatnonzero(free & ~self.in_base)  # freed outside the base
-        u = self._inv(r[B])
+
+        def unit(ks):
+            E = np.zeros((nb, len(ks)))
+            E[[k for _, k in ks], np.arange(len(ks))] = 1.0
+            return E
+
+        def columns(ks):  # M_Bj, from the columns of M (CSC)
+            return self.M[:, [j for _, j in ks]].toarray()[B]
+
+        new_k = [("k", k) for k in K if ("k", k) not in self.cols]
+        new_j = [("j", j) for j in J if ("j", j) not in self.cols]
+        if new_k or new_j:  # the border's new columns solved with r: one pass over the factor, not two
+            rhs = [r[B].reshape(nb, -1)] + [unit(new_k)] * bool(new_k) + [columns(new_j)] * bool(new_j)
+            X = self._inv(np.concatenate(rhs, axis=1))
+            m = rhs[0].shape[1]
+            self.cols.update(zip(new_k + new_j, X[:, m:].T))
+            u = X[:, 0] if r.ndim == 1 else X[:, :m]
+        else:
+            u = self._inv(r[B])
         s = np.zeros(r.shape)
         if len(K) or len(J):
-
-            def unit(ks):
-                E = np.zeros((nb, len(ks)))
-                E[[k for _, k in ks], np.arange(len(ks))] = 1.0
-                return E
-
-            def columns(ks):  # M_Bj, from the columns of M (CSC)
-                return self.M[:, [j for _, j in ks]].toarray()[B]
-
             Z = self._border([("k", k) for k in K], unit)
             Y = self._border([("j", j) for j in J], columns)
             MJ = self.M[:, J].toarray()
