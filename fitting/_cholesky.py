@@ -3,7 +3,7 @@
 
 The factorisation is multifrontal over relaxed supernodes in the caller's fill-reducing ordering
 (METIS's nested dissection) composed with a postorder of the elimination tree. Its dense work
-(POTRF, TRSM, SYRK per supernode; TRSV/GEMV or TRSM/GEMM per solve) calls SciPy's BLAS and LAPACK
+(POTRF, TRSM, SYRK per supernode; TRSM/GEMM per solve of several columns) calls SciPy's BLAS and LAPACK
 through the function pointers SciPy exports (``scipy.linalg.cython_blas``,
 ``scipy.linalg.cython_lapack``), so it uses the same BLAS as NumPy and SciPy and links none of its
 own. The library is compiled on first use like the renderer's kernels (:mod:`diffshade._native`).
@@ -58,14 +58,7 @@ def _library():
                 import scipy.linalg.cython_lapack as clapack
 
                 lib = ctypes.cdll.LoadLibrary(str(build_library("cholesky", [_SOURCE], libs=["-ldl"])))
-                names = [
-                    ("dgemm", cblas),
-                    ("dsyrk", cblas),
-                    ("dtrsm", cblas),
-                    ("dgemv", cblas),
-                    ("dtrsv", cblas),
-                    ("dpotrf", clapack),
-                ]
+                names = [("dgemm", cblas), ("dsyrk", cblas), ("dtrsm", cblas), ("dpotrf", clapack)]
                 table = (ctypes.c_void_p * len(names))(*(_function_pointer(m.__pyx_capi__, n) for n, m in names))
                 lib.diffshade_chol_set_blas(table)
                 lib.diffshade_chol_holds_threads.restype = ctypes.c_int
