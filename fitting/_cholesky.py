@@ -77,15 +77,20 @@ def _library():
     return _state["lib"]
 
 
-def available() -> bool:
-    """Whether the library builds and loads here."""
+def unavailable() -> str | None:
+    """Why the library does not build or load here (the compiler's error), or None where it does."""
     from diffshade._native import NativeUnavailable
 
     try:
         _library()
-    except NativeUnavailable:
-        return False
-    return True
+    except NativeUnavailable as exc:
+        return str(exc)
+    return None
+
+
+def available() -> bool:
+    """Whether the library builds and loads here."""
+    return unavailable() is None
 
 
 def _ptr(a: np.ndarray, kind):

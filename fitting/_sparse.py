@@ -38,21 +38,17 @@ def use_cholesky() -> bool:
     builds, unless ``DIFFSHADE_SPARSE=superlu`` (the benchmarks' baseline) says otherwise."""
     if os.environ.get("DIFFSHADE_SPARSE", "").lower() == "superlu":
         return False
-    from diffshade._native import NativeUnavailable
+    from ._cholesky import unavailable
 
-    from ._cholesky import _library
-
-    try:
-        _library()
-    except NativeUnavailable as exc:
+    why = unavailable()
+    if why is not None:
         warnings.warn(
             f"fitting's sparse Cholesky factorisation is unavailable, so large linear blocks take SuperLU "
-            f"(the same solutions, about three times slower): {exc}",
+            f"(the same solutions, about three times slower): {why}",
             RuntimeWarning,
             stacklevel=3,
         )
-        return False
-    return True
+    return why is None
 
 
 def _graph(M):
