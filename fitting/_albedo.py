@@ -266,18 +266,37 @@ class _Face:
     face holds some scalars :math:`K` of the base at their bounds and frees some :math:`J` outside
     it; its step solves the bordered system, whose border needs :math:`M_{BB}^{-1}` of one column
     per changed scalar (:math:`e_k`, :math:`M_{Bj}`), kept across steps: a face that differs from
-    the base by a few scalars costs a solve, not a factorisation."""
+    the base by a few scalars costs a solve, not a factorisation.
 
-    def __init__(self, sp, M, free, order=None):
+    Where the block has a symbolic analysis (``pattern``: a large block's, shared by its faces),
+    :math:`M_{BB}` is factorised as the whole block with the rows and columns of the scalars
+    outside :math:`B` set to the identity's: the same pattern, so no analysis of its own."""
+
+    def __init__(self, sp, M, free, order=None, pattern=None):
         self.M, self.base, self.cols, self.stacks = M, np.flatnonzero(free), {}, {}
         self.in_base = free.copy()
+        self.whole = pattern is not None
+        if self.whole:
+            d = 1 / np.sqrt(np.maximum(M.data[pattern.diag_at], 1e-300))
+            d[~free] = 1.0
+            out = ~free
+            data = M.data * d[M.indices] * d[pattern.col]
+            data[out[M.indices] | out[pattern.col]] = 0.0
+            data[pattern.diag_at[out]] = 1.0
+            self.d = d[self.base]
+            self.lu = Factor(sp.csc_matrix((data, M.indices, M.indptr), shape=M.shape), analysis=pattern.analysis)
+            return
         Mb = M[self.base][:, self.base]
         self.d = 1 / np.sqrt(np.maximum(Mb.diagonal(), 1e-300))
         self.lu = Factor((sp.diags(self.d) @ Mb @ sp.diags(self.d)).tocsc(), order)
 
     def _inv(self, r):
         d = self.d if r.ndim == 1 else self.d[:, None]
-        return d * self.lu.solve(np.asfortranarray(d * r))
+        if not self.whole:
+            return d * self.lu.solve(np.asfortranarray(d * r))
+        x = np.zeros((len(self.in_base),) + r.shape[1:])
+        x[self.base] = d * r
+        return d * self.lu.solve(x)[self.base]
 
     def covers(self, free) -> bool:
         """Whether the face ``free`` (a mask) differs from the base by at most :data:`CAPACITY`
@@ -339,11 +358,34 @@ class _Face:
         return s
 
 
+class _Pattern(NamedTuple):
+    """A large block's stored pattern (CSC): each entry's column, the diagonal's entries, and the
+    Cholesky factorisation's symbolic analysis of it."""
+
+    col: np.ndarray
+    diag_at: np.ndarray
+    analysis: object
+
+
+def _pattern(B, order, orders: Orderings) -> _Pattern | None:
+    """The block ``B``'s :class:`_Pattern`; ``None`` where it has no ordering, the Cholesky
+    factorisation is not used, or a diagonal entry is not stored."""
+    if order is None:
+        return None
+    col = np.repeat(np.arange(B.shape[0]), np.diff(B.indptr))
+    diag_at = np.flatnonzero(B.indices == col)
+    if len(diag_at) != B.shape[0] or not B.has_sorted_indices:
+        return None
+    analysis = orders.analysis(B, order)
+    return None if analysis is None else _Pattern(col, diag_at, analysis)
+
+
 class _Faces:
     """The faces of the box, one :class:`_Face` per connected block of :math:`M` over the seen
     scalars (the channels of a map or of vertex colours never meet in it; blocks under
     :data:`BLOCK` scalars share one), each on the block's own matrix: a block is factorised anew
-    only where its own face moved."""
+    only where its own face moved. A large block's faces share one symbolic analysis, as do the
+    blocks (the channels) of one pattern, under every ridge."""
 
     def __init__(self, sp, G, rho, seen, orders: Orderings):
         from scipy.sparse.csgraph import connected_components
@@ -355,15 +397,25 @@ class _Faces:
         comp = np.where(sizes[comp] >= BLOCK, comp, -1)
         self.groups = [idx[comp == k] for k in np.unique(comp)]
         self.blocks = [M[comp == k][:, comp == k].tocsc() for k in np.unique(comp)]
+        for B in self.blocks:
+            B.sort_indices()
         self.orders = [orders.of(B) for B in self.blocks]  # METIS's, for the large blocks (fitting._sparse)
+        self.patterns = in_threads(lambda k: _pattern(self.blocks[k], self.orders[k], orders), range(len(self.blocks)))
         self.sp, self.faces, self.rho = sp, [None] * len(self.groups), rho
 
     def with_ridge(self, rho) -> _Faces:
         """The same blocks under the ridge ``rho`` instead, no face factorised yet: only their
-        diagonals change, so the blocks, their orderings and the components are not taken again
-        (0.01 against 0.15 s for the three channels of a 256² map)."""
+        diagonals change, so the blocks, their orderings, analyses and the components are not
+        taken again (0.01 against 0.15 s for the three channels of a 256² map)."""
         new = copy.copy(self)
-        new.blocks = [(B + self.sp.diags(rho[g] - self.rho[g])).tocsc() for B, g in zip(self.blocks, self.groups)]
+        new.blocks = []
+        for B, g, pat in zip(self.blocks, self.groups, self.patterns):
+            if pat is None:
+                new.blocks.append((B + self.sp.diags(rho[g] - self.rho[g])).tocsc())
+                continue
+            B = B.copy()  # (the pattern kept: its analysis serves)
+            B.data[pat.diag_at] += rho[g] - self.rho[g]
+            new.blocks.append(B)
         new.faces, new.rho = [None] * len(self.groups), rho
         return new
 
@@ -376,9 +428,17 @@ class _Faces:
             for k, g in enumerate(self.groups)
             if free[g].any() and not (self.faces[k] is not None and self.faces[k].covers(free[g]))
         ]
-        order = {k: None if self.orders[k] is None else restrict(self.orders[k], free[self.groups[k]]) for k in new}
+        order = {
+            k: None
+            if self.orders[k] is None or self.patterns[k] is not None
+            else restrict(self.orders[k], free[self.groups[k]])
+            for k in new
+        }
         for k, face in zip(
-            new, in_threads(lambda k: _Face(self.sp, self.blocks[k], free[self.groups[k]], order[k]), new)
+            new,
+            in_threads(
+                lambda k: _Face(self.sp, self.blocks[k], free[self.groups[k]], order[k], self.patterns[k]), new
+            ),
         ):
             self.faces[k] = face
         active = [k for k, g in enumerate(self.groups) if free[g].any()]

@@ -63,8 +63,11 @@ def _library():
                 lib.diffshade_chol_set_blas(table)
                 lib.diffshade_chol_holds_threads.restype = ctypes.c_int
                 lib.diffshade_chol_blas_threads.restype = ctypes.c_int
-                lib.diffshade_chol_factor.restype = ctypes.c_void_p
-                lib.diffshade_chol_factor.argtypes = [ctypes.c_int64, _I64P, _I64P, _F64P, _I64P, _I64P]
+                lib.diffshade_chol_analyse.restype = ctypes.c_void_p
+                lib.diffshade_chol_analyse.argtypes = [ctypes.c_int64, _I64P, _I64P, _I64P, _I64P]
+                lib.diffshade_chol_analysis_free.argtypes = [ctypes.c_void_p]
+                lib.diffshade_chol_numeric.restype = ctypes.c_void_p
+                lib.diffshade_chol_numeric.argtypes = [ctypes.c_void_p, _I64P, _I64P, _F64P, _I64P]
                 lib.diffshade_chol_perm.argtypes = [ctypes.c_void_p, _I64P]
                 lib.diffshade_chol_stats.argtypes = [ctypes.c_void_p, _I64P]
                 lib.diffshade_chol_solve.restype = ctypes.c_int
@@ -97,19 +100,25 @@ def _ptr(a: np.ndarray, kind):
     return a.ctypes.data_as(kind)
 
 
-class Cholesky:
-    """:math:`M = P^T L L^T P` of a symmetric positive definite ``M`` (SciPy sparse, both
-    triangles stored), in the ordering ``order`` (a permutation of its rows: METIS's) composed with
-    a postorder. Raises :class:`NotPositiveDefinite` where a pivot is not positive (the caller
-    falls back to an LU), :class:`diffshade._native.NativeUnavailable` where the library is not."""
+def _pattern(M):
+    """``M`` (CSC) and its column pointers and row indices as the library reads them."""
+    M = M.tocsc()
+    return M, np.ascontiguousarray(M.indptr, np.int64), np.ascontiguousarray(M.indices, np.int64)
+
+
+class Analysis:
+    """The symbolic analysis of a symmetric sparsity pattern (``M``'s stored entries, both
+    triangles) in the ordering ``order`` (a permutation of its rows: METIS's) composed with a
+    postorder: the supernodes and their rows. Every matrix whose stored entries lie within the
+    pattern factorises by it (:class:`Cholesky`): a face of the box that holds some scalars at
+    their bounds, as the same matrix with those rows and columns set to the identity's, or the
+    same block under another ridge, takes no analysis of its own (a third of a factorisation's
+    time, measured on a channel of a 256² map)."""
 
     def __init__(self, M, order: np.ndarray):
         lib = _library()
-        M = M.tocsc()
+        M, indptr, indices = _pattern(M)
         n = M.shape[0]
-        indptr = np.ascontiguousarray(M.indptr, np.int64)
-        indices = np.ascontiguousarray(M.indices, np.int64)
-        data = np.ascontiguousarray(M.data, np.float64)
         order = np.ascontiguousarray(order, np.int64)
         seen = np.zeros(n, bool)
         if M.shape != (n, n) or order.shape != (n,) or (n and (order.min() < 0 or order.max() >= n)):
@@ -118,19 +127,55 @@ class Cholesky:
         if not seen.all():
             raise ValueError("the ordering repeats a row: it is not a permutation")
         status = np.zeros(1, np.int64)
-        handle = lib.diffshade_chol_factor(
-            n, _ptr(indptr, _I64P), _ptr(indices, _I64P), _ptr(data, _F64P), _ptr(order, _I64P), _ptr(status, _I64P)
+        handle = lib.diffshade_chol_analyse(
+            n, _ptr(indptr, _I64P), _ptr(indices, _I64P), _ptr(order, _I64P), _ptr(status, _I64P)
         )
         if not handle:
-            if status[0] == -1:
-                raise MemoryError("the sparse Cholesky factorisation ran out of memory")
-            raise NotPositiveDefinite(f"pivot {int(status[0])} of {n} is not positive")
+            raise MemoryError("the sparse Cholesky analysis ran out of memory")
         self._lib, self._handle, self.n = lib, handle, n
         self.perm = np.empty(n, np.int64)
         lib.diffshade_chol_perm(handle, _ptr(self.perm, _I64P))
         stats = np.empty(2, np.int64)
         lib.diffshade_chol_stats(handle, _ptr(stats, _I64P))
         self.stored, self.supernodes = int(stats[0]), int(stats[1])
+
+    def __del__(self):
+        handle, self._handle = getattr(self, "_handle", None), None
+        if handle:
+            self._lib.diffshade_chol_analysis_free(handle)
+
+
+class Cholesky:
+    """:math:`M = P^T L L^T P` of a symmetric positive definite ``M`` (SciPy sparse, both
+    triangles stored), by ``analysis`` (an :class:`Analysis` of a pattern that holds ``M``'s), or
+    by an analysis of its own in the ordering ``order``. Raises :class:`NotPositiveDefinite` where
+    a pivot is not positive (the caller falls back to an LU), :class:`ValueError` where ``M`` has
+    an entry outside the analysed pattern, :class:`diffshade._native.NativeUnavailable` where the
+    library is not."""
+
+    def __init__(self, M, order: np.ndarray | None = None, analysis: Analysis | None = None):
+        if analysis is None:
+            if order is None:
+                raise ValueError("a Cholesky factorisation needs an ordering or an analysis")
+            analysis = Analysis(M, order)
+        M, indptr, indices = _pattern(M)
+        n = analysis.n
+        if M.shape != (n, n):
+            raise ValueError(f"the matrix is {M.shape}; its analysis is of {n} × {n}")
+        data = np.ascontiguousarray(M.data, np.float64)
+        status = np.zeros(1, np.int64)
+        lib = analysis._lib
+        handle = lib.diffshade_chol_numeric(
+            analysis._handle, _ptr(indptr, _I64P), _ptr(indices, _I64P), _ptr(data, _F64P), _ptr(status, _I64P)
+        )
+        if not handle:
+            if status[0] == -1:
+                raise MemoryError("the sparse Cholesky factorisation ran out of memory")
+            if status[0] == -2:
+                raise ValueError("the matrix has an entry outside the pattern of its analysis")
+            raise NotPositiveDefinite(f"pivot {int(status[0])} of {n} is not positive")
+        self._lib, self._handle, self.n, self.analysis = lib, handle, n, analysis
+        self.perm, self.stored, self.supernodes = analysis.perm, analysis.stored, analysis.supernodes
 
     def __del__(self):
         handle, self._handle = getattr(self, "_handle", None), None

@@ -88,7 +88,7 @@ class MapProblem:
             E[j, off[k] : off[k + 1]] = 1.0
         E[len(self.maps) + np.arange(len(self.other)), self.other] = 1.0
         self.E = E
-        self._fn = None
+        self._fn, self._last = None, None
         self.orders = Orderings()
 
     # -- the compiled evaluation ----------------------------------------------------------------
@@ -160,16 +160,25 @@ class MapProblem:
             return prob.map_views(lambda vd, t, e: self._view(vd, t, e), data, th, E)
 
         args = (on_device(theta, prob.dtype), on_device(self.E, prob.dtype), prob.device_data())
-        self._fn, seconds = compiled(prob, "maps", evaluate, *args)
+        # (run once where only maps are free; once per Levenberg–Marquardt step where others are)
+        self._fn, seconds = compiled(prob, "maps", evaluate, *args, once=not len(self.other))
+        self._last = None
         self._drop = [np.zeros(vd.target.shape[0], bool) for vd in prob.data]
         self._drop = [self._coarse(o) for o in self._outputs(theta)]
         return seconds
 
     def _outputs(self, theta):
+        """The compiled evaluation's outputs at ``theta``, per view (the last kept: the compile's
+        own evaluation, which finds the pixels to leave out, is the fit's first)."""
+        theta = np.asarray(theta, np.float64)
+        if self._last is not None and np.array_equal(self._last[0], theta):
+            return self._last[1]
         out = self._fn(on_device(theta, self.prob.dtype), on_device(self.E, self.prob.dtype), self.prob.device_data())
         if not isinstance(out, list):  # (stacked views: split on the host; a JAX array's iteration compiles)
             out = np.asarray(out, np.float64)
-        return [np.asarray(o, np.float64) for o in out]
+        out = [np.asarray(o, np.float64) for o in out]
+        self._last = (theta.copy(), out)
+        return out
 
     def _coarse(self, o) -> np.ndarray:
         """The pixels that sample a trilinear map past level :data:`MAX_LOD`."""
@@ -269,11 +278,14 @@ class MapProblem:
         cls = ((g[:, 0] * d + g[:, 1] % d) * d + g[:, 2] % d) * 4 + g[:, 3]  # a block may hold several channels
         big = list(zip(cuts[:-1][sizes > DENSE_LIMIT], cuts[1:][sizes > DENSE_LIMIT]))
         ridged = [(Gs[a:b, a:b] + self.sp.identity(b - a) * INVERSE_RIDGE).tocsc() for a, b in big]
+        for M in ridged:
+            M.sort_indices()
         orders = [self.orders.of(M) for (a, b), M in zip(big, ridged)]
 
         def probed(k):  # a block's factorisation and its probes, in one thread (the solves release the GIL)
             a, b = big[k]
-            return _probed_inverse_diagonal(Factor(ridged[k], orders[k]), np.unique(cls[a:b], return_inverse=True)[1])
+            lu = Factor(ridged[k], orders[k], self.orders.analysis(ridged[k], orders[k]))  # (the fit's analysis, often)
+            return _probed_inverse_diagonal(lu, np.unique(cls[a:b], return_inverse=True)[1])
 
         for (a, b), diag in zip(big, in_threads(probed, range(len(big)))):
             inv[a:b] = diag

@@ -172,3 +172,52 @@ def test_a_library_that_does_not_build_is_said_and_superlu_serves(monkeypatch):
         assert _sparse.use_cholesky.__wrapped__() is False
     monkeypatch.setenv("DIFFSHADE_SPARSE", "superlu")
     assert _sparse.use_cholesky.__wrapped__() is False
+
+
+def test_one_analysis_serves_every_face_and_ridge_of_its_pattern():
+    """A face of the box (some scalars held: their rows and columns set to the identity's) and
+    the block under another ridge factorise by the whole block's analysis: the restricted
+    matrix's dense solve to 1e-12 on the free scalars, zero on the held ones; the analysis is
+    made once per pattern (Orderings.analysis), the same for an equal pattern."""
+    rng = np.random.default_rng(7)
+    M = _grid(40, rng)
+    M.sort_indices()
+    n = M.shape[0]
+    orders = _sparse.Orderings()
+    order = np.arange(n) if not _sparse.HAVE_METIS else _sparse.nested_dissection(_sparse._graph(M))
+    an = orders.analysis(M, order)
+    assert an is not None and orders.analysis(M.copy(), order) is an
+    col = np.repeat(np.arange(n), np.diff(M.indptr))
+    diag_at = np.flatnonzero(M.indices == col)
+    for held_share, ridge in ((0.0, 0.0), (0.05, 0.0), (0.3, 0.2), (0.9, 1.0)):
+        held = rng.random(n) < held_share
+        data = M.data.copy()
+        data[diag_at] += ridge
+        data[held[M.indices] | held[col]] = 0.0
+        data[diag_at[held]] = 1.0
+        face = sp.csc_matrix((data, M.indices, M.indptr), shape=M.shape)
+        c = _cholesky.Cholesky(face, analysis=an)
+        assert c.analysis is an and c.stored == an.stored
+        b = rng.normal(size=(n, 3))
+        b[held] = 0.0
+        keep = ~held
+        want = np.linalg.solve((M + ridge * sp.identity(n)).toarray()[np.ix_(keep, keep)], b[keep])
+        got = c.solve(b)
+        np.testing.assert_allclose(got[keep], want, rtol=0, atol=1e-12 * np.abs(want).max())
+        assert not got[held].any()
+
+
+def test_an_entry_outside_the_analysed_pattern_is_refused():
+    """A matrix with an entry the analysis did not see is refused (never a factor of a matrix
+    other than the one given); Factor with a fresh ordering still serves it."""
+    rng = np.random.default_rng(3)
+    M = _grid(12, rng, stencil=5)
+    n = M.shape[0]
+    an = _cholesky.Analysis(M, np.arange(n))
+    extra = M + sp.csc_matrix(([0.01, 0.01], ([0, n - 1], [n - 1, 0])), shape=M.shape)
+    with pytest.raises(ValueError, match="outside the pattern of its analysis"):
+        _cholesky.Cholesky(extra.tocsc(), analysis=an)
+    with pytest.raises(ValueError, match="is \\(5, 5\\); its analysis is of 144"):
+        _cholesky.Cholesky(_grid(5, rng)[:5, :5], analysis=an)
+    b = rng.normal(size=n)
+    np.testing.assert_allclose(_cholesky.Cholesky(extra, np.arange(n)).solve(b), np.linalg.solve(extra.toarray(), b))

@@ -298,6 +298,44 @@ def test_faces_under_another_ridge_solve_as_ones_built_for_it():
     np.testing.assert_array_equal(first.step(r, free), before)
 
 
+def test_a_large_blocks_faces_share_its_analysis_and_solve_on_the_face():
+    """A block past ORDERED scalars (a map channel's grid) and one of another pattern: their
+    faces factorise the whole block with the held scalars' rows and columns the identity's, by the
+    block's one symbolic analysis, also under another ridge; a step on a face, and on faces that
+    differ from it by a few scalars (the border solves), is SuperLU's solve of the face's own
+    system to 1e-9, zero on the held scalars."""
+    from scipy.sparse.linalg import splu
+
+    from fitting import _sparse
+    from fitting._albedo import _Faces
+
+    if not _sparse.use_cholesky() or not _sparse.HAVE_METIS:
+        pytest.skip("no Cholesky factorisation or METIS here")
+    rng = np.random.default_rng(6)
+    n = 105
+    T = sp.diags([-0.3, 1.0, -0.3], [-1, 0, 1], (n, n))
+    grid = sp.kron(T, T) + sp.diags(rng.uniform(0.01, 0.1, n * n))
+    G = sp.block_diag([grid, sp.kron(sp.identity(n), T) + sp.kron(T, sp.identity(n))]).tocsc()
+    N = G.shape[0]
+    seen = np.ones(N, bool)
+    faces = _Faces(sp, G, np.full(N, 1e-3), seen, Orderings())
+    assert [len(g) for g in faces.groups] == [n * n, n * n]
+    assert all(p is not None for p in faces.patterns) and faces.patterns[0].analysis is not faces.patterns[1].analysis
+    for faces in (faces, faces.with_ridge(np.full(N, 0.5))):
+        M = (G + sp.diags(faces.rho)).tocsc()
+        free = rng.uniform(size=N) < 0.85
+        for moved in (0, 7):
+            free = free.copy()
+            free[rng.choice(N, moved, replace=False)] ^= True
+            r = rng.normal(size=N)
+            s = faces.step(r, free)
+            F = np.flatnonzero(free)
+            want = splu(M[F][:, F].tocsc()).solve(r[F])
+            np.testing.assert_allclose(s[F], want, rtol=0, atol=1e-9 * np.abs(want).max())
+            assert not s[~free].any()
+        assert all(f.whole and f.lu.chol.analysis is p.analysis for f, p in zip(faces.faces, faces.patterns))
+
+
 def test_a_noise_free_bounded_solve_with_many_bounds_is_the_optimum():
     """A consistent problem (no noise: the conjugate-gradient path) whose columns are seen from
     strongly to barely (scales 1e-3 to 1) and a few of whose true values lie outside [0, 1]: the

@@ -186,7 +186,8 @@ def test_the_compiled_program_cache_keeps_only_the_most_recently_used(monkeypatc
 
 
 def test_the_compile_mode_follows_the_pixels_and_the_environment(monkeypatch):
-    """A fit of few pixels is compiled for a short compile, a larger one for speed; the mode is
+    """A fit of few pixels is compiled for a short compile, a larger one for speed, a program run
+    once (a map's design matrix) unoptimised unless speed is asked for; the mode is
     part of the program's key (a fit compiled in the other mode compiles again and agrees), and
     a bad ``$DIFFSHADE_COMPILE`` is named."""
     from fitting import _cache, fit
@@ -194,8 +195,11 @@ def test_the_compile_mode_follows_the_pixels_and_the_environment(monkeypatch):
     monkeypatch.delenv("DIFFSHADE_COMPILE", raising=False)
     n = _cache.FAST_COMPILE_PIXELS
     assert _cache.compile_mode(n) == "fast" and _cache.compile_mode(n + 1) == "optimised"
+    assert _cache.compile_mode(10, once=True) == "once" and _cache.compile_mode(n + 1, once=True) == "once"
+    monkeypatch.setenv("DIFFSHADE_COMPILE", "fast")
+    assert _cache.compile_mode(n + 1) == "fast" and _cache.compile_mode(10, once=True) == "once"
     monkeypatch.setenv("DIFFSHADE_COMPILE", "Optimised")
-    assert _cache.compile_mode(10) == "optimised"
+    assert _cache.compile_mode(10) == "optimised" and _cache.compile_mode(10, once=True) == "optimised"
     monkeypatch.setenv("DIFFSHADE_COMPILE", "quick")
     with pytest.raises(ValueError, match=r"\$DIFFSHADE_COMPILE must be one of auto, fast, optimised, got 'quick'"):
         _cache.compile_mode(10)

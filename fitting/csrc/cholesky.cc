@@ -108,14 +108,20 @@ struct Super {
   i64 rows() const { return ncols + nbelow; }
 };
 
-struct Factor {
+// The symbolic analysis: the ordering, the supernodes and their rows. Read-only once made, so
+// that the factorisations of every matrix of its pattern (or a part of it) share one.
+struct Symbolic {
   i64 n = 0;
   std::vector<i64> perm;  // new index -> the caller's index
   std::vector<Super> supers;
   std::vector<i64> rows;  // every supernode's rows below
-  std::unique_ptr<double[]> lx;  // every supernode's block (not zeroed here: Numeric zeroes each)
-  i64 lx_size = 0;
+  i64 lx_size = 0;        // L's stored entries
   i64 max_below = 0;
+};
+
+struct Factor {
+  std::shared_ptr<const Symbolic> sym;
+  std::unique_ptr<double[]> lx;  // every supernode's block, at its lx_at
 };
 
 // The caller's matrix M (CSC, both triangles) seen in an ordering: column k of P M Pᵀ is M's
@@ -193,7 +199,7 @@ bool Relax(i64 ncols, double zeros, double stored) {
 
 // The symbolic analysis: the ordering composed with a postorder (A is reordered), the supernodes
 // and their rows.
-void Analyse(Factor& f, i64 n, Permuted& A) {
+void Analyse(Symbolic& f, i64 n, Permuted& A) {
   std::vector<i64> parent = Etree(n, A);
   {
     const std::vector<i64> post = Postorder(n, parent);
@@ -316,13 +322,17 @@ void Analyse(Factor& f, i64 n, Permuted& A) {
     S.lx_at = at;
     at += S.rows() * S.ncols;
   }
-  f.lx.reset(new double[size_t(at)]);
   f.lx_size = at;
 }
 
-// The numeric factorisation: 0, or the (1-based) column whose pivot is not positive.
-i64 Numeric(Factor& f, const Permuted& A) {
+const i64 kOutside = -2;  // Numeric's status: an entry of the matrix outside the analysed pattern
+
+// The numeric factorisation of A (in the analysis's ordering) into F.lx: 0, the (1-based) column
+// whose pivot is not positive, or kOutside.
+i64 Numeric(Factor& F, const Permuted& A) {
+  const Symbolic& f = *F.sym;
   const i64 n = f.n;
+  F.lx.reset(new double[size_t(std::max<i64>(f.lx_size, 1))]);
   std::vector<i64> local(n, 0);  // row -> its place in the current front, past the supernode's columns
   struct Update {
     i64 super;
@@ -337,13 +347,20 @@ i64 Numeric(Factor& f, const Permuted& A) {
     const i64 nc = S.ncols, nb = S.nbelow, m = S.rows(), last = S.first + nc - 1;
     const i64* below = f.rows.data() + S.below_at;
     for (i64 q = 0; q < nb; ++q) local[below[q]] = nc + q;
-    double* L = f.lx.get() + S.lx_at;  // m × nc
+    double* L = F.lx.get() + S.lx_at;  // m × nc
     std::fill(L, L + m * nc, 0.0);
     for (i64 j = S.first; j <= last; ++j) {
       double* col = L + (j - S.first) * m;
       for (i64 p = A.begin(j); p < A.end(j); ++p) {
         const i64 r = A.row(p);
-        if (r >= j) col[r <= last ? r - S.first : local[r]] += A.val[p];
+        if (r < j) continue;
+        if (r <= last) {
+          col[r - S.first] += A.val[p];
+          continue;
+        }
+        const i64 q = local[r] - nc;  // (a row of another supernode's leaves a stale place)
+        if (q < 0 || q >= nb || below[q] != r) return kOutside;
+        col[nc + q] += A.val[p];
       }
     }
     // the children's update matrices (the last nchildren on the stack): their columns within the
@@ -437,18 +454,33 @@ int diffshade_chol_holds_threads() { return set_threads != nullptr; }
 // OpenBLAS's thread count now (-1 where its functions were not found).
 int diffshade_chol_blas_threads() { return get_threads ? get_threads() : -1; }
 
-// Factorise the symmetric n × n matrix (CSC, both triangles; only the entries on or below the
-// diagonal of the permuted matrix are read) in the ordering `order` (new -> old) composed with a
-// postorder. Returns the factor, or null with *status the failing column (1-based; -1: no memory).
-void* diffshade_chol_factor(i64 n, const i64* colptr, const i64* rowind, const double* val, const i64* order,
-                            i64* status) {
+// The symbolic analysis of the symmetric n × n pattern (CSC, both triangles; only the entries on
+// or below the diagonal of the permuted matrix are read) in the ordering `order` (new -> old)
+// composed with a postorder. Returns its handle, or null with *status -1 (no memory).
+void* diffshade_chol_analyse(i64 n, const i64* colptr, const i64* rowind, const i64* order, i64* status) {
+  *status = 0;
+  try {
+    std::shared_ptr<Symbolic> f(new Symbolic());
+    f->n = n;
+    Permuted A(n, colptr, rowind, nullptr, order);
+    Analyse(*f, n, A);
+    return new std::shared_ptr<const Symbolic>(std::move(f));
+  } catch (const std::bad_alloc&) {
+    *status = -1;
+    return nullptr;
+  }
+}
+
+// Factorise the symmetric matrix (CSC as the analysis's, its stored entries within the analysed
+// pattern) by the analysis `sym`. Returns the factor, or null with *status the failing column
+// (1-based), -1 (no memory) or -2 (an entry outside the analysed pattern).
+void* diffshade_chol_numeric(void* sym, const i64* colptr, const i64* rowind, const double* val, i64* status) {
   *status = 0;
   OneBlasThread single;
   try {
     std::unique_ptr<Factor> f(new Factor());
-    f->n = n;
-    Permuted A(n, colptr, rowind, val, order);
-    Analyse(*f, n, A);
+    f->sym = *static_cast<std::shared_ptr<const Symbolic>*>(sym);
+    Permuted A(f->sym->n, colptr, rowind, val, f->sym->perm.data());
     const i64 bad = Numeric(*f, A);
     if (bad != 0) {
       *status = bad;
@@ -461,24 +493,28 @@ void* diffshade_chol_factor(i64 n, const i64* colptr, const i64* rowind, const d
   }
 }
 
-// The final ordering (new -> the caller's index), n entries.
-void diffshade_chol_perm(void* h, i64* out) {
-  const Factor& f = *static_cast<Factor*>(h);
+// The analysis's final ordering (new -> the caller's index), n entries.
+void diffshade_chol_perm(void* sym, i64* out) {
+  const Symbolic& f = **static_cast<std::shared_ptr<const Symbolic>*>(sym);
   std::copy(f.perm.begin(), f.perm.end(), out);
 }
 
-// Stored entries of L (explicit zeros of the amalgamation included) and the number of supernodes.
-void diffshade_chol_stats(void* h, i64* out) {
-  const Factor& f = *static_cast<Factor*>(h);
+// The analysis's stored entries of L (explicit zeros of the amalgamation included) and its number
+// of supernodes.
+void diffshade_chol_stats(void* sym, i64* out) {
+  const Symbolic& f = **static_cast<std::shared_ptr<const Symbolic>*>(sym);
   out[0] = f.lx_size;
   out[1] = i64(f.supers.size());
 }
+
+void diffshade_chol_analysis_free(void* sym) { delete static_cast<std::shared_ptr<const Symbolic>*>(sym); }
 
 // Solve L Lᵀ x = b in place for k columns (x: n × k, row-major: a row's k values together, in the
 // final ordering). Small supernodes are solved by hand, row by row of k values; large ones through
 // BLAS on xᵀ (k × n, column-major). Returns 0, or -1 without memory.
 int diffshade_chol_solve(void* h, double* x, i64 k) {
-  const Factor& f = *static_cast<Factor*>(h);
+  const Factor& F = *static_cast<Factor*>(h);
+  const Symbolic& f = *F.sym;
   OneBlasThread single;
   std::vector<double> t;
   try {
@@ -492,7 +528,7 @@ int diffshade_chol_solve(void* h, double* x, i64 k) {
   // forward: L y = b
   for (const Super& S : f.supers) {
     const i64 nc = S.ncols, nb = S.nbelow, m = S.rows();
-    const double* L = f.lx.get() + S.lx_at;
+    const double* L = F.lx.get() + S.lx_at;
     const i64* below = f.rows.data() + S.below_at;
     double* xs = x + S.first * k;
     if (k == 1 || nc * m * k < kBlasSolve) {
@@ -534,7 +570,7 @@ int diffshade_chol_solve(void* h, double* x, i64 k) {
   for (i64 s = i64(f.supers.size()) - 1; s >= 0; --s) {
     const Super& S = f.supers[s];
     const i64 nc = S.ncols, nb = S.nbelow, m = S.rows();
-    const double* L = f.lx.get() + S.lx_at;
+    const double* L = F.lx.get() + S.lx_at;
     const i64* below = f.rows.data() + S.below_at;
     double* xs = x + S.first * k;
     if (k == 1 || nc * m * k < kBlasSolve) {
