@@ -436,9 +436,7 @@ class _Faces:
         }
         for k, face in zip(
             new,
-            in_threads(
-                lambda k: _Face(self.sp, self.blocks[k], free[self.groups[k]], order[k], self.patterns[k]), new
-            ),
+            in_threads(lambda k: _Face(self.sp, self.blocks[k], free[self.groups[k]], order[k], self.patterns[k]), new),
         ):
             self.faces[k] = face
         active = [k for k, g in enumerate(self.groups) if free[g].any()]

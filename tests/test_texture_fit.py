@@ -318,10 +318,10 @@ def test_a_large_blocks_faces_share_its_analysis_and_solve_on_the_face():
     G = sp.block_diag([grid, sp.kron(sp.identity(n), T) + sp.kron(T, sp.identity(n))]).tocsc()
     N = G.shape[0]
     seen = np.ones(N, bool)
-    faces = _Faces(sp, G, np.full(N, 1e-3), seen, Orderings())
-    assert [len(g) for g in faces.groups] == [n * n, n * n]
-    assert all(p is not None for p in faces.patterns) and faces.patterns[0].analysis is not faces.patterns[1].analysis
-    for faces in (faces, faces.with_ridge(np.full(N, 0.5))):
+    first = _Faces(sp, G, np.full(N, 1e-3), seen, Orderings())
+    assert [len(g) for g in first.groups] == [n * n, n * n]
+    assert all(p is not None for p in first.patterns) and first.patterns[0].analysis is not first.patterns[1].analysis
+    for faces in (first, first.with_ridge(np.full(N, 0.5))):
         M = (G + sp.diags(faces.rho)).tocsc()
         free = rng.uniform(size=N) < 0.85
         for moved in (0, 7):
