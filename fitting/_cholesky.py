@@ -2,7 +2,10 @@
 :class:`fitting._sparse.Factor`: the normal matrices of a texture map's channels.
 
 The factorisation is multifrontal over relaxed supernodes in the caller's fill-reducing ordering
-(METIS's nested dissection) composed with a postorder of the elimination tree. Its dense work
+(METIS's nested dissection) composed with a postorder of the elimination tree. The symbolic
+analysis (:class:`Analysis`: the ordering, the supernodes, their rows) is made once per pattern
+and serves every matrix whose entries lie within it (:class:`Cholesky`'s ``analysis``): the faces
+of the box a bounded solve visits, its ridges, and the standard errors' factorisation. Its dense work
 (POTRF, TRSM, SYRK per supernode; TRSM/GEMM per solve of several columns) calls SciPy's BLAS and LAPACK
 through the function pointers SciPy exports (``scipy.linalg.cython_blas``,
 ``scipy.linalg.cython_lapack``), so it uses the same BLAS as NumPy and SciPy and links none of its

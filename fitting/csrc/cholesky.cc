@@ -10,6 +10,8 @@
 //      subtree too;
 //   2. column counts from the row subtrees, fundamental supernodes, then relaxed amalgamation
 //      (a child merged into its parent where few explicit zeros result, as CHOLMOD's defaults);
+//      steps 1-2 are the symbolic analysis, made once per pattern and shared (read-only) by the
+//      factorisations of every matrix whose entries lie within it;
 //   3. for each supernode in postorder, its frontal matrix: the matrix's columns and the children's
 //      update matrices added in (extend-add), then POTRF on the diagonal block, TRSM below it and
 //      SYRK for the update matrix the parent takes;
