@@ -76,6 +76,8 @@ def _library():
                 lib.diffshade_chol_solve.restype = ctypes.c_int
                 lib.diffshade_chol_solve.argtypes = [ctypes.c_void_p, _F64P, ctypes.c_int64]
                 lib.diffshade_chol_free.argtypes = [ctypes.c_void_p]
+                lib.diffshade_chol_inverse_diagonal.restype = ctypes.c_int
+                lib.diffshade_chol_inverse_diagonal.argtypes = [ctypes.c_void_p, _F64P]
             except (OSError, AttributeError, KeyError, NativeUnavailable) as exc:
                 _state["error"] = str(exc)
                 raise NativeUnavailable(str(exc)) from exc
@@ -184,6 +186,20 @@ class Cholesky:
         handle, self._handle = getattr(self, "_handle", None), None
         if handle:
             self._lib.diffshade_chol_free(handle)
+
+    def inverse_diagonal(self) -> np.ndarray:
+        r""":math:`\mathrm{diag}(M^{-1})`, exactly, by selected inversion over the supernodes
+        (Takahashi's equations: the inverse on the factor's pattern, from the root down; about a
+        factorisation's work)."""
+        d = np.empty(self.n, np.float64)
+        status = self._lib.diffshade_chol_inverse_diagonal(self._handle, _ptr(d, _F64P)) if self.n else 0
+        if status == -1:
+            raise MemoryError("the selected inversion ran out of memory")
+        if status != 0:
+            raise RuntimeError(f"the selected inversion failed (status {status})")
+        out = np.empty(self.n, np.float64)
+        out[self.perm] = d
+        return out
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """``M⁻¹ b`` (a vector, or a matrix of columns)."""

@@ -19,12 +19,14 @@ is not determined either (the normal matrix is singular there: the variance infl
 is reported undetermined too. A smoothness prior (``albedo_smoothness``
 λ times the squared differences of 4-neighbouring texels) fills both from their neighbours.
 
-**Standard errors.** :math:`\mathrm{diag}(G^{-1})`, :math:`G = A^TA (+ \lambda L^TL)`, exactly
-(dense) for a connected block of up to 3000 texel scalars; beyond, by probing (Tang & Saad,
-2012): :math:`G^{-1}` is applied, through one sparse factorisation, to the indicator of each
-class of a colouring whose classes keep texels at least :data:`PROBE_DISTANCE` apart, and the
-diagonal read off; the error is the sum of the inverse's entries between same-class texels,
-which decays with their distance (measured in the randomised suite, benchmarks/bench_map_fit.py).
+**Standard errors.** :math:`\mathrm{diag}(G^{-1})`, :math:`G = A^TA (+ \lambda L^TL)`, exactly:
+dense for a connected block of up to 3000 texel scalars; beyond, by selected inversion over the
+block's sparse Cholesky factor (:meth:`fitting._cholesky.Cholesky.inverse_diagonal`: the inverse
+on the factor's pattern, about a factorisation's work). Where that factorisation is not available
+(SuperLU serves), by probing (Tang & Saad, 2012): :math:`G^{-1}` is applied to the indicator of
+each class of a colouring whose classes keep texels at least :data:`PROBE_DISTANCE` apart, and
+the diagonal read off; the error is the sum of the inverse's entries between same-class texels,
+which decays with their distance.
 """
 
 from __future__ import annotations
@@ -254,8 +256,9 @@ class MapProblem:
         return sp.csr_matrix((vals, (rows, e.reshape(-1))), shape=(m, self.n_alb))
 
     def inverse_diagonal(self, G, idx_det) -> np.ndarray:
-        r""":math:`\mathrm{diag}(G^{-1})` over the determined scalars: exact per connected block up
-        to :data:`DENSE_LIMIT`, by probing beyond (see the module). Blocks are taken from one
+        r""":math:`\mathrm{diag}(G^{-1})` over the determined scalars: dense per connected block up
+        to :data:`DENSE_LIMIT`, by selected inversion beyond (by probing where SuperLU factorises:
+        see the module). Blocks are taken from one
         permutation that makes each consecutive; small blocks of one size are inverted as one
         stack; a large block is factorised on its own (the channels of a colour map never meet in
         :math:`G`: three factorisations of a channel cost less than one of all three)."""
@@ -280,11 +283,15 @@ class MapProblem:
         ridged = [(Gs[a:b, a:b] + self.sp.identity(b - a) * INVERSE_RIDGE).tocsc() for a, b in big]
         for M in ridged:
             M.sort_indices()
-        orders = [self.orders.of(M) for (a, b), M in zip(big, ridged)]
+        # (every block past the dense limit in METIS's ordering: its Cholesky factor's selected
+        # inversion is exact, where probing SuperLU's factors is not)
+        orders = [self.orders.of(M, DENSE_LIMIT) for M in ridged]
 
-        def probed(k):  # a block's factorisation and its probes, in one thread (the solves release the GIL)
+        def probed(k):  # a block's factorisation and its diagonal, in one thread (they release the GIL)
             a, b = big[k]
             lu = Factor(ridged[k], orders[k], self.orders.analysis(ridged[k], orders[k]))  # (the fit's analysis, often)
+            if lu.chol is not None:
+                return lu.chol.inverse_diagonal()
             return _probed_inverse_diagonal(lu, np.unique(cls[a:b], return_inverse=True)[1])
 
         for (a, b), diag in zip(big, in_threads(probed, range(len(big)))):

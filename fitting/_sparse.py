@@ -115,9 +115,9 @@ class Orderings:
                 self._analyses[key] = Analysis(M, order)
             return self._analyses[key]
 
-    def of(self, M) -> np.ndarray | None:
-        """The ordering of the block ``M`` (symmetric); ``None`` below :data:`ORDERED` scalars."""
-        if M.shape[0] < ORDERED or not HAVE_METIS:
+    def of(self, M, smallest: int = ORDERED) -> np.ndarray | None:
+        """The ordering of the block ``M`` (symmetric); ``None`` below ``smallest`` scalars."""
+        if M.shape[0] < max(smallest, 2) or not HAVE_METIS:
             return None
         graph = _graph(M)
         key = _digest(graph.indptr, graph.indices)

@@ -194,26 +194,41 @@ def test_a_fine_map_is_recovered_where_the_views_determine_it():
         assert (np.sum(lu.solve(E) * E, axis=0) > 1e4).all()
 
 
-def test_the_inverse_diagonal_of_small_and_probed_blocks():
+@pytest.mark.parametrize("large", ["selected inversion", "probing"])
+def test_the_inverse_diagonal_of_small_and_large_blocks(large, monkeypatch):
     """diag(G⁻¹) of a block-diagonal G, its blocks in shuffled order: small blocks of several sizes
-    (inverted as stacks, one per size) exact; a chain of 3,500 scalars (beyond the dense limit,
-    probed) whose inverse decays tenfold per neighbour, to the probe's error at 8 texels."""
+    (inverted as stacks, one per size) exact; a chain of 3,500 scalars (beyond the dense limit)
+    whose inverse decays tenfold per neighbour, by the Cholesky factor's selected inversion, or
+    by probing where SuperLU factorises (to the probe's error at 8 texels); and, by selected
+    inversion only, a 60² grid whose inverse reaches far (probing gives 1.05-4.5× its diagonal):
+    exact to 1e-9."""
+    from fitting import _sparse
+
+    if large == "probing":
+        monkeypatch.setattr(_sparse, "use_cholesky", lambda: False)
+    elif not (_sparse.use_cholesky() and _sparse.HAVE_METIS):
+        pytest.skip("no Cholesky factorisation or METIS here")
     rng = np.random.default_rng(4)
     blocks = []
     for n in [1, 1, 2, 5, 5, 5, 7, 3500]:
         off = rng.uniform(-0.1, 0.1, n - 1) if n > 1 else np.zeros(0)
         B = sp.diags([off, rng.uniform(0.5, 2.0, n), off], [-1, 0, 1]) * rng.uniform(0.1, 10)
         blocks.append(B.toarray() if n < 100 else B)
+    place = [np.zeros(26, int), np.arange(3500)]  # a texel's place in its block's grid of 64 columns
+    if large == "selected inversion":
+        T = sp.diags([-0.5, 1.0, -0.5], [-1, 0, 1], (60, 60))
+        blocks.append((sp.kron(sp.identity(60), T) + sp.kron(T, sp.identity(60)) + 1e-3 * sp.identity(3600)).tocsc())
+        place.append(np.arange(3600) // 60 * 64 + np.arange(3600) % 60)
     G = sp.block_diag(blocks).tocsr()
     perm = rng.permutation(G.shape[0])
     G = G[perm][:, perm].tocsc()
     exact = np.concatenate([np.diag(np.linalg.inv(b.toarray() if sp.issparse(b) else b)) for b in blocks])[perm]
     i = np.arange(G.shape[0])
-    chain = np.concatenate([np.zeros(26, int), np.arange(3500)])[perm]  # a texel's place along its block
-    grid = np.stack([np.zeros_like(i), chain // 64, chain % 64, np.zeros_like(i)], -1)
+    spot = np.concatenate(place)[perm]
+    grid = np.stack([np.zeros_like(i), spot // 64, spot % 64, np.zeros_like(i)], -1)
     fake = types.SimpleNamespace(sp=sp, _grid=lambda: grid, orders=Orderings())
     got = MapProblem.inverse_diagonal(fake, G, i)
-    np.testing.assert_allclose(got, exact, rtol=1e-7)
+    np.testing.assert_allclose(got, exact, rtol=1e-9 if large == "selected inversion" else 1e-7)
 
 
 def test_the_nested_dissection_ordering_solves_as_superlus_own():

@@ -609,6 +609,90 @@ int diffshade_chol_solve(void* h, double* x, i64 k) {
   return 0;
 }
 
+// The diagonal of M⁻¹ (n entries, in the final ordering) by selected inversion (Takahashi's
+// equations over the supernodes, from the root down): for a supernode s with rows R below it and
+// Y = L_Rs L_ss⁻¹, Z_Rs = -Z_RR Y and Z_ss = L_ss⁻ᵀ L_ss⁻¹ - Yᵀ Z_Rs, where Z_RR, the inverse on R,
+// lies in the parent's front (R is within the parent's columns and rows). Each supernode with
+// children keeps its front (its Z on its columns and rows) until they are done. Returns 0, or -1
+// without memory.
+int diffshade_chol_inverse_diagonal(void* h, double* out) {
+  const Factor& F = *static_cast<Factor*>(h);
+  const Symbolic& f = *F.sym;
+  OneBlasThread single;
+  const char lo = 'L', no = 'N', tr = 'T', right = 'R', left = 'L';
+  const double one = 1.0, zero = 0.0, minus = -1.0;
+  struct Front {
+    i64 super;
+    std::vector<double> z;  // m × m, column-major, both triangles
+  };
+  try {
+    std::vector<Front> stack;
+    std::vector<double> y, zrr, zrs, w;
+    std::vector<i64> place;
+    for (i64 s = i64(f.supers.size()) - 1; s >= 0; --s) {
+      const Super& S = f.supers[s];
+      const i64 nc = S.ncols, nb = S.nbelow, m = S.rows();
+      const double* L = F.lx.get() + S.lx_at;
+      const i64* below = f.rows.data() + S.below_at;
+      while (!stack.empty() && stack.back().super != S.parent) stack.pop_back();
+      const int inc = int(nc), inm = int(m), inb = int(nb);
+      // W = L_ss⁻ᵀ L_ss⁻¹ (its lower triangle): L_ss⁻¹ by TRSM on the identity, then SYRK
+      std::vector<double> x(size_t(nc) * size_t(nc), 0.0);
+      for (i64 j = 0; j < nc; ++j) x[size_t(j) * size_t(nc) + size_t(j)] = 1.0;
+      blas.trsm(&left, &lo, &no, &no, &inc, &inc, &one, L, &inm, x.data(), &inc);
+      w.assign(size_t(nc) * size_t(nc), 0.0);
+      blas.syrk(&lo, &tr, &inc, &inc, &one, x.data(), &inc, &zero, w.data(), &inc);
+      if (nb > 0) {
+        if (stack.empty()) return -2;  // (a supernode with rows below has a parent, whose front is kept)
+        const Front& P = stack.back();
+        const Super& PS = f.supers[P.super];
+        const i64 pm = PS.rows(), plast = PS.first + PS.ncols - 1;
+        const i64* pbelow = f.rows.data() + PS.below_at;
+        place.resize(size_t(nb));
+        for (i64 q = 0; q < nb; ++q) {
+          const i64 r = below[q];
+          place[q] = r <= plast ? r - PS.first
+                                : PS.ncols + (std::lower_bound(pbelow, pbelow + PS.nbelow, r) - pbelow);
+        }
+        zrr.resize(size_t(nb) * size_t(nb));
+        for (i64 j = 0; j < nb; ++j) {
+          const double* src = P.z.data() + size_t(place[j]) * size_t(pm);
+          double* dst = zrr.data() + size_t(j) * size_t(nb);
+          for (i64 i = 0; i < nb; ++i) dst[i] = src[place[i]];
+        }
+        y.resize(size_t(nb) * size_t(nc));  // Y = L_Rs L_ss⁻¹
+        for (i64 j = 0; j < nc; ++j) std::memcpy(y.data() + size_t(j) * size_t(nb), L + j * m + nc, sizeof(double) * size_t(nb));
+        blas.trsm(&right, &lo, &no, &no, &inb, &inc, &one, L, &inm, y.data(), &inb);
+        zrs.resize(size_t(nb) * size_t(nc));  // Z_Rs = -Z_RR Y
+        blas.gemm(&no, &no, &inb, &inc, &inb, &minus, zrr.data(), &inb, y.data(), &inb, &zero, zrs.data(), &inb);
+        blas.gemm(&tr, &no, &inc, &inc, &inb, &minus, y.data(), &inb, zrs.data(), &inb, &one, w.data(), &inc);
+      }
+      for (i64 j = 0; j < nc; ++j) out[S.first + j] = w[size_t(j) * size_t(nc) + size_t(j)];
+      if (S.nchildren == 0) continue;
+      Front fr{s, std::vector<double>(size_t(m) * size_t(m))};
+      double* z = fr.z.data();
+      for (i64 j = 0; j < nc; ++j)
+        for (i64 i = j; i < nc; ++i) {
+          const double v = w[size_t(j) * size_t(nc) + size_t(i)];
+          z[size_t(j) * size_t(m) + size_t(i)] = v;
+          z[size_t(i) * size_t(m) + size_t(j)] = v;
+        }
+      for (i64 j = 0; j < nc; ++j)
+        for (i64 i = 0; i < nb; ++i) {
+          const double v = zrs[size_t(j) * size_t(nb) + size_t(i)];
+          z[size_t(j) * size_t(m) + size_t(nc + i)] = v;
+          z[size_t(nc + i) * size_t(m) + size_t(j)] = v;
+        }
+      for (i64 j = 0; j < nb; ++j)
+        std::memcpy(z + size_t(nc + j) * size_t(m) + size_t(nc), zrr.data() + size_t(j) * size_t(nb), sizeof(double) * size_t(nb));
+      stack.push_back(std::move(fr));
+    }
+  } catch (const std::bad_alloc&) {
+    return -1;
+  }
+  return 0;
+}
+
 void diffshade_chol_free(void* h) { delete static_cast<Factor*>(h); }
 
 }  // extern "C"
