@@ -217,3 +217,41 @@ direction = [1.0, -0.5, -1.0]
     seen = np.isfinite([doc["parameters"][f"mesh.colors[{v}][r]"]["stderr"] for v in range(truth.shape[0])])
     np.testing.assert_allclose(vals.reshape(-1, 3)[seen], truth[seen], atol=1e-6)
     np.testing.assert_allclose(np.asarray(fitted.colors)[seen], truth[seen], atol=0.01)  # 8-bit sRGB
+
+
+@pytest.mark.parametrize("exact", [True, False])
+def test_the_standard_errors_of_a_large_mesh_are_exact(exact, monkeypatch):
+    """Past 4,000 vertices a channel's diag(G⁻¹) is taken by the sparse Cholesky factor's selected
+    inversion: 64 of its entries, each by a sparse solve of its own, to 1e-9 (a mesh's normal matrix: each vertex coupled to its
+    neighbours through the pixels they share); without the factorisation, the diagonal
+    approximation 1/G_ii, which is below the exact variance."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    from fitting import _sparse
+    from fitting._albedo import _channel_inverse_diagonal
+
+    if not exact:
+        monkeypatch.setattr(_sparse, "use_cholesky", lambda: False)
+    elif not (_sparse.use_cholesky() and _sparse.HAVE_METIS):
+        pytest.skip("no Cholesky factorisation or METIS here")
+    rng = np.random.default_rng(8)
+    n = 70 * 70  # vertices
+    T = sp.diags([1.0, 1.0], [-1, 1], (70, 70))
+    pairs = sp.triu(sp.kron(sp.identity(70), T) + sp.kron(T, sp.identity(70)) + sp.kron(T, T)).tocoo()
+    rows = np.concatenate([np.arange(len(pairs.row))] * 2)
+    A = sp.csr_matrix((rng.uniform(0.2, 1.0, 2 * len(pairs.row)), (rows, np.r_[pairs.row, pairs.col])))
+    Gv = (A.T @ A).tocsc()  # one channel's
+    G = sp.kron(Gv, sp.identity(3)).tocsc()  # scalars 3v + c
+    idx = np.arange(3 * n)
+    got = _channel_inverse_diagonal(G, idx)
+    some = rng.choice(n, 64, replace=False)  # the reference: a sparse solve of those unit vectors
+    E = np.zeros((n, len(some)))
+    E[some, np.arange(len(some))] = 1.0
+    want = splu(Gv).solve(E)[some, np.arange(len(some))]
+    for c in range(3):
+        if exact:
+            np.testing.assert_allclose(got[c::3][some], want, rtol=1e-9)
+        else:
+            np.testing.assert_allclose(got[c::3], 1 / Gv.diagonal())
+            assert (got[c::3][some] < want).all()
