@@ -277,9 +277,9 @@ class _Face:
         self.in_base = free.copy()
         self.whole = pattern is not None
         if self.whole:
-            d = 1 / np.sqrt(np.maximum(M.data[pattern.diag_at], 1e-300))
-            d[~free] = 1.0
             out = ~free
+            d = 1 / np.sqrt(np.maximum(M.data[pattern.diag_at], 1e-300))
+            d[out] = 1.0
             data = M.data * d[M.indices] * d[pattern.col]
             data[out[M.indices] | out[pattern.col]] = 0.0
             data[pattern.diag_at[out]] = 1.0
@@ -367,7 +367,7 @@ class _Pattern(NamedTuple):
     analysis: object
 
 
-def _pattern(B, order, orders: Orderings) -> _Pattern | None:
+def _block_pattern(B, order, orders: Orderings) -> _Pattern | None:
     """The block ``B``'s :class:`_Pattern`; ``None`` where it has no ordering, the Cholesky
     factorisation is not used, or a diagonal entry is not stored."""
     if order is None:
@@ -400,7 +400,9 @@ class _Faces:
         for B in self.blocks:
             B.sort_indices()
         self.orders = [orders.of(B) for B in self.blocks]  # METIS's, for the large blocks (fitting._sparse)
-        self.patterns = in_threads(lambda k: _pattern(self.blocks[k], self.orders[k], orders), range(len(self.blocks)))
+        self.patterns = in_threads(
+            lambda k: _block_pattern(self.blocks[k], self.orders[k], orders), range(len(self.blocks))
+        )
         self.sp, self.faces, self.rho = sp, [None] * len(self.groups), rho
 
     def with_ridge(self, rho) -> _Faces:
@@ -836,24 +838,20 @@ def _channel_inverse_diagonal(G, idx_det) -> np.ndarray:
 
 def _selected_inverse_diagonal(Gc):
     """``diag(Gc⁻¹)`` of one channel's normal matrix by the sparse Cholesky factorisation's
-    selected inversion, in METIS's ordering, with a ridge of 1e-13 on its unit diagonal (a null
-    direction's variance is then ~1e13 times its scalars' own); ``None`` where the factorisation
-    or METIS is not available, or a pivot is not positive."""
-    from ._sparse import HAVE_METIS, Orderings, use_cholesky
+    selected inversion, in METIS's ordering, with :data:`fitting._sparse.INVERSE_RIDGE` on its
+    unit diagonal (a null direction's variance is then ~1e13 times its scalars' own); ``None``
+    where the factorisation or METIS is not available, or a pivot is not positive."""
+    from ._sparse import INVERSE_RIDGE, use_cholesky
 
-    if not (HAVE_METIS and use_cholesky()):
+    if not use_cholesky():
         return None
     import scipy.sparse as sp
 
-    from ._cholesky import Cholesky, NotPositiveDefinite
-
     d = 1 / np.sqrt(np.maximum(Gc.diagonal(), 1e-300))
-    M = (sp.diags(d) @ Gc @ sp.diags(d) + sp.identity(Gc.shape[0]) * 1e-13).tocsc()
+    M = (sp.diags(d) @ Gc @ sp.diags(d) + sp.identity(Gc.shape[0]) * INVERSE_RIDGE).tocsc()
     order = Orderings().of(M, smallest=0)
-    try:
-        return Cholesky(M, order).inverse_diagonal() * d**2
-    except NotPositiveDefinite:
-        return None
+    exact = Factor(M, order).inverse_diagonal() if order is not None else None
+    return None if exact is None else exact * d**2
 
 
 def _unseen_notes(ap, red: _Reduced, prior: bool, steps) -> tuple[list[str], list[str]]:

@@ -42,7 +42,7 @@ from . import _options
 from ._cache import compiled
 from ._params import LINEAR_MAPS, is_map
 from ._problem import FitError, Problem, censored, on_device, tangent_images
-from ._sparse import Factor, Orderings, in_threads
+from ._sparse import INVERSE_RIDGE, Factor, Orderings, in_threads
 
 PROBE_DISTANCE = 8  # texels between the texels of one probing class
 DENSE_LIMIT = 3000  # a connected block up to this many scalars is inverted exactly
@@ -290,9 +290,12 @@ class MapProblem:
         def probed(k):  # a block's factorisation and its diagonal, in one thread (they release the GIL)
             a, b = big[k]
             lu = Factor(ridged[k], orders[k], self.orders.analysis(ridged[k], orders[k]))  # (the fit's analysis, often)
-            if lu.chol is not None:
-                return lu.chol.inverse_diagonal()
-            return _probed_inverse_diagonal(lu, np.unique(cls[a:b], return_inverse=True)[1])
+            exact = lu.inverse_diagonal()
+            return (
+                exact
+                if exact is not None
+                else _probed_inverse_diagonal(lu, np.unique(cls[a:b], return_inverse=True)[1])
+            )
 
         for (a, b), diag in zip(big, in_threads(probed, range(len(big)))):
             inv[a:b] = diag
@@ -350,9 +353,6 @@ class MapProblem:
             f"{steps} LM steps on the {len(self.other)} other scalar(s)"
         )
         return undetermined, notes
-
-
-INVERSE_RIDGE = 1e-13  # added to the unit diagonal of a block's normal matrix before its inverse's diagonal is taken
 
 
 def _stacked_inverse_diagonal(Gs, first, size: int) -> np.ndarray:

@@ -31,6 +31,7 @@ except ImportError:
     HAVE_METIS = False
 
 MAX_THREADS = 16  # blocks factorised or solved at once (in_threads)
+INVERSE_RIDGE = 1e-13  # added to a unit-diagonal normal matrix before its inverse's diagonal is taken
 ORDERED = 10000  # scalars from which a block is factorised in METIS's nested-dissection ordering
 
 
@@ -153,6 +154,11 @@ class Factor:
         else:
             M, spec = M[order][:, order].tocsc(), "NATURAL"
         self.lu = splu(M, permc_spec=spec, diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+
+    def inverse_diagonal(self) -> np.ndarray | None:
+        r""":math:`\mathrm{diag}(M^{-1})`, exactly, where the Cholesky factorisation serves (its
+        selected inversion); ``None`` where SuperLU does."""
+        return None if self.chol is None else self.chol.inverse_diagonal()
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """``M⁻¹ b`` (a vector, or a matrix of columns)."""
