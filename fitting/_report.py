@@ -233,7 +233,7 @@ def noise_level(prob, res_images, noise=None, used=None, leverage: float = 1.0) 
         return float(noise), "given"
     from ._noise import target_noise
 
-    used = prob.used_masks() if used is None else used
+    given, used = used, prob.used_masks() if used is None else used
     sw, _, rms = white_noise(res_images, used, prob.quantum)
     lev = ""
     if leverage < 1.0:
@@ -249,7 +249,7 @@ def noise_level(prob, res_images, noise=None, used=None, leverage: float = 1.0) 
         ]
     else:
         cands = [(sw, f"white part of the residual{lev}")]
-    own = target_noise(prob, used)
+    own = target_noise(prob, given)  # (None: the problem's own used entries, whose estimate it keeps)
     if own is not None and own[0] < cands[0][0]:
         cands = [
             (

@@ -120,11 +120,14 @@ class Orderings:
         """The ordering of the block ``M`` (symmetric); ``None`` below ``smallest`` scalars."""
         if M.shape[0] < max(smallest, 2) or not HAVE_METIS:
             return None
-        graph = _graph(M)
-        key = _digest(graph.indptr, graph.indices)
-        if key not in self._orders:
-            self._orders[key] = nested_dissection(graph)
-        return self._orders[key]
+        stored = _digest(M.indptr, M.indices)  # (a stored pattern met before: its graph is not built again)
+        if stored not in self._orders:
+            graph = _graph(M)
+            key = _digest(graph.indptr, graph.indices)
+            if key not in self._orders:
+                self._orders[key] = nested_dissection(graph)
+            self._orders[stored] = self._orders[key]
+        return self._orders[stored]
 
 
 class Factor:
