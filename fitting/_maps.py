@@ -40,9 +40,9 @@ import diffshade as ds
 
 from . import _options
 from ._cache import compiled
+from ._noise import target_noise
 from ._params import LINEAR_MAPS, is_map
 from ._problem import FitError, Problem, censored, on_device, tangent_images
-from ._noise import target_noise
 from ._sparse import INVERSE_RIDGE, Factor, Orderings, in_threads, use_cholesky
 
 PROBE_DISTANCE = 8  # texels between the texels of one probing class
