@@ -483,7 +483,7 @@ class _AlbedoSolver:
     def __init__(self, ap: AlbedoProblem, smoothness, rtol, verbose):
         pset = ap.prob.pset
         self.ap, self.rtol, self.verbose = ap, rtol, verbose
-        self._gram = self._rhs = None
+        self._gram = None
         self.unsettled = None  # (share of the cost the last step lowered it by, what ran out), where the steps ran out
         self.y = ap.target()
         self.Lp = ap.prior() if smoothness > 0 else None
@@ -500,13 +500,8 @@ class _AlbedoSolver:
         return self._gram[1]
 
     def grad(self, x, A, b):
-        r"""The gradient :math:`G x - A^T(y - b)`, through the normal matrix (a third of the
-        stored entries of :math:`A` and :math:`A^T` for a map seen by four views), its rounding
-        that of :math:`A^T(Ax + b - y)`: both are the small difference of terms of the size of
-        :math:`A^T y`."""
-        if self._rhs is None or self._rhs[0] is not A or self._rhs[1] is not b:
-            self._rhs = (A, b, np.asarray(A.T @ (self.y - b)))
-        return self.gram(A) @ x - self._rhs[2]
+        g = A.T @ (A @ x + b - self.y)
+        return g + (self.Lp.T @ (self.Lp @ x) if self.Lp is not None else 0.0)
 
     def data(self, z, A, b) -> float:
         """Half the block's squared residual, the prior's included."""
@@ -735,8 +730,8 @@ class _AlbedoSolver:
         x, r, A, Jo, seen, img, free, solve = self.solve_x(theta, theta[ap.sl])
         th = theta.copy()
         th[ap.sl] = x
-        Af = A[:, free]
         if Jo.shape[1] and free.any():
+            Af = A[:, free]
             AtJ = np.asarray(Af.T @ Jo)
             Jr = Jo - Af @ np.column_stack([solve(AtJ[:, j]) for j in range(Jo.shape[1])])
         else:

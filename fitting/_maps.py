@@ -204,31 +204,28 @@ class MapProblem:
     def evaluate(self, theta):
         """``(img [M], A (sparse, M × texels), J_o [M, n_o], w [M])`` at ``theta`` (natural), as
         :meth:`fitting._albedo.AlbedoProblem.evaluate`."""
-        sp = self.sp
         n_maps = len(self.maps)
-        imgs, blocks, Jo, ws = [], [], [], []
+        imgs, entries, Jo, ws = [], [], [], []
+        first = 0  # the view's first row of A
         for k, (vd, o) in enumerate(zip(self.prob.data, self._outputs(theta))):
             img, S, To, uvl = o[0], o[1 : 1 + n_maps], o[1 + n_maps : -n_maps], o[-n_maps:]
             w = self._weights(k, vd)  # [N, 3]
             n = img.shape[0]
-            row = []
             for j, (tex, shape) in enumerate(zip(self.textures, self.shapes)):
                 W = ds.sample_weights(tex, uvl[j, :, 0], uvl[j, :, 1], uvl[j, :, 2]).tocoo()
                 ch = shape[2]
                 for c in range(3):
                     val = W.data * S[j, W.row, c] * w[W.row, c]
                     keep = val != 0
-                    cols = W.col[keep] * ch + (c if ch == 3 else 0)
-                    row.append(
-                        sp.csr_matrix(
-                            (val[keep], (W.row[keep] * 3 + c, cols + self.starts[j])), shape=(3 * n, self.n_alb)
-                        )
-                    )
-            blocks.append(sum(row[1:], row[0]))
+                    cols = W.col[keep] * ch + (c if ch == 3 else 0) + self.starts[j]
+                    entries.append((val[keep], first + W.row[keep] * 3 + c, cols))
+            first += 3 * n
             Jo.append((To * w).reshape(len(self.other), 3 * n).T)
             imgs.append(img.reshape(-1))
             ws.append(w.reshape(-1))
-        A = sp.vstack(blocks, format="csr")
+        # one conversion of every view's entries (a texel two taps of a pixel share: summed)
+        val, rows, cols = (np.concatenate(e) for e in zip(*entries))
+        A = self.sp.csr_matrix((val, (rows, cols)), shape=(first, self.n_alb))
         A.sum_duplicates()
         return np.concatenate(imgs), A, np.concatenate(Jo), np.concatenate(ws)
 
@@ -273,7 +270,8 @@ class MapProblem:
         from scipy.sparse.csgraph import connected_components
 
         dg = np.sqrt(np.maximum(G.diagonal(), 1e-300))
-        G = (self.sp.diags(1 / dg) @ G @ self.sp.diags(1 / dg)).tocsc()  # unit diagonal: the inflation is the inverse's
+        G = G.tocsc(copy=True)  # scaled to a unit diagonal, in place: the inflation is the inverse's
+        G.data *= (1 / dg)[G.indices] * np.repeat(1 / dg, np.diff(G.indptr))
         _, comp = connected_components(G, directed=False)
         order = np.argsort(comp, kind="stable")
         cuts = np.concatenate([[0], np.flatnonzero(np.diff(comp[order])) + 1, [len(order)]])
@@ -284,9 +282,6 @@ class MapProblem:
             first = cuts[:-1][sizes == size]
             at = (first[:, None] + np.arange(size)).ravel()
             inv[at] = _stacked_inverse_diagonal(Gs, first, int(size))
-        g = self._grid()[idx_det[order]]
-        d = PROBE_DISTANCE
-        cls = ((g[:, 0] * d + g[:, 1] % d) * d + g[:, 2] % d) * 4 + g[:, 3]  # a block may hold several channels
         big = list(zip(cuts[:-1][sizes > DENSE_LIMIT], cuts[1:][sizes > DENSE_LIMIT]))
         ridged = [(Gs[a:b, a:b] + self.sp.identity(b - a) * INVERSE_RIDGE).tocsc() for a, b in big]
         for M in ridged:
@@ -299,11 +294,11 @@ class MapProblem:
             a, b = big[k]
             lu = Factor(ridged[k], orders[k], self.orders.analysis(ridged[k], orders[k]))  # (the fit's analysis, often)
             exact = lu.inverse_diagonal()
-            return (
-                exact
-                if exact is not None
-                else _probed_inverse_diagonal(lu, np.unique(cls[a:b], return_inverse=True)[1])
-            )
+            if exact is not None:
+                return exact
+            g, d = self._grid()[idx_det[order[a:b]]], PROBE_DISTANCE
+            cls = ((g[:, 0] * d + g[:, 1] % d) * d + g[:, 2] % d) * 4 + g[:, 3]  # a block may hold several channels
+            return _probed_inverse_diagonal(lu, np.unique(cls, return_inverse=True)[1])
 
         for (a, b), diag in zip(big, in_threads(probed, range(len(big)))):
             inv[a:b] = diag

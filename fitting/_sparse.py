@@ -84,7 +84,17 @@ def restrict(order: np.ndarray, keep: np.ndarray) -> np.ndarray:
 
 
 def _digest(*arrays) -> bytes:
-    return hashlib.blake2b(b"".join(np.ascontiguousarray(a, np.int64).tobytes() for a in arrays)).digest()
+    """A digest of integer arrays' values, whatever their integer type (32-bit where they fit:
+    SciPy's indices mostly are, and hashed in place they cost no copy)."""
+    h = hashlib.blake2b()
+    for a in arrays:
+        a = np.asarray(a)
+        if a.dtype != np.int32:
+            a = a.astype(np.int32) if not a.size or (a.min() >= -(2**31) and a.max() < 2**31) else a.astype(np.int64)
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape};".encode())
+        h.update(memoryview(a).cast("B"))
+    return h.digest()
 
 
 class Orderings:
