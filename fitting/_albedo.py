@@ -483,7 +483,7 @@ class _AlbedoSolver:
     def __init__(self, ap: AlbedoProblem, smoothness, rtol, verbose):
         pset = ap.prob.pset
         self.ap, self.rtol, self.verbose = ap, rtol, verbose
-        self._gram = None
+        self._gram = self._residual = None
         self.unsettled = None  # (share of the cost the last step lowered it by, what ran out), where the steps ran out
         self.y = ap.target()
         self.Lp = ap.prior() if smoothness > 0 else None
@@ -499,13 +499,23 @@ class _AlbedoSolver:
             self._gram = (A, (G + self.Lp.T @ self.Lp if self.Lp is not None else G).tocsc())
         return self._gram[1]
 
+    def residual(self, z, A, b):
+        """``A z + b - y``, the last one kept: a point's cost and then its gradient take one
+        product with A, not two (the same rounding)."""
+        last = self._residual
+        if last is not None and last[0] is A and last[1] is b and np.array_equal(last[2], z):
+            return last[3]
+        r = A @ z + b - self.y
+        self._residual = (A, b, z.copy(), r)
+        return r
+
     def grad(self, x, A, b):
-        g = A.T @ (A @ x + b - self.y)
+        g = A.T @ self.residual(x, A, b)
         return g + (self.Lp.T @ (self.Lp @ x) if self.Lp is not None else 0.0)
 
     def data(self, z, A, b) -> float:
         """Half the block's squared residual, the prior's included."""
-        r = A @ z + b - self.y
+        r = self.residual(z, A, b)
         return 0.5 * (float(r @ r) + (float(np.sum((self.Lp @ z) ** 2)) if self.Lp is not None else 0.0))
 
     def bounded(self, x, A, b, seen):

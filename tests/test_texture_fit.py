@@ -285,7 +285,8 @@ def test_the_bounded_solve_is_the_bounded_least_squares_optimum():
         A = sp.random(300, 80, density=0.05, random_state=rng, format="csr") + sp.eye(300, 80, format="csr")
         y = A @ rng.uniform(-0.5, 1.5, 80) + rng.normal(0, 0.05, 300)
         solver = _AlbedoSolver.__new__(_AlbedoSolver)
-        solver.ap, solver.Lp, solver.y, solver._gram = types.SimpleNamespace(sp=sp, orders=Orderings()), None, y, None
+        solver.ap, solver.Lp, solver.y = types.SimpleNamespace(sp=sp, orders=Orderings()), None, y
+        solver._gram = solver._residual = None
         seen = np.ones(80, bool)
         x, free, _ = solver.bounded(np.full(80, 0.5), A, np.zeros(300), seen)
         ref = lsq_linear(A.toarray(), y, bounds=(0, 1), method="bvls", tol=1e-14).x
@@ -375,7 +376,8 @@ def test_a_noise_free_bounded_solve_with_many_bounds_is_the_optimum():
         truth[rng.choice(n, 8, replace=False)] = rng.choice([-0.3, 1.3], 8)
         y = A @ truth
         solver = _AlbedoSolver.__new__(_AlbedoSolver)
-        solver.ap, solver.Lp, solver.y, solver._gram = types.SimpleNamespace(sp=sp, orders=Orderings()), None, y, None
+        solver.ap, solver.Lp, solver.y = types.SimpleNamespace(sp=sp, orders=Orderings()), None, y
+        solver._gram = solver._residual = None
         x, free, _ = solver.bounded(np.full(n, 0.5), A, np.zeros(m), np.ones(n, bool))
         ref = lsq_linear(A.toarray(), y, bounds=(0, 1), method="bvls", tol=1e-14).x
         assert ((ref <= 0) | (ref >= 1)).sum() > 40
