@@ -55,7 +55,7 @@ from ._report import (
     uncertainty,
     verdict,
 )
-from ._sparse import Factor, Orderings, in_threads, restrict
+from ._sparse import Factor, Orderings, in_threads, restrict, scaled
 
 
 def vertex_colouring(faces: np.ndarray, n_vertices: int) -> np.ndarray:
@@ -288,7 +288,7 @@ class _Face:
             return
         Mb = M[self.base][:, self.base]
         self.d = 1 / np.sqrt(np.maximum(Mb.diagonal(), 1e-300))
-        self.lu = Factor((sp.diags(self.d) @ Mb @ sp.diags(self.d)).tocsc(), order)
+        self.lu = Factor(scaled(Mb, self.d), order)
 
     def _inv(self, r):
         d = self.d if r.ndim == 1 else self.d[:, None]
@@ -858,7 +858,7 @@ def _selected_inverse_diagonal(Gc):
     import scipy.sparse as sp
 
     d = 1 / np.sqrt(np.maximum(Gc.diagonal(), 1e-300))
-    M = (sp.diags(d) @ Gc @ sp.diags(d) + sp.identity(Gc.shape[0]) * INVERSE_RIDGE).tocsc()
+    M = (scaled(Gc, d) + sp.identity(Gc.shape[0]) * INVERSE_RIDGE).tocsc()
     order = Orderings().of(M, smallest=0)
     exact = Factor(M, order).inverse_diagonal() if order is not None else None
     return None if exact is None else exact * d**2

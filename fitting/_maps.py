@@ -43,7 +43,7 @@ from ._cache import compiled
 from ._noise import target_noise
 from ._params import LINEAR_MAPS, is_map
 from ._problem import FitError, Problem, censored, on_device, tangent_images
-from ._sparse import INVERSE_RIDGE, Factor, Orderings, in_threads, use_cholesky
+from ._sparse import INVERSE_RIDGE, Factor, Orderings, in_threads, scaled, use_cholesky
 
 PROBE_DISTANCE = 8  # texels between the texels of one probing class
 DENSE_LIMIT = 3000  # a connected block up to this many scalars is inverted exactly
@@ -172,8 +172,8 @@ class MapProblem:
 
     def _prepare(self):
         """What the fit needs later and need not wait for the program: the targets' own noise
-        (the verdict's) and the sparse factorisation's library (0.1 and 0.2 s, beside XLA's
-        compile)."""
+        (the verdict's) and the sparse factorisation's library (0.14-0.17 s together, beside
+        XLA's compile)."""
         target_noise(self.prob)
         use_cholesky()
 
@@ -270,8 +270,7 @@ class MapProblem:
         from scipy.sparse.csgraph import connected_components
 
         dg = np.sqrt(np.maximum(G.diagonal(), 1e-300))
-        G = G.tocsc(copy=True)  # scaled to a unit diagonal, in place: the inflation is the inverse's
-        G.data *= (1 / dg)[G.indices] * np.repeat(1 / dg, np.diff(G.indptr))
+        G = scaled(G, 1 / dg)  # unit diagonal: the inflation is the inverse's
         _, comp = connected_components(G, directed=False)
         order = np.argsort(comp, kind="stable")
         cuts = np.concatenate([[0], np.flatnonzero(np.diff(comp[order])) + 1, [len(order)]])

@@ -65,6 +65,14 @@ def _graph(M):
     return graph
 
 
+def scaled(M, d):
+    """``diag(d) M diag(d)`` (CSC), as the two sparse products round it, made by scaling a copy's
+    entries: ``(d_i M_ij) d_j``."""
+    M = M.tocsc(copy=True)
+    M.data = d[M.indices] * M.data * np.repeat(d, np.diff(M.indptr))
+    return M
+
+
 def nested_dissection(graph) -> np.ndarray:
     """METIS's nested-dissection ordering of ``graph`` (CSR, symmetric, no diagonal): a
     permutation of its vertices."""
