@@ -214,7 +214,7 @@ def test_maps_kept_between_calls_follow_every_texel():
     and to the bit as at their first call when they are kept (later calls, in an order that finds
     some kept and some dropped: five sets of maps, more than are kept)."""
     rng = np.random.default_rng(9)
-    diffuse = rng.uniform(0.2, 0.9, (160, 192, 3))  # (and 128² pixels: packed and shaded in threads)
+    diffuse = rng.uniform(0.2, 0.9, (161, 193, 3))  # (and 128² pixels: packed and shaded in threads; odd sizes)
     specular = rng.uniform(0.2, 0.9, (16, 12, 1))
     maps = {"diffuse": ds.Texture(diffuse), "specular": ds.Texture(specular)}
     scene, opts = _textured("phong", size=128, maps=maps)
