@@ -55,7 +55,7 @@ from ._report import (
     uncertainty,
     verdict,
 )
-from ._sparse import Factor, Orderings, in_threads, restrict, scaled
+from ._sparse import Factor, Orderings, in_threads, one_blas_thread, restrict, scaled
 
 
 def vertex_colouring(faces: np.ndarray, n_vertices: int) -> np.ndarray:
@@ -1057,13 +1057,19 @@ def fit_albedo(
 
 def fit_block(ap, theta0, *, max_steps: int = 50, rtol: float = 1e-10, noise=None, verbose: bool = False) -> FitResult:
     """Variable projection over the sparse linear block ``ap`` and the other free parameters."""
-    prob, smoothness = ap.prob, ap.smoothness
-    pset = prob.pset
+    pset = ap.prob.pset
     theta = pset.theta_from_u_np(pset.u_from_theta_np(theta0))  # inside the domain
     theta[ap.sl] = np.clip(np.asarray(theta0, np.float64)[ap.sl], 0.0, 1.0)
     compile_s = ap._compile(theta)
+    with one_blas_thread():  # (the host's dense work small: BLAS's own threads would take the cores)
+        return _fit_block_on_host(ap, theta, theta0, compile_s, max_steps, rtol, noise, verbose)
+
+
+def _fit_block_on_host(ap, theta, theta0, compile_s, max_steps, rtol, noise, verbose) -> FitResult:
+    """:func:`fit_block` once the block's program is compiled: the solve and its report."""
+    prob = ap.prob
     t0 = time.perf_counter()
-    solver = _AlbedoSolver(ap, smoothness, rtol, verbose)
+    solver = _AlbedoSolver(ap, ap.smoothness, rtol, verbose)
     notes = [ap.intro()]
     red, steps, converged = solver.lm(theta, max_steps)
     if prob.encoded:  # residuals in code values, exactly at the model (see Problem.relinearise)
