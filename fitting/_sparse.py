@@ -139,13 +139,16 @@ class Orderings:
         if M.shape[0] < max(smallest, 2) or not HAVE_METIS:
             return None
         stored = _digest(M.indptr, M.indices)  # (a stored pattern met before: its graph is not built again)
-        if stored not in self._orders:
-            graph = _graph(M)
-            key = _digest(graph.indptr, graph.indices)
-            if key not in self._orders:
-                self._orders[key] = nested_dissection(graph)
-            self._orders[stored] = self._orders[key]
-        return self._orders[stored]
+        with self._lock:
+            lock = self._locks.setdefault(stored, threading.Lock())
+        with lock:  # (one ordering per pattern where threads ask at once: the standard errors' beside the solve's)
+            if stored not in self._orders:
+                graph = _graph(M)
+                key = _digest(graph.indptr, graph.indices)
+                if key not in self._orders:
+                    self._orders[key] = nested_dissection(graph)
+                self._orders[stored] = self._orders[key]
+            return self._orders[stored]
 
 
 class Factor:
