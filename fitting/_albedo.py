@@ -821,7 +821,7 @@ class _Beside:
         self.A, self.idx = A, idx_det
         G = solver.gram(A)[idx_det][:, idx_det]
         pool = ThreadPoolExecutor(1, thread_name_prefix="diffshade-beside")
-        self.future = pool.submit(solver.ap.inverse_diagonal, G, idx_det)
+        self.future = pool.submit(_yielding, solver.ap.inverse_diagonal, G, idx_det)
         pool.shutdown(wait=False)
 
     def serves(self, A, idx_det) -> bool:
@@ -829,6 +829,19 @@ class _Beside:
 
     def result(self) -> np.ndarray:
         return self.future.result()
+
+
+def _yielding(fn, *args):
+    """``fn(*args)`` in this thread at the lowest priority (and the threads it starts: Linux's
+    threads inherit it), so that it takes the cores only where the solve leaves them idle."""
+    import os
+    import threading
+
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+    except (AttributeError, OSError):  # (no per-thread priority here: an ordinary thread)
+        pass
+    return fn(*args)
 
 
 def block_stderr(ap, solver: _AlbedoSolver, red: _Reduced, s2_eff) -> np.ndarray:
