@@ -553,6 +553,8 @@ class _AlbedoSolver:
         dof = max(int(np.count_nonzero(np.diff(A.tocsr().indptr))) - n_seen, 1)
         rho = RIDGE * info
         face, start, free = _Faces(self.ap.sp, G, rho, seen, self.ap.orders), x.copy(), None
+        if not len(self.ap.other) and not self.ap.prob.encoded and self._beside is None:  # (its orderings made)
+            self._beside = _Beside(self, A, np.flatnonzero(seen))
         x, face = self._newton(x, x.copy(), A, b, seen, rho, face, steps=1)
         rounds = 1  # with the present ridge
         cost = self.data(x, A, b)
@@ -732,8 +734,6 @@ class _AlbedoSolver:
         img, A, Jo, w = ap.evaluate(theta)
         b = img * w - A @ theta[ap.sl]  # the (weighted) image with the albedo at 0
         seen = np.asarray(abs(A).sum(axis=0)).ravel() > 0
-        if not len(ap.other) and not ap.prob.encoded and self._beside is None:
-            self._beside = _Beside(self, A, np.flatnonzero(seen | (self.Lp is not None)))
         x, free, solve = self.bounded(np.clip(x0, 0.0, 1.0), A, b, seen | (self.Lp is not None))
         r = A @ x + b - self.y
         return x, r, A, Jo, seen, img, free, solve
