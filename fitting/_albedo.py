@@ -808,12 +808,13 @@ class _AlbedoSolver:
 
 class _Beside:
     r"""The standard errors' :math:`\mathrm{diag}(G^{-1})` over the determined scalars, begun in a
-    thread of its own as soon as the design matrix is known, where it is the fit's last (no other
-    parameter is free, so no step of theirs makes a new one; no code values, whose weights are
-    re-taken): it does not wait on the bounded solve, whose Python between the factorisations
-    leaves a core idle, and :func:`block_stderr` takes it from here (the floor case of a 256²
-    map from four 256² views, 8-bit, in a slow spell of this VM: the report 1.43-1.52 against 0.66-0.87
-    s, the bounded solve and the report 5.15 against 5.66 s on average over three alternated runs)."""
+    thread of its own once the bounded solve's blocks have their orderings, where the design
+    matrix is the fit's last (no other parameter is free, so no step of theirs makes a new one; no
+    code values, whose weights are re-taken). It runs at the lowest priority (:func:`_yielding`),
+    on what the solve's Python between its factorisations leaves idle, and :func:`block_stderr`
+    takes it from here. The floor case of a 256² map from four 256² views (8-bit): the report took
+    0.54-0.71 s, where with BLAS already at one thread and the inverse diagonal in it, it took
+    0.92-1.13 s; at normal priority it took about as much from the bounded solve as it saved."""
 
     def __init__(self, solver, A, idx_det):
         from concurrent.futures import ThreadPoolExecutor
