@@ -519,10 +519,11 @@ class _AlbedoSolver:
         r = self.residual(z, A, b)
         return 0.5 * (float(r @ r) + (float(np.sum((self.Lp @ z) ** 2)) if self.Lp is not None else 0.0))
 
-    def bounded(self, x, A, b, seen):
+    def bounded(self, x, A, b, seen, beside: bool = False):
         r"""The bounded optimum over [0, 1] of the block's least squares, a direction the images do
         not see held at its start: ``(x, free, solve)``, ``solve`` the inverse of the normal matrix
-        on the free scalars.
+        on the free scalars (``beside``: begin the standard errors' inverse diagonal beside the
+        solve, :class:`_Beside`).
 
         The ridge :math:`\rho_i` that holds a null direction is relative to the scalar's
         information, floored at the mean over the seen scalars: Jacobi-scaled alone, the solve
@@ -553,7 +554,7 @@ class _AlbedoSolver:
         dof = max(int(np.count_nonzero(np.diff(A.tocsr().indptr))) - n_seen, 1)
         rho = RIDGE * info
         face, start, free = _Faces(self.ap.sp, G, rho, seen, self.ap.orders), x.copy(), None
-        if not len(self.ap.other) and not self.ap.prob.encoded and self._beside is None:  # (its orderings made)
+        if beside and self._beside is None:  # (the blocks' orderings made: it takes them)
             self._beside = _Beside(self, A, np.flatnonzero(seen))
         x, face = self._newton(x, x.copy(), A, b, seen, rho, face, steps=1)
         rounds = 1  # with the present ridge
@@ -734,7 +735,9 @@ class _AlbedoSolver:
         img, A, Jo, w = ap.evaluate(theta)
         b = img * w - A @ theta[ap.sl]  # the (weighted) image with the albedo at 0
         seen = np.asarray(abs(A).sum(axis=0)).ravel() > 0
-        x, free, solve = self.bounded(np.clip(x0, 0.0, 1.0), A, b, seen | (self.Lp is not None))
+        # (A is the fit's last where no other parameter steps and no weights are re-taken)
+        last = not len(ap.other) and not ap.prob.encoded
+        x, free, solve = self.bounded(np.clip(x0, 0.0, 1.0), A, b, seen | (self.Lp is not None), beside=last)
         r = A @ x + b - self.y
         return x, r, A, Jo, seen, img, free, solve
 

@@ -521,3 +521,41 @@ def test_a_map_that_takes_every_degree_of_freedom_cannot_be_judged():
     r = fitting.fit(starts[0], opts, fitting.Observations(targets, views=starts), ["material.diffuse_map"])
     assert not r.successful
     assert "cannot be judged" in r.result and "degrees of freedom" in r.result and "local minimum" not in r.result
+
+
+def test_the_host_solve_holds_blas_at_one_thread_and_its_standard_errors_begun_beside(monkeypatch):
+    """A map fit's host solve runs with every BLAS at one thread (their spinning workers took the
+    cores from the factorisations) and gives them back after; the standard errors' inverse
+    diagonal begun beside the solve is the one made after it, to the bit."""
+    from threadpoolctl import threadpool_info
+
+    from fitting._albedo import _AlbedoSolver, block_stderr
+
+    starts, targets, truth, opts = _views(8, "bilinear", size=24)
+    obs = fitting.Observations(targets, views=starts)
+    blas = lambda: [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]  # noqa: E731
+    before, during = blas(), []
+    lm = _AlbedoSolver.lm
+
+    def watched(self, *a, **k):
+        during.append(blas())
+        return lm(self, *a, **k)
+
+    monkeypatch.setattr(_AlbedoSolver, "lm", watched)
+    fitting.fit(starts[0], opts, obs, ["material.diffuse_map"], intervals=False)
+    assert before and during and all(n == 1 for n in during[0])
+    assert blas() == before
+    monkeypatch.setattr(_AlbedoSolver, "lm", lm)
+
+    prob = Problem.build(starts[0], opts, obs, ["material.diffuse_map"])
+    mp = MapProblem(prob)
+    theta = np.full(truth.size, 0.5)
+    mp._compile(theta)
+    solver = _AlbedoSolver(mp, 0.0, 1e-10, False)
+    red = solver.reduced(theta)
+    assert solver._beside is not None and solver._beside.serves(red.A, np.flatnonzero(red.seen))
+    beside = block_stderr(mp, solver, red, 1.0)
+    solver._beside = None
+    after = block_stderr(mp, solver, red, 1.0)
+    assert np.isfinite(after).any()
+    np.testing.assert_array_equal(beside, after)
