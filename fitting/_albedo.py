@@ -34,6 +34,8 @@ view, an attenuation seen at one distance only) shows as a near-singular
 from __future__ import annotations
 
 import copy
+import os
+import threading
 import time
 from typing import NamedTuple
 
@@ -838,9 +840,6 @@ class _Beside:
 def _yielding(fn, *args):
     """``fn(*args)`` in this thread at the lowest priority (and the threads it starts: Linux's
     threads inherit it), so that it takes the cores only where the solve leaves them idle."""
-    import os
-    import threading
-
     try:
         os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
     except (AttributeError, OSError):  # (no per-thread priority here: an ordinary thread)
@@ -858,10 +857,14 @@ def block_stderr(ap, solver: _AlbedoSolver, red: _Reduced, s2_eff) -> np.ndarray
 
     A, Lp = red.A, solver.Lp
     idx_det = np.flatnonzero(red.seen | (Lp is not None))
-    G = solver.gram(A)[idx_det][:, idx_det]
-    beside = solver._beside
-    diag_inv = beside.result() if beside is not None and beside.serves(A, idx_det) else ap.inverse_diagonal(G, idx_det)
+    beside, G = solver._beside, None
+    if beside is not None and beside.serves(A, idx_det):  # (begun beside the solve: its G not formed again)
+        diag_inv = beside.result()
+    else:
+        G = solver.gram(A)[idx_det][:, idx_det]
+        diag_inv = ap.inverse_diagonal(G, idx_det)
     if len(ap.other) and len(idx_det):
+        G = solver.gram(A)[idx_det][:, idx_det] if G is None else G
         Jo_fin = ap.evaluate(red.th)[2]  # at the final values (reduced() took the columns at the incoming ones)
         AtJ = np.asarray(A[:, idx_det].T @ Jo_fin)
         solve = factorized((G + ap.sp.identity(G.shape[0]) * 1e-13 * max(G.diagonal().max(), 1e-300)).tocsc())

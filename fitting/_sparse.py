@@ -117,6 +117,11 @@ class Orderings:
         self._locks: dict[bytes, threading.Lock] = {}
         self._lock = threading.Lock()
 
+    def _lock_of(self, key: bytes) -> threading.Lock:
+        """The lock that makes what is kept under ``key`` once, where threads ask at once."""
+        with self._lock:
+            return self._locks.setdefault(key, threading.Lock())
+
     def analysis(self, M, order: np.ndarray | None):
         """The symbolic analysis (:class:`fitting._cholesky.Analysis`) of the block ``M``'s
         stored pattern (CSC) in ``order``, made once per pattern and ordering (thread-safe: the
@@ -127,9 +132,7 @@ class Orderings:
         from ._cholesky import Analysis
 
         key = _digest(M.indptr, M.indices, order)
-        with self._lock:
-            lock = self._locks.setdefault(key, threading.Lock())
-        with lock:
+        with self._lock_of(key):
             if key not in self._analyses:
                 self._analyses[key] = Analysis(M, order)
             return self._analyses[key]
@@ -139,9 +142,7 @@ class Orderings:
         if M.shape[0] < max(smallest, 2) or not HAVE_METIS:
             return None
         stored = _digest(M.indptr, M.indices)  # (a stored pattern met before: its graph is not built again)
-        with self._lock:
-            lock = self._locks.setdefault(stored, threading.Lock())
-        with lock:  # (one ordering per pattern where threads ask at once: the standard errors' beside the solve's)
+        with self._lock_of(stored):  # (one ordering per pattern where threads ask at once)
             if stored not in self._orders:
                 graph = _graph(M)
                 key = _digest(graph.indptr, graph.indices)
