@@ -857,14 +857,11 @@ def block_stderr(ap, solver: _AlbedoSolver, red: _Reduced, s2_eff) -> np.ndarray
 
     A, Lp = red.A, solver.Lp
     idx_det = np.flatnonzero(red.seen | (Lp is not None))
-    beside, G = solver._beside, None
-    if beside is not None and beside.serves(A, idx_det):  # (begun beside the solve: its G not formed again)
-        diag_inv = beside.result()
-    else:
-        G = solver.gram(A)[idx_det][:, idx_det]
-        diag_inv = ap.inverse_diagonal(G, idx_det)
+    beside = solver._beside
+    served = beside is not None and beside.serves(A, idx_det)  # (begun beside the solve)
+    G = None if served and not len(ap.other) else solver.gram(A)[idx_det][:, idx_det]  # (not formed again)
+    diag_inv = beside.result() if served else ap.inverse_diagonal(G, idx_det)
     if len(ap.other) and len(idx_det):
-        G = solver.gram(A)[idx_det][:, idx_det] if G is None else G
         Jo_fin = ap.evaluate(red.th)[2]  # at the final values (reduced() took the columns at the incoming ones)
         AtJ = np.asarray(A[:, idx_det].T @ Jo_fin)
         solve = factorized((G + ap.sp.identity(G.shape[0]) * 1e-13 * max(G.diagonal().max(), 1e-300)).tocsc())
