@@ -38,6 +38,9 @@ def tangent_images(f, x, tangents):
     render's tangents along its shading numbers from the shading kernel's partials
     (:func:`diffshade.kernel_partials`: a Jacobian in forward mode)."""
     with ds.kernel_partials():
+        if tangents.shape[0] == 1:  # (one tangent: no batching to trace through)
+            y, t = jax.jvp(f, (x,), (tangents[0],))
+            return y, t[None]
         return jax.vmap(lambda e: jax.jvp(f, (x,), (e,)), out_axes=(None, 0))(tangents)
 
 
