@@ -65,7 +65,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from . import _native
-from ._util import keep
+from ._util import keep, take
 
 TILE = 8
 _BIG = jnp.iinfo(jnp.int32).max
@@ -530,7 +530,7 @@ def _flat_ids(tri_id):
 def _pixel_vertex_ids(faces, t):
     """Vertex index ``k`` of each pixel's triangle (``t``: :func:`_flat_ids`), as three flat
     ``[N]`` arrays (1-D gathers are much faster than row gathers on XLA's CPU backend)."""
-    return [faces[:, k][t] for k in range(3)]
+    return [take(faces[:, k], t) for k in range(3)]
 
 
 def _per_face(faces, t) -> bool:
@@ -549,7 +549,7 @@ def _face_planes(clip: Float[Array, "V 4"], faces: Int[Array, "F 3"]) -> list[Ar
     gathers and 12 of clip components, and no per-pixel cofactors (the shading of a diffuse render
     at 512² moved 640 bytes per pixel, then 460; docs/performance.md)."""
     ct = clip.T
-    X, Y, Z, Wc = ([ct[c][faces[:, j]] for j in range(3)] for c in range(4))
+    X, Y, Z, Wc = ([take(ct[c], faces[:, j]) for j in range(3)] for c in range(4))
     planes = []
     for i in range(3):
         a, b = (i + 1) % 3, (i + 2) % 3
@@ -587,7 +587,7 @@ def fragments(
     t = _flat_ids(tri_id)
     if _per_face(faces, t):  # materialised per face (else XLA fuses each plane into its gather
         # and recomputes it per pixel from gathered vertices, as it did in the reverse pass)
-        g = [c[t].reshape(shape) for c in keep(*_face_planes(clip, faces))]
+        g = [take(c, t).reshape(shape) for c in keep(*_face_planes(clip, faces))]
     else:  # more faces than pixels: the planes of each pixel's own triangle
         g = [c.reshape(shape) for c in _face_planes(clip, jnp.stack(_pixel_vertex_ids(faces, t), -1))]
     if pixels is None:
@@ -641,10 +641,10 @@ def interpolate(
     comps = attr if isinstance(attr, tuple) else tuple(jnp.asarray(attr).T)
     bary = [frags.bary[..., j] for j in range(3)] if bary is None else list(bary)
     if _per_face(faces, t):  # each component per face and corner, gathered by triangle id
-        corners = keep(*(a[faces[:, j]] for a in comps for j in range(3)))
-        at = [[corners[3 * c + j][t].reshape(shape) for j in range(3)] for c in range(len(comps))]
+        corners = keep(*(take(a, faces[:, j]) for a in comps for j in range(3)))
+        at = [[take(corners[3 * c + j], t).reshape(shape) for j in range(3)] for c in range(len(comps))]
     else:  # more faces than pixels: through each pixel's vertex ids
         vid = _pixel_vertex_ids(faces, t)
-        at = [[a[vid[j]].reshape(shape) for j in range(3)] for a in comps]
+        at = [[take(a, vid[j]).reshape(shape) for j in range(3)] for a in comps]
     out = tuple(jnp.where(valid, sum(bary[j] * a[j] for j in range(3)), 0.0) for a in at)
     return out if isinstance(attr, tuple) else jnp.stack(out, axis=-1)

@@ -29,7 +29,7 @@ from ._options import Raster, RenderOptions
 from ._raster import Fragments, _flat_ids, _pixel_vertex_ids, fragments, interpolate
 from ._scene import SCALAR_MAPPED, Material, Scene
 from ._texture import footprint, level_of_detail, pixel_derivatives, sample_channels
-from ._util import keep
+from ._util import keep, take
 
 Components = tuple  # a vector or colour as a tuple of same-shaped arrays, one per component
 
@@ -295,7 +295,7 @@ def _coordinates(scene: Scene, frags: Fragments, bary, clip, derivatives: bool):
     if not derivatives:
         return u, v, None
     per_face = footprint(clip, mesh.faces)
-    return u, v, pixel_derivatives(per_face, mesh.uv[mesh.faces], frags.tri_id, frags.w, u, v, cam.width, cam.height)
+    return u, v, pixel_derivatives(per_face, take(mesh.uv, mesh.faces), frags.tri_id, frags.w, u, v, cam.width, cam.height)
 
 
 def texture_coordinates(scene: Scene, ids: Int[Array, "K H W"], raster: Raster = Raster(), pixels=None):

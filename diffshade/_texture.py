@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._util import as_float_array, keep
+from ._util import as_float_array, keep, take
 
 WRAPS = ("repeat", "clamp")
 FILTERS = ("trilinear", "bilinear")
@@ -125,7 +125,7 @@ def _blend(columns, i, stride, fx, fy):
     """The bilinear samples, one per channel column, at the taps of :func:`_taps`."""
     out = []
     for col in columns:
-        t00, t01, t10, t11 = col[i], col[i + 1], col[i + stride], col[i + stride + 1]
+        t00, t01, t10, t11 = take(col, i), take(col, i + 1), take(col, i + stride), take(col, i + stride + 1)
         top = t00 + fx * (t01 - t00)
         bottom = t10 + fx * (t11 - t10)
         out.append(top + fy * (bottom - top))
@@ -209,7 +209,7 @@ def footprint(clip, faces):
     :func:`diffshade.fragments`), :math:`\sum_i E_i = \det / w` and
     :math:`\partial u/\partial x = (\sum_i a_i u_i - u \sum_i a_i)\, w / \det`; returns
     ``(a, b, det)``."""
-    tri = clip[faces]
+    tri = take(clip, faces)
     X, Y, W = tri[..., 0], tri[..., 1], tri[..., 3]
     ax = [W[:, (i + 2) % 3] * Y[:, (i + 1) % 3] - W[:, (i + 1) % 3] * Y[:, (i + 2) % 3] for i in range(3)]
     ay = [X[:, (i + 2) % 3] * W[:, (i + 1) % 3] - X[:, (i + 1) % 3] * W[:, (i + 2) % 3] for i in range(3)]
@@ -228,7 +228,7 @@ def pixel_derivatives(per_face, uvf, tri_id, w_pix, u, v, width: int, height: in
     cols += [sum(ay[i] * uvf[:, i, c] for i in range(3)) for c in range(2)]
     cols += [ax[0] + ax[1] + ax[2], ay[0] + ay[1] + ay[2], det]
     t = tid.reshape(-1)  # 1-D gathers of materialised per-face columns, not a row gather of seven
-    Axu, Axv, Ayu, Ayv, Sx, Sy, dt = (c[t].reshape(tid.shape) for c in keep(*cols))
+    Axu, Axv, Ayu, Ayv, Sx, Sy, dt = (take(c, t).reshape(tid.shape) for c in keep(*cols))
     ok = valid & (dt != 0)
     scale = jnp.where(ok, w_pix / jnp.where(ok, dt, 1.0), 0.0)
     sx, sy = scale * (2.0 / width), scale * (2.0 / height)
