@@ -65,9 +65,7 @@ def take(x: ArrayLike, index: ArrayLike) -> Array:
         offset_dims=tuple(range(k, k + x.ndim - 1)), collapsed_slice_dims=(0,), start_index_map=(0,)
     )
     starts = jax.lax.broadcast_in_dim(index, (*index.shape, 1), tuple(range(k)))
-    return jax.lax.gather(
-        x, starts, dims, (1, *x.shape[1:]), mode=jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS
-    )
+    return jax.lax.gather(x, starts, dims, (1, *x.shape[1:]), mode=jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS)
 
 
 def keep(*xs: ArrayLike) -> tuple[Array, ...]:

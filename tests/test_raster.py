@@ -433,6 +433,37 @@ def test_the_stages_called_eagerly_compile_nothing_the_second_time():
     assert "cond" in str(jax.make_jaxpr(lambda y: keep(y, 2 * y))(x))
 
 
+def test_take_is_the_indexing_it_replaces_without_wrapping_negative_indices(rng):
+    # diffshade._util.take: x[index] along the first axis as one gather (the renders' gathers by
+    # a triangle's, vertex's or texel's index), without the comparison, addition and select that
+    # jnp's indexing adds to wrap negative indices
+    from diffshade._util import take
+
+    for shape, index_shape in (((7,), (5,)), ((7,), (2, 3)), ((7, 4), (5,)), ((7, 3, 2), (2, 3))):
+        x = jnp.asarray(rng.normal(size=shape))
+        index = jnp.asarray(rng.integers(0, shape[0], index_shape), jnp.int32)
+        assert np.array_equal(take(x, index), x[index])
+        assert np.array_equal(jax.jit(take)(x, index), x[index])
+        jaxpr = str(jax.make_jaxpr(take)(x, index))
+        assert jaxpr.count("gather") == 1 and "select" not in jaxpr and "lt " not in jaxpr
+        # a gather is linear: its derivatives are the gather of the tangent, forward and reverse
+        check_grads(lambda y: take(y, index), (float64(x),))
+    assert "select_n" in str(jax.make_jaxpr(lambda y, i: y[i])(x, index))  # (what it leaves out)
+
+
+def test_the_images_along_one_tangent_are_the_batched_ones():
+    # fitting._problem.tangent_images takes one tangent without vmap (the trace then does not go
+    # through the batching of every primitive): the same numbers as the batched path
+    from fitting._problem import tangent_images
+
+    f = lambda t: jnp.stack([jnp.sin(t[0]) * t[1], t[0] ** 2, jnp.exp(t[1])])  # noqa: E731
+    x, e = jnp.asarray([0.3, -1.2]), jnp.asarray([[0.7, 0.2]])
+    y1, t1 = tangent_images(f, x, e)
+    y2, t2 = tangent_images(f, x, jnp.concatenate([e, e]))
+    assert t1.shape == (1, 3) and np.array_equal(y1, y2) and np.array_equal(t1[0], t2[0])
+    assert np.array_equal(t1[0], jax.jvp(f, (x,), (e[0],))[1])
+
+
 def test_the_jax_visibility_called_eagerly_compiles_nothing_the_second_time():
     # Its while loops, called eagerly, were compiled anew at every call (0.6 s a call at 64²);
     # the backend is now one jitted program per size. Two eager calls: the second compiles
