@@ -295,11 +295,8 @@ def _coordinates(scene: Scene, frags: Fragments, bary, clip, derivatives: bool):
     if not derivatives:
         return u, v, None
     per_face = footprint(clip, mesh.faces)
-    return (
-        u,
-        v,
-        pixel_derivatives(per_face, take(mesh.uv, mesh.faces), frags.tri_id, frags.w, u, v, cam.width, cam.height),
-    )
+    uvf = take(mesh.uv, mesh.faces)
+    return u, v, pixel_derivatives(per_face, uvf, frags.tri_id, frags.w, u, v, cam.width, cam.height)
 
 
 def texture_coordinates(scene: Scene, ids: Int[Array, "K H W"], raster: Raster = Raster(), pixels=None):
