@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ._util import as_float_array, safe_normalize
+from ._util import as_float_array, safe_normalize, take
 
 
 class MeshError(ValueError):
@@ -83,7 +83,7 @@ class Mesh(eqx.Module):
 
         A zero-area face has the zero vector as its normal (finite gradients).
         """
-        tri = self.vertices[self.faces]
+        tri = take(self.vertices, self.faces)
         n = jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         return safe_normalize(n) if normalize else n
 

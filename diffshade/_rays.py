@@ -30,6 +30,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._util import take
+
 RAY_BACKENDS = ("auto", "embree", "jax")
 _EMBREE_SCENES: OrderedDict = OrderedDict()  # triangle bytes' hash -> embreex scene (a few kept)
 _EMBREE_KEEP = 4
@@ -189,7 +191,7 @@ def first_hits(orig, dirs, vertices, faces, tmin=0.0, skip=None, active=None, ba
     d = jax.lax.stop_gradient(jnp.reshape(dirs, (-1, 3)))
     tm = jax.lax.stop_gradient(jnp.broadcast_to(jnp.asarray(tmin, o.dtype), shape).reshape(-1))
     act = jnp.ones(o.shape[:1], bool) if active is None else jnp.broadcast_to(active, shape).reshape(-1)
-    tris = jax.lax.stop_gradient(vertices)[faces]
+    tris = take(jax.lax.stop_gradient(vertices), faces)
     if backend == "embree":
         out = jax.ShapeDtypeStruct(o.shape[:1], jnp.int32)
         ids = jax.pure_callback(_embree_hits, out, o, d, tm, act, tris, vmap_method="sequential")

@@ -44,7 +44,7 @@ import numpy as np
 
 from . import _shade as S
 from ._raster import visibility
-from ._util import keep, map_lights
+from ._util import keep, map_lights, take
 
 _SPOT_MAX_HALF_ANGLE = 80.0
 _CUBE = np.array(  # (axis a, u, v) of the six faces: +x, -x, +y, -y, +z, -z
@@ -173,8 +173,8 @@ def _depth_maps(vw: _Views, ids, planes, R: int, dtype):
     tri = ids  # [n, R, R]
     seen = tri >= 0
     t = jnp.where(seen, tri, 0)
-    n = tuple(x[t] for x in pn)
-    nd = pd[t] - S.dot(n, tuple(vw.o[i] for i in range(3)))
+    n = tuple(take(x, t) for x in pn)
+    nd = take(pd, t) - S.dot(n, tuple(vw.o[i] for i in range(3)))
     ax = lambda tab: tuple(tab[:, i][:, None, None] for i in range(3))  # noqa: E731
     s, ok = _plane_depth(nd, S.dot(n, ax(vw.a)), S.dot(n, ax(vw.u)), S.dot(n, ax(vw.v)), xc, yc, vw.h, vw.ortho)
     return jnp.where(seen & ok, s, jnp.finfo(dtype).max).reshape(-1)
@@ -283,7 +283,7 @@ def _lookup(vw: _Views, ids, planes, P, ng, bias, slope_bias, R: int, pcf: int, 
                 t = jnp.where(seen, tri, 0)
                 if face is not None:
                     t = t + face * nf
-                s_occ, ok_occ = _plane_depth(*keep(*(tab[t] for tab in occ_tabs)), xc, yc, vw.h, vw.ortho)
+                s_occ, ok_occ = _plane_depth(*keep(*(take(tab, t) for tab in occ_tabs)), xc, yc, vw.h, vw.ortho)
                 blocked = seen & ok_occ & (s_occ < s_recv - tol)
             lit = lit + jnp.where(blocked, 0.0, 1.0)
     return jnp.where(inside, lit / float(pcf * pcf), 1.0)

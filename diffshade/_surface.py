@@ -117,7 +117,7 @@ def _affine(frags: Fragments, clip, faces) -> Fragments:
     perspective-correct interpolation undoes; :math:`w_i` the clip w of the triangle's vertices)."""
     tid = frags.tri_id
     vid = _pixel_vertex_ids(faces, _flat_ids(tid))
-    wv = [clip[:, 3][vid[j]].reshape(tid.shape) * frags.bary[..., j] for j in range(3)]
+    wv = [take(clip[:, 3], vid[j]).reshape(tid.shape) * frags.bary[..., j] for j in range(3)]
     sw = wv[0] + wv[1] + wv[2]
     ok = sw != 0
     inv = 1.0 / jnp.where(ok, sw, 1.0)
@@ -240,14 +240,14 @@ def _flat_sites(scene, raster, need, frags, bary, multi, pmat, back, position):
         last = mesh.faces[:, 2]
         pts, nrm = S.vec(mesh.vertices[last]), keep(*S.vec(mesh.vertex_normals()[last]))
     else:
-        pts, nrm = S.vec(jnp.mean(mesh.vertices[mesh.faces], axis=1)), S.vec(mesh.face_normals())
+        pts, nrm = S.vec(jnp.mean(take(mesh.vertices, mesh.faces), axis=1)), S.vec(mesh.face_normals())
     fmat = _material_at(scene.all_materials(), mesh.material_ids, need.fields) if multi else scene.material
     fback = fmat if multi else back
     if raster.vertex_color != "none":  # the face's colour: its provoking vertex's, or the mean of its three
         fcol = (
             mesh.colors[mesh.faces[:, 2]]
             if raster.flat_source == "provoking"
-            else jnp.mean(mesh.colors[mesh.faces], axis=1)
+            else jnp.mean(take(mesh.colors, mesh.faces), axis=1)
         )
         fmat, fback = (_vertex_colored(m, fcol, raster.vertex_color) for m in (fmat, fback))
 
