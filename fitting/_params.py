@@ -579,13 +579,13 @@ class ParamSet:
     def _domains(self):
         """Per scalar: its kind (0 real, 1 positive, 2 an interval) and the interval's ends."""
         if getattr(self, "_domain_arrays", None) is None:
-            kind, lo, hi = [], [], []
-            for p in self.params:
-                k, a, b = (0, 0.0, 1.0) if p.domain == "real" else (1, 0.0, 1.0) if p.bounds is None else (2, *p.bounds)
-                kind += [k] * p.size
-                lo += [a] * p.size
-                hi += [b] * p.size
-            self._domain_arrays = (np.asarray(kind), np.asarray(lo), np.asarray(hi))
+            per = [
+                (0, 0.0, 1.0) if p.domain == "real" else (1, 0.0, 1.0) if p.bounds is None else (2, *p.bounds)
+                for p in self.params
+            ]
+            sizes = [p.size for p in self.params]  # (repeated per parameter: a 256² map's lists took 0.04 s)
+            kind, lo, hi = (np.repeat(np.asarray([d[i] for d in per]), sizes) for i in range(3))
+            self._domain_arrays = (kind, lo.astype(np.float64), hi.astype(np.float64))
         return self._domain_arrays
 
     def theta_from_u(self, u):
