@@ -7,10 +7,16 @@ STAMP := $(VENV)/.installed
 
 .PHONY: demo test test-all bench setup docs lint
 
+# The set-up also compiles the native libraries (the shading kernels; the map fits' sparse
+# Cholesky factorisation), which are otherwise compiled on first use and cached: the first render
+# and the first map fit then do not wait on the C++ compiler (the factorisation's library took
+# 6-7 s on two cores, inside a first 256² map fit). Where no compiler builds them, this says why,
+# and the JAX stages and SuperLU serve.
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(VENV)/bin/python -m pip install --quiet --upgrade pip
 	$(VENV)/bin/python -m pip install --quiet -e '.[test]'
+	$(VENV)/bin/python -c "import diffshade._native as n, fitting._cholesky as c; n.available(); c.available()"
 	touch $(STAMP)
 
 setup: $(STAMP)
