@@ -144,7 +144,7 @@ def _face_planes(mesh):
     """Unit face normals and ``n · v0`` ([F] arrays): depth along a ray is read off the plane."""
     X = jax.lax.stop_gradient(mesh.vertices)
     n = S.vec(jax.lax.stop_gradient(mesh.face_normals()))
-    v0 = S.vec(X[mesh.faces[:, 0]])
+    v0 = S.vec(take(X, mesh.faces[:, 0]))
     return n, S.dot(n, v0)
 
 

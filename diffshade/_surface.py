@@ -238,14 +238,14 @@ def _flat_sites(scene, raster, need, frags, bary, multi, pmat, back, position):
     safe_tid = jnp.where(frags.tri_id >= 0, frags.tri_id, 0)
     if raster.flat_source == "provoking":
         last = mesh.faces[:, 2]
-        pts, nrm = S.vec(mesh.vertices[last]), keep(*S.vec(mesh.vertex_normals()[last]))
+        pts, nrm = S.vec(take(mesh.vertices, last)), keep(*S.vec(take(mesh.vertex_normals(), last)))
     else:
         pts, nrm = S.vec(jnp.mean(take(mesh.vertices, mesh.faces), axis=1)), S.vec(mesh.face_normals())
     fmat = _material_at(scene.all_materials(), mesh.material_ids, need.fields) if multi else scene.material
     fback = fmat if multi else back
     if raster.vertex_color != "none":  # the face's colour: its provoking vertex's, or the mean of its three
         fcol = (
-            mesh.colors[mesh.faces[:, 2]]
+            take(mesh.colors, mesh.faces[:, 2])
             if raster.flat_source == "provoking"
             else jnp.mean(take(mesh.colors, mesh.faces), axis=1)
         )
