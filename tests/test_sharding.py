@@ -30,10 +30,12 @@ def _truth():
     return np.concatenate([np.atleast_1d(TRUTH[n]) for n in FREE]).astype(np.float64)
 
 
-def _run(args, env_extra):
+def _run(args, devices=None):
+    """tests/sharded_fit.py in a process of its own, with the suite's XLA flags (conftest's
+    cheapest compile) and, where given, that many host devices."""
     env = dict(os.environ)
-    env.pop("XLA_FLAGS", None)
-    env.update(env_extra)
+    if devices is not None:
+        env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={devices}".strip()
     return subprocess.Popen(
         [sys.executable, WORKER, *args],
         stdout=subprocess.PIPE,
@@ -131,7 +133,7 @@ def test_views_sharded_over_four_host_devices():
     """Four views on four host devices: each device holds one view's pixels, the compiled
     programs' only communication is all-reduces of the small normal-equation terms (no operand
     grows with the pixels), and the fit equals the one-device fit to 1e-6 (and the truth)."""
-    p = _run(["devices"], {"XLA_FLAGS": "--xla_force_host_platform_device_count=4"})
+    p = _run(["devices"], devices=4)
     one, four = _result(p)
     assert one["devices"] == 1 and four["devices"] == 4
     assert sorted(four["shards"]) == [[0, 1], [1, 1], [2, 1], [3, 1]]
@@ -153,7 +155,7 @@ def test_two_processes_on_localhost():
     with socket.socket() as s:
         s.bind(("localhost", 0))
         port = str(s.getsockname()[1])
-    procs = [_run(["process", str(i), "2", port], {}) for i in range(2)]
+    procs = [_run(["process", str(i), "2", port]) for i in range(2)]
     res = [_result(p)[0] for p in procs]
     assert sorted(r["process"] for r in res) == [0, 1]
     assert all(r["devices"] == 4 and r["local"] == 2 for r in res)
