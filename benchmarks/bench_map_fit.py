@@ -6,6 +6,7 @@ errors (noisy), compile and solve time.
 
     python benchmarks/bench_map_fit.py --cases 6 --res 16 32 --size 64
     python benchmarks/bench_map_fit.py --cases 3 --res 256 --size 256 --views 4   # issue 35's floor
+    python benchmarks/bench_map_fit.py --first-seed 1 --cases 1 --res 256 --size 256 --views 4  # seed 1 cold
     python benchmarks/bench_map_fit.py --meshes sphere fuze rabbit --res 64 128 --size 128 --max-views 8
 
 ``--meshes``: the default sphere, and the vendored ``fuze.obj`` (its authored texture coordinates)
@@ -104,6 +105,7 @@ def case(seed, res, size, filt, views=None, mesh="sphere", max_views=4, kinds=("
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--cases", type=int, default=4)
+    ap.add_argument("--first-seed", type=int, default=0, help="the first case's seed (a case alone, compiled cold)")
     ap.add_argument("--res", type=int, nargs="+", default=[16, 32])
     ap.add_argument("--size", type=int, default=64)
     ap.add_argument("--filter", default="bilinear")
@@ -115,7 +117,7 @@ def main():
     a = ap.parse_args()
     for mesh in a.meshes:
         for res in a.res:
-            for seed in range(a.cases):
+            for seed in range(a.first_seed, a.first_seed + a.cases):
                 report(mesh, res, seed, case(1000 + seed, res, a.size, a.filter, a.views, mesh, a.max_views, a.kinds))
 
 
