@@ -225,6 +225,28 @@ CAPACITY = 32  # scalars a face may differ by from the factorised one before it 
 JUDGED = 0.05  # the share of the residuals' degrees of freedom a fit must leave for its verdict to judge it
 
 
+class _Backtrack:
+    r"""The residuals at the points :math:`x(a) = \mathrm{clip}(x + a p)` an Armijo backtrack
+    tries after its first, from the residual at :math:`x`, :math:`Ap` (one product) and the columns
+    of the scalars the clip moved: :math:`r(x(a)) = r(x) + aAp - A_C e_C`, :math:`e` what the clip
+    took off. A trial then costs a product with a few columns, not with :math:`A`: seed 1 of the
+    256² floor case, noise-free, evaluated 258 points in 44 Newton steps (6 a step, each a
+    product of 5.8 ms), 2.5 s of its fit. The increments round relative to the step, not to the
+    residual's terms."""
+
+    def __init__(self, r0, x, p, A, columns):
+        self.r0, self.x, self.p, self.Ap, self.columns = r0, x, p, A @ p, columns
+
+    def at(self, a, x_new):
+        """The residual at ``x_new`` = x(a); ``None`` where the clip moved more than an eighth of
+        the scalars (a product with A then costs less)."""
+        e = self.x + a * self.p - x_new  # (0 exactly where nothing was clipped)
+        moved = np.flatnonzero(e)
+        if len(moved) > len(e) // 8:
+            return None
+        return self.r0 + a * self.Ap - self.columns[:, moved] @ e[moved]
+
+
 def _held(x, g):
     """The scalars on a bound (0 or 1) that their gradient ``g`` pushes against."""
     return ((x <= 0) & (g > 0)) | ((x >= 1) & (g < 0))
@@ -485,7 +507,7 @@ class _AlbedoSolver:
     def __init__(self, ap: AlbedoProblem, smoothness, rtol, verbose):
         pset = ap.prob.pset
         self.ap, self.rtol, self.verbose = ap, rtol, verbose
-        self._gram = self._residual = None
+        self._gram = self._residual = self._columns = None
         self._beside = None  # the standard errors' inverse diagonal, begun beside the solve (_Beside)
         self.unsettled = None  # (share of the cost the last step lowered it by, what ran out), where the steps ran out
         self.y = ap.target()
@@ -511,6 +533,17 @@ class _AlbedoSolver:
         r = A @ z + b - self.y
         self._residual = (A, b, z.copy(), r)
         return r
+
+    def _keep_residual(self, A, b, z, r):
+        """Keep ``r`` as the residual at ``z`` (``None``: nothing kept)."""
+        if r is not None:
+            self._residual = (A, b, z.copy(), r)
+
+    def columns(self, A):
+        """``A`` by columns (CSC), formed once per design matrix."""
+        if self._columns is None or self._columns[0] is not A:
+            self._columns = (A, A.tocsc())
+        return self._columns[1]
 
     def grad(self, x, A, b):
         g = A.T @ self.residual(x, A, b)
@@ -715,13 +748,17 @@ class _AlbedoSolver:
                 step = -face.step(g, free)
             if -float(g @ step) <= 1e-15 * f:  # what a step could gain is below float precision
                 break
-            a = 1.0
+            a, trials = 1.0, None
+            r0 = self.residual(x, A, b)  # (kept: the backtrack's points start from it)
             while True:
                 x_new = np.clip(x + a * step, 0.0, 1.0)
+                if trials is not None:
+                    self._keep_residual(A, b, x_new, trials.at(a, x_new))
                 f_new = objective(x_new)
                 if f_new <= f + 1e-4 * float(g @ (x_new - x)) or a < 1e-6:
                     break
                 a /= 2
+                trials = trials or _Backtrack(r0, x, step, A, self.columns(A))
             if f_new >= f:  # no decrease left at float precision
                 break
             clipped = bool(np.any(x_new != x + a * step))

@@ -47,6 +47,7 @@ from ._sparse import INVERSE_RIDGE, Factor, Orderings, in_threads, scaled, use_c
 
 PROBE_DISTANCE = 8  # texels between the texels of one probing class
 DENSE_LIMIT = 3000  # a connected block up to this many scalars is inverted exactly
+CHOLESKY_FROM = 128  # dense blocks from this many scalars: diag(B⁻¹) from their Cholesky factors, one at a time
 MAX_LOD = 1.0  # pixels sampling a trilinear map at this level of detail or beyond are left out
 PROBES_PER_SOLVE = 32  # probe vectors solved together (one multi-column solve)
 UNDETERMINED = 1e4  # a texel's variance inflation diag(G⁻¹)·G_ii beyond which the images do not determine it
@@ -367,7 +368,26 @@ def _stacked_inverse_diagonal(Gs, first, size: int) -> np.ndarray:
     D = np.zeros((len(first), size, size))
     D[blk, coo.row - first[blk], coo.col % size] = coo.data
     D += INVERSE_RIDGE * np.eye(size)
-    return np.diagonal(np.linalg.inv(D), axis1=1, axis2=2).reshape(-1)
+    if size < CHOLESKY_FROM:
+        return np.diagonal(np.linalg.inv(D), axis1=1, axis2=2).reshape(-1)
+    return np.concatenate([_dense_inverse_diagonal(B) for B in D])
+
+
+def _dense_inverse_diagonal(B) -> np.ndarray:
+    r"""``diag(B⁻¹)`` of one dense symmetric positive definite block from its Cholesky factor,
+    :math:`B = LL^T`, as the squared column norms of :math:`L^{-1}` (a third of the arithmetic of
+    an inverse by LU, sums of squares without cancellation: on a 2,258-scalar block of a map's
+    channel with 1,728 null directions, 0.22 s against 0.67 s, and the diagonal as near an
+    eigendecomposition's as the inverse's, 1.3e-3); by LU where rounding leaves a pivot not
+    positive."""
+    from scipy.linalg import lapack
+
+    L, info = lapack.dpotrf(B, lower=1, clean=1)
+    if info == 0:
+        Li, info = lapack.dtrtri(L, lower=1)
+    if info != 0:
+        return np.diag(np.linalg.inv(B))
+    return np.einsum("ki,ki->i", Li, Li)
 
 
 def _probed_inverse_diagonal(lu, probe) -> np.ndarray:

@@ -255,3 +255,35 @@ def test_the_standard_errors_of_a_large_mesh_are_exact(exact, monkeypatch):
         else:
             np.testing.assert_allclose(got[c::3], 1 / Gv.diagonal())
             assert (got[c::3][some] < want).all()
+
+
+def test_the_backtracks_residuals_are_the_products_with_a():
+    """The projected Newton steps' backtrack (fitting._albedo._Backtrack) takes the residual at
+    each clipped point x(a) = clip(x + a p) from r(x), A p and the clipped scalars' columns: equal
+    to A x(a) + b - y to rounding at every halving, and None (a product with A instead) where the
+    clip moved more than an eighth of the scalars."""
+    import scipy.sparse as sp
+
+    from fitting._albedo import _Backtrack
+
+    rng = np.random.default_rng(7)
+    A = sp.random(400, 120, density=0.05, random_state=rng, format="csr")
+    b, y = rng.normal(size=400), rng.normal(size=400)
+    x = rng.uniform(0, 1, 120)
+    x[:30] = 0.1
+    p = rng.normal(size=120) * 0.02
+    p[:30] = -np.linspace(0.15, 3.0, 30)  # through the bound 0: the longer the step, the more of them
+    trials = _Backtrack(A @ x + b - y, x, p, A, A.tocsc())
+    seen = set()
+    for a in 0.5 ** np.arange(12):
+        x_new = np.clip(x + a * p, 0.0, 1.0)
+        r = trials.at(a, x_new)
+        moved = int(np.count_nonzero(x + a * p - x_new))
+        if moved > 120 // 8:
+            assert r is None
+        else:
+            np.testing.assert_allclose(r, A @ x_new + b - y, rtol=0, atol=1e-13)
+        seen.add(r is None)
+    assert seen == {True, False}  # (both ways taken)
+    big = np.full(120, 5.0)  # a step that clips every scalar
+    assert _Backtrack(A @ x + b - y, x, big, A, A.tocsc()).at(1.0, np.clip(x + big, 0, 1)) is None
