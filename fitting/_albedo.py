@@ -237,14 +237,17 @@ class _Backtrack:
     def __init__(self, r0, x, p, A, columns):
         self.r0, self.x, self.p, self.Ap, self.columns = r0, x, p, A @ p, columns
 
-    def at(self, a, x_new):
-        """The residual at ``x_new`` = x(a); ``None`` where the clip moved more than an eighth of
-        the scalars (a product with A then costs less)."""
-        e = self.x + a * self.p - x_new  # (0 exactly where nothing was clipped)
+    def at(self, a, unclipped, x_new):
+        """The residual at ``x_new`` = x(a), ``unclipped`` = x + a p; ``None`` where the clip moved
+        more than an eighth of the scalars (a product with A then costs less)."""
+        e = unclipped - x_new  # (0 exactly where nothing was clipped)
         moved = np.flatnonzero(e)
         if len(moved) > len(e) // 8:
             return None
-        return self.r0 + a * self.Ap - self.columns[:, moved] @ e[moved]
+        r = a * self.Ap
+        r += self.r0
+        r -= self.columns[:, moved] @ e[moved]
+        return r
 
 
 def _held(x, g):
@@ -751,9 +754,10 @@ class _AlbedoSolver:
             a, trials = 1.0, None
             r0 = self.residual(x, A, b)  # (kept: the backtrack's points start from it)
             while True:
-                x_new = np.clip(x + a * step, 0.0, 1.0)
+                unclipped = x + a * step
+                x_new = np.clip(unclipped, 0.0, 1.0)
                 if trials is not None:
-                    self._keep_residual(A, b, x_new, trials.at(a, x_new))
+                    self._keep_residual(A, b, x_new, trials.at(a, unclipped, x_new))
                 f_new = objective(x_new)
                 if f_new <= f + 1e-4 * float(g @ (x_new - x)) or a < 1e-6:
                     break

@@ -277,7 +277,7 @@ def test_the_backtracks_residuals_are_the_products_with_a():
     seen = set()
     for a in 0.5 ** np.arange(12):
         x_new = np.clip(x + a * p, 0.0, 1.0)
-        r = trials.at(a, x_new)
+        r = trials.at(a, x + a * p, x_new)
         moved = int(np.count_nonzero(x + a * p - x_new))
         if moved > 120 // 8:
             assert r is None
@@ -286,4 +286,4 @@ def test_the_backtracks_residuals_are_the_products_with_a():
         seen.add(r is None)
     assert seen == {True, False}  # (both ways taken)
     big = np.full(120, 5.0)  # a step that clips every scalar
-    assert _Backtrack(A @ x + b - y, x, big, A, A.tocsc()).at(1.0, np.clip(x + big, 0, 1)) is None
+    assert _Backtrack(A @ x + b - y, x, big, A, A.tocsc()).at(1.0, x + big, np.clip(x + big, 0, 1)) is None
