@@ -202,8 +202,8 @@ def test_a_fine_map_is_recovered_where_the_views_determine_it():
 @pytest.mark.parametrize("large", ["selected inversion", "probing"])
 def test_the_inverse_diagonal_of_small_and_large_blocks(large, monkeypatch):
     """diag(G⁻¹) of a block-diagonal G, its blocks in shuffled order: small blocks of several sizes
-    (inverted as stacks, one per size; from 128 scalars by their Cholesky factors) exact; a chain of 3,500 scalars (beyond the dense limit)
-    whose inverse decays tenfold per neighbour, by the Cholesky factor's selected inversion, or
+    (inverted as stacks, one per size; from 128 scalars by their Cholesky factors) exact; a chain
+    of 3,500 scalars (beyond the dense limit) whose inverse decays tenfold per neighbour, by the Cholesky factor's selected inversion, or
     by probing where SuperLU factorises (to the probe's error at 8 texels); and, by selected
     inversion only, a 60² grid whose inverse reaches far (probing gives 1.05-4.5× its diagonal):
     exact to 1e-9."""
