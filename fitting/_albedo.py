@@ -534,7 +534,7 @@ class _AlbedoSolver:
         if last is not None and last[0] is A and last[1] is b and np.array_equal(last[2], z):
             return last[3]
         r = A @ z + b - self.y
-        self._residual = (A, b, z.copy(), r)
+        self._keep_residual(A, b, z, r)
         return r
 
     def _keep_residual(self, A, b, z, r):
@@ -765,7 +765,7 @@ class _AlbedoSolver:
                 trials = trials or _Backtrack(r0, x, step, A, self.columns(A))
             if f_new >= f:  # no decrease left at float precision
                 break
-            clipped = bool(np.any(x_new != x + a * step))
+            clipped = bool(np.any(x_new != unclipped))
             x, f = x_new, f_new
             # the optimum on this face (a full step, nothing clipped): done unless a bound lets go
             if a == 1.0 and not clipped and not np.any(held & ~held_by_bound(x)[0] & ((x <= 0) | (x >= 1))):
