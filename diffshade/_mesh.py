@@ -90,35 +90,58 @@ class Mesh(eqx.Module):
     def vertex_normals(self) -> Float[Array, "V 3"]:
         r"""Area-weighted vertex normals: :math:`\mathrm{normalize}(\sum_{f \ni v} (v_1 - v_0)\times(v_2 - v_0))`.
 
-        docs/model.md §4. A vertex with no (non-degenerate) adjacent face gets the zero vector.
-        A mesh with file ``normals`` returns those, normalised.
+        docs/model.md §4. A vertex whose adjacent faces' cross products cancel (opposite
+        duplicate faces, a fold; :data:`CANCEL` below) gets the zero vector, as does one with no
+        non-degenerate adjacent face: the sum there is float rounding, whose direction would
+        change with the precision and the order of the sum. A mesh with file ``normals``
+        returns those, normalised.
         """
         if self.normals is not None:
             return safe_normalize(self.normals)
-        n = self.face_normals(normalize=False)
-        acc = jnp.zeros_like(self.vertices)
+        tri = take(self.vertices, self.faces)
+        e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+        n = jnp.cross(e1, e2)
+        # each face's cross product is exact to a few ulps of |e1||e2| (its rounding bound; a
+        # decision, not differentiated: no gradient through the square root at a zero edge)
+        scale = jax.lax.stop_gradient(jnp.sqrt(jnp.sum(e1 * e1, -1) * jnp.sum(e2 * e2, -1)))
+        nb = jnp.concatenate([n, scale[:, None]], axis=1)
+        acc = jnp.zeros((self.vertices.shape[0], 4), nb.dtype)
         for k in range(3):
-            acc = acc.at[self.faces[:, k]].add(n)
-        return safe_normalize(acc)
+            acc = acc.at[self.faces[:, k]].add(nb)
+        s, bound = acc[:, :3], acc[:, 3:]
+        tol = CANCEL * jnp.finfo(s.dtype).eps * bound
+        return jnp.where(jnp.sum(s * s, -1, keepdims=True) > tol * tol, safe_normalize(s), 0.0)
 
     def with_vertex_normals(self) -> "Mesh":
         """This mesh with :attr:`normals` set to :meth:`vertex_normals` computed once on the
-        host in float64 (where it gives none): for a program that never moves the vertices,
-        which then holds no scatter over the faces (a loop on XLA's CPU backend) to compute
-        them."""
+        host in float64 (where it gives none), the cancelling sums decided as in the scene's
+        dtype: for a program that never moves the vertices, which then holds no scatter over
+        the faces (a loop on XLA's CPU backend) to compute them."""
         if self.normals is not None:
             return self
         v, f = np.asarray(self.vertices, np.float64), np.asarray(self.faces)
         tri = v[f]
-        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        acc = np.zeros_like(v)
+        e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+        n = np.cross(e1, e2)
+        nb = np.concatenate([n, (np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1))[:, None]], axis=1)
+        acc = np.zeros((len(v), 4))
         for k in range(3):
-            np.add.at(acc, f[:, k], n)
-        length = np.linalg.norm(acc, axis=1, keepdims=True)
-        acc = np.where(length > 0, acc / np.where(length > 0, length, 1.0), 0.0)
+            np.add.at(acc, f[:, k], nb)
+        s, bound = acc[:, :3], acc[:, 3:]
+        length = np.linalg.norm(s, axis=1, keepdims=True)
+        ok = length > CANCEL * np.finfo(np.dtype(self.vertices.dtype)).eps * bound
+        out = np.where(ok, s / np.where(ok, length, 1.0), 0.0)
         return eqx.tree_at(
-            lambda m: m.normals, self, jnp.asarray(acc, self.vertices.dtype), is_leaf=lambda x: x is None
+            lambda m: m.normals, self, jnp.asarray(out, self.vertices.dtype), is_leaf=lambda x: x is None
         )
+
+
+CANCEL = 16.0
+r"""A vertex normal's sum :math:`\sum_f n_f` counts as cancelled (the zero vector) where its
+length is at most ``CANCEL`` × the dtype's ε × :math:`\sum_f |e_1||e_2|`, the bound of its
+faces' rounding: a scanned mesh's opposite duplicate faces sum to exactly zero in exact
+arithmetic and to rounding in floats (the Stanford bunny: 22 of 8,171 vertices, the next
+smallest sum 0.38 of its bound)."""
 
 
 def validate_arrays(vertices, faces, source: str = "mesh") -> tuple[np.ndarray, np.ndarray]:

@@ -18,9 +18,13 @@ positive for a counter-clockwise (front-facing) projected triangle. The part in 
 plane and behind the far plane (:math:`-w \le z \le w`) is kept, so triangles that cross the near
 plane are clipped exactly, per pixel.
 
-Watertightness: each edge function is evaluated in a canonical vertex order (smaller vertex index
-first) and only its sign is flipped per triangle, so the two triangles that share an edge compute
-bit-identical values of opposite sign. A pixel centre exactly on an edge or vertex
+Watertightness: each edge function is evaluated in a canonical vertex order (lexicographic in the
+clip coordinates ``(x, y, w, z)``, then the smaller vertex index first) and only its sign is
+flipped per triangle, so the two triangles that share an edge compute bit-identical values of
+opposite sign, over shared or coincident vertices alike. The depth is summed over the vertices in
+the same order, so duplicate faces (a scanned mesh's, of either winding) have bit-identical depths
+wherever they cover a pixel: an exact tie, decided by the triangle id, not by rounding (which
+differs between a jitted and an eager render). A pixel centre exactly on an edge or vertex
 (:math:`E = 0`) is decided as if it were displaced by an infinitesimal :math:`(\epsilon,
 \epsilon^2)`: inside iff :math:`A_x > 0`, or :math:`A_x = 0` and :math:`A_y > 0`, for the
 inside-positive coefficients. A closed mesh is thus covered with no gaps and no double coverage,
@@ -165,7 +169,8 @@ def _plane_eval(c0, cx, cy, qx, qy, keep: int, count: int):
 
 
 def _depth_weights(z, w):
-    """Per triangle: a reference depth ``d0`` and the 12-bit weights of :func:`_depth`.
+    """Per triangle: a reference depth ``d0`` and the 12-bit weights of :func:`_depth`, the
+    vertices taken in canonical order (:func:`_before`: ``z``, ``w`` as its ranks order them).
 
     ``d0`` is the depth of the vertices' mean (clamped to [-1, 1]; 0 where that mean is not in
     front of the eye), ``dz_i = z_i - d0 w_i``: same operations and order as raster.cc."""
@@ -173,6 +178,35 @@ def _depth_weights(z, w):
     d0 = jnp.where(ws > 0, jnp.clip(zs / jnp.where(ws > 0, ws, 1.0), -1.0, 1.0), 0.0)
     dz = [_trunc(z[i] - _xmul(d0, w[i]), 12)[0] for i in range(3)]
     return [d0] + dz + [_trunc(w[i], 12)[0] for i in range(3)]
+
+
+def _before(q, fi, a: int, b: int):
+    """Whether a face's vertex ``a`` comes before its vertex ``b`` in the canonical order:
+    lexicographic in the clip coordinates ``q`` = (x, y, w, z), then by vertex index (raster.cc's
+    Before). Two faces over the same points (a shared edge; duplicate faces, of either winding,
+    over the same or coincident vertices) order those points alike, so what the set-up computes
+    from them in that order is bit-identical."""
+    lt = fi[a] < fi[b]
+    for c in reversed(q):
+        lt = (c[a] < c[b]) | ((c[a] == c[b]) & lt)
+    return lt
+
+
+def _ranks(b01, b02, b12):
+    """Each vertex's rank (0, 1, 2) in the canonical order, from whether vertex 0 comes before
+    1, 0 before 2 and 1 before 2: the identity where those do not order the three (a vertex
+    repeated in the face, a NaN coordinate: a face that draws nothing). raster.cc's Ranks."""
+    one = jnp.int32(1)
+    b01, b02, b12 = (b.astype(jnp.int32) for b in (b01, b02, b12))
+    r = [(one - b01) + (one - b02), b01 + (one - b12), b02 + b12]
+    ok = (r[0] != r[1]) & (r[0] != r[2]) & (r[1] != r[2])
+    return [jnp.where(ok, r[k], k) for k in range(3)]
+
+
+def _in_rank_order(ranks, values):
+    """``values`` (one per vertex of a face, or per edge opposite it) in the order of the
+    vertices' ``ranks`` (0, 1, 2 per face: a permutation)."""
+    return [jnp.where(ranks[0] == r, values[0], jnp.where(ranks[1] == r, values[1], values[2])) for r in range(3)]
 
 
 def _depth(zw, e):
@@ -230,10 +264,11 @@ def _setup(clip: Float[Array, "V 4"], faces: Int[Array, "F 3"], height: int, wid
     faces = faces.astype(jnp.int32)
     fi = [faces[:, k] for k in range(3)]
     x, y, z, w = ([ct[c][fi[k]] for k in range(3)] for c in range(4))
+    lex = (x, y, w, z)
     minors, swaps = [], []
     for i in range(3):
         a, b = (i + 1) % 3, (i + 2) % 3
-        swap = fi[a] > fi[b]
+        swap = _before(lex, fi, b, a)  # canonical order: b before a
         xa, ya = (jnp.where(swap, q[b], q[a]) for q in (x, y))
         xb, yb = (jnp.where(swap, q[a], q[b]) for q in (x, y))
         minors.append(_xmul(xa, yb) - _xmul(xb, ya))  # canonical order
@@ -259,7 +294,14 @@ def _setup(clip: Float[Array, "V 4"], faces: Int[Array, "F 3"], height: int, wid
         # cx > 0, or cx = 0 and cy > 0. The displaced point lies inside exactly one triangle of
         # a closed fan, vertices included.
         owns.append((cx > 0) | ((cx == 0) & (cy > 0)))
-    zw = _depth_weights(z, w)
+    # planes and depth weights in the vertices' canonical order (plane k opposite vertex k), so
+    # that duplicate faces (of either winding) get bit-identical depths: an exact tie, which the
+    # smaller id wins, whatever the rounding of the clip coordinates (jit or not)
+    ranks = _ranks(_before(lex, fi, 0, 1), _before(lex, fi, 0, 2), _before(lex, fi, 1, 2))
+    parts = [_in_rank_order(ranks, coef[c::3]) for c in range(3)]  # (c0, cx, cy), each by rank
+    coef = [parts[c][r] for r in range(3) for c in range(3)]
+    owns = _in_rank_order(ranks, owns)
+    zw = _depth_weights(_in_rank_order(ranks, z), _in_rank_order(ranks, w))
 
     # Conservative pixel bounding box of the part in front of the near plane (z >= -w).
     dist = [z[k] + w[k] for k in range(3)]

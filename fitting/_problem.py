@@ -100,22 +100,40 @@ def pixel_depths(scene, tri: np.ndarray) -> np.ndarray:
     return np.where(ok & (den != 0), np.abs(t), np.inf)
 
 
-def sees_back_faces(scene, ids: np.ndarray, cos_min: float = 1e-3) -> bool:
-    """Whether any pixel of the visibility ``ids`` (``[K, H, W]``) sees a triangle from behind,
-    or so nearly edge-on (the cosine between its normal and the way to the eye below
-    ``cos_min``) that float rounding could turn it; host-side float64. For a pinhole camera
-    a triangle's projected winding (the rasterizer's front) is counter-clockwise exactly when
-    the eye lies on its normal's side."""
+def sees_back_faces(scene, ids: np.ndarray, margin: float = 64.0) -> bool:
+    r"""Whether any pixel of the visibility ``ids`` (``[K, H, W]``) sees a triangle from behind,
+    or one whose side float rounding could decide: host-side float64.
+
+    The renderer's side is the sign of the clip-space determinant :math:`D = \det[x_k\,y_k\,w_k]`
+    (``Fragments.front``, the shading kernel's face table), computed in the scene's dtype from
+    clip coordinates of its own rounding. Here :math:`D` is taken in float64 with the bound
+    :math:`\bar D` of that rounding (the same determinant over the magnitudes
+    :math:`|P V|\,|p| + |(PV)_{\cdot 3}|` of every clip coordinate's terms), and a triangle
+    counts as seen from the front only where :math:`D > ` ``margin`` :math:`\cdot\,\epsilon\,\bar D`
+    (ε the scene dtype's): there every rounding the renderer's arithmetic can take gives the
+    same side. (For a pinhole camera a triangle's projected winding is counter-clockwise exactly
+    when the eye lies on its normal's side.)"""
     tri = np.unique(ids[ids >= 0])
     if not len(tri):
         return False
-    V = np.asarray(scene.mesh.vertices, np.float64)
-    f = np.asarray(scene.mesh.faces)[tri]
-    a = V[f[:, 0]]
-    n = np.cross(V[f[:, 1]] - a, V[f[:, 2]] - a)
-    to_eye = np.asarray(scene.camera.eye, np.float64) - a
-    den = np.linalg.norm(n, axis=1) * np.linalg.norm(to_eye, axis=1)
-    return bool(np.any(np.einsum("ij,ij->i", n, to_eye) <= cos_min * den))
+    cam = scene.camera
+    P, Vm = (np.asarray(a, np.float64) for a in (cam.projection_matrix(), cam.view_matrix()))
+    m, mabs = P @ Vm, np.abs(P) @ np.abs(Vm)
+    corners = np.asarray(scene.mesh.vertices, np.float64)[np.asarray(scene.mesh.faces)[tri]]  # [T, 3, 3]
+    rows = [0, 1, 3]  # x, y, w
+    c = corners @ m[rows, :3].T + m[rows, 3]  # [T, 3 corners, (x, y, w)]
+    cabs = np.abs(corners) @ mabs[rows, :3].T + mabs[rows, 3]
+
+    def det(a, perm=False):
+        x, y, w = a[..., 0], a[..., 1], a[..., 2]
+        sign = 1.0 if perm else -1.0
+        m0 = y[:, 1] * w[:, 2] + sign * y[:, 2] * w[:, 1]
+        m1 = x[:, 1] * w[:, 2] + sign * x[:, 2] * w[:, 1]
+        m2 = x[:, 1] * y[:, 2] + sign * x[:, 2] * y[:, 1]
+        return x[:, 0] * m0 + (1.0 if perm else -1.0) * y[:, 0] * m1 + w[:, 0] * m2
+
+    eps = float(np.finfo(np.dtype(scene.mesh.vertices.dtype)).eps)
+    return bool(np.any(det(c) <= margin * eps * det(cabs, perm=True)))
 
 
 def near_edges(depth: np.ndarray, margin: int, ratio: float = 4.0) -> np.ndarray:

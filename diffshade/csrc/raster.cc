@@ -316,8 +316,9 @@ void BoundingBox(const float* x, const float* y, const float* z, const float* w,
   meta[f] = x0; meta[nf + f] = x1; meta[2 * nf + f] = y0; meta[3 * nf + f] = y1; meta[4 * nf + f] = own;
 }
 
-// Triangle set-up: the same operations as diffshade/_raster.py::_setup (canonical edge order,
-// exact products, conservative near-clipped bounding box), written to structure-of-arrays.
+// Triangle set-up: the same operations as diffshade/_raster.py::_setup (canonical vertex order,
+// exact products, conservative near-clipped bounding box), written to structure-of-arrays, the
+// planes and depth weights by the vertices' canonical rank.
 // Faces go in blocks of kBlock: their vertices gathered first, then each quantity for the whole
 // block in a loop of straight-line arithmetic (selects, no branches), which the compiler
 // vectorises; the bounding box after, face by face.
@@ -331,7 +332,7 @@ void Setup(const float* clip, const int32_t* faces, int64_t num_verts, int64_t n
   ScopedFlushDenormals ftz;
   float X[3][kBlock], Y[3][kBlock], Z[3][kBlock], W[3][kBlock], minor[3][kBlock], nat[3][kBlock];
   float det[kBlock], d0[kBlock];
-  int32_t VI[3][kBlock];
+  int32_t VI[3][kBlock], rank[3][kBlock], of_rank[3][kBlock];
   bool bad[kBlock];
   for (int64_t f0 = f_begin; f0 < f_end; f0 += kBlock) {
     const int64_t n = std::min(kBlock, f_end - f0);
@@ -345,11 +346,34 @@ void Setup(const float* clip, const int32_t* faces, int64_t num_verts, int64_t n
         X[k][j] = c[0]; Y[k][j] = c[1]; Z[k][j] = c[2]; W[k][j] = c[3];
       }
     }
-    // minors of the (x, y) columns in canonical (vertex index) order, and in natural order
+    // Whether vertex a comes before vertex b of face j in the canonical order (_raster.py's
+    // _before): lexicographic in (x, y, w, z), then by vertex index.
+    auto before = [&](int a, int b, int64_t j) {
+      bool lt = VI[a][j] < VI[b][j];
+      const float(*qs[4])[kBlock] = {Z, W, Y, X};  // (reversed: the last compared decides first)
+      for (int c = 0; c < 4; ++c) {
+        const float va = qs[c][a][j], vb = qs[c][b][j];
+        lt = (va < vb) | ((va == vb) & lt);
+      }
+      return lt;
+    };
+    // each vertex's rank in that order, and the vertex of each rank: the planes (plane k
+    // opposite vertex k) and the depth weights are stored by rank (_raster.py::_setup)
+    // (_raster.py::_ranks: the identity where the three comparisons do not order the vertices)
+    for (int64_t j = 0; j < n; ++j) {
+      const int b01 = before(0, 1, j), b02 = before(0, 2, j), b12 = before(1, 2, j);
+      int r[3] = {(1 - b01) + (1 - b02), b01 + (1 - b12), b02 + b12};
+      if (r[0] == r[1] || r[0] == r[2] || r[1] == r[2]) { r[0] = 0; r[1] = 1; r[2] = 2; }
+      for (int k = 0; k < 3; ++k) {
+        rank[k][j] = r[k];
+        of_rank[r[k]][j] = k;
+      }
+    }
+    // minors of the (x, y) columns in canonical order, and in natural order
     for (int i = 0; i < 3; ++i) {
       const int a = (i + 1) % 3, b = (i + 2) % 3;
       for (int64_t j = 0; j < n; ++j) {
-        const bool sw = VI[a][j] > VI[b][j];
+        const bool sw = before(b, a, j);
         const float xa = sw ? X[b][j] : X[a][j], ya = sw ? Y[b][j] : Y[a][j];
         const float xb = sw ? X[a][j] : X[b][j], yb = sw ? Y[a][j] : Y[b][j];
         const float m = Mul(xa, yb) - Mul(xb, ya);
@@ -364,7 +388,7 @@ void Setup(const float* clip, const int32_t* faces, int64_t num_verts, int64_t n
     for (int i = 0; i < 3; ++i) {
       const int a = (i + 1) % 3, b = (i + 2) % 3;
       for (int64_t j = 0; j < n; ++j) {
-        const bool sw = VI[a][j] > VI[b][j];
+        const bool sw = before(b, a, j);
         const float sdet = det[j] > 0 ? 1.0f : -1.0f;
         const float s = sw ? -sdet : sdet;
         const float xa = sw ? X[b][j] : X[a][j], ya = sw ? Y[b][j] : Y[a][j], wa = sw ? W[b][j] : W[a][j];
@@ -374,12 +398,13 @@ void Setup(const float* clip, const int32_t* faces, int64_t num_verts, int64_t n
         const float ay = s * (Mul(xb, wa) - Mul(xa, wb));
         float cf[3];
         ToPixelUnits(cc, ax, ay, height, width, cf);
-        for (int k = 0; k < 3; ++k) coef[(3 * i + k) * nf + f0 + j] = cf[k];
+        for (int k = 0; k < 3; ++k) coef[(3 * rank[i][j] + k) * nf + f0 + j] = cf[k];
       }
     }
     // the depth weights (Depth), in loops over the block that vectorise
     for (int64_t j = 0; j < n; ++j) {
-      const float zs = (Z[0][j] + Z[1][j]) + Z[2][j], ws = (W[0][j] + W[1][j]) + W[2][j];
+      const int p0 = of_rank[0][j], p1 = of_rank[1][j], p2 = of_rank[2][j];
+      const float zs = (Z[p0][j] + Z[p1][j]) + Z[p2][j], ws = (W[p0][j] + W[p1][j]) + W[p2][j];
       const float d = zs / (ws > 0 ? ws : 1.0f);
       const float lo = d < -1.0f ? -1.0f : d;
       d0[j] = ws > 0 ? (lo > 1.0f ? 1.0f : lo) : 0.0f;
@@ -387,8 +412,9 @@ void Setup(const float* clip, const int32_t* faces, int64_t num_verts, int64_t n
     }
     for (int k = 0; k < 3; ++k) {
       for (int64_t j = 0; j < n; ++j) {
-        zw[(1 + k) * nf + f0 + j] = Trunc(Z[k][j] - Mul(d0[j], W[k][j]), 12);
-        zw[(4 + k) * nf + f0 + j] = Trunc(W[k][j], 12);
+        const int v = of_rank[k][j];
+        zw[(1 + k) * nf + f0 + j] = Trunc(Z[v][j] - Mul(d0[j], W[v][j]), 12);
+        zw[(4 + k) * nf + f0 + j] = Trunc(W[v][j], 12);
       }
     }
     for (int64_t j = 0; j < n; ++j) {
