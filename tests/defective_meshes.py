@@ -9,8 +9,16 @@ Each draw is a function of its seed alone (``numpy.random.default_rng(seed)``)."
 
 from __future__ import annotations
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import trimesh
+
+import diffshade as ds
+from fitting import Observations
+from fitting._problem import Problem
+
+_jit_render = jax.jit(ds.render, static_argnames="opts")
 
 DEFECTS = ("holes", "duplicates", "opposite", "fins", "degenerate", "split", "soup", "unreferenced")
 
@@ -157,3 +165,54 @@ def random_scene_dict(rng, size: int = 48) -> dict:
     if fog != "none":
         d["fog"] = {"color": list(rng.uniform(0.3, 0.8, 3)), "density": 0.1, "start": 0.0, "end": 9.0}
     return d
+
+
+def fixed_scene_dict(rng, shading: str, size: int = 32) -> dict:
+    """:func:`random_scene_dict` with a fixed structure (one point and one directional light, exp
+    fog, ``shading``): random values only, so that cases share their compiled programs."""
+    d = random_scene_dict(rng, size)
+    d["render"] = {"shading": shading, "specular": "phong", "fog": "exp"}
+    d["light"] = [d["light"][0], {"type": "directional", "color": [0.3, 0.3, 0.35], "direction": [1.0, -0.5, -1.0]}]
+    d["fog"] = {"color": list(rng.uniform(0.3, 0.8, 3)), "density": float(rng.uniform(0.05, 0.2))}
+    return d
+
+
+def padded(mesh, vertices: int, faces: int):
+    """``mesh`` (a :class:`diffshade.Mesh`) padded to ``vertices`` and ``faces`` (when below)
+    with unreferenced copies of vertex 0 (and of its normal) and faces ``(0, 0, 0)``
+    (degenerate: they draw nothing), so that meshes of one size share compiled programs."""
+    v, f = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces)
+    n = None if mesh.normals is None else np.asarray(mesh.normals, np.float64)
+    extra = max(0, vertices - len(v))
+    v = np.concatenate([v, np.repeat(v[:1], extra, 0)])
+    n = None if n is None else np.concatenate([n, np.repeat(n[:1], extra, 0)])
+    f = np.concatenate([f, np.zeros((max(0, faces - len(f)), 3), f.dtype)])
+    return ds.Mesh(vertices=v, faces=f, normals=n)
+
+
+def placed(mesh, rng):
+    """The mesh as a user places it: centred on its bounding box, scaled to 1-2.5 units and
+    rotated (its file normals, if it has them, rotated with it)."""
+    v = np.asarray(mesh.vertices, np.float64)
+    lo, hi = v.min(0), v.max(0)
+    R = _rotation(rng)
+    v = (v - (lo + hi) / 2) / (hi - lo).max() * rng.uniform(1.0, 2.5) @ R.T
+    n = None if mesh.normals is None else np.asarray(mesh.normals, np.float64) @ R.T
+    return ds.Mesh(vertices=v, faces=np.asarray(mesh.faces), normals=n)
+
+
+def model_against_render(scene, opts, free=("material.diffuse", "material.specular", "material.shininess")):
+    """The fit's forward model at the truth against :func:`diffshade.render` (eager) and
+    ``jax.jit(diffshade.render)`` of the same scene: ``(fit, jit, jvp)``, each ``[H, W]`` the
+    largest absolute difference over the channels, ``jvp`` the primal of the fit's forward-mode
+    pass (the shading kernel's partials where it serves); and the problem (its options say
+    whether the fit lights one side)."""
+    img = np.asarray(ds.render(scene, opts))
+    jitted = np.asarray(_jit_render(scene, opts))
+    prob = Problem.build(scene, opts, Observations(img), list(free))
+    theta = jnp.asarray(prob.pset.theta_of(scene))
+    data = prob.device_data()
+    model = prob.full_images(np.asarray(prob.images(theta, data)))[0]
+    primal, _ = jax.jit(prob.images_jvp)(theta, jnp.eye(len(theta), dtype=theta.dtype)[:1], data)
+    jvp = prob.full_images(np.asarray(primal))[0]
+    return tuple(np.abs(a - img).max(-1) for a in (model, jitted, jvp)) + (prob,)

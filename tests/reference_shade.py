@@ -21,13 +21,18 @@ def _n(v):
     return np.where(n > 0, v / np.where(n > 0, n, 1), 0.0)
 
 
-def vertex_normals(V, F):
-    acc = np.zeros_like(V)
+def vertex_normals(V, F, eps=np.finfo(np.float64).eps):
+    """docs/model.md §4, face by face: the adjacent faces' cross products summed, normalised;
+    zero where the sum is within 16 ε of the sum of the faces' |e1||e2| (the faces cancel)."""
+    acc, bound = np.zeros_like(V), np.zeros(len(V))
     for f in F:
-        c = np.cross(V[f[1]] - V[f[0]], V[f[2]] - V[f[0]])
+        e1, e2 = V[f[1]] - V[f[0]], V[f[2]] - V[f[0]]
+        c = np.cross(e1, e2)
         for k in f:
             acc[k] += c
-    return _n(acc)
+            bound[k] += np.linalg.norm(e1) * np.linalg.norm(e2)
+    cancel = np.linalg.norm(acc, axis=1) <= 16 * eps * bound
+    return np.where(cancel[:, None], 0.0, _n(acc))
 
 
 def _pow(x, m):
