@@ -31,6 +31,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields, replace
 from typing import Any, Literal
 
+import numpy as np
+
 Shading = Literal["flat", "gouraud", "phong"]
 SpecularModel = Literal["none", "phong", "blinn"]
 Fresnel = Literal["none", "schlick", "dielectric"]
@@ -441,6 +443,10 @@ class RenderOptions:
         unknown = sorted(set(k) - set(KEYS))
         if unknown:
             raise ValueError(f"unknown render key(s) {unknown}; allowed: {sorted(KEYS)}")
+        for key in ("shadows", "shadow_rays", "transparency", "clamp"):
+            if key in k and not isinstance(k[key], (bool, np.bool_)):
+                hint = "; clamp_at chooses 'pixel' or 'vertex'" if key == "clamp" else ""
+                raise ValueError(f"render key {key} is a switch (true or false), got {k[key]!r}{hint}")
         if k.get("shadows") and k.get("shadow_rays"):
             raise ValueError("shadows (maps) and shadow_rays are two ways to the same shadows: choose one")
         if k.get("absorption") and not k.get("transparency"):

@@ -97,14 +97,34 @@ class Material(eqx.Module):
     specular_map: Texture | None = None
     shininess_map: Texture | None = None
     opacity_map: Texture | None = None
+    # (field, first field): a field whose map is the very Texture an earlier field has, decided
+    # when the material is made; static, so it survives jit's flattening, which makes copies
+    map_sharing: tuple = eqx.field(static=True, init=False, repr=False)
+
+    def __post_init__(self):
+        first, sharing = {}, []
+        for f in MAPPED_FIELDS:
+            t = getattr(self, f + "_map")
+            if t is not None:
+                if id(t) in first:
+                    sharing.append((f, first[id(t)]))
+                else:
+                    first[id(t)] = f
+        self.map_sharing = tuple(sharing)
 
     def maps(self, fields=None) -> dict:
         """The texture map of each field that has one (docs/model.md §15): ``{field: Texture}``,
         the ambient term tied to the diffuse map unless it has its own (OpenGL's ``GL_MODULATE``,
-        and the MTL convention); only the ``fields`` asked for (default: all)."""
+        and the MTL convention); only the ``fields`` asked for (default: all).
+
+        Fields given the same :class:`Texture` when the material was made share it: they get
+        the first such field's map, one object (lit and clamped together, docs/model.md §15),
+        inside ``jax.jit`` too, where the scene's flattening has copied each field's."""
         out = {f: getattr(self, f + "_map") for f in MAPPED_FIELDS}
+        for f, g in self.map_sharing:
+            out[f] = out[g]
         if out["ambient"] is None:
-            out["ambient"] = self.diffuse_map
+            out["ambient"] = out["diffuse"]
         return {f: t for f, t in out.items() if t is not None and (fields is None or f in fields)}
 
     @classmethod

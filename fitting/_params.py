@@ -303,6 +303,12 @@ def _parse_map(name, scene, shared):
         )
     if shared:
         raise ParamError(f"{name} has no shared form")
+    first = dict(scene.material.map_sharing).get(field)
+    if first is not None:
+        raise ParamError(
+            f"{name}: the {field} map is the same Texture as material.{first}_map (one map for both, "
+            f"docs/model.md §15): free material.{first}_map, which maps both"
+        )
     shape = tuple(int(n) for n in tex.texels.shape)
     domain = "positive" if field == "shininess" else "unit"
     return Param(name, ("material", field + "_map"), int(np.prod(shape)), domain, shape=shape)

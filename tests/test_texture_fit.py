@@ -134,6 +134,12 @@ def test_what_a_map_fit_refuses():
         fitting.fit(starts[0], opts, obs, ["material.specular_map"])
     with pytest.raises(FitError, match="shared by every view"):
         fitting.fit(starts[0], opts, obs, ["view[0].material.diffuse_map"])
+    # one Texture on two fields is one map, named by its first field
+    tex = starts[0].material.diffuse_map
+    one = dataclasses.replace(starts[0], material=dataclasses.replace(starts[0].material, specular_map=tex))
+    with pytest.raises(fitting.ParamError, match=r"same Texture as material.diffuse_map .*free material.diffuse_map"):
+        fitting.ParamSet(["material.specular_map"], one)
+    assert fitting.ParamSet(["material.diffuse_map"], one).sizes == [tex.texels.size]
 
 
 def test_fitted_maps_export_as_png_and_mtl_and_load_back(tmp_path):

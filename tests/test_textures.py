@@ -294,6 +294,65 @@ def test_what_a_scene_with_maps_must_refuse():
         ds.Texture(np.ones((2, 2)), wrap="mirror")
 
 
+def _textured_torus(maps, clamp, shading, size=24):
+    """A torus (texture coordinates from its two angles) under a point and a directional light
+    bright enough to saturate, with ``maps`` (``{field: Texture}``), float32."""
+    import trimesh
+
+    t = trimesh.creation.torus(1.0, 0.45, major_sections=24, minor_sections=12)
+    v = np.asarray(t.vertices) @ trimesh.transformations.rotation_matrix(0.8, [1, 0.2, 0])[:3, :3].T
+    r = np.hypot(v[:, 0], v[:, 1])
+    uv = np.stack([np.arctan2(v[:, 1], v[:, 0]) / (2 * np.pi) + 0.5, np.arctan2(v[:, 2], r - 1.0) / (2 * np.pi) + 0.5], 1)
+    mat = ds.Material(
+        emission=0.3, ambient=0.3, diffuse=0.9, specular=0.8, shininess=12.0, **{f + "_map": m for f, m in maps.items()}
+    )
+    scene = ds.Scene(
+        mesh=ds.Mesh(vertices=v, faces=t.faces, uv=uv),
+        camera=ds.Camera(eye=[0, 0, 3.5], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.5, far=10.0, width=size, height=size),
+        material=mat,
+        point=ds.PointLights(color=[[1.6, 1.5, 1.4]], position=[[2, 2, 3]], attenuation=[[1, 0, 0]], ambient=[[0, 0, 0]]),
+        directional=ds.DirectionalLights(color=[[0.6, 0.6, 0.7]], direction=[[1, -0.5, -1]], ambient=[[0, 0, 0]]),
+        ambient_light=0.4,
+        background=(0.0, 0.0, 0.0),
+    )
+    clamped = {} if clamp is None else {"clamp": True, "clamp_at": clamp}
+    return float32(scene), ds.RenderOptions.from_keys(shading=shading, emission=True, **clamped)
+
+
+@pytest.mark.parametrize(
+    "shading,clamp", [("gouraud", "vertex"), ("gouraud", None), ("phong", "pixel"), ("flat", "vertex")]
+)
+def test_a_map_shared_between_terms_is_one_map_in_every_path(shading, clamp):
+    """One Texture on emission, diffuse and specular (what GL_MODULATE does to a material under
+    one texture) is lit and clamped with them together: by the native kernel and the JAX stages,
+    eager and jitted, to float32 rounding, and per vertex as OpenGL does, clamp(lit colour) × the
+    texel. (The terms were grouped by the maps' object identity, which jit's flattening does not
+    keep: jitted, each term's colour was clamped apart, 0.679 where OpenGL gives 0.5.)"""
+    rng = np.random.default_rng(5)
+    t1 = ds.Texture(ds.color.decode(rng.uniform(0.2, 1.0, (8, 16, 3)), "srgb"))
+    t2 = ds.Texture(ds.color.decode(rng.uniform(0.2, 1.0, (8, 16, 3)), "srgb"))
+    jitted = jax.jit(ds.render, static_argnames="opts")
+    for maps in ({"emission": t1, "diffuse": t1, "specular": t1}, {"emission": t2, "diffuse": t1, "specular": t1}):
+        scene, opts = _textured_torus(maps, clamp, shading)
+        assert set(scene.material.map_sharing) == (
+            {("diffuse", "emission"), ("specular", "emission")} if maps["emission"] is t1 else {("specular", "diffuse")}
+        )
+        stages = opts.replace(raster=dataclasses.replace(opts.raster, backend="jax"))
+        ref = np.asarray(ds.render(scene, stages))
+        assert ref.max() > 0.3
+        for o in (opts, stages):
+            for f in (ds.render, jitted):
+                np.testing.assert_allclose(np.asarray(f(scene, o)), ref, atol=1e-5, rtol=0)
+        if clamp == "vertex" and maps["emission"] is t1:
+            # OpenGL: each vertex's lit colour clamped, interpolated, times the texel
+            plain = dataclasses.replace(scene.material, emission_map=None, diffuse_map=None, specular_map=None)
+            lit = np.asarray(ds.render(dataclasses.replace(scene, material=plain), stages))
+            only = ds.Material(emission=1.0, ambient=0.0, diffuse=0.0, specular=0.0, emission_map=t1)
+            tex = np.asarray(ds.render(float32(dataclasses.replace(scene, material=only)), stages.with_keys(clamp=False)))
+            np.testing.assert_allclose(ref, lit * tex, atol=1e-5, rtol=0)
+            assert (lit >= 1.0 - 1e-6).any()  # (the clamp is on the path)
+
+
 def test_changing_texels_compiles_nothing():
     scene, opts = _textured_default("phong", {"diffuse": ds.Texture(np.full((4, 4, 3), 0.5))}, size=8)
     render = jax.jit(lambda s, o: ds.render(s, o), static_argnums=1)  # a cache of its own
