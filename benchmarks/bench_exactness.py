@@ -48,13 +48,15 @@ def main():
     if args.x64:
         jax.config.update("jax_enable_x64", True)
     import equinox as eqx
+    from defective_meshes import defective_mesh, model_against_render, placed, random_scene_dict
 
     import diffshade as ds
-    from defective_meshes import defective_mesh, model_against_render, placed, random_scene_dict
 
     tol = args.tol if args.tol is not None else (1e-9 if args.x64 else 1e-4)
     cases = [("random", seed) for seed in range(args.seed0, args.seed0 + args.cases)]
-    cases += [(f"{name}/{mode}", k) for name in NAMED for mode in ("authored", "merged") for k in range(args.placements)]
+    cases += [
+        (f"{name}/{mode}", k) for name in NAMED for mode in ("authored", "merged") for k in range(args.placements)
+    ]
     print(f"{len(cases)} cases, {args.size}², {'float64' if args.x64 else 'float32'}, tolerance {tol:g}")
     worst = {"fit": [], "jit": [], "jvp": []}
     failed, one_sided, t0 = [], 0, time.perf_counter()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import warnings
 from pathlib import Path
@@ -34,7 +35,8 @@ class Mesh(eqx.Module):
     RGB per vertex) are per-vertex reflectances, used where ``RenderOptions.vertex_color`` asks.
     ``uv`` (optional, one ``(u, v)`` per vertex, :math:`v = 0` at the bottom of a map) are the
     texture coordinates a material's maps are sampled at (OBJ ``vt``; docs/model.md §15).
-    ``adjacency`` (optional, one row per face) is the face across each edge
+    ``unit_normals`` (static) says the ``normals`` are unit vectors already, used as they are
+    (:meth:`with_vertex_normals` sets it). ``adjacency`` (optional, one row per face) is the face across each edge
     (:func:`diffshade.face_adjacency`), which ``RenderOptions.antialias`` needs: computed from the
     faces where they are concrete, or beforehand with :meth:`with_adjacency` for a mesh passed
     into ``jax.jit``.
@@ -53,6 +55,9 @@ class Mesh(eqx.Module):
     uv: Float[Array, "V 2"] | None = eqx.field(
         converter=lambda x: None if x is None else as_float_array(x), default=None
     )
+    # the normals are unit vectors already, used as they are (with_vertex_normals'): normalised
+    # again they would differ from the renderer's own in the last bit
+    unit_normals: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         nv = self.vertices.shape[0]
@@ -94,46 +99,93 @@ class Mesh(eqx.Module):
         duplicate faces, a fold; :data:`CANCEL` below) gets the zero vector, as does one with no
         non-degenerate adjacent face: the sum there is float rounding, whose direction would
         change with the precision and the order of the sum. A mesh with file ``normals``
-        returns those, normalised.
+        returns those, normalised. In float32 on the CPU the native kernel computes them
+        (``csrc/normals.cc``: the same bits in every program, jitted or not, and no scatter in
+        the program; derivatives by the JAX implementation's), elsewhere the JAX stages.
         """
         if self.normals is not None:
-            return safe_normalize(self.normals)
-        tri = take(self.vertices, self.faces)
-        e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-        n = jnp.cross(e1, e2)
-        # each face's cross product is exact to a few ulps of |e1||e2| (its rounding bound; a
-        # decision, not differentiated: no gradient through the square root at a zero edge)
-        scale = jax.lax.stop_gradient(jnp.sqrt(jnp.sum(e1 * e1, -1) * jnp.sum(e2 * e2, -1)))
-        nb = jnp.concatenate([n, scale[:, None]], axis=1)
-        acc = jnp.zeros((self.vertices.shape[0], 4), nb.dtype)
-        for k in range(3):
-            acc = acc.at[self.faces[:, k]].add(nb)
-        s, bound = acc[:, :3], acc[:, 3:]
-        tol = CANCEL * jnp.finfo(s.dtype).eps * bound
-        return jnp.where(jnp.sum(s * s, -1, keepdims=True) > tol * tol, safe_normalize(s), 0.0)
+            return self.normals if self.unit_normals else safe_normalize(self.normals)
+        if _native_normals_apply(self.vertices):
+            return _normals_native(self.vertices, self.faces)
+        return _normals_jax(self.vertices, self.faces)
 
     def with_vertex_normals(self) -> "Mesh":
-        """This mesh with :attr:`normals` set to :meth:`vertex_normals` computed once on the
-        host in float64 (where it gives none), the cancelling sums decided as in the scene's
-        dtype: for a program that never moves the vertices, which then holds no scatter over
-        the faces (a loop on XLA's CPU backend) to compute them."""
+        """This mesh with :attr:`normals` set to :meth:`vertex_normals` computed once (where it
+        gives none), for a program that never moves the vertices, which then holds no scatter
+        over the faces (a loop on XLA's CPU backend) to compute them: by the native kernel in
+        float32 (the bits every render computes), else on the host in float64, the cancelling
+        sums decided as in the scene's dtype."""
         if self.normals is not None:
             return self
-        v, f = np.asarray(self.vertices, np.float64), np.asarray(self.faces)
-        tri = v[f]
-        e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-        n = np.cross(e1, e2)
-        nb = np.concatenate([n, (np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1))[:, None]], axis=1)
-        acc = np.zeros((len(v), 4))
-        for k in range(3):
-            np.add.at(acc, f[:, k], nb)
-        s, bound = acc[:, :3], acc[:, 3:]
-        length = np.linalg.norm(s, axis=1, keepdims=True)
-        ok = length > CANCEL * np.finfo(np.dtype(self.vertices.dtype)).eps * bound
-        out = np.where(ok, s / np.where(ok, length, 1.0), 0.0)
-        return eqx.tree_at(
-            lambda m: m.normals, self, jnp.asarray(out, self.vertices.dtype), is_leaf=lambda x: x is None
-        )
+        if _native_normals_apply(self.vertices):
+            out = _normals_native(self.vertices, self.faces)
+        else:
+            out = jnp.asarray(_normals_host(self.vertices, self.faces), self.vertices.dtype)
+        mesh = eqx.tree_at(lambda m: m.normals, self, out, is_leaf=lambda x: x is None)
+        return dataclasses.replace(mesh, unit_normals=True)
+
+
+def _normals_jax(vertices, faces):
+    """:meth:`Mesh.vertex_normals` in JAX (any dtype and device; the native kernel's derivatives)."""
+    tri = take(vertices, faces)
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    n = jnp.cross(e1, e2)
+    # each face's cross product is exact to a few ulps of |e1||e2| (its rounding bound; a
+    # decision, not differentiated: no gradient through the square root at a zero edge)
+    scale = jax.lax.stop_gradient(jnp.sqrt(jnp.sum(e1 * e1, -1) * jnp.sum(e2 * e2, -1)))
+    nb = jnp.concatenate([n, scale[:, None]], axis=1)
+    acc = jnp.zeros((vertices.shape[0], 4), nb.dtype)
+    for k in range(3):
+        acc = acc.at[faces[:, k]].add(nb)
+    s, bound = acc[:, :3], acc[:, 3:]
+    tol = CANCEL * jnp.finfo(s.dtype).eps * bound
+    return jnp.where(jnp.sum(s * s, -1, keepdims=True) > tol * tol, safe_normalize(s), 0.0)
+
+
+def _normals_host(vertices, faces) -> np.ndarray:
+    """:meth:`Mesh.vertex_normals` on the host in float64, the cancelling sums decided by the
+    ε of ``vertices``' dtype."""
+    v, f = np.asarray(vertices, np.float64), np.asarray(faces)
+    tri = v[f]
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    n = np.cross(e1, e2)
+    nb = np.concatenate([n, (np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1))[:, None]], axis=1)
+    acc = np.zeros((len(v), 4))
+    for k in range(3):
+        np.add.at(acc, f[:, k], nb)
+    s, bound = acc[:, :3], acc[:, 3:]
+    length = np.linalg.norm(s, axis=1, keepdims=True)
+    ok = length > CANCEL * np.finfo(np.dtype(vertices.dtype)).eps * bound
+    return np.where(ok, s / np.where(ok, length, 1.0), 0.0)
+
+
+def _native_normals_apply(vertices) -> bool:
+    """Whether the native kernel computes the normals of ``vertices`` (float32, on the CPU)."""
+    if jnp.result_type(vertices) != jnp.float32 or jax.default_backend() != "cpu" or vertices.ndim != 2:
+        return False
+    from . import _native
+
+    return _native.available()
+
+
+@jax.custom_jvp
+def _normals_native(vertices, faces):
+    from . import _native
+
+    call = jax.ffi.ffi_call(
+        _native.ensure_registered("diffshade_normals"),
+        jax.ShapeDtypeStruct(vertices.shape, jnp.float32),
+        vmap_method="broadcast_all",
+    )
+    return call(vertices, jnp.asarray(faces, jnp.int32), cancel=np.float32(CANCEL))
+
+
+@_normals_native.defjvp
+def _normals_native_jvp(primals, tangents):
+    vertices, faces = primals
+    dv = tangents[0]
+    _, dn = jax.jvp(lambda v: _normals_jax(v, faces), (vertices,), (dv,))
+    return _normals_native(vertices, faces), dn
 
 
 CANCEL = 16.0

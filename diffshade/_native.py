@@ -1,5 +1,5 @@
 """Build and register the native CPU kernels (``csrc/raster.cc``: visibility; ``csrc/shade.cc``:
-shading, :mod:`diffshade._fast`) through ``jax.ffi``.
+shading, :mod:`diffshade._fast`; ``csrc/normals.cc``: vertex normals) through ``jax.ffi``.
 
 The kernels are compiled on first use, into one library, with the system C++ compiler against the
 XLA FFI headers that ship with jaxlib, and cached under ``$XDG_CACHE_HOME/diffshade`` (default
@@ -24,7 +24,7 @@ import jax
 import jaxlib
 
 _CSRC = Path(__file__).parent / "csrc"
-_SOURCES = [_CSRC / "raster.cc", _CSRC / "shade.cc"]
+_SOURCES = [_CSRC / "raster.cc", _CSRC / "shade.cc", _CSRC / "normals.cc"]
 _HEADERS = [_CSRC / "parallel.h", _CSRC / "math_lanes.h"]
 _FLAGS = [
     "-O3",
@@ -42,6 +42,7 @@ _TARGETS = {
     "diffshade_raster": "DiffshadeRaster",
     "diffshade_shade": "DiffshadeShade",
     "diffshade_shade_partials": "DiffshadeShadePartials",
+    "diffshade_normals": "DiffshadeNormals",
 }
 _lock = threading.Lock()
 _state: dict = {}

@@ -91,7 +91,7 @@ def polish(ev, prob, red, theta, steps, rtol) -> Polished:
     theta = np.where(sq, np.maximum(theta, floor), theta)
 
     r, J, img = ev(theta)
-    cost, lam, nu, n_ev, conv = float(r @ r), 1e-3, 2.0, 1, False
+    cost, lam, nu, n_ev, conv = float(r @ r), 1e-7, 2.0, 1, False
     n_res = max(int(np.count_nonzero(r)) - len(theta), 1)
     tol = max(rtol, 10 * float(np.finfo(dt).eps))
     # Float rounding of one residual entry, squared: at most ε·max|y| and at most the residual's own

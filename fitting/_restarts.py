@@ -29,7 +29,7 @@ from ._optimistix import lm_solve, result_message
 from ._polish import polish, relinearise
 from ._report import Basins, Candidate, FitResult, Run, better, build_result, candidate
 from ._starts import candidates
-from ._varpro import Evaluator, Program, compiled_program, evaluator
+from ._varpro import STALL_RATIO, Evaluator, Program, compiled_program, evaluator
 
 SEARCH_PIXELS = 512  # covered pixels per view used to rank the global starts (optimistix's path)
 
@@ -144,7 +144,7 @@ class _VarProDriver:
         cand = candidate(self.prob, p, why, self.n2, self.noise)
         notes.append(
             f"attempt {k + 1}: from {'the given start' if b == 0 else f'start {b + 1}'}: {k0} "
-            f"variable-projection LM evaluations{'' if bool(out.conv) else ' (not converged)'}, "
+            f"variable-projection LM evaluations{_ended(out)}, "
             f"{p.evaluations} of the polish on the whole image"
             f"{' (converged)' if p.converged else ' (not converged)'}; residual {cand.ratio:.3g}× the noise"
         )
@@ -292,3 +292,12 @@ class _OptimistixDriver:
         if best.converged:
             return ""
         return result_message(best.res).splitlines()[0] if best.res else "the polish did not converge"
+
+
+def _ended(out) -> str:
+    """How variable projection ended, for a fit's notes."""
+    if bool(out.conv):
+        return ""
+    if bool(out.stalled):
+        return f" (stopped: its steps gained under {STALL_RATIO:.0%} of what its model predicted; the polish finished)"
+    return " (not converged)"

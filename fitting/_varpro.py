@@ -139,12 +139,26 @@ class ProgramOut(NamedTuple):
     theta: jax.Array  # and in natural units
     conv: jax.Array  # bool: the solve converged
     k: jax.Array  # evaluations
+    stalled: jax.Array  # bool: ended by STALLS weak steps (the polish finishes)
     img: jax.Array  # [M] the image at the last evaluation
     T: jax.Array  # [tangents, M] its tangents
     costs: jax.Array  # [C] mode 2: the reduced cost of every start
     hz: jax.Array | None = None  # [S, p] θ of the accepted steps
     hc: jax.Array | None = None  # [S] their costs
     nh: jax.Array | None = None  # how many
+
+
+# The damping after an accepted step: ÷3 (Nielsen's bound), not Marquardt's ÷10, which in the
+# DEODR scene's attenuation valley went back after every success to a step that failed (every
+# other evaluation of twenty a rejected trial); 31 starts there: 841 evaluations at ÷10, 529 at
+# ÷3, 522 at ÷5, 532 at ÷2 (docs/performance.md, "A plain fit's steps").
+LAM_DOWN = 1.0 / 3.0
+# An accepted step that gains under STALL_RATIO of what the Gauss–Newton model says its point can
+# gain is weak; STALLS weak steps in a row end variable projection, and the polish (in natural
+# units) finishes: the model in u fails where a scalar on a log scale heads for 0 (its column
+# vanishes: the DEODR scene's a2, 30 evaluations at one cost while log a2 fell by 3 each).
+STALL_RATIO = 0.01
+STALLS = 3
 
 
 class _State(NamedTuple):
@@ -156,6 +170,8 @@ class _State(NamedTuple):
     cc: jax.Array  # the current cost
     first: jax.Array
     lam: jax.Array
+    pred: jax.Array  # the cost the Gauss–Newton step would gain at the current point (its model's)
+    stall: jax.Array  # accepted steps in a row that gained under STALL_RATIO of that prediction
     H: jax.Array
     g: jax.Array
     k: jax.Array
@@ -286,6 +302,7 @@ class _Program:
         """One evaluation: accept or reject the trial point, then the next trial point."""
         z_new, c_new, H, g, img, T = self.evaluate(s.zt, c)
         ok = jnp.isfinite(c_new) & ((c_new <= s.cc) | s.first)
+        s_cc_old, first = s.cc, s.first
         upd = lambda a, b: jnp.where(ok, a, b)  # noqa: E731
         s = s._replace(img=img, T=T, first=jnp.asarray(False), k=s.k + 1)
         # mode 2 ranks the starts: the reduced cost of each, then the next
@@ -297,7 +314,9 @@ class _Program:
             H=upd(H, s.H),
             g=upd(g, s.g),
         )
-        s = s._replace(lam=jnp.where(ok, jnp.maximum(s.lam * 0.1, 1e-9), s.lam * 10.0))
+        s = s._replace(lam=jnp.where(ok, jnp.maximum(s.lam * LAM_DOWN, 1e-9), s.lam * 10.0))
+        weak = ok & ~first & (s_cc_old - c_new < STALL_RATIO * s.pred)
+        s = s._replace(stall=jnp.where(ok, jnp.where(weak, s.stall + 1, 0), s.stall))
         if self.verbose:
             jax.debug.print("  variable projection: cost {}, accepted {}, lambda {}", c_new, ok, s.lam)
         if self.S:
@@ -312,10 +331,13 @@ class _Program:
         conv = gain <= 1e-2 * s2 + 10.0 * self.p * c.float_var
         conv = conv | (jnp.max(jnp.abs(gn), initial=0.0) <= c.rtol)
         zc, n_l = s.zc, self.n_l
+        s = s._replace(pred=gain)
         return s._replace(
             zt=jnp.where(c.rank, self.start(s.k, c), jnp.concatenate([zc[:n_l], zc[n_l:] + dm])),
             conv=conv,
-            done=jnp.where(c.rank, s.k >= c.C, c.natural | conv | (s.lam > 1e12) | (s.k >= c.max_steps)),
+            done=jnp.where(
+                c.rank, s.k >= c.C, c.natural | conv | (s.lam > 1e12) | (s.k >= c.max_steps) | (s.stall >= STALLS)
+            ),
         )
 
     def init(self, c) -> _State:
@@ -333,6 +355,8 @@ class _Program:
             cc=jnp.asarray(jnp.inf, dt),
             first=jnp.asarray(True),
             lam=jnp.asarray(1e-3, dt),
+            pred=jnp.asarray(0.0, dt),
+            stall=jnp.asarray(0),
             H=jnp.zeros((n_n, n_n), dt),
             g=jnp.zeros(n_n, dt),
             k=jnp.asarray(0),
@@ -352,6 +376,7 @@ class _Program:
             theta=self.red.theta(zc[n_l:], zc[:n_l], theta_ref),
             conv=s.conv,
             k=s.k,
+            stalled=s.stall >= STALLS,
             img=s.img,
             T=s.T,
             costs=s.costs,

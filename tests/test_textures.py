@@ -302,15 +302,21 @@ def _textured_torus(maps, clamp, shading, size=24):
     t = trimesh.creation.torus(1.0, 0.45, major_sections=24, minor_sections=12)
     v = np.asarray(t.vertices) @ trimesh.transformations.rotation_matrix(0.8, [1, 0.2, 0])[:3, :3].T
     r = np.hypot(v[:, 0], v[:, 1])
-    uv = np.stack([np.arctan2(v[:, 1], v[:, 0]) / (2 * np.pi) + 0.5, np.arctan2(v[:, 2], r - 1.0) / (2 * np.pi) + 0.5], 1)
+    uv = np.stack(
+        [np.arctan2(v[:, 1], v[:, 0]) / (2 * np.pi) + 0.5, np.arctan2(v[:, 2], r - 1.0) / (2 * np.pi) + 0.5], 1
+    )
     mat = ds.Material(
         emission=0.3, ambient=0.3, diffuse=0.9, specular=0.8, shininess=12.0, **{f + "_map": m for f, m in maps.items()}
     )
     scene = ds.Scene(
         mesh=ds.Mesh(vertices=v, faces=t.faces, uv=uv),
-        camera=ds.Camera(eye=[0, 0, 3.5], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.5, far=10.0, width=size, height=size),
+        camera=ds.Camera(
+            eye=[0, 0, 3.5], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.5, far=10.0, width=size, height=size
+        ),
         material=mat,
-        point=ds.PointLights(color=[[1.6, 1.5, 1.4]], position=[[2, 2, 3]], attenuation=[[1, 0, 0]], ambient=[[0, 0, 0]]),
+        point=ds.PointLights(
+            color=[[1.6, 1.5, 1.4]], position=[[2, 2, 3]], attenuation=[[1, 0, 0]], ambient=[[0, 0, 0]]
+        ),
         directional=ds.DirectionalLights(color=[[0.6, 0.6, 0.7]], direction=[[1, -0.5, -1]], ambient=[[0, 0, 0]]),
         ambient_light=0.4,
         background=(0.0, 0.0, 0.0),
@@ -348,7 +354,9 @@ def test_a_map_shared_between_terms_is_one_map_in_every_path(shading, clamp):
             plain = dataclasses.replace(scene.material, emission_map=None, diffuse_map=None, specular_map=None)
             lit = np.asarray(ds.render(dataclasses.replace(scene, material=plain), stages))
             only = ds.Material(emission=1.0, ambient=0.0, diffuse=0.0, specular=0.0, emission_map=t1)
-            tex = np.asarray(ds.render(float32(dataclasses.replace(scene, material=only)), stages.with_keys(clamp=False)))
+            tex = np.asarray(
+                ds.render(float32(dataclasses.replace(scene, material=only)), stages.with_keys(clamp=False))
+            )
             np.testing.assert_allclose(ref, lit * tex, atol=1e-5, rtol=0)
             assert (lit >= 1.0 - 1e-6).any()  # (the clamp is on the path)
 
