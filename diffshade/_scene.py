@@ -98,19 +98,23 @@ class Material(eqx.Module):
     shininess_map: Texture | None = None
     opacity_map: Texture | None = None
     # (field, first field): a field whose map is the very Texture an earlier field has, decided
-    # when the material is made; static, so it survives jit's flattening, which makes copies
-    map_sharing: tuple = eqx.field(static=True, init=False, repr=False)
+    # when the material is made (and kept from ``map_sharing`` where given: a material rebuilt
+    # from another's fields inside jit, whose maps are copies); static, so it survives jit's
+    # flattening, which makes copies
+    map_sharing: tuple = eqx.field(static=True, default=(), repr=False)
 
     def __post_init__(self):
-        first, sharing = {}, []
+        pairs, first = {f: g for f, g in self.map_sharing if _still_shared(self, f, g)}, {}
         for f in MAPPED_FIELDS:
             t = getattr(self, f + "_map")
             if t is not None:
                 if id(t) in first:
-                    sharing.append((f, first[id(t)]))
+                    pairs[f] = first[id(t)]
                 else:
                     first[id(t)] = f
-        self.map_sharing = tuple(sharing)
+        self.map_sharing = tuple(
+            (f, pairs[f]) for f in MAPPED_FIELDS if f in pairs and getattr(self, f + "_map") is not None
+        )
 
     def maps(self, fields=None) -> dict:
         """The texture map of each field that has one (docs/model.md §15): ``{field: Texture}``,
@@ -133,6 +137,22 @@ class Material(eqx.Module):
         emission 0, shininess 0; ``fields`` change any of them."""
         gl = dict(ambient=0.2, diffuse=0.8, specular=0.0, emission=0.0, shininess=0.0)
         return cls(**{**gl, **fields})
+
+
+def _still_shared(mat, f: str, g: str) -> bool:
+    """Whether a given sharing of ``f``'s map with ``g``'s still holds: the same Texture, or
+    inside a trace (copies whose texels cannot be compared), or the same texels; not after
+    ``dataclasses.replace`` gave ``f`` a map of its own."""
+    a, b = getattr(mat, f + "_map"), getattr(mat, g + "_map")
+    if a is None or b is None:
+        return False
+    if a is b:
+        return True
+    if (a.wrap, a.filter, a.texels.shape) != (b.wrap, b.filter, b.texels.shape):
+        return False
+    if not is_concrete((a.texels, b.texels)) or a.texels is b.texels:
+        return True
+    return bool(np.array_equal(np.asarray(a.texels), np.asarray(b.texels)))
 
 
 def _opt_rows(x):
