@@ -4,8 +4,8 @@
 :class:`FitResult`; :func:`compare_models` asks which terms the images support. Everything else
 lives in private modules named by what they compute (``_params``, ``_problem``, ``_linear``,
 ``_varpro``, ``_starts``, ``_restarts``, ``_polish``, ``_basins``, ``_intervals``, ``_albedo``,
-``_report``, ``_models``, ``_cache``, ``_noise``); :func:`downsample` area-averages a target and
-keeps what was clipped; design notes: docs/fit-design-notes.md."""
+``_block_solver``, ``_report``, ``_models``, ``_cache``, ``_noise``); :func:`downsample`
+area-averages a target and keeps what was clipped; design notes: docs/fit-design-notes.md."""
 
 from ._cache import cache_info, enable_compilation_cache
 from ._downsample import Downsampled, downsample

@@ -27,7 +27,8 @@ import numpy as np
 
 import diffshade as ds
 
-from ._albedo import AlbedoProblem, fit_block
+from ._albedo import AlbedoProblem
+from ._block_solver import fit_block
 from ._domains import check_fit
 from ._linear import Reduced
 from ._observations import FitError, Observations, Strategy, VarPro

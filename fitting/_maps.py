@@ -1,5 +1,5 @@
 r"""Texture maps in a fit: the texels of the emission, ambient, diffuse and specular maps as a
-sparse linear block of the variable projection (:mod:`fitting._albedo` holds the solver).
+sparse linear block of the variable projection (:mod:`fitting._block_solver` holds the solver).
 
 Free as ``material.<field>_map``, a map is fitted at the resolution of its start map. The image
 is linear in such a map's texels :math:`x` (the map multiplies its field, docs/model.md §15):

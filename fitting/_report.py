@@ -227,7 +227,7 @@ def noise_level(prob, res_images, noise=None, used=None, leverage: float = 1.0) 
     a noise-free target's curvature can) and the residual's white part (which a misfit can
     inflate, a noise-free target's curvature cannot), no less than the floor of the target's
     codes or floats. ``leverage``: the share of the noise the fit leaves in the residual's
-    neighbour differences (:func:`fitting._albedo.difference_leverage`; 1 for a fit of a few
+    neighbour differences (:func:`fitting._block_solver.difference_leverage`; 1 for a fit of a few
     parameters), by whose root the white part is divided."""
     if noise is not None:
         return float(noise), "given"

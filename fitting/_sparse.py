@@ -1,7 +1,8 @@
 """Sparse factorisations of the linear blocks' normal matrices (:mod:`fitting._albedo`,
-:mod:`fitting._maps`), several blocks at once in threads: a block large enough for its own
-ordering (below) by the supernodal Cholesky factorisation of :mod:`fitting._cholesky`, the others
-(and any that one cannot factorise) by SuperLU in its symmetric mode.
+:mod:`fitting._maps`, solved by :mod:`fitting._block_solver`), several blocks at once in threads:
+a block large enough for its own ordering (below) by the supernodal Cholesky factorisation of
+:mod:`fitting._cholesky`, the others (and any that one cannot factorise) by SuperLU in its
+symmetric mode.
 
 **The ordering.** A block of :data:`ORDERED` scalars or more (a channel of a texture map: the
 graph of a 2-D grid) is factorised in METIS's nested-dissection ordering (PyMETIS), computed once

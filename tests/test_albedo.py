@@ -258,13 +258,13 @@ def test_the_standard_errors_of_a_large_mesh_are_exact(exact, monkeypatch):
 
 
 def test_the_backtracks_residuals_are_the_products_with_a():
-    """The projected Newton steps' backtrack (fitting._albedo._Backtrack) takes the residual at
+    """The projected Newton steps' backtrack (fitting._block_solver._Backtrack) takes the residual at
     each clipped point x(a) = clip(x + a p) from r(x), A p and the clipped scalars' columns: equal
     to A x(a) + b - y to rounding at every halving, and None (a product with A instead) where the
     clip moved more than an eighth of the scalars."""
     import scipy.sparse as sp
 
-    from fitting._albedo import _Backtrack
+    from fitting._block_solver import _Backtrack
 
     rng = np.random.default_rng(7)
     A = sp.random(400, 120, density=0.05, random_state=rng, format="csr")

@@ -284,13 +284,13 @@ def test_the_bounded_solve_is_the_bounded_least_squares_optimum():
     problems whose unbounded optimum leaves [0, 1] in many scalars."""
     from scipy.optimize import lsq_linear
 
-    from fitting._albedo import _AlbedoSolver
+    from fitting._block_solver import _BlockSolver
 
     for seed in range(3):
         rng = np.random.default_rng(seed)
         A = sp.random(300, 80, density=0.05, random_state=rng, format="csr") + sp.eye(300, 80, format="csr")
         y = A @ rng.uniform(-0.5, 1.5, 80) + rng.normal(0, 0.05, 300)
-        solver = _AlbedoSolver.__new__(_AlbedoSolver)
+        solver = _BlockSolver.__new__(_BlockSolver)
         solver.ap, solver.Lp, solver.y = types.SimpleNamespace(sp=sp, orders=Orderings()), None, y
         solver._gram = solver._residual = None
         seen = np.ones(80, bool)
@@ -305,7 +305,7 @@ def test_faces_under_another_ridge_solve_as_ones_built_for_it():
     """The noise ridge's faces are the first step's blocks with their diagonals moved
     (:meth:`_Faces.with_ridge`): a solve on a face, held scalars and all, is the one faces built
     for that ridge give, and the first step's faces are left as they were."""
-    from fitting._albedo import _Faces
+    from fitting._block_solver import _Faces
 
     rng = np.random.default_rng(3)
     parts = []
@@ -334,7 +334,7 @@ def test_a_large_blocks_faces_share_its_analysis_and_solve_on_the_face():
     from scipy.sparse.linalg import splu
 
     from fitting import _sparse
-    from fitting._albedo import _Faces
+    from fitting._block_solver import _Faces
 
     if not _sparse.use_cholesky() or not _sparse.HAVE_METIS:
         pytest.skip("no Cholesky factorisation or METIS here")
@@ -371,7 +371,7 @@ def test_a_noise_free_bounded_solve_with_many_bounds_is_the_optimum():
     Newton settles the bounds first."""
     from scipy.optimize import lsq_linear
 
-    from fitting._albedo import _AlbedoSolver
+    from fitting._block_solver import _BlockSolver
 
     for seed in range(2):
         rng = np.random.default_rng(seed)
@@ -381,7 +381,7 @@ def test_a_noise_free_bounded_solve_with_many_bounds_is_the_optimum():
         truth = rng.uniform(0.05, 0.95, n)
         truth[rng.choice(n, 8, replace=False)] = rng.choice([-0.3, 1.3], 8)
         y = A @ truth
-        solver = _AlbedoSolver.__new__(_AlbedoSolver)
+        solver = _BlockSolver.__new__(_BlockSolver)
         solver.ap, solver.Lp, solver.y = types.SimpleNamespace(sp=sp, orders=Orderings()), None, y
         solver._gram = solver._residual = None
         x, free, _ = solver.bounded(np.full(n, 0.5), A, np.zeros(m), np.ones(n, bool))
@@ -423,7 +423,7 @@ def test_the_verdicts_noise_level_counts_the_noise_the_texels_fit():
     the verdict divides it by √κ, κ (difference_leverage: Hutchinson's estimate of a trace)
     against a simulation: noise drawn 200 times, projected out by the dense hat matrix, and the
     white-noise estimate of each residual averaged."""
-    from fitting._albedo import _AlbedoSolver, difference_leverage
+    from fitting._block_solver import _BlockSolver, difference_leverage
     from fitting._report import white_noise
 
     starts, targets, truth, opts = _views(8, "bilinear", size=24)
@@ -431,7 +431,7 @@ def test_the_verdicts_noise_level_counts_the_noise_the_texels_fit():
     mp = MapProblem(prob)
     theta = np.full(truth.size, 0.5)
     mp._compile(theta)
-    red = _AlbedoSolver(mp, 0.0, 1e-10, False).reduced(theta)
+    red = _BlockSolver(mp, 0.0, 1e-10, False).reduced(theta)
     kappa = difference_leverage(prob, red)
     Af = red.A[:, red.free].toarray()
     Q = np.linalg.qr(Af)[0][:, : np.linalg.matrix_rank(Af)]  # H = Q Qᵀ
@@ -450,7 +450,7 @@ def test_the_degrees_of_freedom_of_a_block_stopped_by_its_rounds():
     """k proximal rounds with a ridge R fit a direction of information λ by the factor
     1 - (R/(λ+R))ᵏ: the block takes 2 tr H - tr H² degrees of freedom from the residual, where H is
     that filtered hat matrix (here dense, against effective_dof's estimate)."""
-    from fitting._albedo import effective_dof
+    from fitting._block_solver import effective_dof
 
     rng = np.random.default_rng(2)
     A = sp.random(3000, 120, density=0.03, random_state=rng, format="csr")
@@ -478,7 +478,7 @@ def test_a_round_is_skipped_only_where_its_gain_extrapolated_is_far_under_the_fl
     ROUND_MARGIN. Measured gains: the 256² floor case's seed 0 (8.4e-2, 1.05e-2; the next one
     gained 3.6e-3 under its floor 5.9e-3) stops; the 128² sphere's seed 1 (3.0e-2, 4.7e-3; the
     next one gained 1.6e-3 over its floor 1.08e-3) goes on."""
-    from fitting._albedo import ROUND_MARGIN, _next_round_pays
+    from fitting._block_solver import ROUND_MARGIN, _next_round_pays
 
     assert not _next_round_pays([8.37e-2, 1.054e-2], 5.89e-3)
     assert _next_round_pays([2.97e-2, 4.68e-3], 1.08e-3)
@@ -507,11 +507,11 @@ def test_a_solve_whose_steps_ran_out_says_so(monkeypatch):
     The verdict names the steps that ran out with the cost still falling, not a local minimum or
     a model that cannot explain the images (with the default ridge and steps this fit settles
     and is successful: test_determined_texels_are_recovered_and_the_others_named)."""
-    import fitting._albedo as albedo
+    import fitting._block_solver as block_solver
 
     starts, targets, truth, opts = _views(16, "bilinear")
     for name, value in (("RIDGE", 1e-2), ("MAX_CONJUGATE", 1)):
-        monkeypatch.setattr(albedo, name, value)
+        monkeypatch.setattr(block_solver, name, value)
     r = fitting.fit(starts[0], opts, fitting.Observations(targets, views=starts), ["material.diffuse_map"])
     assert not r.successful and not r.converged
     assert "1 conjugate-gradient steps ended with the cost still falling" in r.result
@@ -535,29 +535,29 @@ def test_the_host_solve_holds_blas_at_one_thread_and_its_standard_errors_begun_b
     diagonal begun beside the solve is the one made after it, to the bit."""
     from threadpoolctl import threadpool_info
 
-    from fitting._albedo import _AlbedoSolver, block_stderr
+    from fitting._block_solver import _BlockSolver, block_stderr
 
     starts, targets, truth, opts = _views(8, "bilinear", size=24)
     obs = fitting.Observations(targets, views=starts)
     blas = lambda: [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]  # noqa: E731
     before, during = blas(), []
-    lm = _AlbedoSolver.lm
+    lm = _BlockSolver.lm
 
     def watched(self, *a, **k):
         during.append(blas())
         return lm(self, *a, **k)
 
-    monkeypatch.setattr(_AlbedoSolver, "lm", watched)
+    monkeypatch.setattr(_BlockSolver, "lm", watched)
     fitting.fit(starts[0], opts, obs, ["material.diffuse_map"], intervals=False)
     assert before and during and all(n == 1 for n in during[0])
     assert blas() == before
-    monkeypatch.setattr(_AlbedoSolver, "lm", lm)
+    monkeypatch.setattr(_BlockSolver, "lm", lm)
 
     prob = Problem.build(starts[0], opts, obs, ["material.diffuse_map"])
     mp = MapProblem(prob)
     theta = np.full(truth.size, 0.5)
     mp._compile(theta)
-    solver = _AlbedoSolver(mp, 0.0, 1e-10, False)
+    solver = _BlockSolver(mp, 0.0, 1e-10, False)
     red = solver.reduced(theta)
     assert solver._beside is not None and solver._beside.serves(red.A, np.flatnonzero(red.seen))
     beside = block_stderr(mp, solver, red, 1.0)
