@@ -108,6 +108,10 @@ def applies(scene: Scene, opts: RenderOptions, pixels) -> bool:
         return False
     if "shininess" in maps and (r.shading != "phong" or maps["shininess"].channels != 1):
         return False
+    if needs(opts).lit_maps and set(maps) & set(_COLOUR_FIELDS):
+        return False  # (GL_MODULATE's order per pixel: each map's lit colour clamped apart, in the stages)
+    if any(t.mipmaps != "float" for t in maps.values()) or (maps and r.texture_lod != "pixel"):
+        return False  # (OpenGL's 8-bit sRGB mipmaps and per-quad level of detail: the stages)
     floats = [x for x in jax.tree.leaves(scene) if jnp.issubdtype(jnp.result_type(x), jnp.floating)]
     return all(jnp.result_type(x) == jnp.float32 for x in floats)
 

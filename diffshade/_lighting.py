@@ -320,7 +320,9 @@ def illuminate(
 
     def side_of(normal, mat, back):
         if to_px is None:  # the sites are the pixels
-            return shade_points(sites.points, normal, eye, mat, scene, lighting, back, visibility, separate=separate)
+            col = shade_points(sites.points, normal, eye, mat, scene, lighting, back, visibility, separate=separate)
+            # (lit maps, Needs.lit_maps: each part clamped before its texels multiply it)
+            return _color_sum(_vertex_clamp(col, output)) if sites.modulate else col
         if visibility is None:
             lit = _vertex_clamp(
                 shade_points(sites.points, normal, eye, mat, scene, lighting, back, separate=separate), output
@@ -345,7 +347,7 @@ def illuminate(
         color = side(sites.normal, sites.material, False)
         if lighting.two_sided:
             color = _select(surface.front, color, side(S.neg(sites.normal), sites.back_material, True))
-    if to_px is None:
+    if to_px is None and not sites.modulate:
         color = _color_sum(_vertex_clamp(color, output))
     return color
 

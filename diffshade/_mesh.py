@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import io
 import re
 import warnings
 from pathlib import Path
@@ -235,6 +236,29 @@ def _check_obj_faces(path: Path) -> None:
                 )
 
 
+def _obj_as_fans(path: Path) -> bytes | None:
+    """The OBJ's text with every polygon face line (more than 3 corners) written as the triangles
+    of its fan from the first corner, in the file's order, ``(a,b,c),(a,c,d),...``: what OpenGL
+    draws of a ``GL_POLYGON`` and the usual loaders make of it (trimesh splits a quad
+    ``(a,b,c),(c,d,a)`` and puts the second halves after all the first ones: in flat shading from
+    the provoking vertex the second triangle took ``a``'s colour, not ``d``'s). None if the file
+    has no polygons."""
+    data = path.read_bytes()
+    lines, changed = data.split(b"\n"), False
+    for i, line in enumerate(lines):
+        m = re.match(rb"^(\s*)f\s+(.*)$", line)
+        if not m:
+            continue
+        corners = m.group(2).split(b"#", 1)[0].split()
+        if len(corners) > 3:
+            changed = True
+            a = corners[0]
+            lines[i] = b"\n".join(
+                m.group(1) + b"f " + b" ".join((a, corners[k], corners[k + 1])) for k in range(1, len(corners) - 1)
+            )
+    return b"\n".join(lines) if changed else None
+
+
 VERTEX_MODES = ("authored", "merged")
 
 
@@ -277,7 +301,8 @@ def load_mesh(path: str | Path, vertices: str = "authored", colors: str = "srgb"
     Scenes are merged into one mesh. Per-vertex colours (PLY ``red green blue``, OBJ ``v x y z r g
     b``) become ``Mesh.colors``, decoded as ``colors`` says: ``"srgb"`` (the default: 8-bit colours
     in files are display values), ``"linear"``, or ``"ignore"``; merged vertices average theirs.
-    Texture coordinates (OBJ ``vt``) become ``Mesh.uv`` (authored vertices only: merging ignores
+    An OBJ polygon (a face of more than 3 corners) becomes the fan of triangles from its first
+    corner, in the order of the file (what OpenGL draws of it, and the usual loaders). Texture coordinates (OBJ ``vt``) become ``Mesh.uv`` (authored vertices only: merging ignores
     them); the file's materials are read by :func:`diffshade.load_material`. Raises :class:`MeshError` with the file name for a missing or unreadable file, a
     mesh with no triangles, malformed faces, non-finite vertex positions or normals.
     """
@@ -292,12 +317,22 @@ def load_mesh(path: str | Path, vertices: str = "authored", colors: str = "srgb"
         raise MeshError(f"{path}: mesh file not found")
     if not path.is_file():
         raise MeshError(f"{path}: not a file")
+    fans = None
     if path.suffix.lower() == ".obj":
         _check_obj_faces(path)
+        fans = _obj_as_fans(path)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            loaded = trimesh.load(str(path), process=False)
+            if fans is None:
+                loaded = trimesh.load(str(path), process=False)
+            else:  # (its material library found beside the file)
+                loaded = trimesh.load(
+                    io.BytesIO(fans),
+                    file_type="obj",
+                    resolver=trimesh.resolvers.FilePathResolver(str(path)),
+                    process=False,
+                )
             # a scene's geometries, placed by its graph (a single mesh is its own part)
             parts = (
                 [loaded]

@@ -47,6 +47,7 @@ ColorSum = Literal["single", "separate"]
 VertexColor = Literal["none", "diffuse", "ambient_and_diffuse"]
 Backend = Literal["auto", "native", "jax"]
 Cull = Literal["none", "back", "front"]
+TextureLod = Literal["pixel", "quad", "llvmpipe"]
 RayBackend = Literal["auto", "embree", "jax"]
 
 
@@ -87,7 +88,11 @@ class Raster:
     screen is the front) or towards it (``"front"``). A closed mesh seen from outside looks the
     same with ``"back"`` and rasterizes in about 40 % less time; an open one shows what is behind
     its back faces. With ``"back"`` only front faces are lit (two-sided lighting has nothing to
-    do). Shadow maps and rays always see both sides.
+    do). Shadow maps and rays always see both sides. ``texture_lod``: a mipmapped map's level of
+    detail from the exact derivatives of the texture coordinates at each pixel (``"pixel"``), or
+    from their differences across the pixel's 2×2 quad of the window, one level per quad, as a
+    GPU takes them (``"quad"``), and with Mesa's piecewise-linear log2 too
+    (``"llvmpipe"``: its level to 2e-6; docs/model.md §15).
     """
 
     shading: Shading = "phong"
@@ -96,6 +101,7 @@ class Raster:
     vertex_color: VertexColor = "none"
     backend: Backend = "auto"
     cull: Cull = "none"
+    texture_lod: TextureLod = "pixel"
 
     def __post_init__(self):
         _choice(self, "shading", ("flat", "gouraud", "phong"))
@@ -104,6 +110,7 @@ class Raster:
         _choice(self, "vertex_color", ("none", "diffuse", "ambient_and_diffuse"))
         _choice(self, "backend", ("auto", "native", "jax"))
         _choice(self, "cull", ("none", "back", "front"))
+        _choice(self, "texture_lod", ("pixel", "quad", "llvmpipe"))
 
 
 @dataclass(frozen=True)
@@ -238,7 +245,10 @@ class Output:
     r"""After lighting. ``clamp``: ``None`` (linear, unclamped), ``"pixel"`` (the interpolated
     colour clamped to [0, 1]) or ``"vertex"`` (each vertex's lit colour clamped before
     interpolation, and the final colour after fog, as OpenGL does:
-    :math:`I_{px} = \sum_j b_j \operatorname{clamp}(I_j)`). ``color_sum``: ``"single"``
+    :math:`I_{px} = \sum_j b_j \operatorname{clamp}(I_j)`; in Phong shading the pixels are the
+    sites, and a texture map of colour fields multiplies their clamped lit colour,
+    :math:`\operatorname{clamp}(I)\,T`, OpenGL's ``GL_MODULATE`` order, where ``"pixel"`` clamps
+    :math:`I\,T`). ``color_sum``: ``"single"``
     (``GL_SINGLE_COLOR``) or ``"separate"`` (``GL_SEPARATE_SPECULAR_COLOR``: the specular terms
     clamped and interpolated apart and added per pixel; differs only with ``clamp="vertex"``).
     ``antialias``: analytic coverage of silhouette edges between neighbouring pixels
@@ -258,7 +268,10 @@ class Output:
 # The scene file's flat [render] keys: group and field of each (a group's switch key, such as
 # `shadows` or `fog`, decides whether the group exists at all).
 _KEYS: dict[str, tuple[str, str]] = {
-    **{k: ("raster", k) for k in ("shading", "interpolation", "flat_source", "vertex_color", "backend", "cull")},
+    **{
+        k: ("raster", k)
+        for k in ("shading", "interpolation", "flat_source", "vertex_color", "backend", "cull", "texture_lod")
+    },
     **{
         k: ("lighting", k)
         for k in (
@@ -329,6 +342,7 @@ _OPENGL = dict(
     color_sum="single",
     two_sided=False,
     fog_distance="depth",
+    texture_lod="quad",
 )
 
 
@@ -427,7 +441,8 @@ class RenderOptions:
     def opengl(cls, **keys) -> RenderOptions:
         """OpenGL's fixed-function pipeline: Gouraud shading, Blinn–Phong specular, per-light
         ambient and emission, colours clamped per vertex, flat shading from the provoking vertex,
-        an infinite viewer, ``GL_SINGLE_COLOR``, one-sided lighting and fog by eye-space depth.
+        an infinite viewer, ``GL_SINGLE_COLOR``, one-sided lighting, fog by eye-space depth and a
+        mipmap level per 2×2 pixel quad (``texture_lod="quad"``).
         ``keys`` (scene-file keys) change any of them (``shading="flat"``, ``fog="exp"``, ...).
         OpenGL's defaults for the numbers a scene leaves out are :meth:`diffshade.Material.opengl`
         and :meth:`diffshade.Fog.opengl` (a scene file with ``compat = "opengl"`` uses them)."""

@@ -98,17 +98,30 @@ def render(
     (material fits reuse it). Jit with ``jax.jit(render, static_argnames="opts")``. With
     ``pixels`` (NDC centres shaped as ``ids[0]``) only those pixels are shaded: ``ids`` must be
     given, gathered at the same pixels. Called on concrete values (outside ``jit``), every number of
-    ``scene`` is first held to its domain (:class:`diffshade.SceneError` names one outside it).
+    ``scene`` is first held to its domain (:class:`diffshade.SceneError` names one outside it), and
+    the render is the compiled program ``jax.jit(render, static_argnames="opts")`` runs: the same
+    image to the bit (op by op, an eager render's numbers rounded otherwise: 53 of 16,384 pixels
+    of a bunny differed from the jitted render by up to 8e-5), compiled once per structure.
     """
     if not isinstance(opts, RenderOptions):
         raise TypeError(f"render: opts must be a diffshade.RenderOptions, got {type(opts).__name__}")
-    if is_concrete(scene):
+    if ids is None and pixels is not None:
+        raise ValueError("render: pixels needs the ids gathered at those pixels")
+    if is_concrete((scene, ids, pixels)):
         check_scene(scene)
+        if opts.output.antialias and scene.mesh.adjacency is None:  # (the stage reads it from concrete faces)
+            scene = dataclasses.replace(scene, mesh=scene.mesh.with_adjacency())
+        return _render_jit(scene, opts, ids, pixels)
+    return _render(scene, opts, ids, pixels)
+
+
+def _render(scene: Scene, opts: RenderOptions, ids, pixels):
     if ids is None:
-        if pixels is not None:
-            raise ValueError("render: pixels needs the ids gathered at those pixels")
         ids = scene_visibility(scene, opts)
     return shade(scene, ids, opts, pixels)
+
+
+_render_jit = jax.jit(_render, static_argnames="opts")
 
 
 def scene_visibility(scene: Scene, opts: RenderOptions = RenderOptions()) -> Int[Array, "K H W"]:

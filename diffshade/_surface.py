@@ -28,7 +28,7 @@ from ._materials import _COMPOSITING_FIELDS, _MATERIAL_FIELDS, _material_at
 from ._options import Raster, RenderOptions
 from ._raster import Fragments, _flat_ids, _pixel_vertex_ids, fragments, interpolate
 from ._scene import SCALAR_MAPPED, Material, Scene
-from ._texture import footprint, level_of_detail, pixel_derivatives, sample_channels
+from ._texture import footprint, level_of_detail, pixel_derivatives, sample_channels, window_parity
 from ._util import keep, take
 
 Components = tuple  # a vector or colour as a tuple of same-shaped arrays, one per component
@@ -37,11 +37,14 @@ Components = tuple  # a vector or colour as a tuple of same-shaped arrays, one p
 @dataclass(frozen=True)
 class Needs:
     """What later stages read of the surface: the material ``fields``, pixel ``positions``
-    (shadows, absorption, Euclidean fog, Phong), and pixel normals for Kay's opacity (``kay``)."""
+    (shadows, absorption, Euclidean fog, Phong), and pixel normals for Kay's opacity (``kay``);
+    ``lit_maps``: in Phong shading, colour maps multiply the lit colour of their fields (clamped
+    first, ``clamp = "vertex"``: OpenGL's ``GL_MODULATE``) rather than the fields before lighting."""
 
     fields: frozenset = frozenset(_MATERIAL_FIELDS)
     positions: bool = True
     kay: bool = True
+    lit_maps: bool = False
 
 
 def needs(opts: RenderOptions) -> Needs:
@@ -69,7 +72,8 @@ def needs(opts: RenderOptions) -> Needs:
         or (tr is not None and tr.absorption)
         or euclidean_fog
     )
-    return Needs(frozenset(used), positions, tr is not None)
+    lit_maps = opts.output.clamp == "vertex" and opts.raster.shading == "phong"
+    return Needs(frozenset(used), positions, tr is not None, lit_maps)
 
 
 @dataclass(frozen=True)
@@ -171,7 +175,7 @@ def surface_points(
     back = pmat if multi else (scene.back_material if scene.back_material is not None else scene.material)
     position = lerp(S.vec(mesh.vertices)) if need.positions or raster.shading == "phong" else None
     kay = tuple(bool(m.kay) for m in mats) if multi else (bool(scene.material.kay),)
-    need = Needs(need.fields, need.positions, need.kay and any(kay))
+    need = replace(need, kay=need.kay and any(kay))
     build = {"phong": _phong_sites, "gouraud": _gouraud_sites, "flat": _flat_sites}[raster.shading]
     sites, normal, pmat = build(scene, raster, need, frags, bary, multi, pmat, back, position)
     if any(m.maps(need.fields) for m in mats) or (scene.back_material is not None and scene.back_material.maps()):
@@ -258,7 +262,7 @@ def _flat_sites(scene, raster, need, frags, bary, multi, pmat, back, position):
     return Sites(pts, nrm, fmat, fback, to_pixels), normal, pmat
 
 
-def _texels(scene: Scene, need: Needs, frags: Fragments, bary, clip, mids) -> dict:
+def _texels(scene: Scene, need: Needs, frags: Fragments, bary, clip, mids, raster: Raster) -> dict:
     """Each used map's texels at the pixels, ``{field: components}`` (one component for the
     shininess and opacity, three for colours; a one-channel colour map is grey). With several
     materials (``mids``, each pixel's material id) a material's maps apply to its own pixels; the
@@ -271,14 +275,17 @@ def _texels(scene: Scene, need: Needs, frags: Fragments, bary, clip, mids) -> di
             f"the material has texture maps ({', '.join(names)}) but the mesh has no texture coordinates (Mesh.uv)"
         )
     trilinear = any(t.filter == "trilinear" for maps in per_material for t in maps.values())
-    u, v, deriv = _coordinates(scene, frags, bary, clip, trilinear)
+    # (screen-space affine coordinates: the differences across a quad are the derivatives)
+    lod_mode = raster.texture_lod
+    lod = lod_mode if raster.interpolation == "perspective" else "pixel"
+    u, v, deriv = _coordinates(scene, frags, bary, clip, trilinear, lod)
     done, out = {}, {}
     for i, maps in enumerate(per_material):
         for f, t in maps.items():
             if f in SCALAR_MAPPED and t.channels != 1:
                 raise ValueError(f"Material.{f}_map must have one channel, got {t.channels}")
             if id(t) not in done:
-                lod = level_of_detail(t, *deriv) if t.filter == "trilinear" else None
+                lod = level_of_detail(t, *deriv, lod_mode) if t.filter == "trilinear" else None
                 done[id(t)] = keep(*sample_channels(t, u, v, lod))
             c = done[id(t)]
             c = c if (f in SCALAR_MAPPED or len(c) == 3) else c * 3
@@ -288,15 +295,20 @@ def _texels(scene: Scene, need: Needs, frags: Fragments, bary, clip, mids) -> di
     return out
 
 
-def _coordinates(scene: Scene, frags: Fragments, bary, clip, derivatives: bool):
+def _coordinates(scene: Scene, frags: Fragments, bary, clip, derivatives: bool, lod: str = "pixel"):
     """``(u, v, derivatives or None)`` at the fragments (:func:`texture_coordinates`)."""
     mesh, cam = scene.mesh, scene.camera
-    u, v = _lerp(frags, mesh.faces, bary)((mesh.uv[:, 0], mesh.uv[:, 1]))
+    lerp = _lerp(frags, mesh.faces, bary)
+    u, v = lerp((mesh.uv[:, 0], mesh.uv[:, 1]))
     if not derivatives:
         return u, v, None
     per_face = footprint(clip, mesh.faces)
     uvf = take(mesh.uv, mesh.faces)
-    return u, v, pixel_derivatives(per_face, uvf, frags.tri_id, frags.w, u, v, cam.width, cam.height)
+    quad = None
+    if lod != "pixel":  # the pixel's place in its 2x2 quad, from the clip position it sees
+        X, Y, W = lerp((clip[:, 0], clip[:, 1], clip[:, 3]))
+        quad = window_parity(X, Y, W, cam.width, cam.height)
+    return u, v, pixel_derivatives(per_face, uvf, frags.tri_id, frags.w, u, v, cam.width, cam.height, quad)
 
 
 def texture_coordinates(scene: Scene, ids: Int[Array, "K H W"], raster: Raster = Raster(), pixels=None):
@@ -312,7 +324,9 @@ def texture_coordinates(scene: Scene, ids: Int[Array, "K H W"], raster: Raster =
     if raster.interpolation == "affine":
         frags = _affine(frags, clip, scene.mesh.faces)
     bary = tuple(frags.bary[..., j] for j in range(3))
-    return _coordinates(scene, frags, bary, clip, True)
+    return _coordinates(
+        scene, frags, bary, clip, True, raster.texture_lod if raster.interpolation == "perspective" else "pixel"
+    )
 
 
 def _modulated(mat: Material, texels: dict) -> Material:
@@ -338,14 +352,17 @@ def _textured(scene, raster, need, frags, bary, clip, mids, sites: Sites, pmat: 
         raise ValueError("texture maps do not apply to a scene with a back material (give each side its own object)")
     if {"mirror", "refraction"} & need.fields:
         raise ValueError("texture maps are not sampled at the hits of reflected and refracted rays: ray_depth = 0")
-    texels = _texels(scene, need, frags, bary, clip, mids)
+    texels = _texels(scene, need, frags, bary, clip, mids, raster)
+    colour = {f: t for f, t in texels.items() if f not in SCALAR_MAPPED}
     if raster.shading == "phong":
+        if need.lit_maps and colour:  # the colour maps after lighting (the scalar ones before)
+            m = _modulated(sites.material, {f: t for f, t in texels.items() if f in SCALAR_MAPPED})
+            return replace(sites, material=m, back_material=m, modulate=colour), _modulated(sites.material, texels)
         m = _modulated(sites.material, texels)
         return replace(sites, material=m, back_material=m), m
     if "shininess" in texels:
         raise ValueError(
             f"a shininess map needs Phong shading ({raster.shading} shading lights the vertices or faces, not the pixels)"
         )
-    colour = {f: t for f, t in texels.items() if f not in SCALAR_MAPPED}
     pixel = {f: t for f, t in texels.items() if f in SCALAR_MAPPED}
     return replace(sites, modulate=colour or None), _modulated(pmat, pixel)

@@ -26,6 +26,7 @@ a level changes).
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -34,6 +35,7 @@ from ._util import as_float_array, keep, take
 
 WRAPS = ("repeat", "clamp")
 FILTERS = ("trilinear", "bilinear")
+MIPMAPS = ("float", "srgb8", "llvmpipe")
 
 
 def _texels(x):
@@ -43,12 +45,18 @@ def _texels(x):
 
 class Texture(eqx.Module):
     """A map ``texels`` ``[H, W, C]`` (``C`` 1 or 3; ``[H, W]`` is one channel) of linear values,
-    row 0 at the top; ``wrap`` and ``filter`` are static (part of the compiled program). The
-    texels are traced data: differentiable, and a new map of the same size compiles nothing."""
+    row 0 at the top; ``wrap``, ``filter`` and ``mipmaps`` are static (part of the compiled
+    program). The texels are traced data: differentiable, and a new map of the same size compiles
+    nothing. ``mipmaps``: the levels above 0 as float averages (``"float"``, exact), or each
+    level stored as 8-bit sRGB codes before the next is averaged from it (``"srgb8"``: what
+    ``glGenerateMipmap`` does to a ``GL_SRGB8`` texture; its gradient is the float pyramid's);
+    ``"llvmpipe"`` as ``"srgb8"``, every level (0 too) read back by the cubic Mesa's llvmpipe
+    decodes sRGB codes with (:func:`srgb8`), to compare with that rasterizer."""
 
     texels: Float[Array, "H W C"] = eqx.field(converter=_texels)
     wrap: str = eqx.field(static=True, default="repeat")
     filter: str = eqx.field(static=True, default="trilinear")
+    mipmaps: str = eqx.field(static=True, default="float")
 
     def __check_init__(self):
         t = self.texels
@@ -58,6 +66,8 @@ class Texture(eqx.Module):
             raise ValueError(f"Texture.wrap must be one of {WRAPS}, got {self.wrap!r}")
         if self.filter not in FILTERS:
             raise ValueError(f"Texture.filter must be one of {FILTERS}, got {self.filter!r}")
+        if self.mipmaps not in MIPMAPS:
+            raise ValueError(f"Texture.mipmaps must be one of {MIPMAPS}, got {self.mipmaps!r}")
 
     @property
     def channels(self) -> int:
@@ -65,11 +75,36 @@ class Texture(eqx.Module):
 
     def levels(self) -> list:
         """The mipmap pyramid, level 0 first (one level without mipmapped filtering)."""
-        return mip_pyramid(self.texels) if self.filter == "trilinear" else [self.texels]
+        if self.filter == "trilinear":
+            return mip_pyramid(self.texels, self.mipmaps)
+        return [srgb8(self.texels, "llvmpipe") if self.mipmaps == "llvmpipe" else self.texels]
 
 
-def mip_pyramid(texels) -> list:
-    """Levels of 2×2 box averages down to 1×1 (an odd row or column repeated first)."""
+def srgb8(x, decode: str = "exact"):
+    r"""Linear values stored as 8-bit sRGB codes and read back (rounded to the nearest code,
+    clipped to [0, 1]); the gradient is the identity's (straight through). ``decode``: the sRGB
+    curve (``"exact"``), or Mesa llvmpipe's approximation of it (``"llvmpipe"``, within its
+    half-code tolerance: :math:`c/(12.6 \cdot 255)` for codes :math:`c \le 15`, else the cubic
+    :math:`0.3012 s^3 + 0.6935 s^2 + 0.0030 s + 0.0023`, :math:`s = c/255`)."""
+    from .color import decode as exact
+    from .color import encode
+
+    code = jnp.round(encode(jnp.clip(x, 0.0, 1.0)) * 255.0)
+    if decode == "llvmpipe":
+        s = code / 255.0
+        q = jnp.where(code <= 15.0, code / (12.6 * 255.0), ((0.3012 * s + 0.6935) * s + 0.0030) * s + 0.0023)
+    else:
+        q = exact(code / 255.0)
+    return x + jax.lax.stop_gradient(q - x)
+
+
+def mip_pyramid(texels, mipmaps: str = "float") -> list:
+    """Levels of 2×2 box averages down to 1×1 (an odd row or column repeated first); with
+    ``mipmaps = "srgb8"`` each level above 0 is stored as 8-bit sRGB codes (:func:`srgb8`), with
+    ``"llvmpipe"`` every level, read back as Mesa's llvmpipe does."""
+    decode = "llvmpipe" if mipmaps == "llvmpipe" else "exact"
+    if mipmaps == "llvmpipe":
+        texels = srgb8(texels, decode)
     out = [texels]
     t = texels
     while t.shape[0] > 1 or t.shape[1] > 1:
@@ -82,6 +117,8 @@ def mip_pyramid(texels) -> list:
             if w % 2:
                 t = jnp.concatenate([t, t[:, -1:]], axis=1)
             t = 0.5 * (t[:, 0::2] + t[:, 1::2])
+        if mipmaps != "float":
+            t = srgb8(t, decode)
         out.append(t)
     return out
 
@@ -132,15 +169,27 @@ def _blend(columns, i, stride, fx, fy):
     return out
 
 
-def level_of_detail(tex: Texture, duv_dx, duv_dy):
+def level_of_detail(tex: Texture, duv_dx, duv_dy, mode: str = "pixel"):
     r""":math:`\lambda = \log_2\rho` from the coordinates' derivatives per pixel (``(du, dv)``
-    tuples), in level-0 texels; finite where the footprint is zero (:math:`\lambda` very negative)."""
+    tuples), in level-0 texels; finite where the footprint is zero (:math:`\lambda` very negative).
+    ``mode`` is :attr:`diffshade.Raster.texture_lod`: with ``"llvmpipe"``, Mesa's piecewise-linear
+    :math:`\log_2` of :math:`\rho^2` (:func:`_fast_log2`), halved."""
     h, w = tex.texels.shape[:2]
     rx = (duv_dx[0] * w) ** 2 + (duv_dx[1] * h) ** 2
     ry = (duv_dy[0] * w) ** 2 + (duv_dy[1] * h) ** 2
     r2 = jnp.maximum(rx, ry)
     ok = r2 > 1e-30
-    return jnp.where(ok, 0.5 * jnp.log2(jnp.where(ok, r2, 1.0)), -100.0)
+    safe = jnp.where(ok, r2, 1.0)
+    log2 = _fast_log2(safe) if mode == "llvmpipe" else jnp.log2(safe)
+    return jnp.where(ok, 0.5 * log2, -100.0)
+
+
+def _fast_log2(x):
+    r"""Mesa's ``lp_build_fast_log2``: with :math:`x = m\,2^e`, :math:`m \in [1, 2)`, the line
+    :math:`e + m - 1` (exact at powers of two, under :math:`\log_2` by up to 0.086 between;
+    continuous, so the exponent's rounding does not matter). ``x > 0``."""
+    e = jax.lax.stop_gradient(jnp.floor(jnp.log2(x)))
+    return e + x * jnp.exp2(-e) - 1.0
 
 
 def sample(tex: Texture, u, v, lod=None) -> Float[Array, "... C"]:
@@ -158,7 +207,8 @@ def sample_channels(tex: Texture, u, v, lod=None) -> tuple:
     gather of a row of C values costs several times C gathers of one. The indices and weights
     are materialised once and shared by the channels."""
     trilinear = tex.filter == "trilinear" and lod is not None
-    levels = tex.levels() if trilinear else [tex.texels]
+    levels = tex.levels() if (trilinear or tex.mipmaps == "llvmpipe") else [tex.texels]
+    levels = levels if trilinear else levels[:1]
     pads = [_padded(lv, tex.wrap) for lv in levels]
     columns = [jnp.concatenate([p[..., c].reshape(-1) for p in pads]) for c in range(tex.channels)]
     sizes = [(int(lv.shape[1]), int(lv.shape[0])) for lv in levels]
@@ -186,10 +236,13 @@ def sample_channels(tex: Texture, u, v, lod=None) -> tuple:
     return tuple(x + frac * (y - x) for x, y in zip(a, b))
 
 
-def texture_from_image(path, encoding: str | None = None, wrap: str = "repeat", filter: str = "trilinear") -> Texture:
+def texture_from_image(
+    path, encoding: str | None = None, wrap: str = "repeat", filter: str = "trilinear", mipmaps: str = "float"
+) -> Texture:
     """A :class:`Texture` from an image file, decoded to linear values by its declared encoding
     (``encoding`` overrides it; a file that declares none is read as sRGB, what an 8-bit map in
-    a material file is). Alpha is dropped; a grey image stored as RGB stays RGB."""
+    a material file is). Alpha is dropped; a grey image stored as RGB stays RGB. ``mipmaps``:
+    :class:`Texture`'s (``"srgb8"`` for OpenGL's mipmaps of an 8-bit sRGB file)."""
     from .images import read_image
 
     img = read_image(path)
@@ -199,7 +252,7 @@ def texture_from_image(path, encoding: str | None = None, wrap: str = "repeat", 
         lin = lin[..., :-1]
     if lin.ndim == 3 and lin.shape[-1] not in (1, 3):
         raise ValueError(f"{path}: a texture map needs 1 or 3 channels (4 with alpha), got {lin.shape[-1]}")
-    return Texture(lin, wrap=wrap, filter=filter)
+    return Texture(lin, wrap=wrap, filter=filter, mipmaps=mipmaps)
 
 
 def footprint(clip, faces):
@@ -218,9 +271,42 @@ def footprint(clip, faces):
     return ax, ay, det
 
 
-def pixel_derivatives(per_face, uvf, tri_id, w_pix, u, v, width: int, height: int):
+def window_parity(X, Y, W, width: int, height: int):
+    """Where each pixel lies in its 2×2 quad of the window (OpenGL's: columns from the left, rows
+    from the bottom, quads at even coordinates): ``(p, q)``, 0 or 1 (floats), from the clip
+    position it sees (the pixel's centre, to rounding); not differentiated."""
+    ok = W != 0
+    iw = jnp.where(ok, 1.0 / jnp.where(ok, W, 1.0), 0.0)
+    col = jnp.floor((X * iw + 1.0) * (0.5 * width))
+    row = jnp.floor((Y * iw + 1.0) * (0.5 * height))  # window rows, from the bottom
+    return tuple(jax.lax.stop_gradient(c - 2.0 * jnp.floor(0.5 * c)) for c in (col, row))
+
+
+def _quad_differences(c, a, b, sa, sb, p, q):
+    r"""The coordinate ``c`` of a pixel (derivatives ``a - c·sa``, ``b - c·sb`` per step, the
+    rational form of a perspective-correct attribute, :math:`c(P, Q) = (c + Pa + Qb)/(1 + P s_a +
+    Q s_b)` at ``P, Q`` steps) evaluated at its quad's corner and the corner's two neighbours
+    (the triangle extended over the quad, as a GPU's helper pixels): the differences
+    ``(c(1, 0) - c(0, 0), c(0, 1) - c(0, 0))`` from the corner ``(-p, -q)``. Where the
+    extension passes the triangle's horizon (a denominator not positive) the exact derivatives."""
+
+    def at(P, Q):
+        den = 1.0 + P * sa + Q * sb
+        ok = den > 1e-6
+        return jnp.where(ok, (c + P * a + Q * b) / jnp.where(ok, den, 1.0), 0.0), ok
+
+    c0, ok0 = at(-p, -q)
+    cx, okx = at(1.0 - p, -q)
+    cy, oky = at(-p, 1.0 - q)
+    ok = ok0 & okx & oky
+    return jnp.where(ok, cx - c0, a - c * sa), jnp.where(ok, cy - c0, b - c * sb)
+
+
+def pixel_derivatives(per_face, uvf, tri_id, w_pix, u, v, width: int, height: int, quad=None):
     """:func:`footprint`'s per-face terms gathered to the pixels: the coordinates' derivatives
-    per pixel step, ``((du/dx, dv/dx), (du/dy, dv/dy))``."""
+    per pixel step, ``((du/dx, dv/dx), (du/dy, dv/dy))``; with ``quad`` (:func:`window_parity`)
+    the differences across the pixel's 2×2 quad instead, from its corner pixel to the next one
+    in x and in y (one level of detail per quad, as a GPU; :func:`_quad_differences`)."""
     ax, ay, det = per_face
     valid = tri_id >= 0
     tid = jnp.where(valid, tri_id, 0)
@@ -232,6 +318,11 @@ def pixel_derivatives(per_face, uvf, tri_id, w_pix, u, v, width: int, height: in
     ok = valid & (dt != 0)
     scale = jnp.where(ok, w_pix / jnp.where(ok, dt, 1.0), 0.0)
     sx, sy = scale * (2.0 / width), scale * (2.0 / height)
+    if quad is not None:
+        p, q = quad
+        du = _quad_differences(u, Axu * sx, Ayu * sy, Sx * sx, Sy * sy, p, q)
+        dv = _quad_differences(v, Axv * sx, Ayv * sy, Sx * sx, Sy * sy, p, q)
+        return (du[0], dv[0]), (du[1], dv[1])
     return ((Axu - u * Sx) * sx, (Axv - v * Sx) * sx), ((Ayu - u * Sy) * sy, (Ayv - v * Sy) * sy)
 
 
@@ -287,6 +378,11 @@ def sample_weights(tex: Texture, u, v, lod=None):
     (host, float64; the level-0 texels row-major). A fit solves for the texels through it."""
     import scipy.sparse as sp
 
+    if tex.mipmaps != "float" and tex.filter == "trilinear" and lod is not None:
+        raise ValueError(
+            f"a map with mipmaps={tex.mipmaps!r} is not linear in its texels (its levels are rounded to "
+            "8-bit codes): fit it with mipmaps='float'"
+        )
     h, w = (int(n) for n in tex.texels.shape[:2])
     u, v = np.asarray(u, np.float64).reshape(-1), np.asarray(v, np.float64).reshape(-1)
     n = len(u)

@@ -114,7 +114,11 @@ class MapProblem:
         coords = []
         for k in self.maps:
             tex = getattr(scene.material, prob.pset.params[k].path[1])
-            lod = ds.level_of_detail(tex, *deriv) if tex.filter == "trilinear" else jnp.zeros_like(u)
+            lod = (
+                ds.level_of_detail(tex, *deriv, prob.opts.raster.texture_lod)
+                if tex.filter == "trilinear"
+                else jnp.zeros_like(u)
+            )
             coords.append(jnp.stack([u.reshape(-1), v.reshape(-1), lod.reshape(-1)], -1))
         return jnp.concatenate([img[None], T, jnp.stack(coords).astype(img.dtype)])
 

@@ -161,9 +161,11 @@ def _flat(opts):
     return SimpleNamespace(**{"clamp_at": "pixel", "fog_distance": "euclidean", **opts.keys()})
 
 
-def render(scene, opts):
+def render(scene, opts, polygons=None):
     """``(image [H, W, 3] float64, covered [H, W] bool)`` of ``scene`` by Mesa's OpenGL, rows from
-    the top as diffshade's."""
+    the top as diffshade's. ``polygons``: the mesh's faces as the file has them (lists of vertex
+    indices, more than 3 for a polygon), each drawn as a ``GL_TRIANGLE_FAN``, in place of
+    ``scene.mesh.faces``."""
     opts = _flat(opts)
     cam = scene.camera
     w, h = cam.width, cam.height
@@ -174,7 +176,8 @@ def render(scene, opts):
     V = np.asarray(scene.mesh.vertices, np.float64)
     F = np.asarray(scene.mesh.faces)
     N = np.asarray(scene.mesh.vertex_normals(), np.float64)
-    corners = F.reshape(-1)  # face-major corners: the provoking vertex is each face's last
+    corners = F.reshape(-1) if polygons is None else np.concatenate([np.asarray(p) for p in polygons])
+    # (face-major corners: the provoking vertex is each face's last)
     pos, nrm = _f32(V[corners]), _f32(N[corners])
     maps = scene.material.maps()
     uvs = _f32(np.asarray(scene.mesh.uv, np.float64)[corners]) if maps else None
@@ -226,7 +229,12 @@ def render(scene, opts):
     gl.glEnableClientState(gl.GL_NORMAL_ARRAY)
     gl.glVertexPointer(3, gl.GL_FLOAT, 0, pos)
     gl.glNormalPointer(gl.GL_FLOAT, 0, nrm)
-    gl.glDrawArrays(gl.GL_TRIANGLES, 0, len(corners))
+    if polygons is None:
+        gl.glDrawArrays(gl.GL_TRIANGLES, 0, len(corners))
+    else:  # each polygon a fan; with the last-vertex convention triangle i takes corner i + 2
+        sizes = np.asarray([len(p) for p in polygons])
+        for first, n in zip(np.concatenate([[0], np.cumsum(sizes)[:-1]]), sizes):
+            gl.glDrawArrays(gl.GL_TRIANGLE_FAN, int(first), int(n))
     gl.glDisableClientState(gl.GL_VERTEX_ARRAY)
     gl.glDisableClientState(gl.GL_NORMAL_ARRAY)
     gl.glDisableClientState(gl.GL_TEXTURE_COORD_ARRAY)
@@ -352,7 +360,7 @@ void main() {
 #else
     vec3 v = normalize(-p_eye);
 #endif
-    vec3 c = vec3(0.0);
+    vec3 c = vec3(0.0), cs = vec3(0.0);  // the primary colour, the specular (secondary) one
     vec3 ka = m_ambient[side], kd = m_diffuse[side], ks = m_specular[side];
 #ifdef DIFFUSE_MAP
     ka *= texture2D(diffuse_tex, uv).rgb;
@@ -398,16 +406,30 @@ void main() {
 #ifdef DIFFUSE
         term += l_diffuse[i] * kd * max(ndl, 0.0);
 #endif
+        vec3 sterm = vec3(0.0);
 #ifdef SPECULAR_PHONG
-        if (ndl > 0.0) term += l_specular[i] * ks * spow(dot(v, 2.0 * ndl * n - l), m_shininess[side]);
+        if (ndl > 0.0) sterm += l_specular[i] * ks * spow(dot(v, 2.0 * ndl * n - l), m_shininess[side]);
 #endif
 #ifdef SPECULAR_BLINN
-        if (ndl > 0.0) term += l_specular[i] * ks * spow(dot(n, normalize(l + v)), m_shininess[side]);
+        if (ndl > 0.0) sterm += l_specular[i] * ks * spow(dot(n, normalize(l + v)), m_shininess[side]);
 #endif
         c += f * term;
+        cs += f * sterm;
     }
+#ifdef MODULATE
+    // GL_MODULATE per fragment: the lit colour clamped, then times the texel; the separate
+    // specular colour clamped apart and added unmodulated
+    vec3 T = texture2D(diffuse_tex, uv).rgb;
+#ifdef SEPARATE
+    c = clamp(c, 0.0, 1.0) * T + clamp(cs, 0.0, 1.0);
+#else
+    c = clamp(c + cs, 0.0, 1.0) * T;
+#endif
+#else
+    c += cs;
 #ifdef CLAMP
     c = clamp(c, 0.0, 1.0);
+#endif
 #endif
 #ifdef FOG
 #ifdef FOG_DEPTH
@@ -446,8 +468,10 @@ def _phong_program(c, scene, opts, lights, front, back, view):
         ("SMOOTH_EDGE", opts.spot_edge == "smooth"),
         ("CLAMP", opts.clamp),
         ("FOG_DEPTH", opts.fog_distance == "depth"),
-        ("DIFFUSE_MAP", front.diffuse_map is not None),
-        ("SPECULAR_MAP", front.specular_map is not None),
+        ("MODULATE", _modulates(opts, front)),
+        ("SEPARATE", opts.color_sum == "separate"),
+        ("DIFFUSE_MAP", front.diffuse_map is not None and not _modulates(opts, front)),
+        ("SPECULAR_MAP", front.specular_map is not None and not _modulates(opts, front)),
     ):
         if on:
             defs.append(f"#define {flag}")
@@ -477,6 +501,23 @@ def _phong_program(c, scene, opts, lights, front, back, view):
     gl.glUniform3fv(u("fog_params"), 1, _f32([float(scene.fog.start), float(scene.fog.end), float(scene.fog.density)]))
 
 
+def _modulates(opts, m) -> bool:
+    """Whether the GLSL program applies the diffuse map as ``GL_MODULATE`` (diffshade's lit maps:
+    Phong shading clamped per vertex): then one map on the emission, ambient and diffuse colours
+    (and the specular with ``GL_SINGLE_COLOR``), none on the specular with the separate colour."""
+    if not (opts.clamp and opts.clamp_at == "vertex" and m.diffuse_map is not None):
+        return False
+    maps = m.maps()  # (the sharing fields given the first's map: flattening copied them)
+    t = maps["diffuse"]
+    want = {"emission": t, "ambient": t, "diffuse": t, "specular": t if opts.color_sum == "single" else None}
+    if any(maps.get(f) is not w for f, w in want.items()):
+        raise ValueError(
+            "OpenGL reference: GL_MODULATE is one map on the emission, ambient and diffuse colours (and the "
+            "specular with the single colour sum)"
+        )
+    return True
+
+
 def _bind_textures(gl, scene, opts, maps):
     """The material's maps as float textures (unit 0: diffuse, 1: specular), rows flipped (OpenGL's
     row 0 is t = 0), mipmapped by ``glGenerateMipmap`` where the filter is trilinear. The fixed
@@ -485,7 +526,9 @@ def _bind_textures(gl, scene, opts, maps):
     if not maps:
         return []
     m = scene.material
-    if set(maps) - {"diffuse", "ambient", "specular"} or (m.ambient_map is not None):
+    if opts.shading == "phong" and _modulates(opts, m):
+        pass
+    elif set(maps) - {"diffuse", "ambient", "specular"} or (m.ambient_map is not None):
         raise ValueError("OpenGL reference: diffuse (with its ambient) and specular maps only")
     if opts.shading != "phong" and (
         m.specular_map is not None or opts.emission or opts.color_sum != "separate" or scene.back_material
@@ -506,7 +549,14 @@ def _bind_textures(gl, scene, opts, maps):
         names.append(name)
         gl.glBindTexture(gl.GL_TEXTURE_2D, name)
         gl.glPixelStorei(gl.GL_UNPACK_ALIGNMENT, 1)
-        gl.glTexImage2D(gl.GL_TEXTURE_2D, 0, gl.GL_RGB32F, w, h, 0, gl.GL_RGB, gl.GL_FLOAT, _f32(t))
+        if tex.mipmaps in ("srgb8", "llvmpipe"):  # 8-bit sRGB codes (the texels must be such codes' values)
+            codes = np.round(_srgb_encode(np.clip(t, 0.0, 1.0)) * 255.0)
+            if np.abs(_srgb_decode(codes / 255.0) - t).max() > 1e-6:
+                raise ValueError("OpenGL reference: a map with mipmaps='srgb8' must hold 8-bit sRGB codes' values")
+            data = np.ascontiguousarray(codes.astype(np.uint8))
+            gl.glTexImage2D(gl.GL_TEXTURE_2D, 0, gl.GL_SRGB8, w, h, 0, gl.GL_RGB, gl.GL_UNSIGNED_BYTE, data)
+        else:
+            gl.glTexImage2D(gl.GL_TEXTURE_2D, 0, gl.GL_RGB32F, w, h, 0, gl.GL_RGB, gl.GL_FLOAT, _f32(t))
         trilinear = tex.filter == "trilinear"
         if trilinear:
             gl.glGenerateMipmap(gl.GL_TEXTURE_2D)
@@ -522,6 +572,14 @@ def _bind_textures(gl, scene, opts, maps):
             gl.glTexEnvi(gl.GL_TEXTURE_ENV, gl.GL_TEXTURE_ENV_MODE, gl.GL_MODULATE)
     gl.glActiveTexture(gl.GL_TEXTURE0)
     return names
+
+
+def _srgb_encode(x):
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.maximum(x, 0.0031308) ** (1 / 2.4) - 0.055)
+
+
+def _srgb_decode(c):
+    return np.where(c <= 0.04045, c / 12.92, ((np.maximum(c, 0.04045) + 0.055) / 1.055) ** 2.4)
 
 
 def compare(img, covered, ref, ref_covered, margin: int = 0):

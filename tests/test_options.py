@@ -120,7 +120,7 @@ def test_groups_validate_themselves():
 
 def test_opengl_preset_and_defaults():
     gl = ds.RenderOptions.opengl(shading="flat")
-    assert gl.raster == ds.Raster(shading="flat", flat_source="provoking")
+    assert gl.raster == ds.Raster(shading="flat", flat_source="provoking", texture_lod="quad")
     assert gl.output.clamp == "vertex" and gl.lighting.viewer == "infinite" and not gl.lighting.two_sided
     d = dict(ds.DEFAULT_SCENE, render={"compat": "opengl", "fog": "linear"}, material={"shininess": 0.0})
     d.pop("fog")

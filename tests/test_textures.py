@@ -504,3 +504,73 @@ material = {{ mtl = "{os.path.join(meshes_dir, "fuze.obj")}", specular = 0.1 }}
         ds.SceneError, match=r"object\[0\].material: has texture maps \(diffuse_map\) but its mesh has no"
     ):
         ds.scene_from_dict(sphere, "s.toml", base=tmp_path)
+
+
+def test_a_level_per_quad_is_the_differences_across_the_quad():
+    # texture_lod = "quad": each pixel's derivatives are the differences of the coordinates the
+    # pixels of its 2x2 window quad see (corner to next in x and in y), the same for the four;
+    # checked against the per-pixel coordinates themselves where a quad lies in one triangle
+    scene, _ = _plane_scene(ds.Texture(np.random.default_rng(1).uniform(size=(16, 16, 3))), repeat=3.0, size=32)
+    scene = dataclasses.replace(
+        scene, mesh=ds.Mesh(vertices=scene.mesh.vertices, faces=[[0, 1, 2], [0, 2, 3]], uv=scene.mesh.uv)
+    )
+    ids = ds.scene_visibility(scene)
+    u, v, _ = ds.texture_coordinates(scene, ids)
+    _, _, (dx, dy) = ds.texture_coordinates(scene, ids, ds.Raster(texture_lod="quad"))
+    u, v, tid = np.asarray(u[0], np.float64), np.asarray(v[0], np.float64), np.asarray(ids[0])
+    dx, dy = [np.asarray(c[0], np.float64) for c in dx], [np.asarray(c[0], np.float64) for c in dy]
+    h = tid.shape[0]  # window rows from the bottom: row r is y = h - 1 - r; quads at even x and y
+    checked = 0
+    for y0 in range(0, h - 1, 2):
+        r0, r1 = h - 1 - y0, h - 2 - y0  # the corner's row and the row above it
+        for x0 in range(0, tid.shape[1] - 1, 2):
+            quad = tid[np.ix_([r1, r0], [x0, x0 + 1])]
+            if quad.min() < 0 or (quad != quad[0, 0]).any():
+                continue
+            want_x = (u[r0, x0 + 1] - u[r0, x0], v[r0, x0 + 1] - v[r0, x0])
+            want_y = (u[r1, x0] - u[r0, x0], v[r1, x0] - v[r0, x0])
+            for r in (r0, r1):
+                for c in (x0, x0 + 1):
+                    np.testing.assert_allclose([dx[0][r, c], dx[1][r, c]], want_x, rtol=2e-4, atol=1e-6)
+                    np.testing.assert_allclose([dy[0][r, c], dy[1][r, c]], want_y, rtol=2e-4, atol=1e-6)
+            checked += 1
+    assert checked > 100
+
+
+def test_the_opengl_texturing_options_are_differentiable_and_fit_refuses_rounded_mipmaps():
+    # the per-quad level (llvmpipe's log2 too), 8-bit sRGB mipmaps (straight through) and the lit
+    # maps' clamp order: finite values and tangents, forward and reverse, by texels and vertices;
+    # changing an option's numbers compiles nothing new; a map fit needs float mipmaps
+    rng = np.random.default_rng(2)
+    tex = ds.Texture(rng.uniform(0.05, 0.95, (16, 16, 3)), mipmaps="llvmpipe")
+    scene, _ = _plane_scene(tex, repeat=6.0, size=24)
+    mat = ds.Material(
+        ambient=0.2, diffuse=0.9, specular=0.5, shininess=20.0, emission=0.1, diffuse_map=tex, emission_map=tex
+    )
+    scene = dataclasses.replace(
+        scene,
+        material=mat,
+        point=ds.PointLights(
+            color=[[3.0] * 3], position=[[0.3, 0.8, 1.5]], attenuation=[[1.0, 0.0, 0.0]], ambient=[[0, 0, 0]]
+        ),
+        ambient_light=0.3,
+    )
+    opts = ds.RenderOptions.from_keys(texture_lod="llvmpipe", clamp=True, clamp_at="vertex", specular="blinn")
+
+    def f(texels, vertices):
+        m = dataclasses.replace(scene.material, diffuse_map=ds.Texture(texels, mipmaps="llvmpipe"))
+        m = dataclasses.replace(m, emission_map=m.diffuse_map)
+        s = dataclasses.replace(scene, material=m, mesh=dataclasses.replace(scene.mesh, vertices=vertices))
+        return ds.render(s, opts)
+
+    args = (jnp.asarray(tex.texels), jnp.asarray(scene.mesh.vertices))
+    jf = jax.jit(f)
+    y, t = jax.jvp(jf, args, tuple(jnp.ones_like(a) for a in args))
+    g = jax.jit(jax.grad(lambda *a: jnp.sum(f(*a)), argnums=(0, 1)))(*args)
+    assert all(bool(jnp.isfinite(x).all()) for x in (y, t, *g))
+    assert float(jnp.abs(g[0]).sum()) > 0 and float(jnp.abs(g[1]).sum()) > 0
+    jf(*args)
+    jf(args[0] * 0.5, args[1] + 0.01)
+    assert jf._cache_size() == 1
+    with pytest.raises(ValueError, match="mipmaps='llvmpipe' is not linear in its texels"):
+        ds.sample_weights(tex, np.array([0.3]), np.array([0.4]), np.array([1.5]))
