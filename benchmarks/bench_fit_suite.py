@@ -1,8 +1,9 @@
 """Randomised fitting suite: does a fit find the truth from any start on any scene, or say it did not?
 
 Each case draws (from its own seed) a mesh (icosphere, torus, or the scanned Stanford bunny of
-``tests/data/meshes``; ``--bunny PATH`` takes another scanned mesh, ``--no-bunny`` leaves it
-out), shading (flat / Gouraud / Phong / Blinn), 1–3 lights of mixed kinds,
+``tests/data/meshes``, placed at random: any rotation, scaled 0.7-1.4, offset, the camera 2.4-5
+away, so that its holes show back faces and its cancelling vertex normals come into view;
+``--bunny PATH`` takes another scanned mesh, ``--no-bunny`` leaves it out), shading (flat / Gouraud / Phong / Blinn), 1–3 lights of mixed kinds,
 fog (none / linear / exp / exp²), a material, and a start: every free parameter anywhere in its
 search domain, a quarter of them exactly on a bound. Free: k_a and k_d (RGB), k_s, m, the
 attenuation a1, a2 of every point and spot light, and the fog's density (exp, exp²) or end
@@ -61,6 +62,7 @@ def make_case(seed: int, size: int, bunny: str | None):
     rng = np.random.default_rng(seed)
     kinds = ["icosphere", "torus"] + (["bunny"] if bunny else [])
     mesh_kind = kinds[seed % len(kinds)]
+    distance = 3.5  # the camera's
     if mesh_kind == "icosphere":
         mesh = ds.icosphere(3)
     elif mesh_kind == "torus":
@@ -70,11 +72,17 @@ def make_case(seed: int, size: int, bunny: str | None):
         R = trimesh.transformations.rotation_matrix(0.9, [1, 0.3, 0])
         t.apply_transform(R)
         mesh = ds.mesh_from_arrays(np.asarray(t.vertices), np.asarray(t.faces))
-    else:
+    else:  # placed as a user might: any rotation, a scale, an offset (its own stream of draws)
+        import trimesh
+
         m = ds.load_mesh(bunny)
         v = np.asarray(m.vertices)
-        v = (v - v.mean(0)) / np.abs(v - v.mean(0)).max() * 1.1
+        place = np.random.default_rng([seed, 7])
+        R = trimesh.transformations.random_rotation_matrix(place.uniform(size=3))[:3, :3]
+        v = (v - v.mean(0)) / np.abs(v - v.mean(0)).max() * float(place.uniform(0.7, 1.4))
+        v = v @ R.T + place.uniform(-0.25, 0.25, 3)
         mesh = ds.mesh_from_arrays(v, np.asarray(m.faces))
+        distance = float(place.uniform(2.4, 5.0))
     shading, specular = [("flat", "phong"), ("gouraud", "phong"), ("phong", "phong"), ("phong", "blinn")][
         rng.integers(4)
     ]
@@ -131,7 +139,14 @@ def make_case(seed: int, size: int, bunny: str | None):
         shininess=m,
     )
     cam = ds.Camera(
-        eye=[0.0, 0.0, 3.5], target=[0, 0, 0], up=[0, 1, 0], fov_y=45.0, near=0.5, far=10.0, width=size, height=size
+        eye=[0.0, 0.0, distance],
+        target=[0, 0, 0],
+        up=[0, 1, 0],
+        fov_y=45.0,
+        near=0.5,
+        far=10.0,
+        width=size,
+        height=size,
     )
     fogp = ds.Fog(
         color=rng.uniform(0.3, 0.8, 3),
@@ -158,7 +173,8 @@ def make_case(seed: int, size: int, bunny: str | None):
         free.append("fog.density")
     elif fog == "linear":
         free.append("fog.end")
-    name = f"{mesh_kind}/{shading}/{specular}/{'+'.join(lk)}/fog {fog}"
+    kind = mesh_kind if mesh_kind != "bunny" else f"bunny@{distance:.1f}"
+    name = f"{kind}/{shading}/{specular}/{'+'.join(lk)}/fog {fog}"
     return scene, opts, free, name, rng
 
 

@@ -12,8 +12,12 @@ from importlib.metadata import version
 # computation, and aborts on an option it does not know: only for jaxlib 0.10 (0.10.0 and 0.10.2
 # checked), and never over an XLA_FLAGS that already chooses the emitters (to run the suite on the
 # defaults: XLA_FLAGS=--xla_cpu_use_fusion_emitters=true). Subprocesses (the notebooks' kernels,
-# the CLI, the sharding tests) inherit it.
-FAST_COMPILE = "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=0"
+# the CLI, the sharding tests) inherit it. LLVM's expensive passes off too
+# (--xla_llvm_disable_expensive_passes): tests/test_shading.py 52.8 -> 38.5 s, test_fit.py (more
+# running than compiling) 37.8 -> 35.8 s, on top of the two above.
+FAST_COMPILE = (
+    "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
+)
 if re.match(r"0\.10\.", version("jaxlib")) and "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {FAST_COMPILE}".strip()
 

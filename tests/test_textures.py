@@ -326,7 +326,14 @@ def _textured_torus(maps, clamp, shading, size=24):
 
 
 @pytest.mark.parametrize(
-    "shading,clamp", [("gouraud", "vertex"), ("gouraud", None), ("phong", "pixel"), ("flat", "vertex")]
+    "shading,clamp",
+    # (flat shading's sites are the faces where Gouraud's are the vertices, the same grouping: a slow variant)
+    [
+        ("gouraud", "vertex"),
+        ("gouraud", None),
+        ("phong", "pixel"),
+        pytest.param("flat", "vertex", marks=pytest.mark.slow),
+    ],
 )
 def test_a_map_shared_between_terms_is_one_map_in_every_path(shading, clamp):
     """One Texture on emission, diffuse and specular (what GL_MODULATE does to a material under
@@ -346,9 +353,10 @@ def test_a_map_shared_between_terms_is_one_map_in_every_path(shading, clamp):
         stages = opts.replace(raster=dataclasses.replace(opts.raster, backend="jax"))
         ref = np.asarray(ds.render(scene, stages))
         assert ref.max() > 0.3
-        for o in (opts, stages):
-            for f in (ds.render, jitted):
-                np.testing.assert_allclose(np.asarray(f(scene, o)), ref, atol=1e-5, rtol=0)
+        # (an eager render on concrete values is the compiled program, flattened as jit flattens:
+        # an explicit jit once, for the kernel, is the check that does not rest on that)
+        for o, f in ((opts, ds.render), (stages, jitted)) if maps["emission"] is t1 else ((opts, ds.render),):
+            np.testing.assert_allclose(np.asarray(f(scene, o)), ref, atol=1e-5, rtol=0)
         if clamp == "vertex" and maps["emission"] is t1:
             # OpenGL: each vertex's lit colour clamped, interpolated, times the texel
             plain = dataclasses.replace(scene.material, emission_map=None, diffuse_map=None, specular_map=None)
