@@ -35,14 +35,12 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 
-# (--dist worksteal: a worker that runs out of tests takes the other's queued ones, so the long
-# tests near the end do not leave one core idle)
 test: $(STAMP) lint docs
-	$(VENV)/bin/python -m pytest -n 2 --dist worksteal -q
+	$(VENV)/bin/python -m pytest -n 2 -q
 
 # every test, the slow variants too (the default run leaves them out, to keep it short on 2 cores)
 test-all: $(STAMP) lint docs
-	$(VENV)/bin/python -m pytest -n 2 --dist worksteal -q -m ""
+	$(VENV)/bin/python -m pytest -n 2 -q -m ""
 
 # Transparent huge pages for malloc: XLA's large per-call buffers are otherwise page-faulted in
 # again on every call (measured: 12-tangent Jacobian at 512^2 80 ms instead of 170 ms).

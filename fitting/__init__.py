@@ -10,13 +10,17 @@ area-averages a target and keeps what was clipped; design notes: docs/fit-design
 from ._cache import cache_info, enable_compilation_cache
 from ._downsample import Downsampled, downsample
 from ._fit import fit
+from ._holdout import Holdout, holdout_fit
 from ._models import ModelScore, compare_models, model_variants
-from ._observations import FitError, Observations, Optimistix, Strategy, VarPro
+from ._observations import CAPTURE_CLIP_MARGIN, FitError, Observations, Optimistix, Strategy, VarPro
 from ._params import Param, ParamError, ParamSet, direction_frame, direction_of, tilt_of
 from ._photometric import Capture, frame_check, load_photometric_stereo, sphere_from_mask
 from ._report import Diagnostics, FitResult, Intervals, ResidualStats
 
 __all__ = [
+    "CAPTURE_CLIP_MARGIN",
+    "Holdout",
+    "holdout_fit",
     "Capture",
     "Diagnostics",
     "Downsampled",

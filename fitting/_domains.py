@@ -25,6 +25,7 @@ FIT: dict[str, Domain] = {
     "saturation": SIGMA,
     "quantum": Domain(lo=0.0, hi=1.0, lo_open=True, optional=True),
     "margin": WHOLE,
+    "clip_margin": WHOLE,
     # Strategy (VarPro, Optimistix)
     "starts": COUNT,
     "restarts": WHOLE,
@@ -42,6 +43,8 @@ CLI: dict[str, tuple[str, Domain]] = {
     "--noise": ("noise", FIT["noise"]),
     "--max-steps": ("max_steps", FIT["max_steps"]),
     "--margin": ("margin", FIT["margin"]),
+    "--clip-margin": ("clip_margin", FIT["clip_margin"]),
+    "--holdout": ("holdout", Domain(kind="int", lo=2)),  # fit: every K-th view held out
     "--albedo-smoothness": ("albedo_smoothness", FIT["albedo_smoothness"]),
     "--size": ("size", Domain(kind="int", lo=8, hi=4096)),  # demo: the image side
     "--seed": ("seed", WHOLE),  # demo: the perturbed start's seed

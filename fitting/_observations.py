@@ -30,6 +30,12 @@ def as_list(targets) -> list:
     return [targets] if hasattr(targets, "shape") else list(targets)
 
 
+#: ``Observations.clip_margin`` of a photometric capture (``diffshade fit FOLDER``): 1 pixel at the
+#: fitted resolution (a study of a real capture found two thirds of a Blinn-Phong fit's excess
+#: within 1-3 full-resolution pixels of clipped highlight cores; docs/photographs.md).
+CAPTURE_CLIP_MARGIN = 1
+
+
 @dataclass(frozen=True, eq=False)
 class Observations:
     """The target images of a fit and how to read them.
@@ -51,7 +57,13 @@ class Observations:
     - ``clipped``: optional per-view ``[H, W]`` or ``[H, W, 3]`` booleans, the entries known to
       be clipped whatever their value (a pixel averaged from sub-pixels of which one was
       clipped: :func:`fitting.downsample`): censored from above like those at ``saturation``,
-      each a lower bound at its own value.
+      each a lower bound at its own value;
+    - ``clip_margin``: the entries within this many 8-neighbour steps of a pixel censored from
+      above (any channel) are left out of the fit, the pixel's own unclipped channels too: a real
+      camera's clipped highlight bleeds into the pixels around it (bloom, smear), which then read
+      brighter than the scene; of the clipped entries only those this far inside their clipped
+      region stay, censored (at its rim the neighbours' bloom may be what clipped them). 0 (the default) for renders; a photometric capture
+      is read with :data:`fitting.CAPTURE_CLIP_MARGIN`.
     """
 
     targets: Sequence[Float[ArrayLike, "H W 3"]]
@@ -63,6 +75,7 @@ class Observations:
     noise: float | None = None
     margin: int = 0
     clipped: Sequence[ArrayLike | None] | None = None
+    clip_margin: int = 0
 
     def __post_init__(self):
         targets = tuple(as_list(self.targets))
@@ -84,7 +97,7 @@ class Observations:
                 raise FitError(f"{n} targets but {len(self.clipped)} clipped masks")
         if len(self.encodings) != n:
             raise FitError(f"{n} targets but {len(self.encodings)} encodings")
-        for name in ("margin", "saturation", "quantum", "noise"):
+        for name in ("margin", "clip_margin", "saturation", "quantum", "noise"):
             check_fit("Observations", name, getattr(self, name), FitError)
 
     @property

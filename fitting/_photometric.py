@@ -36,7 +36,7 @@ import numpy as np
 import diffshade as ds
 
 from ._downsample import downsample
-from ._observations import FitError, Observations
+from ._observations import CAPTURE_CLIP_MARGIN, FitError, Observations
 
 
 @dataclass(frozen=True)
@@ -60,7 +60,9 @@ class Capture:
         return self.views[0]
 
     def observations(self, **kw) -> Observations:
-        """The :class:`Observations` of every image (each its own view, the mask, clipping)."""
+        """The :class:`Observations` of every image (each its own view, the mask, clipping; the
+        pixels beside clipped ones left out, ``clip_margin`` :data:`CAPTURE_CLIP_MARGIN`)."""
+        kw = {"clip_margin": CAPTURE_CLIP_MARGIN, **kw}
         return Observations(
             self.targets,
             views=self.views,

@@ -358,6 +358,16 @@ def _cover(k, t, v, m, enc, obs: Observations, lower, opts, vis) -> _Cover:
         side = 2 * margin + 1
         covered = erosion(covered, np.ones((side, side), bool), mode="ignore")
     used = covered
+    if obs.clip_margin and hi.any():
+        # bloom: every entry within the margin of a clipped pixel is left out (the ring around the
+        # core, the core's unclipped channels, and its clipped rim: the bloom of its neighbours
+        # may be what clipped it); the clipped entries farther inside stay, censored
+        from skimage.morphology import dilation, erosion
+
+        square = np.ones((2 * int(obs.clip_margin) + 1,) * 2, bool)
+        near = dilation(hi.any(axis=-1), square)
+        inside = np.stack([erosion(hi[..., c], square, mode="ignore") for c in range(hi.shape[-1])], -1)
+        chan_w = np.where(near[..., None] & ~inside, 0.0, chan_w)
     if _options.antialias(opts):
         # the background pixels beside the silhouette depend on the parameters too (the
         # antialiasing blends the surface into them): they are shaded with the rest and,

@@ -706,6 +706,16 @@ def _write_outputs(args, meta, r, report, comparison, outputs, fitted, rows, enc
     _write_text("\n".join(report) + "\n", outputs[3])
 
 
+def _clip_margin(args, tg) -> int:
+    """``--clip-margin``, by default :data:`fitting.CAPTURE_CLIP_MARGIN` for a capture folder
+    (a real camera's clipped highlights bleed into their neighbours) and 0 for images."""
+    from . import CAPTURE_CLIP_MARGIN
+
+    if args.clip_margin is not None:
+        return args.clip_margin
+    return CAPTURE_CLIP_MARGIN if getattr(tg, "clipped", None) is not None else 0
+
+
 def cmd_fit(args) -> int:
 
     from . import Observations, Optimistix, ParamSet, VarPro, _options, fit
@@ -728,6 +738,7 @@ def cmd_fit(args) -> int:
         noise=args.noise,
         margin=args.margin,
         clipped=getattr(tg, "clipped", None),
+        clip_margin=_clip_margin(args, tg),
     )
     strategy = (
         VarPro(max_steps=args.max_steps, verbose=args.verbose)
@@ -735,8 +746,16 @@ def cmd_fit(args) -> int:
         else Optimistix(solver=args.solver, max_steps=args.max_steps, verbose=args.verbose)
     )
     fit_kw = dict(shared=args.shared or (), strategy=strategy, albedo_smoothness=args.albedo_smoothness)
-    r = fit(scene, opts, obs, args.free, **fit_kw)
+    held = None
+    if args.holdout is not None:
+        from ._holdout import holdout_fit
+
+        r, held = holdout_fit(scene, opts, obs, args.free, args.holdout, **fit_kw)
+    else:
+        r = fit(scene, opts, obs, args.free, **fit_kw)
     report = [f"diffshade fit: scene {scene_path}, target(s) {', '.join(map(str, tg.paths))}", *_report_table(r)]
+    if held is not None:
+        report += held.lines()
     comparison = []
     if args.compare:
         more, comparison = _compare(scene, opts, obs, args, r, fit_kw)
@@ -754,6 +773,7 @@ def cmd_fit(args) -> int:
         "solver": args.solver,
         "censored_at": tg.saturation,
         "options": _options.as_dict(opts),
+        **({"holdout": held.as_dict()} if held is not None else {}),
     }
     _write_outputs(args, meta, r, report, comparison, outputs, fitted, rows, tg.encodings[0][0], opts)
     if "mesh.colors" in pset.names:
@@ -838,6 +858,22 @@ def _add_fit(sub) -> None:
         help="leave out pixels within PX of the model's silhouette, of an occlusion edge inside it, or of "
         "the mask's edge (where a slightly misregistered mesh puts the wrong surface into the residual); "
         "default 0",
+    )
+    p.add_argument(
+        "--holdout",
+        type=str,
+        default=None,
+        metavar="K",
+        help="fit on every view but every K-th, and report the held-out views' RMS (per view, in codes and "
+        "relative to the noise; fit.json: holdout)",
+    )
+    p.add_argument(
+        "--clip-margin",
+        type=str,
+        default=None,
+        metavar="PX",
+        help="leave out pixels within PX of a clipped one (a camera's clipped highlight bleeds into its "
+        "neighbours); default: 1 for a capture folder, 0 for images",
     )
     _add_fit_solve(p)
     p.set_defaults(func=cmd_fit)
