@@ -6,9 +6,10 @@ looking down :math:`-z`, :math:`y` up), an eye → clip projection whose NDC squ
 image (row 0 at the top, pixel centres at :math:`2(i + 1/2)/W - 1`), the eye position, and the
 image size (static).
 
-**Gain.** A camera records ``exposure · white_balance ⊙ L`` of the radiance ``L`` it sees,
-background included (docs/model.md §9): an exposure of 2 doubles the image, a white balance of
-``(1.2, 1, 0.8)`` warms it. Both are traced numbers (fittable per view).
+**Gain.** A camera records ``exposure · white_balance ⊙ L + black_level`` of the radiance ``L``
+it sees, background included (docs/model.md §9): an exposure of 2 doubles the image, a white
+balance of ``(1.2, 1, 0.8)`` warms it, a black level (RGB) is the sensor's offset, what a pixel
+that receives no light reads. All are traced numbers (fittable per view).
 """
 
 from __future__ import annotations
@@ -83,6 +84,7 @@ class Camera(_Pinhole):
     height: int = eqx.field(static=True)
     exposure: Float[Array, ""] = eqx.field(converter=as_float_array, default=1.0)
     white_balance: Float[Array, "3"] = eqx.field(converter=rgb_array, default=(1.0, 1.0, 1.0))
+    black_level: Float[Array, "3"] = eqx.field(converter=rgb_array, default=(0.0, 0.0, 0.0))
 
     def __check_init__(self):
         for name in ("eye", "target", "up"):
@@ -184,6 +186,7 @@ class OpenCVCamera(_Pinhole):
     far: Float[Array, ""] = eqx.field(converter=as_float_array, default=100.0)
     exposure: Float[Array, ""] = eqx.field(converter=as_float_array, default=1.0)
     white_balance: Float[Array, "3"] = eqx.field(converter=rgb_array, default=(1.0, 1.0, 1.0))
+    black_level: Float[Array, "3"] = eqx.field(converter=rgb_array, default=(0.0, 0.0, 0.0))
     distortion: Float[Array, " D"] = eqx.field(converter=as_float_array, default=(0.0, 0.0, 0.0, 0.0, 0.0))
 
     def __check_init__(self):
@@ -211,7 +214,7 @@ class OpenCVCamera(_Pinhole):
     ) -> "OpenCVCamera":
         """From OpenCV's calibration: ``K`` (3×3, no skew), the pose as ``R`` (3×3) and ``t`` or as
         ``rvec`` and ``tvec``, and the distortion coefficients. Host-side checks name what is
-        wrong; ``gain``: ``exposure``, ``white_balance``."""
+        wrong; ``gain``: ``exposure``, ``white_balance``, ``black_level``."""
         K = np.asarray(K, np.float64)
         if K.shape != (3, 3) or not np.isfinite(K).all():
             raise ValueError(f"K must be a finite 3x3 matrix, got shape {K.shape}")

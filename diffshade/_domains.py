@@ -122,6 +122,7 @@ SCENE: dict[str, dict[str, Domain]] = {
         "far": POSITIVE,
         "exposure": POSITIVE,
         "white_balance": POSITIVE,
+        "black_level": REAL,
         "fx": POSITIVE,
         "fy": POSITIVE,
         "cx": REAL,

@@ -654,7 +654,7 @@ def _fog(v: _V, f: dict, gl: bool, opts: RenderOptions) -> Fog:
 
 _GL_CAMERA = ("eye", "target", "up", "fov_y")
 _CV_CAMERA = ("K", "fx", "fy", "cx", "cy", "R", "rvec", "t", "tvec", "distortion")
-_ANY_CAMERA = ("model", "near", "far", "width", "height", "exposure", "white_balance")
+_ANY_CAMERA = ("model", "near", "far", "width", "height", "exposure", "white_balance", "black_level")
 
 
 def _matrix(v: _V, d: dict, key: str, where: str, shape):
@@ -673,7 +673,7 @@ def _matrix(v: _V, d: dict, key: str, where: str, shape):
 def _camera(v: _V, c: dict, w: str):
     """A camera table: OpenGL's (eye, target, up, fov_y; ``model = "opengl"``, the default) or
     OpenCV's (``model = "opencv"``: K or fx, fy, cx, cy; R or rvec; t or tvec; optional
-    distortion), with near, far, width, height and the gain (exposure, white_balance)."""
+    distortion), with near, far, width, height and the gain (exposure, white_balance, black_level)."""
     model = c.get("model", "opencv" if any(k in c for k in _CV_CAMERA) else "opengl")
     if model not in ("opengl", "opencv"):
         v.fail(f"{w}.model", f"must be 'opengl' or 'opencv', got {model!r}")
@@ -687,6 +687,7 @@ def _camera(v: _V, c: dict, w: str):
     gain = dict(
         exposure=v.num(c, "exposure", w, default=1.0, lo=0.0, lo_open=True),
         white_balance=v.vec(c, "white_balance", w, default=[1.0, 1.0, 1.0], scalar_ok=True),
+        black_level=v.vec(c, "black_level", w, default=[0.0, 0.0, 0.0], scalar_ok=True),
     )
     if (gain["white_balance"] <= 0).any():
         v.fail(f"{w}.white_balance", f"gains must be > 0, got {gain['white_balance'].tolist()}")

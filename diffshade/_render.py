@@ -16,6 +16,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Int
 
 from . import _fast
@@ -43,8 +44,18 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=No
     ``opts.transparency`` asks for layers (docs/model.md §5).
     """
     if _fast.applies(scene, opts, pixels):  # the native kernel's value, the stages' derivatives
-        return _fast.shade(scene, ids, opts, pixels, _stages)
-    return _stages(scene, ids, opts, pixels)
+        img = _fast.shade(scene, ids, opts, pixels, _stages)
+    else:
+        img = _stages(scene, ids, opts, pixels)
+    return _offset(img, scene.camera)
+
+
+def _offset(img, camera):
+    """The camera's black level added (every pixel, the background too); none is no operation."""
+    black = camera.black_level
+    if is_concrete(black) and not np.any(np.asarray(black)):
+        return img
+    return img + black.astype(img.dtype)
 
 
 def _stages(scene: Scene, ids, opts: RenderOptions, pixels=None):

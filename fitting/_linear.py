@@ -92,7 +92,7 @@ def split_linear(pset, opts, scene=None) -> tuple[list[int], dict[str, str]]:
                 why[p.name] = f"multiplies the image, and {others[0].name} is free"
                 continue
         else:
-            ok = p.path == ("fog", "color")
+            ok = p.path in (("fog", "color"), ("camera", "black_level"))  # (additive: the image is affine in them)
         if ok:
             linear.append(i)
         else:

@@ -92,7 +92,7 @@ _SIZE = {"width": 0, "height": 1}  # an area light's size[i, k]
 _KINDS = ("directional", "point", "spot", "area", "multi_lobe")
 _LOBE = {"color", "ambient", "cutoff", "exponent", "edge"}
 _FOG = {"color": "unit", "start": "positive", "end": "positive", "density": "positive"}
-_CAMERA = {"exposure": "positive", "white_balance": "positive", "rvec": "real", "tvec": "real"}
+_CAMERA = {"exposure": "positive", "white_balance": "positive", "black_level": "real", "rvec": "real", "tvec": "real"}
 _VIEW_RE = re.compile(r"^view\[(\d+|\*)\]\.(.+)$")
 _LIGHT_RE = re.compile(r"^(directional|point|spot|area)\[(\d+)\]\.(\w+)$")
 _LOBE_RE = re.compile(r"^multi_lobe\[(\d+)\]\.lobe\[(\d+)\]\.(\w+)$")
@@ -278,7 +278,7 @@ class Param:
             return [r + k + c for r in rows for k in cols for c in chans]
         if self.frame is not None:
             return [f"{self.name}[tilt_u]", f"{self.name}[tilt_v]"]
-        axes = "xyz" if self.domain == "real" else "rgb"
+        axes = "xyz" if self.domain == "real" and self.path[-1] != "black_level" else "rgb"
         return [f"{self.name}[{axes[c]}]" for c in range(3)] if self.size == 3 else [self.name]
 
 
@@ -331,7 +331,7 @@ def _parse_camera(name, scene, shared):
         raise ParamError(f"unknown parameter {name!r}: a camera has {', '.join(_CAMERA)}")
     if parts[1] in ("rvec", "tvec") and not isinstance(scene.camera, ds.OpenCVCamera):
         raise ParamError(f'{name}: only an OpenCV camera (model = "opencv") has a pose vector')
-    rgb = parts[1] == "white_balance" and not shared
+    rgb = parts[1] in ("white_balance", "black_level") and not shared
     if parts[1] in ("rvec", "tvec") and shared:
         raise ParamError(f"{name}: a pose vector has no shared form")
     return Param(name, tuple(parts), 3 if rgb or parts[1] in ("rvec", "tvec") else 1, _CAMERA[parts[1]])
@@ -417,7 +417,7 @@ def _parse_other(name, scene, shared):
         f"unknown parameter {name!r}; known: material.<{'|'.join(_MATERIAL)}>, material[i].<...> (material id i), "
         "back_material.<...>, ambient_light, <directional|point|spot|area>[i].<color|specular|ambient|position|a0|a1|a2|cutoff|"
         "exponent|edge|width|height>, directional[i].direction, spot[i].axis, multi_lobe[i].<position|a0|a1|a2>, multi_lobe[i].lobe[j].<color|ambient|cutoff|exponent|edge>, "
-        "fog.<color|start|end|density>, camera.<exposure|white_balance|rvec|tvec>, mesh.colors, material.<field>_map, view[i].<any of these>"
+        "fog.<color|start|end|density>, camera.<exposure|white_balance|black_level|rvec|tvec>, mesh.colors, material.<field>_map, view[i].<any of these>"
     )
 
 

@@ -380,6 +380,16 @@ def _cover(k, t, v, m, enc, obs: Observations, lower, opts, vis) -> _Cover:
     return _Cover(t, v, enc, ids, covered, used, wgt, chan_w, hi, lo)
 
 
+def _background(v) -> np.ndarray:
+    """What the camera records where no surface is: the background through its gain, plus its
+    black level (at the start's values: a free gain or black level is fitted on the covered
+    pixels; a capture's mask leaves the rest out)."""
+    cam = v.camera
+    return np.asarray(v.background, np.float64) * np.asarray(cam.gain(), np.float64) + np.asarray(
+        cam.black_level, np.float64
+    )
+
+
 def _compact(k, c: _Cover, codes, n, dtype, opts):
     """``(ViewData, View)`` of view ``k``: its covered pixels gathered and padded to ``n``."""
     v, ids = c.view, c.ids
@@ -419,7 +429,7 @@ def _compact(k, c: _Cover, codes, n, dtype, opts):
         index=on_device(k, np.int32),
     )
     # what the model shows where no surface is (the camera's gain at its start values)
-    bg = np.broadcast_to(np.asarray(v.background, np.float64) * np.asarray(v.camera.gain(), np.float64), c.t.shape)
+    bg = np.broadcast_to(_background(v), c.t.shape)
     d = censored_residual_np(bg - c.t, c.hi, c.lo) * cw_all
     const = np.where(~c.covered[..., None], d, 0.0)
     encoded = c.enc is not None and c.enc != "linear"
@@ -730,7 +740,7 @@ class Problem:
         ``[H, W, 3]`` images, the background elsewhere (what :func:`diffshade.render` gives)."""
 
         def background(vd, b):
-            bg = np.asarray(vd.scene.background, np.float64) * np.asarray(vd.scene.camera.gain(), np.float64)
+            bg = _background(vd.scene)
             return np.broadcast_to(bg, (b.shape[0] * b.shape[1], 3)).copy()
 
         return self.images_of(np.asarray(img_flat, np.float64), background)

@@ -201,3 +201,42 @@ def test_pixels_beside_clipped_highlights_are_left_out():
     np.testing.assert_allclose([got[f"material.diffuse[{c}]"] for c in "rgb"], [0.5, 0.4, 0.3], rtol=0.02)
     assert abs(got["material.shininess"] / 30.0 - 1) < 0.05
     np.testing.assert_allclose([got[f"material.specular[{c}]"] for c in "rgb"], 0.9, rtol=0.05)
+
+
+def test_a_black_level_is_rendered_and_fitted():
+    # a camera's offset: added to every pixel (the background too), by the kernel and the stages,
+    # eager and jitted, with the tangent 1; a fit without it is rejected (the shadows are not
+    # dark), with it (linear: no start needed) it is recovered within 3 standard errors
+    import dataclasses
+
+    import jax
+    import jax.numpy as jnp
+
+    import diffshade as ds
+    from fitting import Observations
+
+    scene, opts = ds.default_scene()
+    opts = opts.replace(fog=None)
+    black = np.array([0.03, 0.02, 0.04])
+    cam = dataclasses.replace(scene.camera, width=48, height=48)
+    plain = dataclasses.replace(scene, camera=cam)
+    truth = dataclasses.replace(scene, camera=dataclasses.replace(cam, black_level=jnp.asarray(black)))
+    img, img0 = np.asarray(ds.render(truth, opts)), np.asarray(ds.render(plain, opts))
+    np.testing.assert_allclose(img - img0, np.broadcast_to(black, img.shape), atol=1e-6)
+    stages = opts.replace(raster=dataclasses.replace(opts.raster, backend="jax"))
+    np.testing.assert_allclose(np.asarray(jax.jit(ds.render, static_argnames="opts")(truth, stages)), img, atol=1e-5)
+    tangent = jax.jvp(
+        lambda b: ds.render(dataclasses.replace(truth, camera=dataclasses.replace(truth.camera, black_level=b)), opts),
+        (jnp.asarray(black),),
+        (jnp.asarray([1.0, 0.0, 0.0]),),
+    )[1]
+    np.testing.assert_allclose(np.asarray(tangent), np.broadcast_to([1.0, 0, 0], img.shape), atol=1e-6)
+    mask = (np.asarray(ds.scene_visibility(truth, opts)[0]) >= 0).astype(float)
+    t = img + np.random.default_rng(0).normal(0, 0.003, img.shape)
+    free = ["material.diffuse", "material.specular", "material.shininess"]
+    obs = Observations([t], masks=[mask], noise=0.003)
+    assert not fit(plain, opts, obs, free).successful
+    r = fit(plain, opts, obs, [*free, "camera.black_level"])
+    assert r.successful, r.result
+    got = np.array([dict(zip(r.names, r.values))[f"camera.black_level[{c}]"] for c in "rgb"])
+    assert np.all(np.abs(got - black) < 3 * r.stderr[-3:]), (got, r.stderr[-3:])
