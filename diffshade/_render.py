@@ -122,6 +122,8 @@ def render(
         check_scene(scene)
         if opts.output.antialias and scene.mesh.adjacency is None:  # (the stage reads it from concrete faces)
             scene = dataclasses.replace(scene, mesh=scene.mesh.with_adjacency())
+        if getattr(_render_jit, "_cache_size", lambda: 0)() >= EAGER_PROGRAMS:
+            _render_jit.clear_cache()  # (a loop over many structures would keep every program)
         return _render_jit(scene, opts, ids, pixels)
     return _render(scene, opts, ids, pixels)
 
@@ -133,6 +135,10 @@ def _render(scene: Scene, opts: RenderOptions, ids, pixels):
 
 
 _render_jit = jax.jit(_render, static_argnames="opts")
+# The compiled programs eager renders keep, one per structure (mesh size, options, ...), before
+# they are let go all at once: 240 scenes of distinct structures rendered eagerly in one process
+# ran LLVM out of memory (its code mappings) with every program kept.
+EAGER_PROGRAMS = 64
 
 
 def scene_visibility(scene: Scene, opts: RenderOptions = RenderOptions()) -> Int[Array, "K H W"]:
