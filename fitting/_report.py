@@ -659,6 +659,7 @@ def build_result(
     notes = list(run.notes) + notes
     if not successful and best.ratio > noise_ratio_limit(best.n_chi2 or n2):
         notes.append(misfit_regions(prob, best))
+        notes += misfit_pointers(prob, best)
     found = None
     if intervals and successful and ev is not None and best.source == FLOAT_FLOOR_SOURCE:
         notes.append(
@@ -697,3 +698,62 @@ def build_result(
         notes=notes,
         history=run.history,
     )
+
+
+def misfit_pointers(prob, cand: Candidate) -> list[str]:
+    """What the structure of a rejected fit's residual points at, beyond the reflectance (each a
+    note where its signal stands well above the noise): the excess around clipped pixels (a
+    camera's bloom: ``clip_margin``), per-view gain errors (the lights' or exposures' calibration:
+    ``view[*].camera.exposure``), and shadows that read brighter than the model (a black level:
+    ``camera.black_level``)."""
+    from skimage.morphology import dilation
+
+    sigma = float(cand.sigma)
+    models = prob.full_images(cand.img)
+    ring_e = ring_n = all_e = all_n = 0.0
+    gains, dark_d, dark_n = [], 0.0, 0
+    for res, used, target, model in zip(prob.residual_images(cand.r), prob.used_masks(), prob.targets, models):
+        u = used.any(-1)
+        if not u.any():
+            continue
+        e = np.where(used, res * res - sigma**2, 0.0).sum(-1)
+        all_e, all_n = all_e + float(e[u].sum()), all_n + int(u.sum())
+        clipped = np.asarray(target, np.float64) >= prob.saturation if prob.saturation is not None else None
+        if clipped is not None and clipped.any():
+            ring = dilation(clipped.any(-1), np.ones((5, 5), bool)) & u
+            ring_e, ring_n = ring_e + float(e[ring].sum()), ring_n + int(ring.sum())
+        m, t = np.asarray(model, np.float64)[used], np.asarray(target, np.float64)[used]
+        mm = float(np.sum(m * m))
+        if mm > 0:
+            gains.append((float(np.sum(m * t)) / mm - 1.0, sigma / np.sqrt(mm)))
+        lum = np.asarray(model, np.float64).mean(-1)
+        dark = u & (lum <= np.quantile(lum[u], 0.10))
+        dark_d += float((np.asarray(target, np.float64) - model)[dark].sum())
+        dark_n += 3 * int(dark.sum())
+    notes = []
+    total = max(all_e, 1e-300)
+    if ring_n and ring_e > 0.2 * total and ring_e / total > 3 * ring_n / max(all_n, 1):
+        notes.append(
+            f"{100 * ring_e / total:.0f} % of the misfit lies within 2 px of clipped pixels ({100 * ring_n / all_n:.0f} % "
+            "of the pixels): a camera's clipped highlights bleed into their neighbours; leave them out "
+            "(Observations(clip_margin=1 or 2), --clip-margin)"
+        )
+    if len(gains) >= 3:
+        g = np.array([x for x, _ in gains])
+        se = np.array([s for _, s in gains])
+        spread = g - g.mean()
+        if np.sqrt(np.mean(spread**2)) > 3 * np.sqrt(np.mean(se**2)) and np.abs(spread).max() > 0.005:
+            k = int(np.argmax(np.abs(spread)))
+            notes.append(
+                f"the views' brightness is off by {100 * np.sqrt(np.mean(spread**2)):.1f} % RMS from one view to "
+                f"the next (view {k}: {100 * spread[k]:+.1f} %): each view's light or exposure differs from its "
+                "calibration; free view[*].camera.exposure"
+            )
+    if dark_n and sigma > 0:
+        mean = dark_d / dark_n
+        if mean > 3 * sigma / np.sqrt(dark_n) and mean > 0.5 * sigma:
+            notes.append(
+                f"the darkest pixels read {mean:.3g} above the model on average ({mean / sigma:.1f}× the noise): "
+                "an offset of the camera's; free camera.black_level"
+            )
+    return notes

@@ -195,6 +195,7 @@ def test_pixels_beside_clipped_highlights_are_left_out():
         obs = Observations([jnp.asarray(t)], saturation=1.0, quantum=1 / 65535, noise=sigma, clip_margin=margin)
         results[margin] = fit(start, opts, obs, free)
     assert not results[0].successful, results[0].result
+    assert any("clip_margin" in n for n in results[0].notes), results[0].notes
     r = results[1]
     assert r.successful, r.result
     got = dict(zip(r.names, r.values))
@@ -235,8 +236,42 @@ def test_a_black_level_is_rendered_and_fitted():
     t = img + np.random.default_rng(0).normal(0, 0.003, img.shape)
     free = ["material.diffuse", "material.specular", "material.shininess"]
     obs = Observations([t], masks=[mask], noise=0.003)
-    assert not fit(plain, opts, obs, free).successful
+    rejected = fit(plain, opts, obs, free)
+    assert not rejected.successful and any("camera.black_level" in n for n in rejected.notes), rejected.notes
     r = fit(plain, opts, obs, [*free, "camera.black_level"])
     assert r.successful, r.result
     got = np.array([dict(zip(r.names, r.values))[f"camera.black_level[{c}]"] for c in "rgb"])
     assert np.all(np.abs(got - black) < 3 * r.stderr[-3:]), (got, r.stderr[-3:])
+
+
+def test_a_rejected_fit_names_the_imaging_term_its_residual_points_at():
+    # per-view gains off their calibration (the lights' intensities of a capture): the verdict
+    # rejects and a note names view[*].camera.exposure; freeing it, the fit is successful
+    import dataclasses
+
+    import jax.numpy as jnp
+
+    import diffshade as ds
+    from fitting import Observations
+
+    scene, opts = ds.default_scene()
+    opts = opts.replace(fog=None)
+    scene = dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, width=40, height=40))
+    rng = np.random.default_rng(1)
+    gains = [1.0, 1.04, 0.95, 1.06, 0.98]
+    targets = [
+        np.asarray(
+            ds.render(
+                dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, exposure=jnp.asarray(g))), opts
+            )
+        )
+        + rng.normal(0, 0.002, (40, 40, 3))
+        for g in gains
+    ]
+    mask = (np.asarray(ds.scene_visibility(scene, opts)[0]) >= 0).astype(float)
+    obs = Observations(targets, masks=[mask] * len(gains), noise=0.002)
+    free = ["material.diffuse", "material.specular", "material.shininess"]
+    r = fit(scene, opts, obs, free)
+    assert not r.successful and any("view[*].camera.exposure" in n for n in r.notes), r.notes
+    assert not any("black_level" in n or "clip_margin" in n for n in r.notes), r.notes
+    assert fit(scene, opts, obs, [*free, "view[*].camera.exposure"]).successful
