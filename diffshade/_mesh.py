@@ -287,6 +287,42 @@ def _file_colors(parts, path, encoding: str):
     return np.asarray(decode(c, encoding), np.float64)
 
 
+def _trimesh_parts(path: Path) -> list:
+    """The file's geometries through trimesh, placed by its scene graph (a single mesh is its own
+    part); an OBJ's polygons as fans (:func:`_obj_as_fans`)."""
+    import trimesh
+
+    fans = None
+    if path.suffix.lower() == ".obj":
+        _check_obj_faces(path)
+        fans = _obj_as_fans(path)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            if fans is None:
+                loaded = trimesh.load(str(path), process=False)
+            else:  # (its material library found beside the file)
+                loaded = trimesh.load(
+                    io.BytesIO(fans),
+                    file_type="obj",
+                    resolver=trimesh.resolvers.FilePathResolver(str(path)),
+                    process=False,
+                )
+            # a scene's geometries, placed by its graph (a single mesh is its own part)
+            parts = (
+                [loaded]
+                if isinstance(loaded, trimesh.Trimesh)
+                else (
+                    [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)]
+                    if isinstance(loaded, trimesh.Scene)
+                    else []
+                )
+            )
+    except Exception as exc:  # trimesh raises many types for unreadable files
+        raise MeshError(f"{path}: could not read the mesh ({type(exc).__name__}: {exc})") from exc
+    return parts
+
+
 def load_mesh(path: str | Path, vertices: str = "authored", colors: str = "srgb") -> Mesh:
     """Load a triangle mesh (OBJ, PLY, STL, GLB, OFF, ... through trimesh).
 
@@ -317,34 +353,7 @@ def load_mesh(path: str | Path, vertices: str = "authored", colors: str = "srgb"
         raise MeshError(f"{path}: mesh file not found")
     if not path.is_file():
         raise MeshError(f"{path}: not a file")
-    fans = None
-    if path.suffix.lower() == ".obj":
-        _check_obj_faces(path)
-        fans = _obj_as_fans(path)
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            if fans is None:
-                loaded = trimesh.load(str(path), process=False)
-            else:  # (its material library found beside the file)
-                loaded = trimesh.load(
-                    io.BytesIO(fans),
-                    file_type="obj",
-                    resolver=trimesh.resolvers.FilePathResolver(str(path)),
-                    process=False,
-                )
-            # a scene's geometries, placed by its graph (a single mesh is its own part)
-            parts = (
-                [loaded]
-                if isinstance(loaded, trimesh.Trimesh)
-                else (
-                    [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)]
-                    if isinstance(loaded, trimesh.Scene)
-                    else []
-                )
-            )
-    except Exception as exc:  # trimesh raises many types for unreadable files
-        raise MeshError(f"{path}: could not read the mesh ({type(exc).__name__}: {exc})") from exc
+    parts = _trimesh_parts(path)
     parts = [g for g in parts if len(getattr(g, "faces", [])) > 0]
     if not parts:
         raise MeshError(f"{path}: the file has no triangles: nothing to render")

@@ -257,6 +257,42 @@ def _to_pixel_units(c, ax, ay, height: int, width: int):
     return _xmul((c - ax) + ay, wh), _xmul(ax, jnp.float32(height)), -_xmul(ay, jnp.float32(width))
 
 
+def _pixel_box(x, y, z, w, height: int, width: int):
+    """Per face, which vertices lie in front of the near plane, and the conservative pixel box
+    ``(x0, x1, y0, y1)`` of the part in front of it (z >= -w)."""
+    dist = [z[k] + w[k] for k in range(3)]
+    inside = [d >= 0 for d in dist]
+    px, py, ok = [], [], []
+    for k in range(3):
+        px.append(x[k]), py.append(y[k]), ok.append(inside[k] & (w[k] > 0))
+    pws = list(w)
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        cross = inside[a] != inside[b]
+        t = dist[a] / jnp.where(cross, dist[a] - dist[b], 1.0)
+        px.append(x[a] + t * (x[b] - x[a]))
+        py.append(y[a] + t * (y[b] - y[a]))
+        pws.append(w[a] + t * (w[b] - w[a]))
+        ok.append(cross)
+    big = jnp.float32(1e7)
+    xmin = ymin = big
+    xmax = ymax = -big
+    for qx, qy, qw, qok in zip(px, py, pws, ok):
+        qok = qok & (qw > 0)
+        qw = jnp.where(qok, qw, 1.0)
+        nx, ny = jnp.clip(qx / qw, -big, big), jnp.clip(qy / qw, -big, big)
+        xmin, xmax = jnp.where(qok, jnp.minimum(xmin, nx), xmin), jnp.where(qok, jnp.maximum(xmax, nx), xmax)
+        ymin, ymax = jnp.where(qok, jnp.minimum(ymin, ny), ymin), jnp.where(qok, jnp.maximum(ymax, ny), ymax)
+    # The box's margin: a triangle wholly in front of the near plane has its corners at x/w
+    # (rounding below 1e-3 pixel at MAX_SIDE), one that crosses it at interpolated points (a
+    # pixel). The pixels tested are then about a third fewer (5,120 faces at 256²).
+    pad = jnp.where(inside[0] & inside[1] & inside[2], jnp.float32(BOX_MARGIN), jnp.float32(1.0))
+    x0 = jnp.clip(jnp.floor((xmin + 1) * (width / 2) - 0.5 - pad), 0, width).astype(jnp.int32)
+    x1 = jnp.clip(jnp.ceil((xmax + 1) * (width / 2) - 0.5 + pad), -1, width - 1).astype(jnp.int32)
+    y0 = jnp.clip(jnp.floor((1 - ymax) * (height / 2) - 0.5 - pad), 0, height).astype(jnp.int32)
+    y1 = jnp.clip(jnp.ceil((1 - ymin) * (height / 2) - 0.5 + pad), -1, height - 1).astype(jnp.int32)
+    return inside, (x0, x1, y0, y1)
+
+
 def _setup(clip: Float[Array, "V 4"], faces: Int[Array, "F 3"], height: int, width: int, cull: Cull = "none") -> _Setup:
     # Structure-of-arrays throughout: XLA's CPU backend vectorises [F] vectors far better than
     # arrays with a minor axis of 3 or 4. Same operations, in the same order, as raster.cc.
@@ -303,37 +339,7 @@ def _setup(clip: Float[Array, "V 4"], faces: Int[Array, "F 3"], height: int, wid
     owns = _in_rank_order(ranks, owns)
     zw = _depth_weights(_in_rank_order(ranks, z), _in_rank_order(ranks, w))
 
-    # Conservative pixel bounding box of the part in front of the near plane (z >= -w).
-    dist = [z[k] + w[k] for k in range(3)]
-    inside = [d >= 0 for d in dist]
-    px, py, ok = [], [], []
-    for k in range(3):
-        px.append(x[k]), py.append(y[k]), ok.append(inside[k] & (w[k] > 0))
-    pws = list(w)
-    for a, b in ((0, 1), (1, 2), (2, 0)):
-        cross = inside[a] != inside[b]
-        t = dist[a] / jnp.where(cross, dist[a] - dist[b], 1.0)
-        px.append(x[a] + t * (x[b] - x[a]))
-        py.append(y[a] + t * (y[b] - y[a]))
-        pws.append(w[a] + t * (w[b] - w[a]))
-        ok.append(cross)
-    big = jnp.float32(1e7)
-    xmin = ymin = big
-    xmax = ymax = -big
-    for qx, qy, qw, qok in zip(px, py, pws, ok):
-        qok = qok & (qw > 0)
-        qw = jnp.where(qok, qw, 1.0)
-        nx, ny = jnp.clip(qx / qw, -big, big), jnp.clip(qy / qw, -big, big)
-        xmin, xmax = jnp.where(qok, jnp.minimum(xmin, nx), xmin), jnp.where(qok, jnp.maximum(xmax, nx), xmax)
-        ymin, ymax = jnp.where(qok, jnp.minimum(ymin, ny), ymin), jnp.where(qok, jnp.maximum(ymax, ny), ymax)
-    # The box's margin: a triangle wholly in front of the near plane has its corners at x/w
-    # (rounding below 1e-3 pixel at MAX_SIDE), one that crosses it at interpolated points (a
-    # pixel). The pixels tested are then about a third fewer (5,120 faces at 256²).
-    pad = jnp.where(inside[0] & inside[1] & inside[2], jnp.float32(BOX_MARGIN), jnp.float32(1.0))
-    x0 = jnp.clip(jnp.floor((xmin + 1) * (width / 2) - 0.5 - pad), 0, width).astype(jnp.int32)
-    x1 = jnp.clip(jnp.ceil((xmax + 1) * (width / 2) - 0.5 + pad), -1, width - 1).astype(jnp.int32)
-    y0 = jnp.clip(jnp.floor((1 - ymax) * (height / 2) - 0.5 - pad), 0, height).astype(jnp.int32)
-    y1 = jnp.clip(jnp.ceil((1 - ymin) * (height / 2) - 0.5 + pad), -1, height - 1).astype(jnp.int32)
+    inside, (x0, x1, y0, y1) = _pixel_box(x, y, z, w, height, width)
     finite = functools.reduce(jnp.logical_and, [jnp.isfinite(c) for c in x + y + z + w])
     valid = (inside[0] | inside[1] | inside[2]) & (det != 0) & finite & (y0 <= y1)
     if cull != "none":  # det > 0: counter-clockwise on the screen, the front (module docstring)

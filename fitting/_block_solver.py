@@ -35,7 +35,7 @@ import copy
 import os
 import threading
 import time
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
@@ -52,10 +52,6 @@ from ._report import (
     verdict,
 )
 from ._sparse import Factor, Orderings, in_threads, one_blas_thread, restrict, scaled
-
-if TYPE_CHECKING:
-    from ._albedo import AlbedoProblem
-    from ._maps import MapProblem
 
 RIDGE = 1e-13  # relative to a scalar's information, floored at the seen scalars' mean: holds null directions
 MAX_NEWTON = 30  # projected Newton steps of one bounded solve
@@ -353,7 +349,7 @@ class _BlockSolver:
     """Variable projection on the host in float64: the bounded sparse block solve at given
     other parameters, and Levenberg–Marquardt on those."""
 
-    def __init__(self, ap: AlbedoProblem | MapProblem, smoothness, rtol, verbose):
+    def __init__(self, ap, smoothness, rtol, verbose):  # ap: an AlbedoProblem or a MapProblem
         pset = ap.prob.pset
         self.ap, self.rtol, self.verbose = ap, rtol, verbose
         self._gram = self._residual = self._columns = None
