@@ -275,17 +275,14 @@ def _texels(scene: Scene, need: Needs, frags: Fragments, bary, clip, mids, raste
             f"the material has texture maps ({', '.join(names)}) but the mesh has no texture coordinates (Mesh.uv)"
         )
     trilinear = any(t.filter == "trilinear" for maps in per_material for t in maps.values())
-    # (screen-space affine coordinates: the differences across a quad are the derivatives)
-    lod_mode = raster.texture_lod
-    lod = lod_mode if raster.interpolation == "perspective" else "pixel"
-    u, v, deriv = _coordinates(scene, frags, bary, clip, trilinear, lod)
+    u, v, deriv = _coordinates(scene, frags, bary, clip, trilinear, raster)
     done, out = {}, {}
     for i, maps in enumerate(per_material):
         for f, t in maps.items():
             if f in SCALAR_MAPPED and t.channels != 1:
                 raise ValueError(f"Material.{f}_map must have one channel, got {t.channels}")
             if id(t) not in done:
-                lod = level_of_detail(t, *deriv, lod_mode) if t.filter == "trilinear" else None
+                lod = level_of_detail(t, *deriv, raster.texture_lod) if t.filter == "trilinear" else None
                 done[id(t)] = keep(*sample_channels(t, u, v, lod))
             c = done[id(t)]
             c = c if (f in SCALAR_MAPPED or len(c) == 3) else c * 3
@@ -295,8 +292,10 @@ def _texels(scene: Scene, need: Needs, frags: Fragments, bary, clip, mids, raste
     return out
 
 
-def _coordinates(scene: Scene, frags: Fragments, bary, clip, derivatives: bool, lod: str = "pixel"):
-    """``(u, v, derivatives or None)`` at the fragments (:func:`texture_coordinates`)."""
+def _coordinates(scene: Scene, frags: Fragments, bary, clip, derivatives: bool, raster: Raster):
+    """``(u, v, derivatives or None)`` at the fragments (:func:`texture_coordinates`); per pixel,
+    or across its quad with ``raster.texture_lod`` (perspective-correct coordinates only: affine
+    ones' differences across a quad are their derivatives)."""
     mesh, cam = scene.mesh, scene.camera
     lerp = _lerp(frags, mesh.faces, bary)
     u, v = lerp((mesh.uv[:, 0], mesh.uv[:, 1]))
@@ -305,7 +304,8 @@ def _coordinates(scene: Scene, frags: Fragments, bary, clip, derivatives: bool, 
     per_face = footprint(clip, mesh.faces)
     uvf = take(mesh.uv, mesh.faces)
     quad = None
-    if lod != "pixel":  # the pixel's place in its 2x2 quad, from the clip position it sees
+    if raster.texture_lod != "pixel" and raster.interpolation == "perspective":
+        # the pixel's place in its 2x2 quad, from the clip position it sees
         X, Y, W = lerp((clip[:, 0], clip[:, 1], clip[:, 3]))
         quad = window_parity(X, Y, W, cam.width, cam.height)
     return u, v, pixel_derivatives(per_face, uvf, frags.tri_id, frags.w, u, v, cam.width, cam.height, quad)
@@ -324,9 +324,7 @@ def texture_coordinates(scene: Scene, ids: Int[Array, "K H W"], raster: Raster =
     if raster.interpolation == "affine":
         frags = _affine(frags, clip, scene.mesh.faces)
     bary = tuple(frags.bary[..., j] for j in range(3))
-    return _coordinates(
-        scene, frags, bary, clip, True, raster.texture_lod if raster.interpolation == "perspective" else "pixel"
-    )
+    return _coordinates(scene, frags, bary, clip, True, raster)
 
 
 def _modulated(mat: Material, texels: dict) -> Material:

@@ -75,9 +75,12 @@ class Texture(eqx.Module):
 
     def levels(self) -> list:
         """The mipmap pyramid, level 0 first (one level without mipmapped filtering)."""
-        if self.filter == "trilinear":
-            return mip_pyramid(self.texels, self.mipmaps)
-        return [srgb8(self.texels, "llvmpipe") if self.mipmaps == "llvmpipe" else self.texels]
+        return mip_pyramid(self.texels, self.mipmaps) if self.filter == "trilinear" else [self.level0()]
+
+    def level0(self):
+        """The texels as sampled at level 0 (read back through llvmpipe's decoding with
+        ``mipmaps = "llvmpipe"``)."""
+        return srgb8(self.texels, "llvmpipe") if self.mipmaps == "llvmpipe" else self.texels
 
 
 def srgb8(x, decode: str = "exact"):
@@ -207,8 +210,7 @@ def sample_channels(tex: Texture, u, v, lod=None) -> tuple:
     gather of a row of C values costs several times C gathers of one. The indices and weights
     are materialised once and shared by the channels."""
     trilinear = tex.filter == "trilinear" and lod is not None
-    levels = tex.levels() if (trilinear or tex.mipmaps == "llvmpipe") else [tex.texels]
-    levels = levels if trilinear else levels[:1]
+    levels = tex.levels() if trilinear else [tex.level0()]
     pads = [_padded(lv, tex.wrap) for lv in levels]
     columns = [jnp.concatenate([p[..., c].reshape(-1) for p in pads]) for c in range(tex.channels)]
     sizes = [(int(lv.shape[1]), int(lv.shape[0])) for lv in levels]

@@ -119,15 +119,14 @@ def evaluate(
     views = obs.views_of(scene)
     masks = list(obs.masks) if obs.masks is not None else [None] * len(obs.targets)
     lower = obs.saturation is not None
-    render = ds.render  # (on concrete values: the compiled program, one per structure)
     rms, entries, ss_all, n_all = [], [], 0.0, 0
     for k in held:
         v = pset.apply(views[k], r.values)
         c = _cover(k, obs.targets[k], v, masks[k], obs.encodings[k], obs, lower, opts, ds.scene_visibility)
-        img = np.asarray(render(v, opts), np.float64)
-        d = censored_residual_np(img - c.t, c.hi, c.lo) * (c.wgt[..., None] * c.chan_w)
-        two_sided = c.used[..., None] & ~(c.hi | c.lo) & (c.wgt[..., None] > 0)
-        ss, n = float(np.sum((d * c.used[..., None]) ** 2)), int(two_sided.sum())
+        img = np.asarray(ds.render(v, opts), np.float64)
+        w = c.wgt[..., None] * c.chan_w * c.used[..., None]  # (as the fit weighs each entry)
+        d = censored_residual_np(img - c.t, c.hi, c.lo) * w
+        ss, n = float(np.sum(d**2)), int(((w > 0) & ~(c.hi | c.lo)).sum())
         rms.append(float(np.sqrt(ss / max(n, 1))))
         entries.append(n)
         ss_all, n_all = ss_all + ss, n_all + n

@@ -712,14 +712,17 @@ def misfit_pointers(prob, cand: Candidate) -> list[str]:
     models = prob.full_images(cand.img)
     ring_e = ring_n = all_e = all_n = 0.0
     gains, dark_d, dark_n = [], 0.0, 0
-    for res, used, target, model in zip(prob.residual_images(cand.r), prob.used_masks(), prob.targets, models):
+    # the entries censored from above, as the problem holds them (at saturation, or known clipped)
+    highs = prob.images_of(np.concatenate([np.asarray(vd.hi).reshape(-1) for vd in prob.data]))
+    for res, used, target, model, clipped in zip(
+        prob.residual_images(cand.r), prob.used_masks(), prob.targets, models, highs
+    ):
         u = used.any(-1)
         if not u.any():
             continue
         e = np.where(used, res * res - sigma**2, 0.0).sum(-1)
         all_e, all_n = all_e + float(e[u].sum()), all_n + int(u.sum())
-        clipped = np.asarray(target, np.float64) >= prob.saturation if prob.saturation is not None else None
-        if clipped is not None and clipped.any():
+        if clipped.any():
             ring = dilation(clipped.any(-1), np.ones((5, 5), bool)) & u
             ring_e, ring_n = ring_e + float(e[ring].sum()), ring_n + int(ring.sum())
         m, t = np.asarray(model, np.float64)[used], np.asarray(target, np.float64)[used]
