@@ -87,7 +87,8 @@ def polish(ev, prob, red, theta, steps, rtol) -> Polished:
     floor_v, hi_v = np.where(sq, floor**2, floor), np.where(sq, hi**2, hi)
     to_v = lambda th: np.where(sq, th * th, th)  # noqa: E731
     from_v = lambda v: np.where(sq, np.sqrt(np.maximum(v, 0.0)), v)  # noqa: E731
-    jac_v = lambda J, th: J * np.where(sq, 0.5 / np.where(sq, th, 1.0), 1.0)  # noqa: E731
+    # dθ/dv, the Jacobian's column scaling (applied to JᵀJ and Jᵀr: J itself is not copied)
+    dv = lambda th: np.where(sq, 0.5 / np.where(sq, th, 1.0), 1.0)  # noqa: E731
     theta = np.where(sq, np.maximum(theta, floor), theta)
 
     r, J, img = ev(theta)
@@ -104,11 +105,11 @@ def polish(ev, prob, red, theta, steps, rtol) -> Polished:
     floor_var = float_floor(dt, tmax) ** 2
     stalled = 0
     for _ in range(steps):
-        Jv, v = jac_v(J, theta), to_v(theta)
-        g = Jv.T @ r
+        c, v = dv(theta), to_v(theta)
+        g = c * (J.T @ r)
         at_lo, at_hi = v <= floor_v, v >= hi_v
         free = ~(at_lo & (g > 0)) & ~(at_hi & (g < 0))
-        H = Jv.T @ Jv
+        H = c[:, None] * (J.T @ J) * c[None, :]
         d = np.diag(H).copy()
         free &= d > 0
         if not free.any():

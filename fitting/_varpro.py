@@ -544,6 +544,24 @@ class Evaluator:
         """Take the problem's targets and weights again (after :meth:`Problem.relinearise`)."""
         t, w, hi, lo = (np.asarray(a) for a in flat_data(self.prob.data))
         self.t, self.w, self.hi, self.lo = t.astype(np.float64), w.astype(np.float64), hi, lo
+        self.censored = bool(hi.any() or lo.any())
+        self._cols_w = None  # each scalar's row mask times the weights, built at the first call
+
+    def _columns(self, n: int, M: int):
+        """``(src, cols_w)``: the tangent each scalar reads (its row of the program's ``T``) and
+        the mask of the entries it shows in (its channel, its views) times the weights, built once
+        per weighting (every evaluation then costs one gather and one product)."""
+        if self._cols_w is None:
+            red = self.red
+            src = np.empty(n, np.intp)
+            cols = np.ones((n, M))
+            if len(red.idx_l):
+                src[red.idx_l] = red.group
+                cols[red.idx_l] = self.lin_cols
+            src[red.idx_n] = red.n_groups + np.asarray(red.slot)
+            cols[red.idx_n] = self.nl_cols
+            self._src, self._cols_w = src, cols * self.w
+        return self._src, self._cols_w
 
     def __call__(self, theta):
         red = self.red
@@ -553,13 +571,13 @@ class Evaluator:
         img = to_host(out.img).astype(np.float64)
         T = to_host(out.T)
         d = img - self.t
+        src, cols_w = self._columns(len(theta), len(d))
+        JT = T[src].astype(np.float64, copy=False)  # rows contiguous: the Jacobian's transpose
+        JT *= cols_w
+        if not self.censored:
+            return d * self.w, JT.T, img
         r = np.where(self.hi, np.minimum(d, 0), np.where(self.lo, np.maximum(d, 0), d)) * self.w
-        act = ~((self.hi & (d > 0)) | (self.lo & (d < 0)))
-        JT = np.empty((len(theta), len(d)))  # rows contiguous: the Jacobian's transpose
-        if len(red.idx_l):
-            JT[red.idx_l] = T[red.group] * self.lin_cols
-        JT[red.idx_n] = T[red.n_groups :][red.slot] * self.nl_cols
-        JT *= self.w * act
+        JT *= ~((self.hi & (d > 0)) | (self.lo & (d < 0)))  # censored entries that agree: no row
         return r, JT.T, img
 
 
