@@ -17,10 +17,13 @@ import diffshade as ds
 TRUTH = dict(diffuse=(0.6, 0.45, 0.3), specular=0.35, shininess=40.0)
 
 
-def write_capture(folder, n=12, size=64, noise=0.004, seed=0, mesh=None, flip_y=False):
+def write_capture(
+    folder, n=12, size=64, noise=0.004, seed=0, mesh=None, flip_y=False, light_distance=None, falloff=0.0
+):
     """Write the capture; returns ``(scene, opts, directions)``: the truth's first view, its
     options, and the light directions as written (capture frame, towards the lights). ``size``:
-    the image's side, or ``(width, height)``."""
+    the image's side, or ``(width, height)``; ``light_distance``: the lights are LEDs this far
+    from the object's centre (near directional lights, with a ``falloff``), None: at infinity."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
@@ -40,11 +43,17 @@ def write_capture(folder, n=12, size=64, noise=0.004, seed=0, mesh=None, flip_y=
     written = dirs * np.array([1.0, -1.0 if flip_y else 1.0, 1.0])  # a data set whose y points down
     prop = to_camera_frame(dirs)
     cam = ds.OpenCVCamera.from_opencv(K, np.eye(3), np.zeros(3), width=w, height=h, near=0.01, far=100.0)
+    v = np.asarray(mesh.vertices, np.float64)
+    near = (
+        {}
+        if light_distance is None
+        else dict(distance=[light_distance], origin=[(v.min(0) + v.max(0)) / 2], falloff=[falloff])
+    )
     scene = ds.Scene(
         mesh=mesh,
         camera=cam,
         material=ds.Material(ambient=0.0, **TRUTH),
-        directional=ds.DirectionalLights(color=ints[:1], direction=prop[:1], ambient=np.zeros((1, 3))),
+        directional=ds.DirectionalLights(color=ints[:1], direction=prop[:1], ambient=np.zeros((1, 3)), **near),
         ambient_light=0.0,
     )
     opts = ds.RenderOptions.from_keys(shading="phong", specular="blinn", fog="none")

@@ -107,7 +107,7 @@ _SPOT = {"axis": REAL, "cutoff": ANGLE, "exponent": NONNEG, "edge": ANGLE}  # cu
 #: Every number of a :class:`Scene`, by group and field (``light`` groups by kind).
 SCENE: dict[str, dict[str, Domain]] = {
     "material": _MATERIAL,
-    "directional": {**_LIGHT, "direction": REAL},
+    "directional": {**_LIGHT, "direction": REAL, "distance": POSITIVE, "origin": REAL, "falloff": NONNEG},
     "point": _LIGHT,
     "spot": {**_LIGHT, **_SPOT},
     "area": {**_LIGHT, "normal": REAL, "up": REAL, "size": NONNEG},

@@ -318,6 +318,9 @@ def _lights(v: _V, lights: list):
         if "specular" in l and kind in specular:
             specular[kind][len(groups[kind])] = v.vec(l, "specular", w, lo=0.0, scalar_ok=True)
         groups[kind].append(_multi_lobe_row(v, l, w) if kind == "multi_lobe" else _light_row(v, l, w, kind))
+    near = {r[3] is not None for r in groups["directional"]}
+    if len(near) > 1:
+        v.fail("light", "either every directional light has a distance (near lights) or none has")
     return _stack_lights(groups, specular)
 
 
@@ -344,9 +347,17 @@ def _light_row(v: _V, l: dict, w: str, kind: str):
     common = ("type", "color", "ambient") + (("specular",) if kind != "area" else ())
     color = v.vec(l, "color", w, default=[1.0, 1.0, 1.0], lo=0.0, scalar_ok=True)
     amb = v.vec(l, "ambient", w, default=[0.0, 0.0, 0.0], lo=0.0, scalar_ok=True)
-    if kind == "directional":
-        v.unknown(l, common + ("direction",), w)
-        return color, v.vec(l, "direction", w, nonzero=True), amb
+    if kind == "directional":  # a distance makes it a near light (an LED pointed at its origin)
+        v.unknown(l, common + ("direction", "distance", "origin", "falloff"), w)
+        direction = v.vec(l, "direction", w, nonzero=True)
+        if "distance" not in l:
+            for k in ("origin", "falloff"):
+                if k in l:
+                    v.fail(f"{w}.{k}", "is a near light's: give its distance too")
+            return color, direction, amb, None, None, None
+        dist = v.num(l, "distance", w, lo=0.0, lo_open=True)
+        origin = v.vec(l, "origin", w, default=[0.0, 0.0, 0.0])
+        return color, direction, amb, dist, origin, v.num(l, "falloff", w, default=0.0, lo=0.0)
     pos = v.vec(l, "position", w)
     # an area light is physical by default: inverse-square falloff from each emitter
     att = _attenuation(v, l, w, [0.0, 0.0, 1.0] if kind == "area" else [1.0, 0.0, 0.0])
@@ -379,11 +390,18 @@ def _stack_lights(groups: dict, specular: dict):
         return np.stack([given.get(i, r[0]) for i, r in enumerate(groups[kind])]) if given else None
 
     g = groups["directional"]
-    directional = (
-        DirectionalLights(color=stack(g, 0), direction=stack(g, 1), ambient=stack(g, 2), specular=spec("directional"))
-        if g
-        else no_directional()
-    )
+    directional = no_directional()
+    if g:
+        near = [r[3] is not None for r in g]
+        directional = DirectionalLights(
+            color=stack(g, 0),
+            direction=stack(g, 1),
+            ambient=stack(g, 2),
+            specular=spec("directional"),
+            distance=np.array([r[3] for r in g]) if near[0] else None,
+            origin=stack(g, 4) if near[0] else None,
+            falloff=np.array([r[5] for r in g]) if near[0] else None,
+        )
     g = groups["point"]
     point = (
         PointLights(

@@ -21,7 +21,7 @@ import jax.numpy as jnp
 from . import _shade as S
 from ._materials import _select, _select_sides
 from ._options import Lighting, Output
-from ._scene import Lights, Material, Scene
+from ._scene import Lights, Material, Scene, near_as_spots
 from ._surface import Components, Surface
 from ._util import is_concrete
 from ._util import keep as _keep
@@ -308,6 +308,7 @@ def illuminate(
     (ambient, emission, per-light ambient) reaches them once; without shadows the whole sum
     reaches them once. Colours are clamped at the sites where ``output.clamp = "vertex"``
     (OpenGL), and with ``output.color_sum = "separate"`` the specular sum is clamped apart."""
+    scene = near_as_spots(scene)
     sites = surface.sites
     eye = scene.camera.eye
     separate = output.clamp == "vertex" and output.color_sum == "separate"

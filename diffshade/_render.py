@@ -27,7 +27,7 @@ from ._domains import check_scene
 from ._lighting import LightVisibility, illuminate
 from ._options import Raster, RenderOptions, ShadowMaps, ShadowRays
 from ._raster import fragments, visibility
-from ._scene import Scene
+from ._scene import Scene, near_as_spots
 from ._shadow import shadow_map_visibility
 from ._surface import Surface, needs, surface_points
 from ._trace import generations, secondary_rays, shadow_ray_visibility
@@ -43,6 +43,7 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=No
     lower neighbour as a flat index into the subset (-1: none). Only layer 0 is shaded unless
     ``opts.transparency`` asks for layers (docs/model.md §5).
     """
+    scene = near_as_spots(scene)  # (none: no operation)
     if _fast.applies(scene, opts, pixels):  # the native kernel's value, the stages' derivatives
         img = _fast.shade(scene, ids, opts, pixels, _stages)
     else:
@@ -86,6 +87,7 @@ def light_visibility(
     lights' emitters (:class:`diffshade.Lighting`)."""
     if shadows is None:
         return None
+    scene = near_as_spots(scene)
     if scene.area.count and isinstance(shadows, ShadowMaps):
         raise ValueError(
             "shadow maps do not cover area lights: use ShadowRays (soft shadows, a ray to every "

@@ -8,6 +8,7 @@ shapes.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import field
 
 import equinox as eqx
@@ -159,6 +160,10 @@ def _opt_rows(x):
     return None if x is None else _rows(3)(x)
 
 
+def _opt_vec(x):
+    return None if x is None else _vec(x)
+
+
 class Lights(eqx.Module):
     """A structure of arrays of lights of one kind: one row per light in every field.
 
@@ -174,12 +179,38 @@ class Lights(eqx.Module):
 
 
 class DirectionalLights(Lights):
-    """``N`` lights at infinity: colour :math:`I_p`, propagation direction :math:`D` (``l = -D``)."""
+    r"""``N`` lights at infinity: colour :math:`I_p`, propagation direction :math:`D` (``l = -D``).
+
+    **Near.** With ``distance`` (one per light, > 0) the lights are not at infinity but LEDs at
+    that distance from ``origin`` (default the scene's origin) against their direction, pointing
+    at it: a point at :math:`p = o - d\,\hat D` with the radial attenuation :math:`d^2/|p - x|^2`
+    (the colour is the irradiance at :math:`o`, as a calibrated capture gives it) and the angular
+    :math:`(\hat D\cdot(x - p)/|x - p|)^{a}` of ``falloff`` :math:`a \ge 0` (default 0), the
+    model's own spot light with a 90° cutoff (docs/model.md §1, "Near directional lights"). A
+    render draws them as those spot lights (shadows and rays included); as the distance grows they
+    tend to the directional light. Without ``distance`` (None: the default) none of this costs
+    anything."""
 
     color: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
     direction: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
     ambient: Float[Array, "N 3"] = eqx.field(converter=_rows(3))
     specular: Float[Array, "N 3"] | None = eqx.field(converter=_opt_rows, default=None)
+    distance: Float[Array, " N"] | None = eqx.field(converter=_opt_vec, default=None)
+    origin: Float[Array, "N 3"] | None = eqx.field(converter=_opt_rows, default=None)
+    falloff: Float[Array, " N"] | None = eqx.field(converter=_opt_vec, default=None)
+
+    def __check_init__(self):
+        for name in ("distance", "origin", "falloff"):
+            x = getattr(self, name)
+            if x is not None and x.shape[0] != self.color.shape[0]:
+                raise ValueError(f"DirectionalLights.{name}: one row per light ({self.color.shape[0]}), got {x.shape}")
+        if self.distance is None and (self.origin is not None or self.falloff is not None):
+            raise ValueError("DirectionalLights: origin and falloff are a near light's; give its distance too")
+
+    @property
+    def near(self) -> bool:
+        """Whether the lights are at a finite ``distance`` (static: the scene's structure)."""
+        return self.distance is not None
 
 
 class PointLights(Lights):
@@ -351,3 +382,40 @@ class Scene(eqx.Module):
         """Materials by id: ``material`` is id 0, ``materials[i]`` is id ``i + 1``; each face's id
         is ``mesh.material_ids`` (all 0 when the mesh has none)."""
         return (self.material, *self.materials)
+
+
+def near_as_spots(scene: Scene) -> Scene:
+    r"""``scene`` with its near directional lights (:class:`DirectionalLights` with a distance)
+    as the spot lights they are, after the scene's own spots: at :math:`p = o - d\,\hat D`, axis
+    :math:`\hat D`, cutoff 90°, exponent the falloff, attenuation :math:`(0, 0, 1/d^2)` (so the
+    colour is the irradiance at the origin :math:`o`). A scene without near lights is returned
+    as it is (no operation)."""
+    dl = scene.directional
+    if not dl.near:
+        return scene
+    dtype = dl.color.dtype
+    n = dl.count
+    axis = dl.direction / jnp.linalg.norm(dl.direction, axis=-1, keepdims=True)
+    d = dl.distance.astype(dtype)
+    origin = jnp.zeros((n, 3), dtype) if dl.origin is None else dl.origin.astype(dtype)
+    falloff = jnp.zeros((n,), dtype) if dl.falloff is None else dl.falloff.astype(dtype)
+    zero = jnp.zeros((n,), dtype)
+    near = dict(
+        color=dl.color,
+        position=origin - d[:, None] * axis,
+        attenuation=jnp.stack([zero, zero, 1.0 / (d * d)], axis=-1),
+        ambient=dl.ambient,
+        axis=axis,
+        cutoff=jnp.full((n,), 90.0, dtype),
+        exponent=falloff,
+        edge=zero,
+    )
+    sp = scene.spot
+    spec_near, spec_spot = dl.specular, sp.specular
+    if spec_near is not None or spec_spot is not None:  # one has a separate specular colour: both do
+        spec_near = dl.color if spec_near is None else spec_near
+        spec_spot = sp.color if spec_spot is None else spec_spot
+    fields = {k: jnp.concatenate([jnp.asarray(getattr(sp, k), dtype), near[k].astype(dtype)]) for k in near}
+    spec = None if spec_near is None else jnp.concatenate([jnp.asarray(spec_spot, dtype), spec_near.astype(dtype)])
+    spots = SpotLights(**fields, specular=spec)
+    return dataclasses.replace(scene, directional=no_directional(), spot=spots)

@@ -38,7 +38,7 @@ from ._lighting import LightVisibility, _rgb, shade_points
 from ._materials import _material_at
 from ._options import RenderOptions, ShadowRays
 from ._rays import first_hits, intersect
-from ._scene import Scene
+from ._scene import Scene, near_as_spots
 from ._surface import Components, Surface, needs
 from ._util import map_lights
 
@@ -341,6 +341,7 @@ def secondary_rays(scene: Scene, surface: Surface, color: Components, opts: Rend
     fogged by its segment's length with ``opts.fog``."""
     if opts.rays.depth == 0:
         return color
+    scene = near_as_spots(scene)
     shape = surface.front.shape
     N = surface.front.size
     acc = jnp.zeros((N, 3), surface.position[0].dtype)

@@ -35,7 +35,8 @@ the start map's resolution: the first four are a linear block, fitted by :mod:`f
 ``i``'s alone (``view[2].camera.exposure``, ``view[1].point[0].position``), and its start value is
 read from that view's scene. ``view[*].<name>`` stands for every view but view 0, the reference
 whose gains stay 1: the gauge of exposure and white balance (docs/model.md §9), since
-``exposure · white_balance · k`` is all an image shows.
+``exposure · white_balance · k`` is all an image shows; ``view[:].<name>`` for every view, view 0
+too (a term without a gauge: ``camera.black_level``, a near light's ``directional[0].distance``).
 """
 
 from __future__ import annotations
@@ -87,13 +88,17 @@ _LIGHT = {
     "height": "positive",
     "position": "real",
     "specular": "positive",
+    "distance": "positive",
+    "origin": "real",
+    "falloff": "positive",
 }
+_NEAR = ("distance", "origin", "falloff")  # a near directional light's (docs/model.md §1)
 _SIZE = {"width": 0, "height": 1}  # an area light's size[i, k]
 _KINDS = ("directional", "point", "spot", "area", "multi_lobe")
 _LOBE = {"color", "ambient", "cutoff", "exponent", "edge"}
 _FOG = {"color": "unit", "start": "positive", "end": "positive", "density": "positive"}
 _CAMERA = {"exposure": "positive", "white_balance": "positive", "black_level": "real", "rvec": "real", "tvec": "real"}
-_VIEW_RE = re.compile(r"^view\[(\d+|\*)\]\.(.+)$")
+_VIEW_RE = re.compile(r"^view\[(\d+|\*|:)\]\.(.+)$")
 _LIGHT_RE = re.compile(r"^(directional|point|spot|area)\[(\d+)\]\.(\w+)$")
 _LOBE_RE = re.compile(r"^multi_lobe\[(\d+)\]\.lobe\[(\d+)\]\.(\w+)$")
 _MULTI_RE = re.compile(r"^multi_lobe\[(\d+)\]\.(\w+)$")
@@ -371,6 +376,7 @@ def _parse_light(name, scene, shared, m):
         or (kind != "spot" and field in ("cutoff", "exponent", "edge"))
         or (kind == "directional" and (field[0] == "a" and field != "ambient" or field == "position"))
         or (kind != "area" and field in _SIZE)
+        or (kind != "directional" and field in _NEAR)
     ):
         raise ParamError(f"unknown parameter {name!r}: a {kind} light has no field {field!r}")
     if i >= count:
@@ -380,8 +386,13 @@ def _parse_light(name, scene, shared, m):
             f"{name}: the scene's {kind} lights have no separate specular colour (their colour sets "
             "both); give one with `specular = [r, g, b]` in the scene file"
         )
-    size = 3 if (field in _RGB and not shared) or field == "position" else 1
-    if field in ("position", "direction", "axis") and shared:
+    if field in _NEAR and not scene.directional.near:
+        raise ParamError(
+            f"{name}: the scene's directional lights are at infinity; give them a distance to make them "
+            "near lights (a scene file's `distance =`, a capture's light_distance / --light-distance)"
+        )
+    size = 3 if (field in _RGB and not shared) or field in ("position", "origin") else 1
+    if field in ("position", "origin", "direction", "axis") and shared:
         raise ParamError(f"{name}: a {field} has no shared form")
     if direction:
         d0 = np.asarray(getattr(getattr(scene, kind), field)[i], np.float64)
@@ -434,8 +445,10 @@ def parse(name: str, scene: ds.Scene, shared: bool = False, n_views: int | None 
     (when known) bounds a ``view[i].`` prefix."""
     m = _VIEW_RE.match(name)
     if m:
-        if m.group(1) == "*":
-            raise ParamError(f"{name}: view[*] is expanded by the parameter set (it needs the number of views)")
+        if m.group(1) in "*:":
+            raise ParamError(
+                f"{name}: view[{m.group(1)}] is expanded by the parameter set (it needs the number of views)"
+            )
         i = int(m.group(1))
         if n_views is not None and i >= n_views:
             raise ParamError(f"unknown parameter {name!r}: the fit has {n_views} view(s)")
@@ -497,11 +510,17 @@ def tilt_of(direction, frame):
 
 
 def expand_views(names, n_views: int | None) -> list[str]:
-    """``view[*].<name>`` → ``view[1].<name>``, …, ``view[n-1].<name>`` (view 0 is the reference)."""
+    """``view[*].<name>`` → ``view[1].<name>``, …, ``view[n-1].<name>`` (view 0 is the reference);
+    ``view[:].<name>`` → every view's, ``view[0].<name>`` too (a term with no gauge: an offset, a
+    light's distance)."""
     out = []
     for n in names:
         m = _VIEW_RE.match(n)
-        if m and m.group(1) == "*":
+        if m and m.group(1) == ":":
+            if n_views is None:
+                raise ParamError(f"{n}: view[:] needs the number of views")
+            out += [f"view[{i}].{m.group(2)}" for i in range(n_views)]
+        elif m and m.group(1) == "*":
             if n_views is None:
                 raise ParamError(f"{n}: view[*] needs the number of views")
             if n_views < 2:

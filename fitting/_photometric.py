@@ -144,15 +144,23 @@ def load_photometric_stereo(
     downsample_how: str = "sample",
     flip_y: bool = False,
     flip_z: bool = False,
+    light_distance: float | None = None,
 ) -> Capture:
-    """The capture in ``folder`` (the layout of the module's docstring) as views with one
+    r"""The capture in ``folder`` (the layout of the module's docstring) as views with one
     directional light each; ``mesh`` in the camera frame, or None for a sphere placed from the
     mask; ``downsample_by``: reduce the images (and the mask, and the camera) by this factor,
     ``downsample_how``: ``"average"`` (area averaging, carrying clipped sub-pixels:
     :func:`fitting.downsample`; the noise falls by the factor, but the renderer point-samples
     each pixel's centre, so where the shading curves across a pixel the model misses the
     average: docs/fitting.md, "Photometric-stereo captures") or ``"sample"`` (the sub-pixel at
-    each block's centre, the camera shifted to it: exact, at the full noise)."""
+    each block's centre, the camera shifted to it: exact, at the full noise).
+
+    ``light_distance``: the lights are LEDs at this distance (scene units: the sphere's radius for
+    a sphere from the mask) from the object's centre along each calibrated direction, pointed at
+    it, the calibrated intensity the irradiance there (near directional lights,
+    :class:`diffshade.DirectionalLights`; the distance a fit parameter, ``directional[0].distance``
+    for one shared by every light, ``view[:].directional[0].distance`` for one per light, and
+    ``directional[0].falloff`` the LED's :math:`\cos^a` falloff); None (the default): at infinity."""
     if downsample_how not in ("average", "sample"):
         raise FitError(f"downsample_how must be 'average' or 'sample', got {downsample_how!r}")
     folder = Path(folder)
@@ -168,11 +176,18 @@ def load_photometric_stereo(
         K, np.eye(3), np.zeros(3), width=mask.shape[1], height=mask.shape[0], near=0.01, far=1e4
     )
     prop = to_camera_frame(dirs, flip_y, flip_z)
+    near = {}
+    if light_distance is not None:
+        if not np.isfinite(light_distance) or light_distance <= 0:
+            raise FitError(f"light_distance must be a finite number > 0, got {light_distance}")
+        v = np.asarray(mesh.vertices, np.float64)
+        centre = (v.min(0) + v.max(0)) / 2  # the object's centre (a sphere's own)
+        near = dict(distance=[float(light_distance)], origin=centre[None], falloff=[0.0])
     base = ds.Scene(
         mesh=mesh,
         camera=cam,
         material=material or ds.Material(ambient=0.0, diffuse=0.5, specular=0.3, shininess=50.0),
-        directional=ds.DirectionalLights(color=ints[:1], direction=prop[:1], ambient=np.zeros((1, 3))),
+        directional=ds.DirectionalLights(color=ints[:1], direction=prop[:1], ambient=np.zeros((1, 3)), **near),
         ambient_light=0.0,
     )
     views = [

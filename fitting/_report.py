@@ -700,12 +700,16 @@ def build_result(
     )
 
 
+NEAR_PROBE_VIEWS = 8  # the views a rejected capture's fit renders to probe for near lights
+
+
 def misfit_pointers(prob, cand: Candidate) -> list[str]:
     """What the structure of a rejected fit's residual points at, beyond the reflectance (each a
     note where its signal stands well above the noise): the excess around clipped pixels (a
     camera's bloom: ``clip_margin``), per-view gain errors (the lights' or exposures' calibration:
-    ``view[*].camera.exposure``), and shadows that read brighter than the model (a black level:
-    ``camera.black_level``)."""
+    ``view[*].camera.exposure``), shadows that read brighter than the model (a black level:
+    ``camera.black_level``), and the side facing each light brighter than a distant light predicts
+    (near lights: :func:`_near_light_signal`)."""
     from skimage.morphology import dilation
 
     sigma = float(cand.sigma)
@@ -759,4 +763,68 @@ def misfit_pointers(prob, cand: Candidate) -> list[str]:
                 f"the darkest pixels read {mean:.3g} above the model on average ({mean / sigma:.1f}× the noise): "
                 "an offset of the camera's; free camera.black_level"
             )
+    near = _near_light_signal(prob, cand, models, sigma)
+    if near is not None and near[1] > 0.25 * total:
+        notes.append(
+            f"the side of the object facing each light reads brighter than a distant light predicts, as from "
+            f"lights about {near[0]:.3g} object radii away ({100 * near[1] / total:.0f} % of the misfit): the "
+            "lights are near; load the capture with light_distance (--light-distance D) and free "
+            "directional[0].distance"
+        )
     return notes
+
+
+def _near_light_signal(prob, cand, models, sigma: float):
+    r"""A near light's signature in a capture (three views or more, each lit by one directional
+    light at infinity): the change of each view's fitted image as its light comes in from infinity,
+    per unit of :math:`R/D` (:math:`R` the object's radius, :math:`D` the light's distance from its
+    centre), taken as the difference of two renders with the light at :math:`D = 1000 R` and at
+    infinity (of up to :data:`NEAR_PROBE_VIEWS` views spread over the capture). Pooled over them,
+    the residual regressed on the signature and the model (a scale, which the k's take): ``(D/R,
+    the squared residual it explains)``, or None where the capture has no such lights, the
+    coefficient is not positive or it explains no more than 25 σ²."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    import diffshade as ds
+
+    ks = [
+        k
+        for k, vd in enumerate(prob.data)
+        if vd.scene.directional.count == 1
+        and not vd.scene.directional.near
+        and not (vd.scene.point.count or vd.scene.spot.count or vd.scene.area.count or vd.scene.multi_lobe.count)
+    ]
+    if len(ks) < 3 or len(ks) != len(prob.data):
+        return None
+    ks = [ks[i] for i in np.unique(np.linspace(0, len(ks) - 1, NEAR_PROBE_VIEWS).round().astype(int))]
+    A, b = np.zeros((2, 2)), np.zeros(2)
+    used_all = prob.used_masks()
+    theta = jnp.asarray(cand.theta, prob.dtype)
+    for k in ks:
+        sc = prob.pset.apply(prob.data[k].scene, theta, view=k)
+        V = np.asarray(sc.mesh.vertices, np.float64)
+        c = (V.min(0) + V.max(0)) / 2
+        R = float(np.linalg.norm(V - c, axis=1).max())
+        dl = sc.directional
+        dt = dl.color.dtype
+        near = eqx.tree_at(
+            lambda s: (s.directional.distance, s.directional.origin, s.directional.falloff),
+            sc,
+            (jnp.asarray([1000.0 * R], dt), jnp.asarray(c[None], dt), jnp.zeros(1, dt)),
+            is_leaf=lambda x: x is None,
+        )
+        far_img = np.asarray(ds.render(sc, prob.opts), np.float64)
+        sig = (np.asarray(ds.render(near, prob.opts), np.float64) - far_img) * 1000.0
+        u = used_all[k]
+        m = np.asarray(models[k], np.float64) * u
+        s, r = sig * u, (np.asarray(prob.targets[k], np.float64) * u - m)
+        A += [[np.sum(s * s), np.sum(s * m)], [np.sum(s * m), np.sum(m * m)]]
+        b += [np.sum(r * s), np.sum(r * m)]
+    if A[1, 1] <= 0 or np.linalg.det(A) <= 1e-12 * A[0, 0] * A[1, 1]:
+        return None
+    x = np.linalg.solve(A, b)
+    gain = float(b @ x - b[1] ** 2 / A[1, 1])
+    if x[0] <= 0 or gain <= 25.0 * sigma * sigma:
+        return None
+    return 1.0 / float(x[0]), gain

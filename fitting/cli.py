@@ -491,6 +491,7 @@ def _photometric_inputs(args, folder: Path):
             downsample_by=args.downsample or 1,
             flip_y=args.flip_y,
             flip_z=args.flip_z,
+            light_distance=args.light_distance,
         )
     except FitError as exc:
         raise InputError(str(exc)) from exc
@@ -498,6 +499,7 @@ def _photometric_inputs(args, folder: Path):
         f"{folder}: {len(cap.views)} images under one directional light each"
         + (f", downsampled by {args.downsample}" if (args.downsample or 1) > 1 else "")
         + ("" if mesh is not None else "; a sphere placed from the mask")
+        + (f"; the lights LEDs {args.light_distance:g} units from its centre" if args.light_distance else "")
     )
     tg = types.SimpleNamespace(
         paths=[folder / n for n in cap.names],
@@ -885,6 +887,14 @@ def _add_fit_capture(p) -> None:
     p.add_argument("--scene-options", metavar="SCENE", help="a capture folder's render options and start material")
     p.add_argument("--downsample", type=str, metavar="N", help="a capture folder's images sampled every N pixels")
     p.add_argument("--flip-y", action="store_true", help="a capture folder's light directions have y down")
+    p.add_argument(
+        "--light-distance",
+        type=float,
+        default=None,
+        metavar="D",
+        help="a capture folder's lights are LEDs D units (sphere radii) from the object's centre along their "
+        "directions (near lights; free directional[0].distance to fit D, directional[0].falloff their cos^a)",
+    )
     p.add_argument(
         "--flip-z", action="store_true", help="a capture folder's light directions have z away from the viewer"
     )

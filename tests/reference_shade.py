@@ -67,8 +67,17 @@ class Ref:
         c = np.zeros(3)
         c_spec = np.zeros(3)
         lights = []
-        for col, d, amb, scol in s["directional"]:
-            lights.append((col, -_n(d), 1.0, amb, scol, ("dir", -_n(d))))
+        for col, d, amb, scol, near in s["directional"]:
+            if near is None:
+                lights.append((col, -_n(d), 1.0, amb, scol, ("dir", -_n(d))))
+                continue
+            # an LED at distance D from its origin against its direction, pointed at the origin,
+            # the colour the irradiance there (docs/model.md §1, "Near directional lights")
+            dist, origin, falloff = near
+            pos = origin - dist * _n(d)
+            L = pos - P
+            fall = (dist / np.linalg.norm(L)) ** 2 * _pow(max(float(np.dot(_n(d), -_n(L))), 0.0), falloff)
+            lights.append((col, _n(L), fall, amb, scol, ("pos", pos)))
         for col, pos, att, amb, scol in s["point"]:
             dist = np.linalg.norm(pos - P)
             lights.append(

@@ -42,6 +42,17 @@ def test_parameter_names_and_domains():
         ParamSet(["point[3].a1"], scene)
     with pytest.raises(ParamError, match="a point light has no field 'cutoff'"):
         ParamSet(["point[0].cutoff"], scene)
+    with pytest.raises(ParamError, match="directional lights are at infinity; give them a distance"):
+        ParamSet(["directional[0].distance"], scene)
+    with pytest.raises(ParamError, match="a point light has no field 'falloff'"):
+        ParamSet(["point[0].falloff"], scene)
+    # view[*]: every view but the reference view 0; view[:]: every view
+    per = ParamSet(["view[*].camera.black_level", "material.diffuse"], scene, n_views=3)
+    assert per.names == ["view[1].camera.black_level", "view[2].camera.black_level", "material.diffuse"]
+    per = ParamSet(["view[:].camera.black_level"], scene, n_views=3)
+    assert per.names == [f"view[{i}].camera.black_level" for i in range(3)]
+    with pytest.raises(ParamError, match="needs the number of views"):
+        ParamSet(["view[:].camera.black_level"], scene)
     bad = ps.apply(scene, theta.at[0].set(1.5))
     with pytest.raises(FitError, match=r"start scene: material.diffuse must be a finite number in \[0, 1\], got \[1.5"):
         fit(bad, ds.RenderOptions(), Observations(np.zeros((32, 32, 3))), ["material.diffuse"])

@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import compiles, float64
+from conftest import check_grads, compiles, float64
 
 import diffshade as ds
 import diffshade._lighting as R
@@ -184,3 +184,88 @@ def test_many_lights_rendered_eagerly_compile_nothing_the_second_time():
     np.testing.assert_array_equal(np.asarray(first), np.asarray(again))
     jitted = jax.jit(ds.render, static_argnames="opts")(scene, opts)
     np.testing.assert_allclose(np.asarray(first), np.asarray(jitted), rtol=1e-12, atol=1e-12)
+
+
+# -- near directional lights (an LED at a distance: DirectionalLights.distance) -------------------
+
+
+def _near_scene(distance=None, falloff=None, origin=None, size=16):
+    d = {k: v for k, v in ds.DEFAULT_SCENE.items() if k not in ("fog", "light")}
+    d["mesh"] = {"icosphere": 2}
+    d["camera"] = dict(d["camera"], width=size, height=size)
+    d["render"] = {"shading": "phong", "specular": "blinn", "fog": "none"}
+    light = {"type": "directional", "color": [1.0, 0.9, 0.8], "direction": [0.4, -0.3, -1.0]}
+    if distance is not None:
+        light["distance"] = distance
+        if falloff is not None:
+            light["falloff"] = falloff
+        if origin is not None:
+            light["origin"] = origin
+    d["light"] = [light]
+    d["ambient_light"] = [0.0, 0.0, 0.0]
+    return ds.scene_from_dict(d, "near light scene")
+
+
+def test_a_near_directional_light_tends_to_the_directional_one():
+    far, opts = _near_scene()
+    render = jax.jit(lambda s: ds.render(s, opts))
+    img = np.asarray(render(far))
+    errs = [float(np.abs(np.asarray(render(_near_scene(D, 2.0)[0])) - img).max()) for D in (10.0, 100.0, 1000.0)]
+    assert errs[0] > 0.01  # near, it differs
+    # and the difference falls as 1/D (first order in the angle the object subtends from the light)
+    assert errs[1] < errs[0] / 5
+    assert 0.8 < errs[2] * 1000 / (errs[1] * 100) < 1.25, errs
+
+
+def test_a_scene_without_near_lights_is_left_as_it_is_and_distances_recompile_nothing():
+    from diffshade._scene import near_as_spots
+
+    far, opts = _near_scene()
+    assert near_as_spots(far) is far
+    near, _ = _near_scene(3.0, 1.0)
+    spots = near_as_spots(near)
+    assert spots.directional.count == 0 and spots.spot.count == 1
+    np.testing.assert_allclose(np.asarray(spots.spot.attenuation), [[0.0, 0.0, 1 / 9.0]], rtol=1e-6)
+    render = jax.jit(lambda s: ds.render(s, opts))
+    render(near)
+    with compiles() as names:
+        for D, a in ((4.0, 0.5), (7.0, 3.0)):
+            render(
+                eqx.tree_at(
+                    lambda s: (s.directional.distance, s.directional.falloff), near, (np.array([D]), np.array([a]))
+                )
+            )
+    assert not names
+
+
+def test_near_light_gradients_match_finite_differences():
+    near, opts = _near_scene(2.5, 1.5, [0.1, 0.0, 0.0], size=10)
+    near = float64(near)
+
+    def f(d, a, o):
+        s = eqx.tree_at(
+            lambda s: (s.directional.distance, s.directional.falloff, s.directional.origin), near, (d, a, o)
+        )
+        return ds.render(s, opts)
+
+    dl = near.directional
+    check_grads(f, (dl.distance, dl.falloff, dl.origin), modes=("fwd", "rev"), atol=1e-6, rtol=1e-5)
+
+
+def test_near_lights_in_a_scene_file_are_checked():
+    with pytest.raises(ds.SceneError, match=r"light\[0\]\.falloff.*distance"):
+        d = dict(ds.DEFAULT_SCENE, light=[{"type": "directional", "direction": [0, 0, -1], "falloff": 1.0}])
+        ds.scene_from_dict(d, "f.toml")
+    with pytest.raises(ds.SceneError, match=r"light\[0\]\.distance"):
+        ds.scene_from_dict(
+            dict(ds.DEFAULT_SCENE, light=[{"type": "directional", "direction": [0, 0, -1], "distance": 0.0}]), "f"
+        )
+    two = [
+        {"type": "directional", "direction": [0, 0, -1], "distance": 5.0},
+        {"type": "directional", "direction": [0, 1, -1]},
+    ]
+    with pytest.raises(ds.SceneError, match="every directional light has a distance"):
+        ds.scene_from_dict(dict(ds.DEFAULT_SCENE, light=two), "f")
+    with pytest.raises(ds.SceneError, match=r"directional\[0\]\.falloff must be"):
+        s, _ = _near_scene(3.0, 1.0)
+        ds.render(eqx.tree_at(lambda s: s.directional.falloff, s, -jnp.ones(1)), ds.RenderOptions())

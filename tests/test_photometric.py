@@ -275,3 +275,54 @@ def test_a_rejected_fit_names_the_imaging_term_its_residual_points_at():
     assert not r.successful and any("view[*].camera.exposure" in n for n in r.notes), r.notes
     assert not any("black_level" in n or "clip_margin" in n for n in r.notes), r.notes
     assert fit(scene, opts, obs, [*free, "view[*].camera.exposure"]).successful
+
+
+def test_near_leds_are_rejected_at_infinity_and_their_distance_recovered(tmp_path):
+    """LEDs 12 sphere radii from the ball (near lights): the distant-light model is rejected, and
+    freeing one shared distance (a start at 40 radii) recovers it within 3 s.e. and accepts."""
+    scene, opts, _ = write_capture(tmp_path, n=8, size=48, noise=0.004, seed=3, light_distance=12.0)
+    free = ["material.diffuse", "material.specular", "material.shininess"]
+    at_inf = load_photometric_stereo(tmp_path, opts=opts)
+    r = fit(at_inf.scene, at_inf.opts, at_inf.observations(margin=1), free)
+    assert not r.successful and r.residual.noise_ratio > 1.5, r.result
+    said = [n for n in r.notes if "lights are near" in n]  # the rejected fit's notes name the term
+    assert said, r.notes
+    D = float(said[0].split("about ")[1].split(" ")[0])
+    assert 6.0 < D < 24.0, said  # the distance the residual points at, within 2× of the truth
+    # on the true geometry: the distance within 3 s.e.; on the sphere placed from the mask (its
+    # centre a fraction of a pixel off), within 1 %
+    for mesh, tol in ((scene.mesh, None), (None, 0.01)):
+        cap = load_photometric_stereo(tmp_path, mesh, opts=opts, light_distance=40.0)
+        assert cap.scene.directional.near
+        np.testing.assert_allclose(np.asarray(cap.scene.directional.origin)[0], [0, 0, 4.0], atol=0.1)
+        r = fit(cap.scene, cap.opts, cap.observations(margin=1), free + ["directional[0].distance"])
+        assert r.successful, r.result
+        got = dict(zip(r.names, zip(r.values, r.stderr)))
+        d, se = got["directional[0].distance"]
+        assert abs(d - 12.0) <= (3 * se if tol is None else tol * 12.0), (d, se)
+        assert abs(got["material.shininess"][0] - TRUTH["shininess"]) <= 3 * got["material.shininess"][1]
+
+
+def test_the_command_line_reads_a_capture_with_near_lights(tmp_path, capsys):
+    import json
+
+    from fitting.cli import main
+
+    write_capture(tmp_path / "c", n=4, size=32, noise=0.004, seed=2, light_distance=10.0)
+    out = tmp_path / "out"
+    free = ["material.diffuse", "material.specular", "material.shininess", "directional[0].distance"]
+    args = ["fit", str(tmp_path / "c"), "-p", *free, "--margin", "1", "-o", str(out)]
+    assert main(args) == 3 and "distance" in capsys.readouterr().err  # at infinity: no distance to free
+    assert main([*args, "--light-distance", "30"]) == 0, capsys.readouterr()
+    assert "the lights LEDs 30 units from its centre" in capsys.readouterr().out
+    d = json.loads((out / "fit.json").read_text())["parameters"]["directional[0].distance"]
+    assert abs(d["value"] - 10.0) < 0.3, d
+
+
+def test_a_capture_under_distant_lights_is_not_said_to_have_near_ones(capture):
+    # a wrong reflectance (no specular term) is rejected, and its residual is not a near light's
+    folder, truth, opts, _ = capture
+    cap = load_photometric_stereo(folder, opts=opts.with_keys(specular="none"))
+    r = fit(cap.scene, cap.opts, cap.observations(margin=1), ["material.diffuse"])
+    assert not r.successful
+    assert not any("lights are near" in n for n in r.notes), r.notes

@@ -58,6 +58,18 @@ LIGHTS = {
             edge=[6.0],
         )
     ),
+    # an LED 2.5 units from the sphere's centre, pointed at it, with a cos^1.5 falloff (a near
+    # directional light: DirectionalLights with a distance)
+    "near": dict(
+        directional=ds.DirectionalLights(
+            color=[[1.1, 0.9, 0.8]],
+            direction=[[-0.5, -0.6, -1.0]],
+            ambient=[[0.04, 0.03, 0.02]],
+            distance=[2.5],
+            origin=[[0.05, 0.0, 0.0]],
+            falloff=[1.5],
+        )
+    ),
 }
 # A light behind the plane (lights its back-facing side with the normal as given).
 BEHIND = ds.PointLights(
@@ -83,6 +95,7 @@ CONFIGS = {
     "linear-fog-start-equals-end": (["point"], dict(fog="linear")),
     "exp-fog-one-sided": (["point", "behind"], dict(fog="exp", two_sided=False)),
     "affine-interpolation": (["point", "directional"], dict(interpolation="affine")),
+    "near-directional-led": (["near", "spot"], dict(specular="blinn", per_light_ambient=True)),
     # OpenGL's fixed-function choices (RenderOptions.opengl), lights with separate specular colours,
     # a bright point light so that vertices saturate (the clamp order matters)
     "opengl-specular-colours": (["directional", "bright", "spot"], dict(compat="opengl", fog="exp")),
@@ -184,6 +197,13 @@ def to_ref(scene: ds.Scene) -> dict:
         }
 
     spec = lambda k, i: a(k.color[i] if k.specular is None else k.specular[i])  # noqa: E731
+
+    def near(k, i):
+        if k.distance is None:
+            return None
+        origin = np.zeros(3) if k.origin is None else a(k.origin[i])
+        return float(k.distance[i]), origin, 0.0 if k.falloff is None else float(k.falloff[i])
+
     cam = scene.camera
     V, F = a(scene.mesh.vertices), np.asarray(scene.mesh.faces)
     d, p, s = scene.directional, scene.point, scene.spot
@@ -201,7 +221,9 @@ def to_ref(scene: ds.Scene) -> dict:
         "height": cam.height,
         "material": mat(scene.material),
         "back_material": mat(scene.back_material or scene.material),
-        "directional": [(a(d.color[i]), a(d.direction[i]), a(d.ambient[i]), spec(d, i)) for i in range(d.count)],
+        "directional": [
+            (a(d.color[i]), a(d.direction[i]), a(d.ambient[i]), spec(d, i), near(d, i)) for i in range(d.count)
+        ],
         "point": [
             (a(p.color[i]), a(p.position[i]), a(p.attenuation[i]), a(p.ambient[i]), spec(p, i)) for i in range(p.count)
         ],
