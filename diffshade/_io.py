@@ -378,6 +378,23 @@ def _light_row(v: _V, l: dict, w: str, kind: str):
     return color, pos, att, amb, normal, up, size
 
 
+def _directional(g: list, specular) -> DirectionalLights:
+    """The directional rows ``(color, direction, ambient, distance, origin, falloff)`` stacked
+    (near lights where they have a distance: all or none do, :func:`_lights` checked)."""
+    if not g:
+        return no_directional()
+    near = g[0][3] is not None
+    return DirectionalLights(
+        color=np.stack([r[0] for r in g]),
+        direction=np.stack([r[1] for r in g]),
+        ambient=np.stack([r[2] for r in g]),
+        specular=specular,
+        distance=np.array([r[3] for r in g]) if near else None,
+        origin=np.stack([r[4] for r in g]) if near else None,
+        falloff=np.array([r[5] for r in g]) if near else None,
+    )
+
+
 def _stack_lights(groups: dict, specular: dict):
     """The rows of each kind stacked into its structure of arrays (an empty one where none)."""
 
@@ -389,19 +406,7 @@ def _stack_lights(groups: dict, specular: dict):
         given = specular[kind]
         return np.stack([given.get(i, r[0]) for i, r in enumerate(groups[kind])]) if given else None
 
-    g = groups["directional"]
-    directional = no_directional()
-    if g:
-        near = [r[3] is not None for r in g]
-        directional = DirectionalLights(
-            color=stack(g, 0),
-            direction=stack(g, 1),
-            ambient=stack(g, 2),
-            specular=spec("directional"),
-            distance=np.array([r[3] for r in g]) if near[0] else None,
-            origin=stack(g, 4) if near[0] else None,
-            falloff=np.array([r[5] for r in g]) if near[0] else None,
-        )
+    directional = _directional(groups["directional"], spec("directional"))
     g = groups["point"]
     point = (
         PointLights(
