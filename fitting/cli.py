@@ -655,7 +655,7 @@ def _compare(scene, opts, obs, args, r, fit_kw):
 
 
 def _fit_images(pset, r, scene, opts, views, tg: _Targets):
-    """The fitted scene, and per view a row target | fit | 10x residual + 0.5."""
+    """The fitted scene, and per view its target and fitted image (linear)."""
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -665,12 +665,11 @@ def _fit_images(pset, r, scene, opts, views, tg: _Targets):
 
     theta = jnp.asarray(r.values, scene.mesh.vertices.dtype)
     render = jax.jit(ds.render, static_argnames="opts")
-    rows = []
+    pairs = []
     for k, (v, t, (enc, _)) in enumerate(zip(views, tg.images, tg.encodings)):
         t = np.asarray(color.decode(t, enc), np.float64)
-        img = np.asarray(render(pset.apply(v, theta, k), opts), np.float64)
-        rows.append(np.concatenate([t, img, np.clip(0.5 + 10.0 * (img - t), 0, 1)], axis=1))
-    return pset.apply(scene, theta), rows
+        pairs.append((t, np.asarray(render(pset.apply(v, theta, k), opts), np.float64)))
+    return pset.apply(scene, theta), pairs
 
 
 def _write_albedo(fitted_scene, out_dir: Path) -> None:
@@ -692,7 +691,6 @@ def _write_outputs(args, meta, r, report, comparison, outputs, fitted, rows, enc
     """fit.json, material.mtl, fit.png and report.txt."""
     import json
 
-    import numpy as np
 
     doc = {**meta, **r.as_dict()}
     if comparison:
@@ -704,7 +702,7 @@ def _write_outputs(args, meta, r, report, comparison, outputs, fitted, rows, enc
         outputs[1],
         f"{report[0]}\nfree: {' '.join(args.free)}; result: {r.result or 'successful'}; standard errors in fit.json",
     )
-    _write_image(np.concatenate(rows, axis=0), outputs[2], True, encoding)
+    _write_image(rows, outputs[2], True, encoding)
     _write_text("\n".join(report) + "\n", outputs[3])
 
 
@@ -763,7 +761,10 @@ def cmd_fit(args) -> int:
         more, comparison = _compare(scene, opts, obs, args, r, fit_kw)
         report += more
     print("\n".join(report[1:]))
-    fitted, rows = _fit_images(pset, r, scene, opts, views, tg)
+    from ._sheet import contact_sheet
+
+    fitted, pairs = _fit_images(pset, r, scene, opts, views, tg)
+    sheet, shown, exposure = contact_sheet([t for t, _ in pairs], [i for _, i in pairs], masks)
     meta = {
         "scene": str(scene_path),
         "targets": [str(t) for t in tg.paths],
@@ -777,10 +778,16 @@ def cmd_fit(args) -> int:
         "options": _options.as_dict(opts),
         **({"holdout": held.as_dict()} if held is not None else {}),
     }
-    _write_outputs(args, meta, r, report, comparison, outputs, fitted, rows, tg.encodings[0][0], opts)
+    meta["sheet"] = {"views": shown, "exposure": exposure}
+    _write_outputs(args, meta, r, report, comparison, outputs, fitted, sheet, tg.encodings[0][0], opts)
     if "mesh.colors" in pset.names:
         _write_albedo(fitted, Path(args.output_dir))
-    print(f"wrote {', '.join(str(o) for o in outputs)} (fit.png: target | fit | 10x residual + 0.5)")
+    views_said = "" if shown == list(range(len(pairs))) else f", views {shown} (the worst and a spread, worst first)"
+    print(
+        f"wrote {', '.join(str(o) for o in outputs)} (fit.png: target | fit | 10x residual + 0.5"
+        + (f", at exposure x{exposure:.3g}" if exposure != 1.0 else "")
+        + f"{views_said})"
+    )
     return EXIT_OK if r.successful else EXIT_FIT
 
 

@@ -326,3 +326,24 @@ def test_a_capture_under_distant_lights_is_not_said_to_have_near_ones(capture):
     r = fit(cap.scene, cap.opts, cap.observations(margin=1), ["material.diffuse"])
     assert not r.successful
     assert not any("lights are near" in n for n in r.notes), r.notes
+
+
+def test_the_contact_sheet_shows_the_worst_view_and_a_spread_at_one_exposure():
+    from fitting._sheet import MASKED_GREY, SHEET_VIEWS, contact_sheet
+
+    rng = np.random.default_rng(0)
+    n, h, w = 12, 6, 5
+    targets = [np.full((h, w, 3), 0.02) for _ in range(n)]  # a linear capture: nearly black
+    errs = rng.permutation(n) * 1e-3
+    images = [t + e for t, e in zip(targets, errs)]
+    mask = np.ones((h, w))
+    mask[0] = 0
+    sheet, views, exposure = contact_sheet(targets, images, [mask] * n)
+    assert sheet.shape == (SHEET_VIEWS * h, 3 * w, 3) and len(views) == SHEET_VIEWS
+    assert views[0] == int(np.argmax(errs)) and views[-1] == int(np.argmin(errs))  # worst first, to the best
+    assert list(errs[views]) == sorted(errs[views], reverse=True)
+    np.testing.assert_allclose(exposure, 0.8 / 0.02)
+    np.testing.assert_allclose(sheet[1, :w], 0.8)  # the target at the sheet's exposure
+    assert (sheet[0] == MASKED_GREY).all()  # the mask's row left out, greyed, in every panel
+    few, views, one = contact_sheet(targets[:3], images[:3])
+    assert views == [0, 1, 2] and one != 1.0 and few.shape == (3 * h, 3 * w, 3)
