@@ -691,7 +691,6 @@ def _write_outputs(args, meta, r, report, comparison, outputs, fitted, rows, enc
     """fit.json, material.mtl, fit.png and report.txt."""
     import json
 
-
     doc = {**meta, **r.as_dict()}
     if comparison:
         doc["comparison"] = comparison
