@@ -111,6 +111,15 @@ def _read(path: Path) -> tuple[np.ndarray, float | None]:
     return v, im.quantum
 
 
+def object_centre(mesh: ds.Mesh) -> tuple[np.ndarray, float]:
+    """``(centre, radius)``: the centre of the mesh's bounding box (a sphere's own centre) and the
+    largest distance of a vertex from it; the origin and the length scale of a capture's near
+    lights."""
+    v = np.asarray(mesh.vertices, np.float64)
+    c = (v.min(0) + v.max(0)) / 2
+    return c, float(np.linalg.norm(v - c, axis=1).max())
+
+
 def sphere_from_mask(mask: np.ndarray, K: np.ndarray, subdivisions: int = 5) -> ds.Mesh:
     """A unit sphere in the camera frame (OpenCV's) that projects onto ``mask``: its centre on the
     ray through the mask's centroid, at the distance where its angular radius is the mask's."""
@@ -180,9 +189,7 @@ def load_photometric_stereo(
     if light_distance is not None:
         if not np.isfinite(light_distance) or light_distance <= 0:
             raise FitError(f"light_distance must be a finite number > 0, got {light_distance}")
-        v = np.asarray(mesh.vertices, np.float64)
-        centre = (v.min(0) + v.max(0)) / 2  # the object's centre (a sphere's own)
-        near = dict(distance=[float(light_distance)], origin=centre[None], falloff=[0.0])
+        near = dict(distance=[float(light_distance)], origin=object_centre(mesh)[0][None], falloff=[0.0])
     base = ds.Scene(
         mesh=mesh,
         camera=cam,

@@ -778,8 +778,8 @@ def _near_light_signal(prob, cand, models, sigma: float):
     r"""A near light's signature in a capture (three views or more, each lit by one directional
     light at infinity): the change of each view's fitted image as its light comes in from infinity,
     per unit of :math:`R/D` (:math:`R` the object's radius, :math:`D` the light's distance from its
-    centre), taken as the difference of two renders with the light at :math:`D = 1000 R` and at
-    infinity (of up to :data:`NEAR_PROBE_VIEWS` views spread over the capture). Pooled over them,
+    centre), taken as the difference of a render with the light at :math:`D = 1000 R` and the
+    fit's model at infinity (of up to :data:`NEAR_PROBE_VIEWS` views spread over the capture). Pooled over them,
     the residual regressed on the signature and the model (a scale, which the k's take): ``(D/R,
     the squared residual it explains)``, or None where the capture has no such lights, the
     coefficient is not positive or it explains no more than 25 σ²."""
@@ -787,6 +787,8 @@ def _near_light_signal(prob, cand, models, sigma: float):
     import jax.numpy as jnp
 
     import diffshade as ds
+
+    from ._photometric import object_centre
 
     ks = [
         k
@@ -803,9 +805,7 @@ def _near_light_signal(prob, cand, models, sigma: float):
     theta = jnp.asarray(cand.theta, prob.dtype)
     for k in ks:
         sc = prob.pset.apply(prob.data[k].scene, theta, view=k)
-        V = np.asarray(sc.mesh.vertices, np.float64)
-        c = (V.min(0) + V.max(0)) / 2
-        R = float(np.linalg.norm(V - c, axis=1).max())
+        c, R = object_centre(sc.mesh)
         dl = sc.directional
         dt = dl.color.dtype
         near = eqx.tree_at(
@@ -814,10 +814,10 @@ def _near_light_signal(prob, cand, models, sigma: float):
             (jnp.asarray([1000.0 * R], dt), jnp.asarray(c[None], dt), jnp.zeros(1, dt)),
             is_leaf=lambda x: x is None,
         )
-        far_img = np.asarray(ds.render(sc, prob.opts), np.float64)
-        sig = (np.asarray(ds.render(near, prob.opts), np.float64) - far_img) * 1000.0
         u = used_all[k]
-        m = np.asarray(models[k], np.float64) * u
+        m = np.asarray(models[k], np.float64)  # the fit's model: the render at infinity, to rounding
+        sig = (np.asarray(ds.render(near, prob.opts), np.float64) - m) * 1000.0
+        m = m * u
         s, r = sig * u, (np.asarray(prob.targets[k], np.float64) * u - m)
         A += [[np.sum(s * s), np.sum(s * m)], [np.sum(s * m), np.sum(m * m)]]
         b += [np.sum(r * s), np.sum(r * m)]

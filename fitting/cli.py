@@ -687,7 +687,7 @@ def _write_albedo(fitted_scene, out_dir: Path) -> None:
     print(f"wrote {ply} (the fitted albedo as sRGB vertex colours)")
 
 
-def _write_outputs(args, meta, r, report, comparison, outputs, fitted, rows, encoding, opts):
+def _write_outputs(args, meta, r, report, comparison, outputs, fitted, sheet, encoding, opts):
     """fit.json, material.mtl, fit.png and report.txt."""
     import json
 
@@ -701,7 +701,7 @@ def _write_outputs(args, meta, r, report, comparison, outputs, fitted, rows, enc
         outputs[1],
         f"{report[0]}\nfree: {' '.join(args.free)}; result: {r.result or 'successful'}; standard errors in fit.json",
     )
-    _write_image(rows, outputs[2], True, encoding)
+    _write_image(sheet, outputs[2], True, encoding)
     _write_text("\n".join(report) + "\n", outputs[3])
 
 
