@@ -61,3 +61,25 @@ def test_the_fit_evaluates_the_render_on_every_shipped_mesh(mode, meshes_dir):
         mesh = placed(ds.load_mesh(os.path.join(meshes_dir, name), vertices=mode), rng)
         shading = ["flat", "gouraud", "phong"][k % 3]
         _check(*_scene(mesh, shading, rng, np.float32, 64), np.float32, f"{name} ({mode}, {shading})")
+
+
+def test_the_fit_evaluates_the_render_under_near_lights(meshes_dir):
+    # a scanned mesh placed as a user places it, lit by LEDs (near directional lights): the fit's
+    # model, its jvp and the jitted render are the eager render's, as at infinity
+    rng = np.random.default_rng(11)
+    mesh = placed(ds.load_mesh(os.path.join(meshes_dir, "bunny.ply")), rng)
+    scene, opts = _scene(mesh, "phong", rng, np.float32, 48)
+    dl = scene.directional
+    assert dl.count
+    v = np.asarray(mesh.vertices, np.float64)
+    near = ds.DirectionalLights(
+        color=dl.color,
+        direction=dl.direction,
+        ambient=dl.ambient,
+        specular=dl.specular,
+        distance=np.full(dl.count, 4.0 * np.ptp(v, axis=0).max()),
+        origin=np.tile((v.min(0) + v.max(0)) / 2, (dl.count, 1)),
+        falloff=np.full(dl.count, 1.5),
+    )
+    scene = float32(eqx.tree_at(lambda s: s.directional, scene, near))
+    _check(scene, opts, np.float32, "bunny under near lights")
