@@ -18,12 +18,26 @@ TRUTH = dict(diffuse=(0.6, 0.45, 0.3), specular=0.35, shininess=40.0)
 
 
 def write_capture(
-    folder, n=12, size=64, noise=0.004, seed=0, mesh=None, flip_y=False, light_distance=None, falloff=0.0
+    folder,
+    n=12,
+    size=64,
+    noise=0.004,
+    seed=0,
+    mesh=None,
+    flip_y=False,
+    light_distance=None,
+    falloff=0.0,
+    camera="pinhole",
+    normal_map=None,
 ):
     """Write the capture; returns ``(scene, opts, directions)``: the truth's first view, its
     options, and the light directions as written (capture frame, towards the lights). ``size``:
     the image's side, or ``(width, height)``; ``light_distance``: the lights are LEDs this far
-    from the object's centre (near directional lights, with a ``falloff``), None: at infinity."""
+    from the object's centre (near directional lights, with a ``falloff``), None: at infinity.
+    ``camera``: ``"pinhole"`` (K.txt written) or ``"orthographic"`` (no K.txt, as DiLiGenT's
+    object folders: the sphere spans 60 % of the image's height); ``normal_map``: also write the
+    truth's normals at the pixel centres (capture frame) to this file name in the folder
+    (``Normal_gt.mat``, ``normal.png`` as 16-bit codes ``(n + 1)/2``, ``normal.npy``)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
@@ -42,7 +56,10 @@ def write_capture(
 
     written = dirs * np.array([1.0, -1.0 if flip_y else 1.0, 1.0])  # a data set whose y points down
     prop = to_camera_frame(dirs)
-    cam = ds.OpenCVCamera.from_opencv(K, np.eye(3), np.zeros(3), width=w, height=h, near=0.01, far=100.0)
+    if camera == "orthographic":
+        cam = ds.OrthographicCamera.capture(w, h, pixel_size=2.0 / (0.6 * h), depth=4.0)
+    else:
+        cam = ds.OpenCVCamera.from_opencv(K, np.eye(3), np.zeros(3), width=w, height=h, near=0.01, far=100.0)
     v = np.asarray(mesh.vertices, np.float64)
     near = (
         {}
@@ -73,5 +90,34 @@ def write_capture(
     (folder / "filenames.txt").write_text("\n".join(names) + "\n")
     np.savetxt(folder / "light_directions.txt", written)
     np.savetxt(folder / "light_intensities.txt", ints)
-    np.savetxt(folder / "K.txt", K)
+    if camera != "orthographic":
+        np.savetxt(folder / "K.txt", K)
+    if normal_map is not None:
+        _write_normals(folder / normal_map, scene, opts, mask)
     return scene, opts, written
+
+
+def true_normals(scene, opts) -> np.ndarray:
+    """``[H, W, 3]``: the unit normal the renderer shades each covered pixel with (Phong's
+    interpolated normal, reversed on a back face with two-sided lighting; the camera frame's,
+    world = camera here), zero elsewhere."""
+    ids = ds.scene_visibility(scene, opts)
+    clip = scene.camera.world_to_clip(scene.mesh.vertices)
+    surf = ds.surface_points(scene, ds.fragments(clip, scene.mesh.faces, ids[:1]), opts.raster)
+    n = np.stack([np.asarray(c[0], np.float64) for c in surf.normal], -1)
+    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-30)
+    if opts.camera_lighting.two_sided:
+        n = np.where(np.asarray(surf.front[0])[..., None], n, -n)
+    return np.where((np.asarray(ids[0]) >= 0)[..., None], n, 0.0)
+
+
+def _write_normals(path: Path, scene, opts, mask) -> None:
+    n = true_normals(scene, opts) * np.array([1.0, -1.0, -1.0])  # the capture frame: y up, z to the viewer
+    if path.suffix == ".mat":
+        from scipy.io import savemat
+
+        savemat(path, {"Normal_gt": n})
+    elif path.suffix == ".npy":
+        np.save(path, n)
+    else:
+        ds.write_image(path, np.where(mask[..., None], (n + 1) / 2, 0.0), "linear", 16)

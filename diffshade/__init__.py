@@ -14,7 +14,7 @@ The render is a chain of stages, each a public function (what :func:`shade` call
 
 from . import color, images
 from ._antialias import antialias, face_adjacency, pixel_neighbours, silhouette_edges
-from ._camera import Camera, OpenCVCamera, rodrigues, undistort
+from ._camera import Camera, OpenCVCamera, OrthographicCamera, rodrigues, undistort
 from ._composite import composite
 from ._domains import Domain, check_scene
 from ._fast import kernel_partials
@@ -22,6 +22,7 @@ from ._io import DEFAULT_SCENE, SceneError, default_scene, load_camera, load_sce
 from ._lighting import LightVisibility, illuminate
 from ._mesh import Mesh, MeshError, box, combine, icosphere, load_mesh, mesh_from_arrays, quad
 from ._mtl import load_material
+from ._normal_map import integrate_normals, normal_map_mesh, read_normal_map
 from ._options import FogModel, Lighting, Output, Raster, Rays, RenderOptions, ShadowMaps, ShadowRays, Transparency
 from ._raster import Fragments, fragments, interpolate, pixel_centres, rasterize, visibility, visibility_passes
 from ._render import light_visibility, ray_counts, render, scene_visibility, shade, to_uint8, truncated_pixels
@@ -53,6 +54,10 @@ __all__ = [
     "no_area",
     "Camera",
     "OpenCVCamera",
+    "OrthographicCamera",
+    "integrate_normals",
+    "normal_map_mesh",
+    "read_normal_map",
     "rodrigues",
     "undistort",
     "DEFAULT_SCENE",

@@ -4,7 +4,9 @@
 Both give the renderer the same things: a world → eye transform (OpenGL's eye space: right-handed,
 looking down :math:`-z`, :math:`y` up), an eye → clip projection whose NDC square covers the
 image (row 0 at the top, pixel centres at :math:`2(i + 1/2)/W - 1`), the eye position, and the
-image size (static).
+image size (static). An orthographic camera's clip :math:`w` is 1 and its rays are parallel: the
+direction towards the viewer is the view axis at every point (OpenGL's infinite viewer), which
+:meth:`view_vectors` gives every stage.
 
 **Gain.** A camera records ``exposure · white_balance ⊙ L + black_level`` of the radiance ``L``
 it sees, background included (docs/model.md §9): an exposure of 2 doubles the image, a white
@@ -13,6 +15,8 @@ that receives no light reads. All are traced numbers (fittable per view).
 """
 
 from __future__ import annotations
+
+from typing import ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -26,9 +30,24 @@ def _normalize(v: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
     return v / jnp.linalg.norm(v, axis=-1, keepdims=True)
 
 
+def _look_at(eye, target, up) -> Float[Array, "4 4"]:
+    """World → eye transform of ``gluLookAt``."""
+    f = _normalize(target - eye)
+    s = _normalize(jnp.cross(f, up))
+    u = jnp.cross(s, f)
+    rot = jnp.stack([s, u, -f])
+    trans = -rot @ eye
+    top = jnp.concatenate([rot, trans[:, None]], axis=1)
+    bottom = jnp.array([[0.0, 0.0, 0.0, 1.0]], dtype=top.dtype)
+    return jnp.concatenate([top, bottom], axis=0)
+
+
 class _Pinhole(eqx.Module):
     """What every camera gives the renderer; subclasses define ``view_matrix``,
-    ``projection_matrix``, ``eye``, ``width``, ``height``, ``exposure`` and ``white_balance``."""
+    ``projection_matrix``, ``eye``, ``width``, ``height``, ``exposure`` and ``white_balance``
+    (``orthographic``: parallel rays, a class constant)."""
+
+    orthographic: ClassVar[bool] = False
 
     @property
     def resolution(self) -> tuple[int, int]:
@@ -64,6 +83,16 @@ class _Pinhole(eqx.Module):
         d = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
         return jnp.broadcast_to(self.eye, d.shape).astype(d.dtype), d
 
+    def view_vectors(self, P):
+        """Unit vectors from the points ``P`` (a component tuple) towards the viewer: to the eye
+        for a pinhole camera, the view axis for an orthographic one."""
+        from . import _shade as S
+
+        if self.orthographic:
+            z = self.view_matrix()[2, :3]  # the eye-space +z axis in world coordinates
+            return tuple(jnp.broadcast_to(z[k], jnp.shape(P[0])) for k in range(3))
+        return S.normalize(S.sub(tuple(self.eye[k] for k in range(3)), P))
+
 
 class Camera(_Pinhole):
     r"""An OpenGL camera: right-handed eye space looking down :math:`-z`.
@@ -95,14 +124,7 @@ class Camera(_Pinhole):
 
     def view_matrix(self) -> Float[Array, "4 4"]:
         """World → eye transform of ``gluLookAt``."""
-        f = _normalize(self.target - self.eye)
-        s = _normalize(jnp.cross(f, self.up))
-        u = jnp.cross(s, f)
-        rot = jnp.stack([s, u, -f])
-        trans = -rot @ self.eye
-        top = jnp.concatenate([rot, trans[:, None]], axis=1)
-        bottom = jnp.array([[0.0, 0.0, 0.0, 1.0]], dtype=top.dtype)
-        return jnp.concatenate([top, bottom], axis=0)
+        return _look_at(self.eye, self.target, self.up)
 
     def projection_matrix(self) -> Float[Array, "4 4"]:
         """Eye → clip transform of ``gluPerspective``."""
@@ -119,6 +141,93 @@ class Camera(_Pinhole):
                 jnp.stack([z, z, -o, z]),
             ]
         )
+
+
+class OrthographicCamera(_Pinhole):
+    r"""An orthographic camera: ``gluLookAt(eye, target, up)`` and ``glOrtho`` with the image
+    centred on the view axis, ``pixel_size`` scene units per pixel (the image
+    :math:`W \cdot` ``pixel_size`` wide). Every ray is parallel to the axis, from the plane
+    through ``eye`` across it; ``near``/``far`` are depths along the axis from that plane. The
+    direction towards the viewer is the axis everywhere (the lighting's infinite viewer,
+    whatever :attr:`diffshade.Lighting.viewer` says). Photometric-stereo benchmarks (DiLiGenT)
+    assume this camera: :meth:`capture` is theirs, in OpenCV's frame.
+    """
+
+    eye: Float[Array, "3"] = eqx.field(converter=as_float_array)
+    target: Float[Array, "3"] = eqx.field(converter=as_float_array)
+    up: Float[Array, "3"] = eqx.field(converter=as_float_array)
+    pixel_size: Float[Array, ""] = eqx.field(converter=as_float_array)
+    width: int = eqx.field(static=True)
+    height: int = eqx.field(static=True)
+    near: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.1)
+    far: Float[Array, ""] = eqx.field(converter=as_float_array, default=100.0)
+    exposure: Float[Array, ""] = eqx.field(converter=as_float_array, default=1.0)
+    white_balance: Float[Array, "3"] = eqx.field(converter=rgb_array, default=(1.0, 1.0, 1.0))
+    black_level: Float[Array, "3"] = eqx.field(converter=rgb_array, default=(0.0, 0.0, 0.0))
+
+    orthographic: ClassVar[bool] = True
+
+    def __check_init__(self):
+        for name in ("eye", "target", "up"):
+            if jnp.shape(getattr(self, name)) != (3,):
+                raise ValueError(
+                    f"OrthographicCamera.{name} must have shape (3,), got {jnp.shape(getattr(self, name))}"
+                )
+        if not (isinstance(self.width, int) and isinstance(self.height, int)) or self.width < 1 or self.height < 1:
+            raise ValueError(f"OrthographicCamera image size must be positive integers, got {self.width}x{self.height}")
+
+    @classmethod
+    def capture(
+        cls, width: int, height: int, pixel_size: float = 1.0, centre=None, depth: float = 10.0, **gain
+    ) -> "OrthographicCamera":
+        """The camera of a capture in OpenCV's frame (:math:`x` right, :math:`y` down, :math:`z`
+        forward): pixel :math:`(u, v)` (the top-left pixel's centre at (0, 0)) sees the ray
+        :math:`x = s(u - c_x)`, :math:`y = s(v - c_y)` along :math:`z`, ``centre`` :math:`(c_x,
+        c_y)` (default the image's centre), ``s`` the ``pixel_size``; the eye plane at
+        :math:`z = 0`, ``near`` :math:`10^{-4}` ``depth`` and ``far`` ``2 depth`` (scene units)."""
+        cx, cy = ((width - 1) / 2, (height - 1) / 2) if centre is None else (float(centre[0]), float(centre[1]))
+        ex, ey = ((width - 1) / 2 - cx) * pixel_size, ((height - 1) / 2 - cy) * pixel_size
+        return cls(
+            eye=(ex, ey, 0.0),
+            target=(ex, ey, 1.0),
+            up=(0.0, -1.0, 0.0),
+            pixel_size=pixel_size,
+            width=int(width),
+            height=int(height),
+            near=depth * 1e-4,
+            far=2.0 * depth,
+            **gain,
+        )
+
+    def view_matrix(self) -> Float[Array, "4 4"]:
+        """World → eye transform of ``gluLookAt``."""
+        return _look_at(self.eye, self.target, self.up)
+
+    def projection_matrix(self) -> Float[Array, "4 4"]:
+        """Eye → clip transform of ``glOrtho(-a, a, -b, b, near, far)``, ``a = W s / 2``,
+        ``b = H s / 2`` (``s`` the pixel size); clip :math:`w = 1`."""
+        s, n, fa = self.pixel_size, self.near, self.far
+        z, o = jnp.zeros_like(s), jnp.ones_like(s)
+        return jnp.stack(
+            [
+                jnp.stack([2.0 / (s * self.width), z, z, z]),
+                jnp.stack([z, 2.0 / (s * self.height), z, z]),
+                jnp.stack([z, z, -2.0 / (fa - n), -(fa + n) / (fa - n)]),
+                jnp.stack([z, z, z, o]),
+            ]
+        )
+
+    def pixel_rays(self, dtype=jnp.float32):
+        """Origin (on the plane through the eye across the axis) and unit direction (the axis) in
+        world space of the ray through every pixel centre (row 0 at the top)."""
+        from ._raster import pixel_centres
+
+        xs, ys = pixel_centres(self.height, self.width, dtype)
+        X, Y = jnp.meshgrid(xs, ys)
+        R = self.view_matrix()[:3, :3].astype(dtype)
+        a, b = self.pixel_size * self.width / 2, self.pixel_size * self.height / 2
+        o = self.eye.astype(dtype) + (a * X)[..., None] * R[0] + (b * Y)[..., None] * R[1]
+        return o, jnp.broadcast_to(-R[2], o.shape)
 
 
 def rodrigues(rvec: Float[Array, "3"]) -> Float[Array, "3 3"]:

@@ -118,6 +118,7 @@ SCENE: dict[str, dict[str, Domain]] = {
         "target": REAL,
         "up": REAL,
         "fov_y": Domain(lo=0.0, hi=180.0, lo_open=True, hi_open=True),
+        "pixel_size": POSITIVE,
         "near": POSITIVE,
         "far": POSITIVE,
         "exposure": POSITIVE,

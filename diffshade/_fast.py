@@ -335,8 +335,9 @@ def _numbers(scene: Scene) -> jax.Array:
     return jnp.concatenate(parts).astype(jnp.float32)
 
 
-def _switches(opts: RenderOptions, lt, gouraud: bool) -> dict:
-    """The static configuration: csrc/shade.cc's attributes."""
+def _switches(opts: RenderOptions, lt, gouraud: bool, orthographic: bool = False) -> dict:
+    """The static configuration: csrc/shade.cc's attributes (an orthographic camera's viewer is
+    the infinite one)."""
     clamp = opts.output.clamp
     bits = (
         lt.emission,
@@ -344,7 +345,7 @@ def _switches(opts: RenderOptions, lt, gouraud: bool) -> dict:
         lt.diffuse,
         lt.per_light_ambient,
         lt.two_sided,
-        lt.viewer == "infinite",
+        lt.viewer == "infinite" or orthographic,
         clamp == "pixel" or (clamp == "vertex" and not gouraud),  # before fog (Phong: per vertex is per pixel)
         clamp == "vertex",  # after fog
         gouraud,
@@ -409,7 +410,7 @@ def _kernel(scene: Scene, ids, opts: RenderOptions, pixels, dirs=None, corners=N
         parts,
         *extra,
         grid=np.int32(pixels is None),
-        **_switches(opts, lt, gouraud),
+        **_switches(opts, lt, gouraud, scene.camera.orthographic),
     )
     if dirs is None:
         return out.reshape(shape)

@@ -272,7 +272,7 @@ def shade_points(
     primary colour (all but specular) and the secondary (specular) one."""
     if view is not None:  # a ray's point: the unit vector back along the incoming ray
         v = view
-    elif lighting.viewer == "infinite":  # the eye-space +z axis, in world coordinates
+    elif lighting.viewer == "infinite" or scene.camera.orthographic:  # the eye-space +z axis, in world coordinates
         v = tuple(jnp.broadcast_to(c, jnp.shape(P[0])) for c in _rgb(scene.camera.view_matrix()[2, :3]))
     else:
         v = S.normalize(S.sub(_rgb(eye), P))

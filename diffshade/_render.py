@@ -44,6 +44,11 @@ def shade(scene: Scene, ids: Int[Array, "K H W"], opts: RenderOptions, pixels=No
     ``opts.transparency`` asks for layers (docs/model.md §5).
     """
     scene = near_as_spots(scene)  # (none: no operation)
+    if scene.camera.orthographic and opts.fog is not None and opts.fog.distance == "depth":
+        raise ValueError(
+            "fog by eye-space depth is a pinhole camera's (clip w); with an orthographic camera fog "
+            'by distance: FogModel(distance="euclidean")'
+        )
     if _fast.applies(scene, opts, pixels):  # the native kernel's value, the stages' derivatives
         img = _fast.shade(scene, ids, opts, pixels, _stages)
     else:

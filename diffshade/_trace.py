@@ -294,7 +294,7 @@ def _primary_rays(scene: Scene, surface: Surface, fresnel: str):
     two blocks of the pixels in order."""
     P, front, tri = surface.position, surface.front, surface.frags.tri_id
     n_face = tuple(jnp.where(front, c, -c) for c in surface.normal)
-    v = S.normalize(S.sub(_rgb(scene.camera.eye), P))
+    v = scene.camera.view_vectors(P)
     R, T, w_r, w_t, mu_t = _children(fresnel, surface.material, n_face, v, front)
     N = front.size
     flat = lambda a: a.reshape((N,) + a.shape[front.ndim :])  # noqa: E731

@@ -8,7 +8,11 @@ The layout (DiLiGenT's and most photometric-stereo data sets'): one folder with
 - ``light_intensities.txt``: one row ``r g b`` per image, the light's colour (optional: white);
 - ``mask.png``: the object's pixels (non-zero);
 - the camera: ``K.txt`` (a 3×3 matrix) or ``Calib_Results.mat`` (Bouguet's toolbox: ``fc``,
-  ``cc``); without one, pass ``K``.
+  ``cc``), or ``K`` passed; without any, the orthographic camera the benchmarks assume
+  (DiLiGenT's object folders have no ``K.txt``): :class:`diffshade.OrthographicCamera`, the
+  object's radius (from the mask's area) one scene unit;
+- the shape (optional): a normal map, ``Normal_gt.mat`` (DiLiGenT's) or ``normal.png`` /
+  ``normal.exr`` / ``normal.npy`` (:func:`diffshade.read_normal_map`), in the capture frame.
 
 **Frames.** The light directions are given in the *capture frame*: :math:`x` to the right of the
 image, :math:`y` up, :math:`z` towards the viewer (the camera looks along :math:`-z`). The views'
@@ -19,9 +23,14 @@ whose :math:`y` points down or whose :math:`z` points away from the viewer says 
 ``flip_y`` / ``flip_z``; :func:`frame_check` tells which choice the images agree with on a
 diffuse object.
 
-**Geometry.** A mesh in the camera frame (OpenCV's), or for a sphere none: the sphere is then
-placed from the mask (its centre on the ray through the mask's centroid, its angular radius
-that of the mask's area; radius 1, so the scene's unit is the sphere's radius).
+**Geometry.** A mesh in the camera frame (OpenCV's); else the folder's normal map, shaded as it
+is (:func:`diffshade.normal_map_mesh`: a square per pixel of the mask with the pixel's normal, at
+the depth the normals integrate to); else a sphere placed from the mask (its centre on the ray
+through the mask's centroid, its angular radius that of the mask's area; radius 1, so the
+scene's unit is the sphere's radius). The normal map is read in the capture frame (:math:`y` up,
+:math:`z` towards the viewer) unless ``normals_flip_y`` / ``normals_flip_z`` say otherwise; a
+map whose normals face away from the camera is refused (its :math:`z` is the other way), and
+:func:`frame_check` tells whether the map and the lights agree in :math:`y`.
 """
 
 from __future__ import annotations
@@ -53,6 +62,8 @@ class Capture:
     clipped: list
     quantum: float | None
     names: list
+    geometry: str = "a mesh"
+    camera_model: str = "pinhole"
 
     @property
     def scene(self) -> ds.Scene:
@@ -98,7 +109,20 @@ def _camera_matrix(folder: Path, K) -> np.ndarray:
         m = loadmat(folder / "Calib_Results.mat")
         fc, cc = np.ravel(m["fc"]), np.ravel(m["cc"])
         return np.array([[fc[0], 0.0, cc[0]], [0.0, fc[1], cc[1]], [0.0, 0.0, 1.0]])
-    raise FitError(f"{folder}: no camera (K.txt or Calib_Results.mat); pass K")
+    return None  # (no camera: the orthographic one)
+
+
+#: The normal-map files a capture folder's shape may be given in, in the order looked for.
+NORMAL_MAP_FILES = ("Normal_gt.mat", "normal.png", "normal.exr", "normal.npy", "normal.tif")
+
+
+def _normal_map_file(folder: Path, normals):
+    """The normal map's path: ``normals`` given, or the folder's own (None: none, or not wanted)."""
+    if normals is False:
+        return None
+    if normals is not None:
+        return Path(normals)
+    return next((folder / f for f in NORMAL_MAP_FILES if (folder / f).is_file()), None)
 
 
 def _read(path: Path) -> tuple[np.ndarray, float | None]:
@@ -120,18 +144,46 @@ def object_centre(mesh: ds.Mesh) -> tuple[np.ndarray, float]:
     return c, float(np.linalg.norm(v - c, axis=1).max())
 
 
-def sphere_from_mask(mask: np.ndarray, K: np.ndarray, subdivisions: int = 5) -> ds.Mesh:
-    """A unit sphere in the camera frame (OpenCV's) that projects onto ``mask``: its centre on the
-    ray through the mask's centroid, at the distance where its angular radius is the mask's."""
+def _object_pixels(mask: np.ndarray):
     ys, xs = np.nonzero(mask)
     if len(xs) < 10:
-        raise FitError("mask: fewer than 10 object pixels; cannot place a sphere")
-    cx, cy, r = xs.mean(), ys.mean(), np.sqrt(len(xs) / np.pi)
+        raise FitError("mask: fewer than 10 object pixels; cannot place the object")
+    return xs.mean(), ys.mean(), np.sqrt(len(xs) / np.pi)
+
+
+def sphere_from_mask(mask: np.ndarray, K: np.ndarray | None, subdivisions: int = 5) -> ds.Mesh:
+    """A unit sphere in the camera frame (OpenCV's) that projects onto ``mask``: its centre on the
+    ray through the mask's centroid, at the distance where its angular radius is the mask's
+    (``K`` None: the orthographic capture camera of :func:`orthographic_camera`, at
+    :data:`ORTHOGRAPHIC_DEPTH`)."""
+    cx, cy, r = _object_pixels(mask)
+    sphere = ds.icosphere(subdivisions)
+    if K is None:
+        cam = orthographic_camera(mask)
+        s = float(cam.pixel_size)
+        c = np.array([(cx - (mask.shape[1] - 1) / 2) * s, (cy - (mask.shape[0] - 1) / 2) * s, ORTHOGRAPHIC_DEPTH])
+        return ds.Mesh(np.asarray(sphere.vertices) + c, np.asarray(sphere.faces))
     d = np.linalg.solve(K, [cx, cy, 1.0])
     d /= np.linalg.norm(d)
     alpha = np.arctan(r / np.sqrt(K[0, 0] * K[1, 1]))
-    sphere = ds.icosphere(subdivisions)
     return ds.Mesh(np.asarray(sphere.vertices) + d / np.sin(alpha), np.asarray(sphere.faces))
+
+
+#: An orthographic capture's object lies this far (scene units: its radius) along the view axis.
+ORTHOGRAPHIC_DEPTH = 10.0
+
+
+def orthographic_camera(mask: np.ndarray, f: int = 1, how: str = "sample") -> ds.OrthographicCamera:
+    """The orthographic camera of a capture without one (OpenCV's frame, the axis through the full
+    image's centre), its pixel size one over the object's radius in pixels (the mask's area as a
+    disc's): the object's radius is one scene unit. ``f``, ``how``: that camera for the images
+    reduced as :func:`load_photometric_stereo` reduces them."""
+    h, w = mask.shape
+    s = 1.0 / _object_pixels(mask)[2]
+    c = np.array([(w - 1) / 2, (h - 1) / 2])
+    if f > 1:  # pixel j of the reduced image: full pixel f j + f // 2 (sampled) or the block's centre
+        c = (c - (f - 1) / 2) / f if how == "average" else (c - f // 2) / f
+    return ds.OrthographicCamera.capture(w // f, h // f, pixel_size=s * f, centre=c, depth=ORTHOGRAPHIC_DEPTH)
 
 
 def to_camera_frame(directions: np.ndarray, flip_y: bool = False, flip_z: bool = False) -> np.ndarray:
@@ -154,6 +206,9 @@ def load_photometric_stereo(
     flip_y: bool = False,
     flip_z: bool = False,
     light_distance: float | None = None,
+    normals=None,
+    normals_flip_y: bool = False,
+    normals_flip_z: bool = False,
 ) -> Capture:
     r"""The capture in ``folder`` (the layout of the module's docstring) as views with one
     directional light each; ``mesh`` in the camera frame, or None for a sphere placed from the
@@ -169,21 +224,36 @@ def load_photometric_stereo(
     it, the calibrated intensity the irradiance there (near directional lights,
     :class:`diffshade.DirectionalLights`; the distance a fit parameter, ``directional[0].distance``
     for one shared by every light, ``view[:].directional[0].distance`` for one per light, and
-    ``directional[0].falloff`` the LED's :math:`\cos^a` falloff); None (the default): at infinity."""
+    ``directional[0].falloff`` the LED's :math:`\cos^a` falloff); None (the default): at infinity.
+
+    ``normals``: the shape as a normal-map file (the module's "Geometry"); None (the default):
+    the folder's own (:data:`NORMAL_MAP_FILES`) where there is one and no ``mesh``; False: none
+    (a sphere from the mask). ``K``: the camera matrix, for a folder without one (default: the
+    folder's, else an orthographic camera)."""
     if downsample_how not in ("average", "sample"):
         raise FitError(f"downsample_how must be 'average' or 'sample', got {downsample_how!r}")
     folder = Path(folder)
     names, dirs, ints = _listing(folder)
     K = _camera_matrix(folder, K)
     mask_img, _ = _read(folder / "mask.png")
-    mask = mask_img[..., 0] > 0
-    mesh = sphere_from_mask(mask, K) if mesh is None else mesh  # from the full mask: a reduced one is eroded
+    full_mask = mask = mask_img[..., 0] > 0
     f, how = int(downsample_by), downsample_how
+    nfile = None if mesh is not None else _normal_map_file(folder, normals)
+    geometry = "the given mesh" if mesh is not None else "a sphere placed from the mask"
+    if mesh is None and nfile is None:
+        mesh = sphere_from_mask(mask, K)  # from the full mask: a reduced one is eroded
     targets, clipped, quantum = zip(*[_reduced_image(folder / name, mask.shape, f, how) for name in names])
-    mask, K = _reduced_mask_and_camera(mask_img, mask, K, f, how)
-    cam = ds.OpenCVCamera.from_opencv(
-        K, np.eye(3), np.zeros(3), width=mask.shape[1], height=mask.shape[0], near=0.01, far=1e4
-    )
+    if K is None:
+        mask = _reduced_mask_and_camera(mask_img, mask, np.eye(3), f, how)[0]
+        cam = orthographic_camera(full_mask, f, how)
+    else:
+        mask, K = _reduced_mask_and_camera(mask_img, mask, K, f, how)
+        cam = ds.OpenCVCamera.from_opencv(
+            K, np.eye(3), np.zeros(3), width=mask.shape[1], height=mask.shape[0], near=0.01, far=1e4
+        )
+    if nfile is not None:
+        flips = (normals_flip_y, normals_flip_z)
+        mesh, mask, geometry = _normal_map_geometry(nfile, full_mask, mask, cam, K, f, how, flips)
     prop = to_camera_frame(dirs, flip_y, flip_z)
     near = {}
     if light_distance is not None:
@@ -209,7 +279,52 @@ def load_photometric_stereo(
         for i in range(len(names))
     ]
     opts = opts or ds.RenderOptions.from_keys(shading="phong", specular="blinn", fog="none")
-    return Capture(views, opts, list(targets), mask.astype(np.float64), list(clipped), quantum[0], names)
+    model = "orthographic (no K.txt)" if K is None else "pinhole"
+    mask = mask.astype(np.float64)
+    return Capture(views, opts, list(targets), mask, list(clipped), quantum[0], names, geometry, model)
+
+
+def _normal_map_geometry(path: Path, full_mask, mask, cam, K, f: int, how: str, flips):
+    """``(mesh, mask, description)``: the normal map at ``path`` as the capture's shape, on the
+    reduced images' pixels (sampled, or each block's normals averaged), in the camera frame."""
+    try:
+        n = ds.read_normal_map(path)
+    except ValueError as exc:
+        raise FitError(str(exc)) from exc
+    if n.shape[:2] != full_mask.shape:
+        h, w = full_mask.shape
+        raise FitError(f"{path}: the normal map is {n.shape[1]}x{n.shape[0]}, but the mask is {w}x{h}")
+    flip_y, flip_z = flips
+    n = n * np.array([1.0, -1.0 if flip_y else 1.0, -1.0 if flip_z else 1.0]) * np.array([1.0, -1.0, -1.0])
+    has = np.linalg.norm(n, axis=-1) > 0.5
+    if f > 1 and how == "average":
+        n = downsample(np.where(full_mask[..., None], n, 0.0), f).image
+        has = np.linalg.norm(n, axis=-1) > 0.25  # (the mask keeps the blocks wholly inside it)
+    elif f > 1:
+        n, has = (a[f // 2 :: f, f // 2 :: f][: mask.shape[0], : mask.shape[1]] for a in (n, has))
+    used = mask & has
+    if not used.any():
+        raise FitError(f"{path}: no normal inside the mask")
+    r = np.asarray(cam.pixel_rays()[1], np.float64)
+    facing = float(np.mean(np.einsum("hwk,hwk->hw", n, r)[used] < 0))
+    if facing < 0.5:
+        raise FitError(
+            f"{path}: {100 * (1 - facing):.0f} % of the normals face away from the camera: the map's z points "
+            "away from the viewer (normals_flip_z, --normals-flip-z)"
+        )
+    if K is None:
+        depth = ORTHOGRAPHIC_DEPTH
+    else:  # the object's radius one unit, as a sphere from the mask
+        depth = float(np.sqrt(K[0, 0] * K[1, 1])) / _object_pixels(mask)[2]
+    try:
+        mesh = ds.normal_map_mesh(n, cam, used, depth=depth)
+    except ValueError as exc:
+        raise FitError(f"{path}: {exc}") from exc
+    dropped = int((mask & ~has).sum())
+    what = f"the normal map {path.name}" + (
+        f" ({dropped} pixels of the mask without a normal left out)" if dropped else ""
+    )
+    return mesh, used, what
 
 
 def _listing(folder: Path):

@@ -492,13 +492,16 @@ def _photometric_inputs(args, folder: Path):
             flip_y=args.flip_y,
             flip_z=args.flip_z,
             light_distance=args.light_distance,
+            normals=False if args.normals == "none" else args.normals,
+            normals_flip_y=args.normals_flip_y,
+            normals_flip_z=args.normals_flip_z,
         )
     except FitError as exc:
         raise InputError(str(exc)) from exc
     print(
         f"{folder}: {len(cap.views)} images under one directional light each"
         + (f", downsampled by {args.downsample}" if (args.downsample or 1) > 1 else "")
-        + ("" if mesh is not None else "; a sphere placed from the mask")
+        + f"; the shape: {cap.geometry}; the camera: {cap.camera_model}"
         + (f"; the lights LEDs {args.light_distance:g} units from its centre" if args.light_distance else "")
     )
     tg = types.SimpleNamespace(
@@ -889,7 +892,20 @@ def _add_fit(sub) -> None:
 
 def _add_fit_capture(p) -> None:
     """The ``fit`` command's arguments for a photometric-stereo capture folder."""
-    p.add_argument("--mesh", metavar="FILE", help="a capture folder's geometry in the camera frame (default: a sphere)")
+    p.add_argument(
+        "--mesh",
+        metavar="FILE",
+        help="a capture folder's geometry in the camera frame (default: its normal map, else a sphere)",
+    )
+    p.add_argument(
+        "--normals",
+        metavar="FILE",
+        default=None,
+        help="a capture folder's shape as a normal map (.mat, .png, .exr, .npy; default: the folder's "
+        "Normal_gt.mat or normal.*; none: a sphere from the mask)",
+    )
+    p.add_argument("--normals-flip-y", action="store_true", help="the normal map's y points down")
+    p.add_argument("--normals-flip-z", action="store_true", help="the normal map's z points away from the viewer")
     p.add_argument("--scene-options", metavar="SCENE", help="a capture folder's render options and start material")
     p.add_argument("--downsample", type=str, metavar="N", help="a capture folder's images sampled every N pixels")
     p.add_argument("--flip-y", action="store_true", help="a capture folder's light directions have y down")
