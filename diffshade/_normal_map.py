@@ -95,7 +95,6 @@ def integrate_normals(normals, camera, mask=None, depth: float = 1.0) -> np.ndar
     non-zero normals), seen by ``camera``; each connected part at ``depth`` on average (the
     module's "Depth"). NaN outside the mask."""
     from scipy import sparse
-    from scipy.sparse.linalg import spsolve
 
     n, m = _checked(normals, camera, mask)
     R = np.asarray(camera.view_matrix(), np.float64)[:3, :3] * np.array([[1.0], [-1.0], [-1.0]])
@@ -129,23 +128,29 @@ def integrate_normals(normals, camera, mask=None, depth: float = 1.0) -> np.ndar
         cols += [i1, i0]
         vals += [np.ones(len(e)), -np.ones(len(e))]
         rhs.append((g[tuple(a)][pair] + g[tuple(b)][pair]) / 2)
-    A = sparse.csr_matrix(
-        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), (sum(map(len, rhs)), int(m.sum()))
-    )
-    ridge = 1e-9 * sparse.identity(A.shape[1])  # each connected part's mean: 0 (the gauge)
-    f = spsolve((A.T @ A + ridge).tocsc(), A.T @ np.concatenate(rhs))
-    f = _centred(f, A)
+    A = sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), (k, int(m.sum())))
+    f = _solve(A, np.concatenate(rhs))
     z = np.full(m.shape, np.nan)
     z[m] = depth + f if camera.orthographic else depth * np.exp(f)
     return z
 
 
-def _centred(f, A):
-    """``f`` with each connected part's mean taken out (the ridge leaves it small, not zero)."""
+def _solve(A, b):
+    """The least-squares ``f`` of ``A f = b`` (differences of neighbours) with each connected
+    part's mean 0: one pixel of each part held at 0 (the rest's normal equations are positive
+    definite), then the part's mean taken out."""
     from scipy.sparse.csgraph import connected_components
+    from scipy.sparse.linalg import spsolve
 
     G = (abs(A).T @ abs(A)).tocsr()
     _, label = connected_components(G, directed=False)
+    anchor = np.zeros(A.shape[1], bool)
+    anchor[np.unique(label, return_index=True)[1]] = True
+    f = np.zeros(A.shape[1])
+    free = ~anchor
+    if free.any():
+        Af = A[:, free]
+        f[free] = spsolve((Af.T @ Af).tocsc(), Af.T @ b)
     mean = np.bincount(label, f) / np.bincount(label)
     return f - mean[label]
 

@@ -347,3 +347,140 @@ def test_the_contact_sheet_shows_the_worst_view_and_a_spread_at_one_exposure():
     assert (sheet[0] == MASKED_GREY).all()  # the mask's row left out, greyed, in every panel
     few, views, one = contact_sheet(targets[:3], images[:3])
     assert views == [0, 1, 2] and one != 1.0 and few.shape == (3 * h, 3 * w, 3)
+
+
+# -- any object: an orthographic camera, a normal map ------------------------------------------------
+
+PARAMS = ["material.diffuse", "material.specular", "material.shininess"]
+
+
+def _placed_bunny():
+    """The scanned bunny as a user places it in a capture's camera frame (OpenCV's: y down, z
+    forward): its radius 1, 4 units in front of the camera, facing it."""
+    import diffshade as ds
+
+    b = ds.load_mesh(Path(__file__).parent / "data" / "meshes" / "bunny.ply")
+    v = np.asarray(b.vertices, np.float64)
+    c = (v.min(0) + v.max(0)) / 2
+    R = np.diag([1.0, -1.0, -1.0])  # y up -> down, and turned to face the camera (a rotation)
+    return ds.Mesh((v - c) / np.linalg.norm(v - c, axis=1).max() @ R.T + [0.0, 0.0, 4.0], np.asarray(b.faces))
+
+
+@pytest.fixture(scope="module")
+def bunny_capture(tmp_path_factory):
+    """A DiLiGenT-style object folder: no K.txt (orthographic), the shape as Normal_gt.mat."""
+    folder = tmp_path_factory.mktemp("bunny")
+    scene, opts, dirs = write_capture(
+        folder, n=10, size=56, noise=0.0, mesh=_placed_bunny(), camera="orthographic", normal_map="Normal_gt.mat"
+    )
+    return folder, scene, opts
+
+
+def test_a_folder_without_a_camera_is_read_orthographic():
+    """No K.txt: the orthographic camera the benchmarks assume; a sphere from the mask is centred
+    on it with radius one unit (the scene's unit), and the images agree with its frame."""
+    import tempfile
+
+    import diffshade as ds
+
+    with tempfile.TemporaryDirectory() as tmp:
+        write_capture(tmp, n=6, size=40, noise=0.004, camera="orthographic")
+        cap = load_photometric_stereo(tmp)
+        assert isinstance(cap.scene.camera, ds.OrthographicCamera) and cap.camera_model.startswith("orthographic")
+        assert cap.geometry == "a sphere placed from the mask"
+        v = np.asarray(cap.scene.mesh.vertices)
+        np.testing.assert_allclose(np.linalg.norm(v - v.mean(0), axis=1), 1.0, atol=0.01)
+        # the truth's sphere spans 60 % of the height: 2 / (0.6 · 40) units per pixel
+        assert abs(float(cap.scene.camera.pixel_size) * 0.6 * 40 / 2 - 1) < 0.03
+        checks = frame_check(cap)
+        assert checks[(False, False)] > 0.9 and checks[(False, False)] > max(checks.values()) - 1e-12
+
+
+def test_any_object_given_as_a_normal_map_is_fitted_exactly(bunny_capture):
+    """The bunny's normal map (orthographic, no K.txt): the loaded views render the images to float
+    rounding under the true material, and a noise-free fit gives the truth back to 1e-4."""
+    import equinox as eqx
+
+    import diffshade as ds
+
+    folder, truth, opts = bunny_capture
+    cap = load_photometric_stereo(folder, opts=opts)
+    assert cap.geometry == "the normal map Normal_gt.mat" and isinstance(cap.scene.camera, ds.OrthographicCamera)
+    m = cap.mask > 0
+    assert m.sum() == (np.asarray(ds.scene_visibility(truth, opts))[0] >= 0).sum() > 300
+    for v, t in list(zip(cap.views, cap.targets))[:3]:
+        img = np.asarray(ds.render(eqx.tree_at(lambda s: s.material, v, truth.material), opts))
+        assert np.abs(img - t)[m].max() < 2e-5  # (16-bit targets)
+    r = fit(cap.scene, cap.opts, cap.observations(), PARAMS)
+    assert r.successful, r.result
+    want = np.r_[TRUTH["diffuse"], [TRUTH["specular"]] * 3, TRUTH["shininess"]]
+    np.testing.assert_allclose(r.values, want, rtol=1e-4)
+
+
+def test_a_noisy_normal_map_capture_is_fitted_within_its_standard_errors(tmp_path):
+    folder = tmp_path / "noisy"
+    write_capture(
+        folder,
+        n=10,
+        size=48,
+        noise=0.004,
+        seed=5,
+        mesh=_placed_bunny(),
+        camera="orthographic",
+        normal_map="Normal_gt.mat",
+    )
+    cap = load_photometric_stereo(folder)
+    r = fit(cap.scene, cap.opts, cap.observations(margin=1), PARAMS)
+    want = np.r_[TRUTH["diffuse"], [TRUTH["specular"]] * 3, TRUTH["shininess"]]
+    z = (np.asarray(r.values) - want) / np.asarray(r.stderr)
+    assert r.successful and np.abs(z).max() < 3.5, dict(zip(r.names, z))
+
+
+def test_a_normal_map_png_under_a_pinhole_camera_downsampled(tmp_path):
+    """16-bit normal codes (n + 1)/2 under a calibrated camera, the images sampled every 2 pixels:
+    the map is sampled on the same pixels, and the fit is exact to the codes' rounding."""
+    folder = tmp_path / "png"
+    _, opts, _ = write_capture(folder, n=8, size=64, noise=0.0, mesh=_placed_bunny(), normal_map="normal.png")
+    cap = load_photometric_stereo(folder, opts=opts, downsample_by=2)
+    assert cap.geometry == "the normal map normal.png" and cap.camera_model == "pinhole"
+    assert cap.mask.shape == (32, 32)
+    r = fit(cap.scene, cap.opts, cap.observations(), PARAMS)
+    want = np.r_[TRUTH["diffuse"], [TRUTH["specular"]] * 3, TRUTH["shininess"]]
+    np.testing.assert_allclose(r.values, want, rtol=1e-4)
+
+
+def test_a_normal_maps_frame_is_checked(bunny_capture, tmp_path):
+    """z the other way: refused, naming the option; y the other way: the frame check says the map
+    and the lights disagree in y, and normals_flip_y reads it right."""
+    import shutil
+
+    from scipy.io import loadmat, savemat
+
+    folder = tmp_path / "flipped"
+    shutil.copytree(bunny_capture[0], folder)
+    n = loadmat(folder / "Normal_gt.mat")["Normal_gt"]
+    savemat(folder / "Normal_gt.mat", {"Normal_gt": n * [1, 1, -1]})
+    with pytest.raises(FitError, match="face away from the camera.*normals_flip_z"):
+        load_photometric_stereo(folder)
+    assert frame_check(load_photometric_stereo(folder, normals_flip_z=True))[(False, False)] > 0.9
+    savemat(folder / "Normal_gt.mat", {"Normal_gt": n * [1, -1, 1]})
+    checks = frame_check(load_photometric_stereo(folder))
+    assert checks[(True, False)] > checks[(False, False)] + 0.2, checks
+    assert frame_check(load_photometric_stereo(folder, normals_flip_y=True))[(False, False)] > 0.9
+    # a sphere instead, when asked
+    assert load_photometric_stereo(folder, normals=False).geometry == "a sphere placed from the mask"
+
+
+def test_the_command_line_fits_a_normal_map_folder(bunny_capture, capsys):
+    from fitting.cli import main
+
+    folder = bunny_capture[0]
+    out = folder.parent / "out_cli"
+    assert main(["fit", str(folder), "-p", *PARAMS, "-o", str(out)]) == 0, capsys.readouterr()
+    printed = capsys.readouterr().out
+    assert "the shape: the normal map Normal_gt.mat; the camera: orthographic (no K.txt)" in printed, printed
+    assert main(["fit", str(folder), "-p", *PARAMS, "-o", str(out), "--normals", "none", "--overwrite"]) in (
+        0,
+        4,
+    )  # (a sphere is not a bunny)
+    assert "the shape: a sphere placed from the mask" in capsys.readouterr().out
