@@ -68,7 +68,7 @@ from typing import Any
 
 import numpy as np
 
-from ._camera import Camera, OpenCVCamera
+from ._camera import Camera, OpenCVCamera, OrthographicCamera
 from ._domains import SceneError
 from ._materials import _MATERIAL_FIELDS
 from ._mesh import COLOR_MODES, VERTEX_MODES, Mesh, MeshError, box, combine, icosphere, load_mesh, quad
@@ -677,6 +677,7 @@ def _fog(v: _V, f: dict, gl: bool, opts: RenderOptions) -> Fog:
 
 _GL_CAMERA = ("eye", "target", "up", "fov_y")
 _CV_CAMERA = ("K", "fx", "fy", "cx", "cy", "R", "rvec", "t", "tvec", "distortion")
+_ORTHO_CAMERA = ("eye", "target", "up", "pixel_size")
 _ANY_CAMERA = ("model", "near", "far", "width", "height", "exposure", "white_balance", "black_level")
 
 
@@ -694,13 +695,15 @@ def _matrix(v: _V, d: dict, key: str, where: str, shape):
 
 
 def _camera(v: _V, c: dict, w: str):
-    """A camera table: OpenGL's (eye, target, up, fov_y; ``model = "opengl"``, the default) or
+    """A camera table: OpenGL's (eye, target, up, fov_y; ``model = "opengl"``, the default),
     OpenCV's (``model = "opencv"``: K or fx, fy, cx, cy; R or rvec; t or tvec; optional
-    distortion), with near, far, width, height and the gain (exposure, white_balance, black_level)."""
+    distortion) or an orthographic one (``model = "orthographic"``: eye, target, up,
+    pixel_size), with near, far, width, height and the gain (exposure, white_balance, black_level)."""
     model = c.get("model", "opencv" if any(k in c for k in _CV_CAMERA) else "opengl")
-    if model not in ("opengl", "opencv"):
-        v.fail(f"{w}.model", f"must be 'opengl' or 'opencv', got {model!r}")
-    v.unknown(c, _ANY_CAMERA + (_GL_CAMERA if model == "opengl" else _CV_CAMERA), w)
+    keys = {"opengl": _GL_CAMERA, "opencv": _CV_CAMERA, "orthographic": _ORTHO_CAMERA}
+    if model not in keys:
+        v.fail(f"{w}.model", f"must be 'opengl', 'opencv' or 'orthographic', got {model!r}")
+    v.unknown(c, _ANY_CAMERA + keys[model], w)
     size = {}
     for k in ("width", "height"):
         x = c.get(k, 256)
@@ -750,16 +753,20 @@ def _camera(v: _V, c: dict, w: str):
         v.fail(f"{w}.target", f"must differ from {w}.eye")
     if np.linalg.norm(np.cross(target - eye, up)) < 1e-9 * np.linalg.norm(target - eye) * np.linalg.norm(up):
         v.fail(f"{w}.up", "must not be parallel to the viewing direction")
-    fov = v.num(c, "fov_y", w, default=45.0, lo=0.0, hi=180.0, lo_open=True, hi_open=True)
     near = v.num(c, "near", w, default=0.1, lo=0.0, lo_open=True)
     far = v.num(c, "far", w, default=100.0, lo=near, lo_open=True)
+    if model == "orthographic":
+        px = v.num(c, "pixel_size", w, lo=0.0, lo_open=True)
+        return OrthographicCamera(eye=eye, target=target, up=up, pixel_size=px, near=near, far=far, **size, **gain)
+    fov = v.num(c, "fov_y", w, default=45.0, lo=0.0, hi=180.0, lo_open=True, hi_open=True)
     return Camera(eye=eye, target=target, up=up, fov_y=fov, near=near, far=far, **size, **gain)
 
 
-def load_camera(path: str | Path) -> Camera | OpenCVCamera:
+def load_camera(path: str | Path) -> Camera | OpenCVCamera | OrthographicCamera:
     """A camera from a JSON or TOML file with the keys of a scene file's ``[camera]`` table (an
     OpenCV calibration: ``K``, ``R``/``rvec``, ``t``/``tvec``, ``distortion``, ``width``,
-    ``height``; or OpenGL's ``eye``, ``target``, ``up``, ``fov_y``)."""
+    ``height``; OpenGL's ``eye``, ``target``, ``up``, ``fov_y``; or an orthographic camera's
+    ``model = "orthographic"``, ``eye``, ``target``, ``up``, ``pixel_size``)."""
     import json
 
     path = Path(path)

@@ -396,3 +396,19 @@ def test_orthographic_camera_errors_are_named():
         ds.render(eqx.tree_at(lambda s: s.camera.pixel_size, scene, jnp.asarray(-1.0)), ORTHO_OPTS)
     with pytest.raises(ValueError, match="OrthographicCamera.eye must have shape"):
         ds.OrthographicCamera(eye=[0, 0], target=[0, 0, 1], up=[0, -1, 0], pixel_size=1.0, width=4, height=4)
+
+
+def test_an_orthographic_camera_in_a_scene_file():
+    cam = {"model": "orthographic", "eye": [0, 0, 3], "target": [0, 0, 0], "up": [0, 1, 0], "pixel_size": 0.05}
+    scene, opts = ds.scene_from_dict(dict(ds.DEFAULT_SCENE, camera={**cam, "width": 32, "height": 24}))
+    assert isinstance(scene.camera, ds.OrthographicCamera) and scene.camera.resolution == (24, 32)
+    np.testing.assert_allclose(np.asarray(scene.camera.world_to_clip(jnp.asarray([0.8, -0.6, 0.0])))[:2], [1.0, -1.0])
+    assert (np.asarray(ds.render(scene, opts.replace(fog=None))) > 0).any()
+    for bad, message in (
+        ({"pixel_size": 0.0}, "camera.pixel_size"),
+        ({"fov_y": 40}, r"unknown field\(s\) \['fov_y'\]"),
+    ):
+        with pytest.raises(ds.SceneError, match=message):
+            ds.scene_from_dict(dict(ds.DEFAULT_SCENE, camera={**cam, **bad}))
+    with pytest.raises(ds.SceneError, match="'opengl', 'opencv' or 'orthographic'"):
+        ds.scene_from_dict(dict(ds.DEFAULT_SCENE, camera={**cam, "model": "fisheye"}))
