@@ -39,7 +39,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._polish import RELINEARISE_PASSES
+from ._polish import RELINEARISE_PASSES, relinearise_note
 from ._report import (
     Diagnostics,
     FitResult,
@@ -621,7 +621,7 @@ class _BlockSolver:
         b = img * w - A @ theta[ap.sl]  # the (weighted) image with the block at 0
         seen = np.asarray(abs(A).sum(axis=0)).ravel() > 0
         # (A is the fit's last where no other parameter steps and no weights are re-taken)
-        last = not len(ap.other) and not ap.prob.encoded
+        last = not len(ap.other) and not ap.prob.reweighted
         x, free, solve = self.bounded(np.clip(x0, 0.0, 1.0), A, b, seen | (self.Lp is not None), beside=last)
         r = A @ x + b - self.y
         return x, r, A, Jo, seen, img, free, solve
@@ -927,16 +927,13 @@ def _fit_block_on_host(ap, theta, theta0, compile_s, max_steps, rtol, noise, ver
     solver = _BlockSolver(ap, ap.smoothness, rtol, verbose)
     notes = [ap.intro()]
     red, steps, converged = solver.lm(theta, max_steps)
-    if prob.encoded:  # residuals in code values, exactly at the model (see Problem.relinearise)
+    if prob.reweighted:  # residuals in code values / weights of the noise, at the model (Problem.relinearise)
         for _ in range(RELINEARISE_PASSES):
             prob.relinearise(red.img)
             solver.y = ap.target()
             red, k, converged = solver.lm(red.th, max_steps)
             steps += k
-        notes.append(
-            f"code values: weights and targets re-taken at the model {RELINEARISE_PASSES}× (Gauss–Newton "
-            "on the code-value residual)"
-        )
+        notes.append(relinearise_note(prob))
     solve_s = time.perf_counter() - t0
     n2, n_cens = prob.counts()
     run = Run(notes, [], steps, compile_s, solve_s, "", n2, n_cens)

@@ -36,8 +36,8 @@ def measured_images(prob, used=None) -> tuple[list[np.ndarray], list[np.ndarray]
     flat = [
         np.asarray(b.codes, np.float64) * np.asarray(b.sqrt_mask, np.float64)
         if b.codes is not None
-        else np.asarray(vd.target, np.float64) * np.asarray(vd.weight, np.float64)
-        for vd, b in zip(prob.data, prob.views)
+        else np.asarray(vd.target, np.float64) * np.asarray(prob.base_weight(k), np.float64)
+        for k, (vd, b) in enumerate(zip(prob.data, prob.views))
     ]
     images = prob.images_of(np.concatenate([f.reshape(-1) for f in flat]))
     return images, (prob.used_masks() if used is None else used)
@@ -119,18 +119,62 @@ def target_noise(prob, used=None) -> tuple[float, int] | None:
 
 
 def _target_noise(prob, used):
+    fitted = _variance_models(prob, used)
+    if fitted is None:
+        return None
+    models, windows, images, used = fitted
+    total, n = 0.0, 0
+    for c, (a, b) in enumerate(models):
+        t = np.concatenate([img[..., c][u[..., c]] for img, u in zip(images, used)])
+        total += float(np.sum(a + b * t))
+        n += t.size
+    return float(np.sqrt(total / max(n, 1))), windows
+
+
+def _variance_models(prob, used):
+    r"""``(per channel (a, b), windows, images, used)`` of the targets' variance :math:`a + b\,m`
+    (:func:`variance_model`), None where a channel has too few windows."""
     images, used = measured_images(prob, used)
     per = [details(img, u) for img, u in zip(images, used)]
     floor = 2.0 * (prob.quantum or 0.0)  # a code step or two: where discrete codes make the median 0
-    total, n, windows = 0.0, 0, 0
+    models, windows = [], 0
     for c in range(3):
         d = np.concatenate([p[0][c] for p in per])
         m = np.concatenate([p[1][c] for p in per])
         if d.size < MIN_WINDOWS:
             return None
-        a, b = variance_model(d, m, floor)
-        t = np.concatenate([img[..., c][u[..., c]] for img, u in zip(images, used)])
-        total += float(np.sum(a + b * t))
-        n += t.size
+        models.append(variance_model(d, m, floor))
         windows += d.size
-    return float(np.sqrt(total / max(n, 1))), windows
+    return models, windows, images, used
+
+
+#: The level-dependent weights' variance floor, as a share of the mean variance: no entry weighs
+#: more than 1/√ of it (10×) times the mean.
+WEIGHT_FLOOR = 0.01
+
+
+def noise_weights(prob):
+    r"""The level-dependent noise model's weighting (``Observations(noise_model="level")``): a
+    function of the model's levels ``m`` (``[n, 3]``, the residual's units) giving each entry's
+    factor :math:`\bar\sigma/\sigma(m)`, :math:`\sigma^2 = a_c + b_c\,m` per channel as the targets
+    show it (fitted once, on the weights as built) and :math:`\bar\sigma` the verdict's noise
+    level from the targets (:func:`target_noise`), so that the weighted residual's expected
+    :math:`\mathrm{RSS}/n` at the truth stays :math:`\bar\sigma^2`; None where the targets have
+    too few windows to fit the model."""
+    if "noise weights" not in prob._memo:
+        fitted = _variance_models(prob, None)
+        own = target_noise(prob)
+        if fitted is None or own is None:
+            prob._memo["noise weights"] = None
+        else:
+            models, sbar = fitted[0], own[0]
+            a, b = (np.array([m[i] for m in models]) for i in (0, 1))
+            floor = max(WEIGHT_FLOOR * sbar**2, (prob.quantum or 0.0) ** 2 / 12)
+
+            def weigh(level):
+                var = a + b * np.clip(np.asarray(level, np.float64), 0.0, None)
+                return sbar / np.sqrt(np.maximum(var, floor))
+
+            weigh.models, weigh.sigma = models, sbar
+            prob._memo["noise weights"] = weigh
+    return prob._memo["noise weights"]

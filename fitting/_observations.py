@@ -63,7 +63,13 @@ class Observations:
       camera's clipped highlight bleeds into the pixels around it (bloom, smear), which then read
       brighter than the scene; of the clipped entries only those this far inside their clipped
       region stay, censored (at its rim the neighbours' bloom may be what clipped them). 0 (the default) for renders; a photometric capture
-      is read with :data:`fitting.CAPTURE_CLIP_MARGIN`.
+      is read with :data:`fitting.CAPTURE_CLIP_MARGIN`;
+    - ``noise_model``: ``"uniform"`` (the default: every entry's noise the same) or ``"level"``:
+      the variance rises with the level, :math:`\\sigma^2 = a + b\\,m` per channel (read noise and
+      photon noise), :math:`a, b` estimated from the targets (:mod:`fitting._noise`), and each
+      residual entry weighted by :math:`\\bar\\sigma/\\sigma(m)` at the model's level :math:`m`
+      (re-taken at the model, like an encoded target's weights: iteratively reweighted least
+      squares), :math:`\\bar\\sigma` the noise level the verdict compares with.
     """
 
     targets: Sequence[Float[ArrayLike, "H W 3"]]
@@ -76,6 +82,7 @@ class Observations:
     margin: int = 0
     clipped: Sequence[ArrayLike | None] | None = None
     clip_margin: int = 0
+    noise_model: str = "uniform"
 
     def __post_init__(self):
         targets = tuple(as_list(self.targets))
@@ -99,6 +106,10 @@ class Observations:
             raise FitError(f"{n} targets but {len(self.encodings)} encodings")
         for name in ("margin", "clip_margin", "saturation", "quantum", "noise"):
             check_fit("Observations", name, getattr(self, name), FitError)
+        if self.noise_model not in NOISE_MODELS:
+            raise FitError(
+                f"Observations.noise_model must be one of {', '.join(NOISE_MODELS)}, got {self.noise_model!r}"
+            )
 
     @property
     def encodings(self) -> list:
@@ -113,6 +124,10 @@ class Observations:
 
     def replace(self, **changes) -> Observations:
         return dataclasses.replace(self, **changes)
+
+
+#: The noise models of :class:`Observations` (``noise_model``).
+NOISE_MODELS = ("uniform", "level")
 
 
 @dataclass(frozen=True)

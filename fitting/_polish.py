@@ -161,7 +161,7 @@ def relinearise(prob, ev, red, best, polish_steps, rtol, n2, noise):
     """For encoded targets: residuals in code values, exactly at the model (IRLS passes of
     :meth:`Problem.relinearise`, each followed by the polish from the current best). Returns
     ``(best, evaluations, notes)``."""
-    if not prob.encoded:
+    if not prob.reweighted:
         return best, 0, []
     steps = 0
     for _ in range(RELINEARISE_PASSES):
@@ -170,11 +170,21 @@ def relinearise(prob, ev, red, best, polish_steps, rtol, n2, noise):
         p = polish(ev, prob, red, best.theta, polish_steps, rtol)
         steps += p.evaluations
         best = candidate(prob, p, best.res if not p.converged else "", n2, noise)
-    return (
-        best,
-        steps,
-        [
-            f"code values: weights and targets re-taken at the model {RELINEARISE_PASSES}× (Gauss–Newton "
-            f"on the code-value residual); residual {best.ratio:.3g}× the noise"
-        ],
-    )
+    return best, steps, [relinearise_note(prob) + f"; residual {best.ratio:.3g}× the noise"]
+
+
+def relinearise_note(prob) -> str:
+    """What :meth:`Problem.relinearise` re-took at the model: an encoded target's code-value
+    weights, the level-dependent noise model's weights (its variance per channel)."""
+    from ._noise import noise_weights
+
+    what = []
+    if prob.encoded:
+        what.append("code values: weights and targets")
+    w = noise_weights(prob) if prob.noise_model == "level" else None
+    if w is not None:
+        fits = ", ".join(f"{a:.3g} + {b:.3g}·m" for a, b in w.models)
+        what.append(f"the noise's level-dependent weights σ̄/σ(m) (σ² = {fits} per channel, σ̄ = {w.sigma:.3g})")
+    elif prob.noise_model == "level":
+        what.append("(the noise model: too few 3×3 windows of used pixels to fit it; uniform weights)")
+    return "; ".join(what) + f" re-taken at the model {RELINEARISE_PASSES}× (iteratively reweighted least squares)"

@@ -463,6 +463,7 @@ class Problem:
     targets: list  # the full target images (host, float64), for reports
     devices: tuple = ()  # the devices the views are sharded over (() or one: no sharding)
     lower: bool = False  # entries at 0 of an integer target are censored from below
+    noise_model: str = "uniform"  # Observations.noise_model: "level" reweights by the noise at the model
     _placed: dict = field(default_factory=dict, repr=False)  # device copies of the data, by what
     # host summaries of the targets, which a fit does not change (fitting._noise.target_noise)
     _memo: dict = field(default_factory=dict, repr=False)
@@ -520,6 +521,7 @@ class Problem:
             [c.t for c in covers],
             devices=view_devices(devices, len(data)),
             lower=bool(lower),
+            noise_model=obs.noise_model,
         )
 
     @property
@@ -527,26 +529,53 @@ class Problem:
         """Whether any target is encoded (its residual is measured in code values)."""
         return any(b.encoding is not None for b in self.views)
 
+    @property
+    def reweighted(self) -> bool:
+        """Whether the weights are re-taken at the model (:meth:`relinearise`): encoded targets, or
+        the level-dependent noise model."""
+        return self.encoded or self.noise_model == "level"
+
+    def base_weight(self, k: int):
+        """View ``k``'s weights before any noise weighting (√mask × the encoding's, as built)."""
+        base = self._memo.get("base weights")
+        return self.data[k].weight if base is None else base[k]
+
     def relinearise(self, img_flat) -> None:
         r"""Re-take each encoded target's linear target and weight at the model ``img_flat`` (flat,
         the order of :meth:`residual`): weight :math:`v'(I)` and working target
         :math:`I + (v - v(I))/v'(I)`, so that :math:`(I - t')\,w = v(I) - v`, the residual in code
         values, exactly at the model. A pass or two of this (iteratively reweighted least squares, Gauss–Newton on the
         code-value residual) removes the bias of weights taken at the noisy target's own code
-        (design notes: docs/fit-design-notes.md, "Encoded targets"). Censored entries keep theirs (they are one-sided at the clip)."""
+        (design notes: docs/fit-design-notes.md, "Encoded targets"). Censored entries keep theirs (they are one-sided at the clip).
+
+        With the level-dependent noise model each entry's weight is then multiplied by
+        :math:`\bar\sigma/\sigma(m)` (:func:`fitting._noise.noise_weights`), :math:`m` the model's
+        level in the residual's units."""
+        from ._noise import noise_weights
+
+        base = self._memo.setdefault("base weights", [vd.weight for vd in self.data])
+        model = self.noise_model == "level" and noise_weights(self) is not None
         off = 0
         for k, (vd, b) in enumerate(zip(self.data, self.views)):
             n = vd.target.shape[0]
             I = np.asarray(img_flat[off * 3 : (off + n) * 3], np.float64).reshape(n, 3)
             off += n
-            if b.encoding is None:
+            if b.encoding is None and not model:
                 continue
-            floor = (self.quantum or 1 / 255) / 2
-            e = np.asarray(color.encode(np.clip(I, 0.0, None), b.encoding), np.float64)
-            slope = color.decode_slope(np.clip(e, 0.0, 1.0), b.encoding, floor=floor)  # dL/dv at the model
             cens = censored(vd)
-            t_new = np.where(cens, np.asarray(vd.target, np.float64), I + (b.codes - e) * slope)
-            w_new = np.where(cens, np.asarray(vd.weight, np.float64), b.sqrt_mask / slope)
+            if b.encoding is None:
+                t_new, w_new = np.asarray(vd.target, np.float64), np.asarray(base[k], np.float64)
+                level = I * w_new
+            else:
+                floor = (self.quantum or 1 / 255) / 2
+                e = np.asarray(color.encode(np.clip(I, 0.0, None), b.encoding), np.float64)
+                slope = color.decode_slope(np.clip(e, 0.0, 1.0), b.encoding, floor=floor)  # dL/dv at the model
+                t_new = np.where(cens, np.asarray(vd.target, np.float64), I + (b.codes - e) * slope)
+                w_new = b.sqrt_mask / slope
+                level = e * b.sqrt_mask
+            if model:
+                w_new = w_new * noise_weights(self)(level)
+            w_new = np.where(cens, np.asarray(vd.weight, np.float64), w_new)
             self.data[k] = eqx.tree_at(
                 lambda d: (d.target, d.weight),
                 vd,
