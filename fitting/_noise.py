@@ -153,19 +153,36 @@ def _variance_models(prob, used):
 WEIGHT_FLOOR = 0.01
 
 
-def noise_weights(prob):
+#: How far above a uniform fit's noise level the targets' own estimate may lie and still be
+#: taken as their noise (the level-dependent weights' model).
+TRUSTED_RATIO = 1.5
+
+
+def noise_weights(prob, sigma: float | None = None):
     r"""The level-dependent noise model's weighting (``Observations(noise_model="level")``): a
     function of the model's levels ``m`` (``[n, 3]``, the residual's units) giving each entry's
     factor :math:`\bar\sigma/\sigma(m)`, :math:`\sigma^2 = a_c + b_c\,m` per channel as the targets
     show it (fitted once, on the weights as built) and :math:`\bar\sigma` the verdict's noise
     level from the targets (:func:`target_noise`), so that the weighted residual's expected
     :math:`\mathrm{RSS}/n` at the truth stays :math:`\bar\sigma^2`; None where the targets have
-    too few windows to fit the model."""
+    too few windows to fit the model.
+
+    ``sigma``: the noise level a fit with uniform weights found (the first call's decides): where
+    the targets' own estimate exceeds it by more than :data:`TRUSTED_RATIO` their 3×3 windows
+    measure the shading's curvature, not noise (a noise-free or detailed target), and the model
+    is not used (None)."""
     if "noise weights" not in prob._memo:
         fitted = _variance_models(prob, None)
         own = target_noise(prob)
+        prob._memo["noise weights why"] = "too few 3×3 windows of used pixels to fit it"
         if fitted is None or own is None:
             prob._memo["noise weights"] = None
+        elif sigma is not None and own[0] > TRUSTED_RATIO * sigma:
+            prob._memo["noise weights"] = None
+            prob._memo["noise weights why"] = (
+                f"the targets' own estimate ({own[0]:.3g}) is {own[0] / sigma:.3g}× the residual's noise: their "
+                "curvature, not noise"
+            )
         else:
             models, sbar = fitted[0], own[0]
             a, b = (np.array([m[i] for m in models]) for i in (0, 1))

@@ -72,8 +72,9 @@ class Capture:
 
     def observations(self, **kw) -> Observations:
         """The :class:`Observations` of every image (each its own view, the mask, clipping; the
-        pixels beside clipped ones left out, ``clip_margin`` :data:`CAPTURE_CLIP_MARGIN`)."""
-        kw = {"clip_margin": CAPTURE_CLIP_MARGIN, **kw}
+        pixels beside clipped ones left out, ``clip_margin`` :data:`CAPTURE_CLIP_MARGIN`; the
+        level-dependent noise model, ``noise_model="level"``: a camera's photon noise)."""
+        kw = {"clip_margin": CAPTURE_CLIP_MARGIN, "noise_model": "level", **kw}
         return Observations(
             self.targets,
             views=self.views,

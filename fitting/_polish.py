@@ -164,8 +164,12 @@ def relinearise(prob, ev, red, best, polish_steps, rtol, n2, noise):
     if not prob.reweighted:
         return best, 0, []
     steps = 0
+    from ._noise import noise_weights
+
     for _ in range(RELINEARISE_PASSES):
-        prob.relinearise(best.img)
+        prob.relinearise(best.img, best.sigma)
+        if not prob.encoded and noise_weights(prob) is None:
+            break  # (nothing was re-taken)
         ev.refresh()
         p = polish(ev, prob, red, best.theta, polish_steps, rtol)
         steps += p.evaluations
@@ -186,5 +190,7 @@ def relinearise_note(prob) -> str:
         fits = ", ".join(f"{a:.3g} + {b:.3g}·m" for a, b in w.models)
         what.append(f"the noise's level-dependent weights σ̄/σ(m) (σ² = {fits} per channel, σ̄ = {w.sigma:.3g})")
     elif prob.noise_model == "level":
-        what.append("(the noise model: too few 3×3 windows of used pixels to fit it; uniform weights)")
+        why = prob._memo.get("noise weights why", "")
+        note = f"no level-dependent noise weights ({why}): uniform weights"
+        return note if not what else "; ".join(what) + f" re-taken at the model {RELINEARISE_PASSES}×; " + note
     return "; ".join(what) + f" re-taken at the model {RELINEARISE_PASSES}× (iteratively reweighted least squares)"

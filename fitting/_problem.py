@@ -540,7 +540,7 @@ class Problem:
         base = self._memo.get("base weights")
         return self.data[k].weight if base is None else base[k]
 
-    def relinearise(self, img_flat) -> None:
+    def relinearise(self, img_flat, sigma: float | None = None) -> None:
         r"""Re-take each encoded target's linear target and weight at the model ``img_flat`` (flat,
         the order of :meth:`residual`): weight :math:`v'(I)` and working target
         :math:`I + (v - v(I))/v'(I)`, so that :math:`(I - t')\,w = v(I) - v`, the residual in code
@@ -550,11 +550,12 @@ class Problem:
 
         With the level-dependent noise model each entry's weight is then multiplied by
         :math:`\bar\sigma/\sigma(m)` (:func:`fitting._noise.noise_weights`), :math:`m` the model's
-        level in the residual's units."""
+        level in the residual's units (``sigma``: the noise level of the fit so far, which the
+        targets' own estimate must agree with, :func:`fitting._noise.noise_weights`)."""
         from ._noise import noise_weights
 
         base = self._memo.setdefault("base weights", [vd.weight for vd in self.data])
-        model = self.noise_model == "level" and noise_weights(self) is not None
+        model = self.noise_model == "level" and noise_weights(self, sigma) is not None
         off = 0
         for k, (vd, b) in enumerate(zip(self.data, self.views)):
             n = vd.target.shape[0]

@@ -741,6 +741,7 @@ def cmd_fit(args) -> int:
         margin=args.margin,
         clipped=getattr(tg, "clipped", None),
         clip_margin=_clip_margin(args, tg),
+        noise_model=args.noise_model or ("level" if getattr(tg, "clipped", None) is not None else "uniform"),
     )
     strategy = (
         VarPro(max_steps=args.max_steps, verbose=args.verbose)
@@ -885,6 +886,13 @@ def _add_fit(sub) -> None:
         metavar="PX",
         help="leave out pixels within PX of a clipped one (a camera's clipped highlight bleeds into its "
         "neighbours); default: 1 for a capture folder, 0 for images",
+    )
+    p.add_argument(
+        "--noise-model",
+        choices=["uniform", "level"],
+        default=None,
+        help="level: the noise rises with the level (read + photon noise, fitted from the targets), each "
+        "residual weighted by it; default: level for a capture folder, uniform for images",
     )
     _add_fit_solve(p)
     p.set_defaults(func=cmd_fit)
