@@ -29,6 +29,7 @@ def write_capture(
     falloff=0.0,
     camera="pinhole",
     normal_map=None,
+    gain_error=0.0,
 ):
     """Write the capture; returns ``(scene, opts, directions)``: the truth's first view, its
     options, and the light directions as written (capture frame, towards the lights). ``size``:
@@ -37,7 +38,9 @@ def write_capture(
     ``camera``: ``"pinhole"`` (K.txt written) or ``"orthographic"`` (no K.txt, as DiLiGenT's
     object folders: the sphere spans 60 % of the image's height); ``normal_map``: also write the
     truth's normals at the pixel centres (capture frame) to this file name in the folder
-    (``Normal_gt.mat``, ``normal.png`` as 16-bit codes ``(n + 1)/2``, ``normal.npy``)."""
+    (``Normal_gt.mat``, ``normal.png`` as 16-bit codes ``(n + 1)/2``, ``normal.npy``);
+    ``gain_error``: the intensities written are each light's true one times ``1 + e``, ``e``
+    uniform in ±``gain_error`` (a calibration's per-light error; the truth renders the true ones)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
@@ -89,6 +92,9 @@ def write_capture(
     ds.write_image(folder / "mask.png", mask.astype(np.float64), "linear", 8)
     (folder / "filenames.txt").write_text("\n".join(names) + "\n")
     np.savetxt(folder / "light_directions.txt", written)
+    if gain_error:  # (the truth kept beside, for tests: a data set has only the calibration)
+        np.savetxt(folder / "true_intensities.txt", ints)
+        ints = ints * (1 + rng.uniform(-gain_error, gain_error, (n, 1)))
     np.savetxt(folder / "light_intensities.txt", ints)
     if camera != "orthographic":
         np.savetxt(folder / "K.txt", K)

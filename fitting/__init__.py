@@ -10,6 +10,7 @@ area-averages a target and keeps what was clipped; design notes: docs/fit-design
 from ._cache import cache_info, enable_compilation_cache
 from ._downsample import Downsampled, downsample
 from ._fit import fit
+from ._gains import GainGauge, mean_gauge
 from ._holdout import Holdout, holdout_fit
 from ._models import ModelScore, compare_models, model_variants
 from ._observations import CAPTURE_CLIP_MARGIN, FitError, Observations, Optimistix, Strategy, VarPro
@@ -26,6 +27,7 @@ __all__ = [
     "Downsampled",
     "FitError",
     "FitResult",
+    "GainGauge",
     "Intervals",
     "ModelScore",
     "Observations",
@@ -45,6 +47,7 @@ __all__ = [
     "fit",
     "frame_check",
     "load_photometric_stereo",
+    "mean_gauge",
     "sphere_from_mask",
     "model_variants",
     "tilt_of",

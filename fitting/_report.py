@@ -121,6 +121,9 @@ class FitResult:
     intervals: Intervals | None = None
     notes: list[str] = field(default_factory=list)  # the strategy's steps: starts, restarts, polish
     history: list = field(default_factory=list)  # (loss, θ) of every accepted step, with ``history=True``
+    # the Gauss–Newton covariance of θ (natural coordinates; NaN rows where the s.e. is infinite);
+    # None where not computed (a sparse block's fit)
+    covariance: np.ndarray | None = field(default=None, repr=False)
 
     def replace(self, **changes) -> FitResult:
         return dataclasses.replace(self, **changes)
@@ -378,6 +381,23 @@ def uncertainty(J, rss2: float, n_two_sided, labels, sigma: float = 0.0, theta=N
             gauges += described
     undetermined = [labels[i] for i in np.flatnonzero(undetermined_mask)]
     return stderr, undetermined, gauges, s2
+
+
+def covariance(J, s2: float, stderr) -> np.ndarray:
+    """The Gauss–Newton covariance :math:`s^2 (J^T J)^+` of the natural parameters, as
+    :func:`uncertainty` takes it (over the scalars the images see, scaled by the Jacobian's
+    column norms), with NaN rows and columns for the scalars of infinite standard error."""
+    p = J.shape[1]
+    C = np.full((p, p), np.nan)
+    col = np.linalg.norm(J, axis=0)
+    keep = col > 1e-10 * max(col.max(), 1e-300)
+    if keep.any():
+        Js = J[:, keep] / col[keep]
+        C[np.ix_(keep, keep)] = np.linalg.pinv(Js.T @ Js) * s2 / np.outer(col[keep], col[keep])
+    bad = ~np.isfinite(np.asarray(stderr, np.float64))
+    C[bad, :] = np.nan
+    C[:, bad] = np.nan
+    return C
 
 
 def _gauges(null, col, cov, theta, labels, cond) -> tuple[np.ndarray, list[str]]:
@@ -697,6 +717,7 @@ def build_result(
         intervals=found,
         notes=notes,
         history=run.history,
+        covariance=covariance(best.J, s2, stderr),
     )
 
 

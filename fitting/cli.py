@@ -708,6 +708,34 @@ def _write_outputs(args, meta, r, report, comparison, outputs, fitted, sheet, en
     _write_text("\n".join(report) + "\n", outputs[3])
 
 
+def _mean_gauge(r):
+    """The fit's per-view gains in the geometric-mean gauge (:func:`fitting.mean_gauge`), where
+    ``view[*].camera.exposure`` was free; else None."""
+    from . import FitError, mean_gauge
+
+    if not any(n.endswith("].camera.exposure") and n.startswith("view[") for n in r.names):
+        return None
+    try:
+        return mean_gauge(r)
+    except FitError:
+        return None
+
+
+def _gain_lines(g) -> list[str]:
+    """The report's lines on the gains in the geometric-mean gauge."""
+    import numpy as np
+
+    off = np.abs(g.gains - 1)
+    worst = int(np.argmax(off))
+    ks = ", ".join(f"{n} = {v:.6g} ± {e:.2g}" for n, v, e in zip(g.names, g.values, g.stderr))
+    return [
+        f"per-view gains with their geometric mean 1 (the calibration right on average; the fit's own "
+        f"gauge held view 0 at 1, putting its error ×{g.factor:.6g} into the k's): RMS "
+        f"{100 * np.sqrt(np.mean(np.log(g.gains) ** 2)):.3g} %, the largest view {worst} at {g.gains[worst]:.5g} "
+        f"± {g.gain_stderr[worst]:.2g}" + (f"; in that gauge {ks}" if ks else "")
+    ]
+
+
 def _clip_margin(args, tg) -> int:
     """``--clip-margin``, by default :data:`fitting.CAPTURE_CLIP_MARGIN` for a capture folder
     (a real camera's clipped highlights bleed into their neighbours) and 0 for images."""
@@ -759,6 +787,9 @@ def cmd_fit(args) -> int:
     report = [f"diffshade fit: scene {scene_path}, target(s) {', '.join(map(str, tg.paths))}", *_report_table(r)]
     if held is not None:
         report += held.lines()
+    gauged = _mean_gauge(r)
+    if gauged is not None:
+        report += _gain_lines(gauged)
     comparison = []
     if args.compare:
         more, comparison = _compare(scene, opts, obs, args, r, fit_kw)
@@ -780,6 +811,7 @@ def cmd_fit(args) -> int:
         "censored_at": tg.saturation,
         "options": _options.as_dict(opts),
         **({"holdout": held.as_dict()} if held is not None else {}),
+        **({"gains_geometric_mean": gauged.as_dict()} if gauged is not None else {}),
     }
     meta["sheet"] = {"views": shown, "exposure": exposure}
     _write_outputs(args, meta, r, report, comparison, outputs, fitted, sheet, tg.encodings[0][0], opts)
