@@ -30,6 +30,9 @@ def write_capture(
     camera="pinhole",
     normal_map=None,
     gain_error=0.0,
+    black_level=0.0,
+    photon=0.0,
+    bloom=0.0,
 ):
     """Write the capture; returns ``(scene, opts, directions)``: the truth's first view, its
     options, and the light directions as written (capture frame, towards the lights). ``size``:
@@ -40,7 +43,11 @@ def write_capture(
     truth's normals at the pixel centres (capture frame) to this file name in the folder
     (``Normal_gt.mat``, ``normal.png`` as 16-bit codes ``(n + 1)/2``, ``normal.npy``);
     ``gain_error``: the intensities written are each light's true one times ``1 + e``, ``e``
-    uniform in ±``gain_error`` (a calibration's per-light error; the truth renders the true ones)."""
+    uniform in ±``gain_error`` (a calibration's per-light error; the truth renders the true ones).
+    The camera's imaging: ``black_level`` added to every pixel; the noise's variance
+    ``noise² + photon · I`` (read and photon noise); ``bloom``: that share of each pixel's excess
+    above 1 spread over its 8 neighbours (a clipped highlight bleeding into them) before the
+    codes clip."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
@@ -85,7 +92,11 @@ def write_capture(
             scene,
             (jnp.asarray(ints[i : i + 1]), jnp.asarray(prop[i : i + 1])),
         )
-        img = np.asarray(render(v), np.float64) + rng.normal(0, noise, (h, w, 3))
+        img = np.asarray(render(v), np.float64)
+        if bloom:
+            img = img + _bloomed(img, bloom)
+        sd = np.sqrt(noise**2 + photon * np.clip(img, 0, None)) if photon else noise
+        img = img + black_level + rng.normal(0, 1, (h, w, 3)) * sd
         names.append(f"{i:03d}.png")
         ds.write_image(folder / names[-1], np.clip(img, 0, 1), "linear", 16)
     mask = np.asarray(ds.scene_visibility(scene, opts))[0] >= 0
@@ -101,6 +112,16 @@ def write_capture(
     if normal_map is not None:
         _write_normals(folder / normal_map, scene, opts, mask)
     return scene, opts, written
+
+
+def _bloomed(img, share):
+    """``share`` of each pixel's excess above 1, spread evenly over its 8 neighbours."""
+    ex = np.pad(np.clip(img - 1.0, 0, None), ((1, 1), (1, 1), (0, 0)))
+    h, w = img.shape[:2]
+    around = (
+        sum(ex[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w] for dy in (-1, 0, 1) for dx in (-1, 0, 1)) - ex[1:-1, 1:-1]
+    )
+    return share * around / 8
 
 
 def true_normals(scene, opts) -> np.ndarray:

@@ -12,7 +12,7 @@ from ._downsample import Downsampled, downsample
 from ._fit import fit
 from ._gains import GainGauge, mean_gauge
 from ._holdout import Holdout, holdout_fit
-from ._models import ModelScore, compare_models, model_variants
+from ._models import IMAGING_TERMS, ModelScore, compare_models, imaging_variants, model_variants
 from ._observations import CAPTURE_CLIP_MARGIN, FitError, Observations, Optimistix, Strategy, VarPro
 from ._params import Param, ParamError, ParamSet, direction_frame, direction_of, tilt_of
 from ._photometric import Capture, frame_check, load_photometric_stereo, sphere_from_mask
@@ -21,6 +21,7 @@ from ._report import Diagnostics, FitResult, Intervals, ResidualStats
 __all__ = [
     "CAPTURE_CLIP_MARGIN",
     "Holdout",
+    "IMAGING_TERMS",
     "holdout_fit",
     "Capture",
     "Diagnostics",
@@ -46,6 +47,7 @@ __all__ = [
     "enable_compilation_cache",
     "fit",
     "frame_check",
+    "imaging_variants",
     "load_photometric_stereo",
     "mean_gauge",
     "sphere_from_mask",

@@ -59,6 +59,74 @@ def model_variants(scene: ds.Scene, opts: ds.RenderOptions, free):
     return out
 
 
+#: The imaging terms :func:`imaging_variants` adds to a capture's model, by name: what is freed.
+IMAGING_TERMS = {
+    "near lights": ["directional[0].distance"],
+    "gains": ["view[*].camera.exposure"],
+    "black level": ["camera.black_level"],
+}
+#: A near light's start, in the object's radii, where the scene's lights are at infinity.
+NEAR_START = 30.0
+
+
+def _near_views(views, radius_centre):
+    """Every view's directional light made a near one at :data:`NEAR_START` object radii from the
+    object's centre (falloff 0)."""
+    centre, radius = radius_centre
+    out = []
+    for v in views:
+        d = v.directional
+        if d.near:
+            out.append(v)
+            continue
+        dt = d.color.dtype
+        near = eqx.tree_at(
+            lambda L: (L.distance, L.origin, L.falloff),
+            d,
+            (
+                jnp.full((d.count,), NEAR_START * radius, dt),
+                jnp.broadcast_to(jnp.asarray(centre, dt), (d.count, 3)),
+                jnp.zeros((d.count,), dt),
+            ),
+            is_leaf=lambda x: x is None,
+        )
+        out.append(eqx.tree_at(lambda s: s.directional, v, near))
+    return out
+
+
+def imaging_variants(scene: ds.Scene, opts: ds.RenderOptions, observations: Observations, free, terms=None):
+    """The capture's model with each subset of the imaging terms ``terms`` (default every one of
+    :data:`IMAGING_TERMS` the capture can have: near lights where its views are lit by one distant
+    directional light each, per-view gains where it has several views, a black level) added:
+    ``[(name, opts, free, scene, observations), ...]``, the model as given first. A near light
+    starts :data:`NEAR_START` object radii away, its distance free (shared by every light); the
+    gains are view 0's reference gauge (:func:`fitting.mean_gauge` moves them)."""
+    from itertools import combinations
+
+    from ._photometric import object_centre
+
+    views = list(observations.views_of(scene))
+    if terms is None:
+        terms = [t for t in IMAGING_TERMS if t != "gains" or len(views) > 1]
+        one_sun = all(v.directional.count == 1 and not v.directional.near for v in views)
+        if not one_sun:
+            terms = [t for t in terms if t != "near lights"]
+    unknown = [t for t in terms if t not in IMAGING_TERMS]
+    if unknown:
+        raise ValueError(f"imaging_variants: unknown term(s) {unknown}; the terms are {list(IMAGING_TERMS)}")
+    out = []
+    for k in range(len(terms) + 1):
+        for subset in combinations(terms, k):
+            fr = list(free) + [p for t in subset for p in IMAGING_TERMS[t] if p not in free]
+            sc, obs = scene, observations
+            if "near lights" in subset:
+                near = _near_views(views, object_centre(scene.mesh))
+                sc, obs = near[0], observations.replace(views=near)
+            name = "as given" if not subset else "+ " + " + ".join(subset)
+            out.append((name, opts, fr, sc, obs))
+    return out
+
+
 def compare_models(
     scene: ds.Scene,
     opts: ds.RenderOptions,
@@ -78,7 +146,9 @@ def compare_models(
     (``(ε · rms target)²``), so among models that all reproduce a noise-free target exactly
     the one with fewer parameters wins instead of a comparison of rounding noise.
     ``given``: an existing fit of the model as given (not repeated); ``fit_kw``: :func:`fitting.fit`'s
-    keyword arguments (``shared``, ``strategy``, ...).
+    keyword arguments (``shared``, ``strategy``, ...). A variant may carry its own observations
+    as a fifth element (:func:`imaging_variants`: near lights change every view's scene); they
+    must hold the same entries (the scores compare one data set).
     """
     targets = observations.targets
     variants = model_variants(scene, opts, free) if variants is None else variants
@@ -86,8 +156,9 @@ def compare_models(
     eps = float(jnp.finfo(dtype).eps)
     scale2 = float(np.mean([np.mean(np.asarray(t, np.float64) ** 2) for t in targets]))
     out = []
-    for name, o, fr, sc in variants:
-        r = given if (given is not None and name == "as given") else fit(sc, o, observations, fr, **fit_kw)
+    for name, o, fr, sc, *obs in variants:
+        obs = obs[0] if obs else observations
+        r = given if (given is not None and name == "as given") else fit(sc, o, obs, fr, **fit_kw)
         n = int(r.residual.n)
         k = len(r.names) - len(r.diagnostics.undetermined)
         ms = max(r.residual.rss / n, (eps**2) * scale2)
