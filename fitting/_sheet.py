@@ -45,3 +45,41 @@ def contact_sheet(targets, images, masks=None, max_views: int = SHEET_VIEWS):
             row = np.where(np.tile(used[k], (1, 3))[..., None], row, MASKED_GREY)
         rows.append(row)
     return np.concatenate(rows, axis=0), views, exposure
+
+
+def holdout_plot(held, width: int = 720, height: int = 300) -> np.ndarray:
+    """``[height, width, 3]`` (sRGB-encoded values in [0, 1], for an 8-bit PNG): the held-out
+    views' RMS over the noise (:class:`fitting.Holdout`), one bar per view in view order (red
+    where it is above the verdict's limit for that view's entries), a line at 1 (the noise), the
+    views' indices below (every k-th where they crowd) and the ratio over them all in the title;
+    Pillow's own font."""
+    from PIL import Image, ImageDraw
+
+    from ._report import noise_ratio_limit
+
+    ratios = np.asarray(held.ratio, np.float64)
+    top = max(2.0, float(np.nanmax(np.where(np.isfinite(ratios), ratios, 0))) * 1.1)
+    im = Image.new("RGB", (width, height), (255, 255, 255))
+    d = ImageDraw.Draw(im)
+    x0, x1, y0, y1 = 48, width - 12, 28, height - 30  # the plot's box
+    y_of = lambda v: y1 - (y1 - y0) * min(v, top) / top  # noqa: E731
+    d.text(
+        (x0, 6), f"held-out RMS / noise per view (all: {held.ratio_all:.3g}x, sigma {held.noise:.3g})", fill=(0, 0, 0)
+    )
+    for v in np.arange(0, top + 1e-9, 1.0 if top <= 10 else np.ceil(top / 8)):
+        d.line([(x0 - 4, y_of(v)), (x0, y_of(v))], fill=(0, 0, 0))
+        d.text((4, y_of(v) - 6), f"{v:g}", fill=(0, 0, 0))
+    n = max(len(ratios), 1)
+    step = (x1 - x0) / n
+    every = int(np.ceil(n / max((x1 - x0) // 28, 1)))
+    for k, (view, r, e) in enumerate(zip(held.views, ratios, held.entries)):
+        a, b = x0 + k * step + step * 0.15, x0 + (k + 1) * step - step * 0.15
+        bad = r > noise_ratio_limit(max(int(e), 1))
+        d.rectangle([a, y_of(r if np.isfinite(r) else top), b, y1], fill=(200, 70, 60) if bad else (70, 110, 190))
+        if k % every == 0:
+            d.text((a, y1 + 6), str(view), fill=(0, 0, 0))
+    d.line([(x0, y1), (x1, y1)], fill=(0, 0, 0))
+    d.line([(x0, y0), (x0, y1)], fill=(0, 0, 0))
+    d.line([(x0, y_of(1.0)), (x1, y_of(1.0))], fill=(0, 140, 0), width=1)
+    d.text((x1 - 60, y_of(1.0) - 14), "the noise", fill=(0, 120, 0))
+    return np.asarray(im, np.float64) / 255.0

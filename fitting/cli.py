@@ -613,7 +613,10 @@ def _check_outputs(args, inputs) -> list[Path]:
     out_dir = Path(args.output_dir)
     outputs = [out_dir / n for n in FIT_OUTPUTS]
     inputs = {p.resolve() for p in inputs}
-    for o in outputs + ([out_dir / "albedo.ply"] if "mesh.colors" in args.free else []):
+    more = ([out_dir / "albedo.ply"] if "mesh.colors" in args.free else []) + (
+        [out_dir / "holdout.png"] if getattr(args, "holdout", None) else []
+    )
+    for o in outputs + more:
         if o.resolve() in inputs:
             raise InputError(f"{o}: is one of the inputs; choose another --output-dir (inputs are never overwritten)")
         if o.exists() and not args.overwrite:
@@ -817,6 +820,12 @@ def cmd_fit(args) -> int:
     _write_outputs(args, meta, r, report, comparison, outputs, fitted, sheet, tg.encodings[0][0], opts)
     if "mesh.colors" in pset.names:
         _write_albedo(fitted, Path(args.output_dir))
+    if held is not None:
+        from ._sheet import holdout_plot
+
+        plot = holdout_plot(held)
+        _write_image(plot, Path(args.output_dir) / "holdout.png", True, "srgb")
+        print(f"wrote {Path(args.output_dir) / 'holdout.png'} (the held-out views' RMS over the noise)")
     views_said = "" if shown == list(range(len(pairs))) else f", views {shown} (the worst and a spread, worst first)"
     print(
         f"wrote {', '.join(str(o) for o in outputs)} (fit.png: target | fit | 10x residual + 0.5"

@@ -143,7 +143,11 @@ def test_the_command_line_fits_a_capture_folder(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "4 images under one directional light each" in printed and "successful" in printed
     assert "held out: 1 view(s)" in printed
-    assert sorted(p.name for p in out.iterdir()) == ["fit.json", "fit.png", "material.mtl", "report.txt"]
+    assert sorted(p.name for p in out.iterdir()) == ["fit.json", "fit.png", "holdout.png", "material.mtl", "report.txt"]
+    import diffshade as ds
+
+    plot = ds.read_image(out / "holdout.png").values()
+    assert plot.shape == (300, 720, 3) and (plot < 0.5).any() and (plot > 0.9).mean() > 0.5  # bars on white
     import json
 
     held = json.loads((out / "fit.json").read_text())["holdout"]
