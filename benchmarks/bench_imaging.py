@@ -71,7 +71,7 @@ def run(seed: int, size: int, views: int, noise: float) -> dict:
         obs = cap.observations()
         t0 = time.perf_counter()
         scores = compare_models(
-            cap.scene, cap.opts, obs, FREE, variants=imaging_variants(cap.scene, cap.opts, obs, FREE)
+            cap.scene, cap.opts, obs, FREE, variants=imaging_variants(cap.scene, cap.opts, obs, FREE, centre=cap.centre)
         )
         seconds = time.perf_counter() - t0
     best = scores[0]

@@ -71,11 +71,13 @@ def write_capture(
     else:
         cam = ds.OpenCVCamera.from_opencv(K, np.eye(3), np.zeros(3), width=w, height=h, near=0.01, far=100.0)
     v = np.asarray(mesh.vertices, np.float64)
-    near = (
-        {}
-        if light_distance is None
-        else dict(distance=[light_distance], origin=[(v.min(0) + v.max(0)) / 2], falloff=[falloff])
-    )
+    origin = (v.min(0) + v.max(0)) / 2
+    if normal_map is not None and light_distance is not None:  # the loader's centre of a surface seen from the front
+        from fitting._photometric import surface_centre
+
+        s0 = ds.Scene(mesh=mesh, camera=cam, material=ds.Material(), ambient_light=0.0)
+        origin = surface_centre(_visible_points(s0, ds.RenderOptions.from_keys(shading="phong")))[0]
+    near = {} if light_distance is None else dict(distance=[light_distance], origin=[origin], falloff=[falloff])
     scene = ds.Scene(
         mesh=mesh,
         camera=cam,
@@ -122,6 +124,15 @@ def _bloomed(img, share):
         sum(ex[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w] for dy in (-1, 0, 1) for dx in (-1, 0, 1)) - ex[1:-1, 1:-1]
     )
     return share * around / 8
+
+
+def _visible_points(scene, opts) -> np.ndarray:
+    """``[N, 3]``: the surface points the covered pixels see."""
+    ids = ds.scene_visibility(scene, opts)
+    clip = scene.camera.world_to_clip(scene.mesh.vertices)
+    surf = ds.surface_points(scene, ds.fragments(clip, scene.mesh.faces, ids[:1]), opts.raster)
+    P = np.stack([np.asarray(c[0], np.float64) for c in surf.position], -1)
+    return P[np.asarray(ids[0]) >= 0]
 
 
 def true_normals(scene, opts) -> np.ndarray:

@@ -94,13 +94,17 @@ def _near_views(views, radius_centre):
     return out
 
 
-def imaging_variants(scene: ds.Scene, opts: ds.RenderOptions, observations: Observations, free, terms=None):
+def imaging_variants(
+    scene: ds.Scene, opts: ds.RenderOptions, observations: Observations, free, terms=None, centre=None
+):
     """The capture's model with each subset of the imaging terms ``terms`` (default every one of
     :data:`IMAGING_TERMS` the capture can have: near lights where its views are lit by one distant
     directional light each, per-view gains where it has several views, a black level) added:
     ``[(name, opts, free, scene, observations), ...]``, the model as given first. A near light
     starts :data:`NEAR_START` object radii away, its distance free (shared by every light); the
-    gains are view 0's reference gauge (:func:`fitting.mean_gauge` moves them)."""
+    gains are view 0's reference gauge (:func:`fitting.mean_gauge` moves them). ``centre``: the
+    object's ``(centre, radius)``, the near lights' origin (a capture's :attr:`Capture.centre`;
+    default the mesh's bounding box's)."""
     from itertools import combinations
 
     from ._photometric import object_centre
@@ -120,7 +124,7 @@ def imaging_variants(scene: ds.Scene, opts: ds.RenderOptions, observations: Obse
             fr = list(free) + [p for t in subset for p in IMAGING_TERMS[t] if p not in free]
             sc, obs = scene, observations
             if "near lights" in subset:
-                near = _near_views(views, object_centre(scene.mesh))
+                near = _near_views(views, object_centre(scene.mesh) if centre is None else centre)
                 sc, obs = near[0], observations.replace(views=near)
             name = "as given" if not subset else "+ " + " + ".join(subset)
             out.append((name, opts, fr, sc, obs))
@@ -142,7 +146,8 @@ def compare_models(
     .. math:: \mathrm{AIC} = n \ln(\mathrm{RSS}/n) + 2k, \qquad \mathrm{BIC} = n \ln(\mathrm{RSS}/n) + k \ln n
 
     (Gaussian residuals of unknown variance; ``k`` counts only the parameters the images
-    determine). Sorted best (lowest BIC) first. ``RSS/n`` is floored at float rounding
+    determine). Sorted best (lowest BIC) first; of equal scores, the fewer free parameters first
+    (a near light fitted at a distance the images cannot tell from infinity adds none they see). ``RSS/n`` is floored at float rounding
     (``(ε · rms target)²``), so among models that all reproduce a noise-free target exactly
     the one with fewer parameters wins instead of a comparison of rounding noise.
     ``given``: an existing fit of the model as given (not repeated); ``fit_kw``: :func:`fitting.fit`'s
@@ -165,5 +170,5 @@ def compare_models(
         aic = n * np.log(ms) + 2 * k
         bic = n * np.log(ms) + k * np.log(n)
         out.append(ModelScore(name, o, fr, r, n, k, r.residual.rss, float(aic), float(bic)))
-    out.sort(key=lambda m: m.bic)
+    out.sort(key=lambda m: (round(m.bic, 6), len(m.free)))  # (a tie: the fewer free parameters)
     return out

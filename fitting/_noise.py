@@ -36,7 +36,7 @@ def measured_images(prob, used=None) -> tuple[list[np.ndarray], list[np.ndarray]
     flat = [
         np.asarray(b.codes, np.float64) * np.asarray(b.sqrt_mask, np.float64)
         if b.codes is not None
-        else np.asarray(vd.target, np.float64) * np.asarray(prob.base_weight(k), np.float64)
+        else np.asarray(prob.base_target(k), np.float64) * np.asarray(prob.base_weight(k), np.float64)
         for k, (vd, b) in enumerate(zip(prob.data, prob.views))
     ]
     images = prob.images_of(np.concatenate([f.reshape(-1) for f in flat]))

@@ -64,6 +64,7 @@ class Capture:
     names: list
     geometry: str = "a mesh"
     camera_model: str = "pinhole"
+    centre: tuple | None = None  # (centre, radius): the object's, the origin of near lights
 
     @property
     def scene(self) -> ds.Scene:
@@ -152,6 +153,17 @@ def _object_pixels(mask: np.ndarray):
     return xs.mean(), ys.mean(), np.sqrt(len(xs) / np.pi)
 
 
+def surface_centre(points) -> tuple[np.ndarray, float]:
+    """``(centre, radius)`` of an object seen only from the front (a normal map's surface;
+    ``points`` ``[N, 3]`` in OpenCV's camera frame): the centre of its extent across the view,
+    half the larger extent its radius, and the centre that radius behind its nearest point (a
+    sphere's own centre and radius)."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    lo, hi = p.min(0), p.max(0)
+    r = float(max(hi[0] - lo[0], hi[1] - lo[1]) / 2)
+    return np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2] + r]), r
+
+
 def sphere_from_mask(mask: np.ndarray, K: np.ndarray | None, subdivisions: int = 5) -> ds.Mesh:
     """A unit sphere in the camera frame (OpenCV's) that projects onto ``mask``: its centre on the
     ray through the mask's centroid, at the distance where its angular radius is the mask's
@@ -221,7 +233,8 @@ def load_photometric_stereo(
     each block's centre, the camera shifted to it: exact, at the full noise).
 
     ``light_distance``: the lights are LEDs at this distance (scene units: the sphere's radius for
-    a sphere from the mask) from the object's centre along each calibrated direction, pointed at
+    a sphere from the mask) from the object's centre (:attr:`Capture.centre`: a mesh's bounding
+    box's, a normal map's :func:`surface_centre`) along each calibrated direction, pointed at
     it, the calibrated intensity the irradiance there (near directional lights,
     :class:`diffshade.DirectionalLights`; the distance a fit parameter, ``directional[0].distance``
     for one shared by every light, ``view[:].directional[0].distance`` for one per light, and
@@ -252,15 +265,17 @@ def load_photometric_stereo(
         cam = ds.OpenCVCamera.from_opencv(
             K, np.eye(3), np.zeros(3), width=mask.shape[1], height=mask.shape[0], near=0.01, far=1e4
         )
+    centre = object_centre(mesh) if mesh is not None else None
     if nfile is not None:
         flips = (normals_flip_y, normals_flip_z)
         mesh, mask, geometry = _normal_map_geometry(nfile, full_mask, mask, cam, K, f, how, flips)
+        centre = surface_centre(np.asarray(mesh.vertices).reshape(-1, 4, 3).mean(1))  # (the pixels' points)
     prop = to_camera_frame(dirs, flip_y, flip_z)
     near = {}
     if light_distance is not None:
         if not np.isfinite(light_distance) or light_distance <= 0:
             raise FitError(f"light_distance must be a finite number > 0, got {light_distance}")
-        near = dict(distance=[float(light_distance)], origin=object_centre(mesh)[0][None], falloff=[0.0])
+        near = dict(distance=[float(light_distance)], origin=centre[0][None], falloff=[0.0])
     base = ds.Scene(
         mesh=mesh,
         camera=cam,
@@ -282,7 +297,7 @@ def load_photometric_stereo(
     opts = opts or ds.RenderOptions.from_keys(shading="phong", specular="blinn", fog="none")
     model = "orthographic (no K.txt)" if K is None else "pinhole"
     mask = mask.astype(np.float64)
-    return Capture(views, opts, list(targets), mask, list(clipped), quantum[0], names, geometry, model)
+    return Capture(views, opts, list(targets), mask, list(clipped), quantum[0], names, geometry, model, centre)
 
 
 def _normal_map_geometry(path: Path, full_mask, mask, cam, K, f: int, how: str, flips):

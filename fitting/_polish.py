@@ -155,6 +155,10 @@ def polish(ev, prob, red, theta, steps, rtol) -> Polished:
 
 
 RELINEARISE_PASSES = 2
+# Censored entries' working targets (the Tobit EM of Problem.relinearise) converge linearly: passes
+# go on, up to this many, while one moves by more than this share of its σ.
+CENSORED_PASSES = 8
+CENSORED_TOLERANCE = 0.002
 
 
 def relinearise(prob, ev, red, best, polish_steps, rtol, n2, noise):
@@ -166,14 +170,19 @@ def relinearise(prob, ev, red, best, polish_steps, rtol, n2, noise):
     steps = 0
     from ._noise import noise_weights
 
-    for _ in range(RELINEARISE_PASSES):
-        prob.relinearise(best.img, best.sigma)
+    passes = 0
+    while passes < CENSORED_PASSES:
+        moved = prob.relinearise(best.img, best.sigma)
         if not prob.encoded and noise_weights(prob) is None:
             break  # (nothing was re-taken)
+        if passes >= RELINEARISE_PASSES and moved < CENSORED_TOLERANCE:
+            break
         ev.refresh()
         p = polish(ev, prob, red, best.theta, polish_steps, rtol)
         steps += p.evaluations
+        passes += 1
         best = candidate(prob, p, best.res if not p.converged else "", n2, noise)
+    prob._memo["relinearise passes"] = passes
     return best, steps, [relinearise_note(prob) + f"; residual {best.ratio:.3g}× the noise"]
 
 
@@ -193,4 +202,5 @@ def relinearise_note(prob) -> str:
         why = prob._memo.get("noise weights why", "")
         note = f"no level-dependent noise weights ({why}): uniform weights"
         return note if not what else "; ".join(what) + f" re-taken at the model {RELINEARISE_PASSES}×; " + note
-    return "; ".join(what) + f" re-taken at the model {RELINEARISE_PASSES}× (iteratively reweighted least squares)"
+    passes = prob._memo.get("relinearise passes", RELINEARISE_PASSES)
+    return "; ".join(what) + f" re-taken at the model {passes}× (iteratively reweighted least squares)"

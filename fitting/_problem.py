@@ -535,12 +535,17 @@ class Problem:
         the level-dependent noise model."""
         return self.encoded or self.noise_model == "level"
 
+    def base_target(self, k: int):
+        """View ``k``'s linear target as built (before any censored entry's working target)."""
+        base = self._memo.get("base targets")
+        return self.data[k].target if base is None else base[k][0]
+
     def base_weight(self, k: int):
         """View ``k``'s weights before any noise weighting (√mask × the encoding's, as built)."""
         base = self._memo.get("base weights")
         return self.data[k].weight if base is None else base[k]
 
-    def relinearise(self, img_flat, sigma: float | None = None) -> None:
+    def relinearise(self, img_flat, sigma: float | None = None) -> float:
         r"""Re-take each encoded target's linear target and weight at the model ``img_flat`` (flat,
         the order of :meth:`residual`): weight :math:`v'(I)` and working target
         :math:`I + (v - v(I))/v'(I)`, so that :math:`(I - t')\,w = v(I) - v`, the residual in code
@@ -551,17 +556,30 @@ class Problem:
         With the level-dependent noise model each entry's weight is then multiplied by
         :math:`\bar\sigma/\sigma(m)` (:func:`fitting._noise.noise_weights`), :math:`m` the model's
         level in the residual's units (``sigma``: the noise level of the fit so far, which the
-        targets' own estimate must agree with, :func:`fitting._noise.noise_weights`)."""
+        targets' own estimate must agree with, :func:`fitting._noise.noise_weights`). A linear
+        target's entries censored from below (read 0: the noise clipped at the sensor's zero) then
+        take the working target :math:`E[y \mid y \le 0] = I - \sigma\,\varphi(\alpha)/\Phi(\alpha)`,
+        :math:`\alpha = -I/\sigma` at the model's :math:`I` and its noise :math:`\sigma`, as
+        two-sided entries: the EM iteration of the censored (Tobit) likelihood. A one-sided
+        residual there is biased: the uncensored entries near 0 are the noise's positive tail, and
+        with nothing pulling the model down an offset (a black level) fits them (measured on a
+        capture with attached shadows: a black level of 0.4σ fitted, ΔBIC 400, where none was).
+        Returns the largest change of a censored entry's working target, in its σ (0: none)."""
         from ._noise import noise_weights
 
         base = self._memo.setdefault("base weights", [vd.weight for vd in self.data])
+        targets0 = self._memo.setdefault("base targets", [(vd.target, vd.lo) for vd in self.data])
         model = self.noise_model == "level" and noise_weights(self, sigma) is not None
-        off = 0
+        off, change = 0, 0.0
         for k, (vd, b) in enumerate(zip(self.data, self.views)):
             n = vd.target.shape[0]
             I = np.asarray(img_flat[off * 3 : (off + n) * 3], np.float64).reshape(n, 3)
             off += n
             if b.encoding is None and not model:
+                continue
+            if b.encoding is None and model:
+                self.data[k], moved = self._tobit_view(vd, b, I, base[k], *targets0[k])
+                change = max(change, moved)
                 continue
             cens = censored(vd)
             if b.encoding is None:
@@ -583,6 +601,38 @@ class Problem:
                 (on_device(t_new, vd.target.dtype), on_device(w_new, vd.weight.dtype)),
             )
         self._placed.clear()
+        return change
+
+    def _tobit_view(self, vd, b, I, w_base, t0, lo0):
+        """A linear target's view data re-taken at the model ``I`` under the level-dependent noise
+        model: weights ``w_base × σ̄/σ(m)``, and the entries censored from below (``lo0``, the
+        built mask) two-sided at their censored expectation (:meth:`relinearise`); with the
+        largest change of those working targets, in their σ."""
+        from scipy.special import log_ndtr
+
+        from ._noise import noise_weights
+
+        weigh = noise_weights(self)
+        w_base = np.asarray(w_base, np.float64)
+        f = weigh(I * w_base)
+        w_new = np.where(np.asarray(vd.hi), np.asarray(vd.weight, np.float64), w_base * f)
+        lo0 = np.asarray(lo0, bool)
+        t_new = np.asarray(t0, np.float64)
+        moved = 0.0
+        if lo0.any():
+            # σ in linear units: the residual's σ̄/f over the base weight (padding: weight 0)
+            sig = np.where(w_base > 0, weigh.sigma / np.maximum(f, 1e-300) / np.where(w_base > 0, w_base, 1.0), 1.0)
+            alpha = -I / sig
+            mills = np.exp(-0.5 * alpha**2 - 0.5 * np.log(2 * np.pi) - log_ndtr(alpha))  # φ(α)/Φ(α)
+            t_new = np.where(lo0, I - sig * mills, t_new)
+            was = np.asarray(vd.target, np.float64) if not np.asarray(vd.lo).any() else t_new
+            moved = float(np.max(np.abs(t_new - was)[lo0] / sig[lo0]))
+        vd = eqx.tree_at(
+            lambda d: (d.target, d.weight, d.lo),
+            vd,
+            (on_device(t_new, vd.target.dtype), on_device(w_new, vd.weight.dtype), on_device(np.zeros_like(lo0))),
+        )
+        return vd, moved
 
     # -- the views as the compiled programs take them ------------------------------------------
     def device_data(self, subset: int | None = None):
