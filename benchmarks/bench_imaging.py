@@ -109,13 +109,14 @@ def run(seed: int, size: int, views: int, noise: float) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", type=int, default=20)
+    ap.add_argument("--first", type=int, default=0, help="the first case's seed")
     ap.add_argument("--size", type=int, default=48)
     ap.add_argument("--views", type=int, default=12)
     ap.add_argument("--noise", type=float, default=0.004)
     ap.add_argument("--json", type=str, default=None)
     a = ap.parse_args()
     rows = []
-    for seed in range(a.cases):
+    for seed in range(a.first, a.first + a.cases):
         row = run(seed, a.size, a.views, a.noise)
         rows.append(row)
         print(

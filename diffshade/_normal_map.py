@@ -12,13 +12,16 @@ compositing and fitting are the mesh renderer's. (Gouraud or flat shading would 
 the same normal, half a pixel away.)
 
 **Depth.** The normals fix the surface up to its distance: :func:`integrate_normals` integrates
-them (least squares over the mask's neighbouring pairs, a sparse solve): an orthographic camera's
-depth :math:`z` has :math:`\partial z/\partial u = -s\,n_x/n_z` per pixel step (``s`` the pixel
-size; OpenCV's camera frame, :math:`n` towards the camera), a pinhole camera's :math:`\log z` has
-:math:`\partial \log z/\partial u = -n_x / (f_x\, n\cdot r)` (:math:`r` the pixel's ray at depth 1;
-the same for :math:`v`). Pairs where either normal is within :data:`GRAZING` of the pixel's ray
-are left out (their slopes are unbounded); each connected part of the mask is placed at ``depth``
-on average. The depth matters only to what a point's position changes: near, point and spot
+them (least squares over the mask's neighbouring pairs, a sparse solve). The chord between two
+neighbours' points is taken perpendicular to the sum of their normals, :math:`(n_i + n_j)\cdot
+(P_j - P_i) = 0` (exact on a sphere, whose chords are perpendicular to the sum of their ends'
+normals; the averaged slopes :math:`-n_x/n_z` are not, and diverge at the silhouette): under an
+orthographic camera :math:`z_j - z_i = -s\,N_x/N_z` per step along :math:`u` (``s`` the pixel size,
+:math:`N = n_i + n_j` in OpenCV's camera frame, towards the camera), under a pinhole camera
+(:math:`P = z\,r`, :math:`r` the pixel's ray at depth 1) :math:`\log z_j - \log z_i = \log(N\cdot
+r_i / N\cdot r_j)`. Pairs whose :math:`N` is within :data:`GRAZING` of a ray are left out; each
+connected part of the mask is placed at ``depth`` on average (under a pinhole camera, the
+geometric mean of its depths). The depth matters only to what a point's position changes: near, point and spot
 lights, fog, shadows; distant lights seen by an orthographic or a pinhole camera see the normals
 alone.
 """
@@ -93,7 +96,7 @@ def integrate_normals(normals, camera, mask=None, depth: float = 1.0) -> np.ndar
     """``[H, W]``: the eye-space depth (along the view axis) of the surface whose unit normals
     (world space, towards the camera) ``normals`` has at each pixel of ``mask`` (default: the
     non-zero normals), seen by ``camera``; each connected part at ``depth`` on average (the
-    module's "Depth"). NaN outside the mask."""
+    geometric mean under a pinhole camera; the module's "Depth"). NaN outside the mask."""
     from scipy import sparse
 
     n, m = _checked(normals, camera, mask)
@@ -101,33 +104,34 @@ def integrate_normals(normals, camera, mask=None, depth: float = 1.0) -> np.ndar
     nc = n @ R.T  # OpenCV's camera frame: x right, y down, z forward
     r, _, _ = _rays(camera)
     P = np.asarray(camera.projection_matrix(), np.float64)
-    if camera.orthographic:
-        s = 2.0 / (P[0, 0] * camera.width), 2.0 / (P[1, 1] * camera.height)
-        den = nc[..., 2]
-        steps = (s[0], s[1])
-    else:
-        den = np.einsum("hwk,hwk->hw", nc, r)
-        steps = (2.0 / (P[0, 0] * camera.width), 2.0 / (P[1, 1] * camera.height))  # 1/fx, 1/fy
-    cos = -den / np.linalg.norm(r, axis=-1)
-    ok = m & (cos > GRAZING)
-    safe = np.where(ok, den, -1.0)
-    grad = (-steps[0] * nc[..., 0] / safe, -steps[1] * nc[..., 1] / safe)  # per u (column), per v (row)
+    step = (2.0 / (P[0, 0] * camera.width), 2.0 / (P[1, 1] * camera.height))  # an orthographic pixel's size
     idx = -np.ones(m.shape, np.int64)
     idx[m] = np.arange(int(m.sum()))
     rows, cols, vals, rhs = [], [], [], []
     k = 0  # equations so far
-    for axis, g in ((1, grad[0]), (0, grad[1])):
+    for axis in (1, 0):  # along u (columns), along v (rows)
         a = [slice(None), slice(None)]
         b = [slice(None), slice(None)]
         a[axis], b[axis] = slice(0, -1), slice(1, None)
-        pair = ok[tuple(a)] & ok[tuple(b)]
-        i0, i1 = idx[tuple(a)][pair], idx[tuple(b)][pair]
+        a, b = tuple(a), tuple(b)
+        N = nc[a] + nc[b]  # the pair's chord is perpendicular to the sum of its normals
+        if camera.orthographic:
+            cos = -N[..., 2] / np.maximum(np.linalg.norm(N, axis=-1), 1e-300)
+            pair = m[a] & m[b] & (cos > GRAZING)
+            d = -step[1 - axis] * N[..., 1 - axis] / np.where(pair, N[..., 2], -1.0)
+        else:
+            na, nb = np.einsum("hwk,hwk->hw", N, r[a]), np.einsum("hwk,hwk->hw", N, r[b])
+            norm = np.maximum(np.linalg.norm(N, axis=-1), 1e-300)
+            ca, cb = -na / (norm * np.linalg.norm(r[a], axis=-1)), -nb / (norm * np.linalg.norm(r[b], axis=-1))
+            pair = m[a] & m[b] & (ca > GRAZING) & (cb > GRAZING)
+            d = np.log(np.where(pair, na / np.where(pair, nb, 1.0), 1.0))  # log z_b - log z_a
+        i0, i1 = idx[a][pair], idx[b][pair]
         e = np.arange(k, k + len(i0))
         k += len(i0)
         rows += [e, e]
         cols += [i1, i0]
         vals += [np.ones(len(e)), -np.ones(len(e))]
-        rhs.append((g[tuple(a)][pair] + g[tuple(b)][pair]) / 2)
+        rhs.append(d[pair])
     A = sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), (k, int(m.sum())))
     f = _solve(A, np.concatenate(rhs))
     z = np.full(m.shape, np.nan)

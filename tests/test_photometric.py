@@ -546,3 +546,46 @@ def test_the_command_line_reports_gains_in_the_mean_gauge(tmp_path, capsys):
     assert "per-view gains with their geometric mean 1" in capsys.readouterr().out
     g = json.loads((out / "fit.json").read_text())["gains_geometric_mean"]
     assert len(g["gains"]) == 6 and abs(np.prod(g["gains"]) - 1) < 1e-9 and "material.diffuse[r]" in g["parameters"]
+
+
+def test_clipped_shadows_do_not_fit_a_black_level(tmp_path):
+    """Attached shadows read 0 where the noise dips below it (censored from below): with their
+    one-sided residual an offset fitted the noise's positive tail (0.4 σ where there is none);
+    with the censored likelihood (EM working targets, the level noise model) a free black level
+    is 0 within 3 s.e., and a real one is recovered."""
+    free = [*PARAMS, "camera.black_level"]
+    for level in (0.0, 0.012):
+        folder = tmp_path / f"dark{level}"
+        truth, opts, _ = write_capture(folder, n=8, size=40, noise=0.004, photon=6.4e-5, seed=4, black_level=level)
+        cap = load_photometric_stereo(folder, truth.mesh, opts=opts)
+        r = fit(cap.scene, cap.opts, cap.observations(), free)
+        assert r.successful, r.result
+        i = [k for k, n in enumerate(r.names) if n.startswith("camera.black_level")]
+        z = (np.asarray(r.values)[i] - level) / np.asarray(r.stderr)[i]
+        assert np.abs(z).max() < 3.0, (level, np.asarray(r.values)[i], z)
+        assert any("re-taken at the model" in n for n in r.notes)
+
+
+def test_the_evidence_picks_a_captures_imaging_terms(tmp_path):
+    """Near LEDs (20 radii) and a black level, no per-light errors: of the four subsets of
+    {near lights, black level} the lowest BIC is the truth's, its fit accepted with the LEDs'
+    distance within 3 s.e.; the model as given is rejected with notes naming both terms."""
+    from fitting import compare_models, imaging_variants
+
+    folder = tmp_path / "imaging"
+    truth, opts, _ = write_capture(folder, n=8, size=40, noise=0.004, seed=6, light_distance=20.0, black_level=0.015)
+    cap = load_photometric_stereo(folder, truth.mesh, opts=opts)
+    obs = cap.observations()
+    variants = imaging_variants(
+        cap.scene, cap.opts, obs, PARAMS, terms=["near lights", "black level"], centre=cap.centre
+    )
+    assert [v[0] for v in variants] == ["as given", "+ near lights", "+ black level", "+ near lights + black level"]
+    scores = compare_models(cap.scene, cap.opts, obs, PARAMS, variants=variants)
+    best = scores[0]
+    assert best.name == "+ near lights + black level" and best.fit.successful, [(m.name, m.bic) for m in scores]
+    d = best.fit.names.index("directional[0].distance")
+    assert abs(best.fit.values[d] - 20.0) < 3 * best.fit.stderr[d]
+    given = next(m for m in scores if m.name == "as given").fit
+    assert not given.successful
+    notes = " ".join(given.notes)
+    assert "black_level" in notes and "near" in notes, given.notes
