@@ -59,6 +59,10 @@ def model_variants(scene: ds.Scene, opts: ds.RenderOptions, free):
     return out
 
 
+#: A BIC difference below this tells two models apart no better than a bare mention (Kass and
+#: Raftery's scale: 2-6 positive, 6-10 strong, above 10 very strong evidence).
+TOLD_APART = 2.0
+
 #: The imaging terms :func:`imaging_variants` adds to a capture's model, by name: what is freed.
 IMAGING_TERMS = {
     "near lights": ["directional[0].distance"],
@@ -146,8 +150,10 @@ def compare_models(
     .. math:: \mathrm{AIC} = n \ln(\mathrm{RSS}/n) + 2k, \qquad \mathrm{BIC} = n \ln(\mathrm{RSS}/n) + k \ln n
 
     (Gaussian residuals of unknown variance; ``k`` counts only the parameters the images
-    determine). Sorted best (lowest BIC) first; of equal scores, the fewer free parameters first
-    (a near light fitted at a distance the images cannot tell from infinity adds none they see). ``RSS/n`` is floored at float rounding
+    determine). Sorted by BIC, except that the first is the simplest (fewest free parameters)
+    of the models within :data:`TOLD_APART` of the lowest BIC: the images do not tell those apart
+    (a near light fitted at a distance they cannot tell from infinity adds no parameter they see,
+    and scores as the model without it). ``RSS/n`` is floored at float rounding
     (``(ε · rms target)²``), so among models that all reproduce a noise-free target exactly
     the one with fewer parameters wins instead of a comparison of rounding noise.
     ``given``: an existing fit of the model as given (not repeated); ``fit_kw``: :func:`fitting.fit`'s
@@ -170,5 +176,9 @@ def compare_models(
         aic = n * np.log(ms) + 2 * k
         bic = n * np.log(ms) + k * np.log(n)
         out.append(ModelScore(name, o, fr, r, n, k, r.residual.rss, float(aic), float(bic)))
-    out.sort(key=lambda m: (round(m.bic, 6), len(m.free)))  # (a tie: the fewer free parameters)
-    return out
+    out.sort(key=lambda m: m.bic)
+    # within TOLD_APART of the lowest BIC the images do not tell the models apart: the simplest of
+    # them (the fewest free parameters) is the one they support, and goes first
+    close = [m for m in out if m.bic - out[0].bic < TOLD_APART]
+    pick = min(close, key=lambda m: (len(m.free), m.bic))
+    return [pick] + [m for m in out if m is not pick]

@@ -560,7 +560,9 @@ class Problem:
         target's entries censored from below (read 0: the noise clipped at the sensor's zero) then
         take the working target :math:`E[y \mid y \le 0] = I - \sigma\,\varphi(\alpha)/\Phi(\alpha)`,
         :math:`\alpha = -I/\sigma` at the model's :math:`I` and its noise :math:`\sigma`, as
-        two-sided entries: the EM iteration of the censored (Tobit) likelihood. A one-sided
+        two-sided entries, and those clipped at the saturation level :math:`c` the mirror image,
+        :math:`I + \sigma\,\varphi(\beta)/\Phi(\beta)`, :math:`\beta = (I - c)/\sigma`: the EM
+        iteration of the censored (Tobit) likelihood. A one-sided
         residual there is biased: the uncensored entries near 0 are the noise's positive tail, and
         with nothing pulling the model down an offset (a black level) fits them (measured on a
         capture with attached shadows: a black level of 0.4σ fitted, ΔBIC 400, where none was).
@@ -568,7 +570,7 @@ class Problem:
         from ._noise import noise_weights
 
         base = self._memo.setdefault("base weights", [vd.weight for vd in self.data])
-        targets0 = self._memo.setdefault("base targets", [(vd.target, vd.lo) for vd in self.data])
+        targets0 = self._memo.setdefault("base targets", [(vd.target, vd.lo, vd.hi) for vd in self.data])
         model = self.noise_model == "level" and noise_weights(self, sigma) is not None
         off, change = 0, 0.0
         for k, (vd, b) in enumerate(zip(self.data, self.views)):
@@ -603,11 +605,13 @@ class Problem:
         self._placed.clear()
         return change
 
-    def _tobit_view(self, vd, b, I, w_base, t0, lo0):
+    def _tobit_view(self, vd, b, I, w_base, t0, lo0, hi0):
         """A linear target's view data re-taken at the model ``I`` under the level-dependent noise
-        model: weights ``w_base × σ̄/σ(m)``, and the entries censored from below (``lo0``, the
-        built mask) two-sided at their censored expectation (:meth:`relinearise`); with the
-        largest change of those working targets, in their σ."""
+        model: weights ``w_base × σ̄/σ(m)``, and the entries censored at a clip level (``lo0``:
+        read 0; ``hi0`` read at the saturation level; the built masks) two-sided at their censored
+        expectation (:meth:`relinearise`); with the largest change of those working targets, in
+        their σ. (An entry averaged from clipped sub-pixels, below the saturation level, stays
+        one-sided: its clip level is not known.)"""
         from scipy.special import log_ndtr
 
         from ._noise import noise_weights
@@ -615,22 +619,37 @@ class Problem:
         weigh = noise_weights(self)
         w_base = np.asarray(w_base, np.float64)
         f = weigh(I * w_base)
-        w_new = np.where(np.asarray(vd.hi), np.asarray(vd.weight, np.float64), w_base * f)
-        lo0 = np.asarray(lo0, bool)
         t_new = np.asarray(t0, np.float64)
+        lo0 = np.asarray(lo0, bool)
+        hi0 = np.asarray(hi0, bool)
+        top = self.saturation
+        up = hi0 & (t_new >= top) if top is not None else np.zeros_like(hi0)
+        keep_hi = hi0 & ~up  # (one-sided as built)
+        w_new = np.where(keep_hi, np.asarray(vd.weight, np.float64), w_base * f)
         moved = 0.0
-        if lo0.any():
+        em = lo0 | up
+        if em.any():
             # σ in linear units: the residual's σ̄/f over the base weight (padding: weight 0)
             sig = np.where(w_base > 0, weigh.sigma / np.maximum(f, 1e-300) / np.where(w_base > 0, w_base, 1.0), 1.0)
-            alpha = -I / sig
-            mills = np.exp(-0.5 * alpha**2 - 0.5 * np.log(2 * np.pi) - log_ndtr(alpha))  # φ(α)/Φ(α)
-            t_new = np.where(lo0, I - sig * mills, t_new)
-            was = np.asarray(vd.target, np.float64) if not np.asarray(vd.lo).any() else t_new
-            moved = float(np.max(np.abs(t_new - was)[lo0] / sig[lo0]))
+
+            def mills(x):  # φ(x)/Φ(x), stable in both tails
+                return np.exp(-0.5 * x**2 - 0.5 * np.log(2 * np.pi) - log_ndtr(x))
+
+            t_new = np.where(lo0, I - sig * mills(-I / sig), t_new)
+            if top is not None:
+                t_new = np.where(up, I + sig * mills((I - top) / sig), t_new)
+            first = np.asarray(vd.lo).any() or bool((np.asarray(vd.hi) & up).any())
+            was = t_new if first else np.asarray(vd.target, np.float64)
+            moved = float(np.max(np.abs(t_new - was)[em] / sig[em]))
         vd = eqx.tree_at(
-            lambda d: (d.target, d.weight, d.lo),
+            lambda d: (d.target, d.weight, d.lo, d.hi),
             vd,
-            (on_device(t_new, vd.target.dtype), on_device(w_new, vd.weight.dtype), on_device(np.zeros_like(lo0))),
+            (
+                on_device(t_new, vd.target.dtype),
+                on_device(w_new, vd.weight.dtype),
+                on_device(np.zeros_like(lo0)),
+                on_device(keep_hi),
+            ),
         )
         return vd, moved
 

@@ -632,14 +632,15 @@ def _compare(scene, opts, obs, args, r, fit_kw):
     scores = compare_models(scene, opts, obs, args.free, given=r, **fit_kw)
     report = [
         "",
-        "model comparison (lowest BIC first; ΔBIC > 10 is strong evidence):",
+        "model comparison (by BIC, the supported model first: the simplest within ΔBIC 2 of the lowest; ΔBIC > 10 is strong evidence):",
         f"{'model':14s} {'k':>3s} {'RSS':>11s} {'AIC':>14s} {'BIC':>14s} {'ΔBIC':>9s} result",
     ]
     comparison = []
+    low = min(m.bic for m in scores)
     for m in scores:
         report.append(
             f"{m.name:14s} {m.k:3d} {m.rss:11.4e} {m.aic:14.1f} {m.bic:14.1f} "
-            f"{m.bic - scores[0].bic:9.1f} {m.fit.result or 'successful'}"
+            f"{m.bic - low:9.1f} {m.fit.result or 'successful'}"
         )
         comparison.append(
             {
@@ -652,7 +653,7 @@ def _compare(scene, opts, obs, args, r, fit_kw):
                 "rss": m.rss,
                 "aic": m.aic,
                 "bic": m.bic,
-                "delta_bic": m.bic - scores[0].bic,
+                "delta_bic": m.bic - low,
                 "fit": m.fit.as_dict(),
             }
         )
