@@ -712,6 +712,34 @@ def _write_outputs(args, meta, r, report, comparison, outputs, fitted, sheet, en
     _write_text("\n".join(report) + "\n", outputs[3])
 
 
+def _observations(args, tg, views, masks):
+    """The fit's :class:`fitting.Observations` from the command line and the targets as read."""
+    from . import Observations
+
+    capture = getattr(tg, "clipped", None) is not None
+    return Observations(
+        tg.images,
+        views=views,
+        masks=masks,
+        encoding=[e for e, _ in tg.encodings],
+        saturation=tg.saturation,
+        quantum=tg.quantum,
+        noise=args.noise,
+        margin=args.margin,
+        clipped=getattr(tg, "clipped", None),
+        clip_margin=_clip_margin(args, tg),
+        noise_model=args.noise_model or ("level" if capture else "uniform"),
+    )
+
+
+def _write_holdout_plot(held, out_dir: Path) -> None:
+    """``holdout.png``: the held-out views' RMS over the noise (:func:`fitting._sheet.holdout_plot`)."""
+    from ._sheet import holdout_plot
+
+    _write_image(holdout_plot(held), out_dir / "holdout.png", True, "srgb")
+    print(f"wrote {out_dir / 'holdout.png'} (the held-out views' RMS over the noise)")
+
+
 def _mean_gauge(r):
     """The fit's per-view gains in the geometric-mean gauge (:func:`fitting.mean_gauge`), where
     ``view[*].camera.exposure`` was free; else None."""
@@ -752,7 +780,7 @@ def _clip_margin(args, tg) -> int:
 
 def cmd_fit(args) -> int:
 
-    from . import Observations, Optimistix, ParamSet, VarPro, _options, fit
+    from . import Optimistix, ParamSet, VarPro, _options, fit
 
     scene_path = Path(args.scene)
     scene, opts, views, tg, masks, view_paths, camera_paths, inputs = _fit_inputs(args, scene_path)
@@ -762,19 +790,7 @@ def cmd_fit(args) -> int:
         f"fitting {', '.join(args.free)} to {len(tg.images)} image(s) of {views[0].camera.width}x"
         f"{views[0].camera.height} with {args.solver}" + (" (clipped pixels censored)" if tg.saturation else "")
     )
-    obs = Observations(
-        tg.images,
-        views=views,
-        masks=masks,
-        encoding=[e for e, _ in tg.encodings],
-        saturation=tg.saturation,
-        quantum=tg.quantum,
-        noise=args.noise,
-        margin=args.margin,
-        clipped=getattr(tg, "clipped", None),
-        clip_margin=_clip_margin(args, tg),
-        noise_model=args.noise_model or ("level" if getattr(tg, "clipped", None) is not None else "uniform"),
-    )
+    obs = _observations(args, tg, views, masks)
     strategy = (
         VarPro(max_steps=args.max_steps, verbose=args.verbose)
         if args.solver == "varpro"
@@ -822,11 +838,7 @@ def cmd_fit(args) -> int:
     if "mesh.colors" in pset.names:
         _write_albedo(fitted, Path(args.output_dir))
     if held is not None:
-        from ._sheet import holdout_plot
-
-        plot = holdout_plot(held)
-        _write_image(plot, Path(args.output_dir) / "holdout.png", True, "srgb")
-        print(f"wrote {Path(args.output_dir) / 'holdout.png'} (the held-out views' RMS over the noise)")
+        _write_holdout_plot(held, Path(args.output_dir))
     views_said = "" if shown == list(range(len(pairs))) else f", views {shown} (the worst and a spread, worst first)"
     print(
         f"wrote {', '.join(str(o) for o in outputs)} (fit.png: target | fit | 10x residual + 0.5"
