@@ -49,6 +49,15 @@ class _Pinhole(eqx.Module):
 
     orthographic: ClassVar[bool] = False
 
+    def _check(self, *vectors: str) -> None:
+        """The camera's 3-vectors ``vectors`` shaped (3,) and its image size positive integers."""
+        kind = type(self).__name__
+        for name in vectors:
+            if jnp.shape(getattr(self, name)) != (3,):
+                raise ValueError(f"{kind}.{name} must have shape (3,), got {jnp.shape(getattr(self, name))}")
+        if not (isinstance(self.width, int) and isinstance(self.height, int)) or self.width < 1 or self.height < 1:
+            raise ValueError(f"{kind} image size must be positive integers, got {self.width}x{self.height}")
+
     @property
     def resolution(self) -> tuple[int, int]:
         """``(height, width)`` in pixels."""
@@ -116,11 +125,7 @@ class Camera(_Pinhole):
     black_level: Float[Array, "3"] = eqx.field(converter=rgb_array, default=(0.0, 0.0, 0.0))
 
     def __check_init__(self):
-        for name in ("eye", "target", "up"):
-            if jnp.shape(getattr(self, name)) != (3,):
-                raise ValueError(f"Camera.{name} must have shape (3,), got {jnp.shape(getattr(self, name))}")
-        if not (isinstance(self.width, int) and isinstance(self.height, int)) or self.width < 1 or self.height < 1:
-            raise ValueError(f"Camera image size must be positive integers, got {self.width}x{self.height}")
+        self._check("eye", "target", "up")
 
     def view_matrix(self) -> Float[Array, "4 4"]:
         """World → eye transform of ``gluLookAt``."""
@@ -168,13 +173,7 @@ class OrthographicCamera(_Pinhole):
     orthographic: ClassVar[bool] = True
 
     def __check_init__(self):
-        for name in ("eye", "target", "up"):
-            if jnp.shape(getattr(self, name)) != (3,):
-                raise ValueError(
-                    f"OrthographicCamera.{name} must have shape (3,), got {jnp.shape(getattr(self, name))}"
-                )
-        if not (isinstance(self.width, int) and isinstance(self.height, int)) or self.width < 1 or self.height < 1:
-            raise ValueError(f"OrthographicCamera image size must be positive integers, got {self.width}x{self.height}")
+        self._check("eye", "target", "up")
 
     @classmethod
     def capture(
@@ -299,11 +298,7 @@ class OpenCVCamera(_Pinhole):
     distortion: Float[Array, " D"] = eqx.field(converter=as_float_array, default=(0.0, 0.0, 0.0, 0.0, 0.0))
 
     def __check_init__(self):
-        for name in ("rvec", "tvec"):
-            if jnp.shape(getattr(self, name)) != (3,):
-                raise ValueError(f"OpenCVCamera.{name} must have shape (3,), got {jnp.shape(getattr(self, name))}")
-        if not (isinstance(self.width, int) and isinstance(self.height, int)) or self.width < 1 or self.height < 1:
-            raise ValueError(f"OpenCVCamera image size must be positive integers, got {self.width}x{self.height}")
+        self._check("rvec", "tvec")
 
     @classmethod
     def from_opencv(

@@ -84,12 +84,10 @@ def _checked(normals, camera, mask):
 
 
 def _rays(camera):
-    """Per pixel centre: the ray's direction in OpenCV's camera frame at depth 1 (``[H, W, 3]``)
-    and the NDC grid ``(X, Y)`` of the centres."""
+    """Per pixel centre: the ray's direction in OpenCV's camera frame at depth 1 (``[H, W, 3]``)."""
     h, w = camera.height, camera.width
     X, Y = np.meshgrid((2 * np.arange(w) + 1) / w - 1, 1 - (2 * np.arange(h) + 1) / h)
-    r = _eye_points(camera, X, Y, 1.0) * [1.0, -1.0, -1.0]
-    return r, X, Y
+    return _eye_points(camera, X, Y, 1.0) * [1.0, -1.0, -1.0]
 
 
 def integrate_normals(normals, camera, mask=None, depth: float = 1.0) -> np.ndarray:
@@ -102,7 +100,7 @@ def integrate_normals(normals, camera, mask=None, depth: float = 1.0) -> np.ndar
     n, m = _checked(normals, camera, mask)
     R = np.asarray(camera.view_matrix(), np.float64)[:3, :3] * np.array([[1.0], [-1.0], [-1.0]])
     nc = n @ R.T  # OpenCV's camera frame: x right, y down, z forward
-    r, _, _ = _rays(camera)
+    r = _rays(camera)
     P = np.asarray(camera.projection_matrix(), np.float64)
     step = (2.0 / (P[0, 0] * camera.width), 2.0 / (P[1, 1] * camera.height))  # an orthographic pixel's size
     idx = -np.ones(m.shape, np.int64)

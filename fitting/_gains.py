@@ -92,9 +92,8 @@ def mean_gauge(result) -> GainGauge:
         T[n + a, : n - 1] = G * k[a] / (n * g[1:])
         T[n + a, n - 1 + a] = G
     C = result.covariance[np.ix_(idx, idx)]
-    with np.errstate(invalid="ignore"):
-        V = T @ np.nan_to_num(C, nan=0.0) @ T.T
-        se = np.sqrt(np.clip(np.diag(V), 0, None))
+    V = T @ np.nan_to_num(C, nan=0.0) @ T.T
+    se = np.sqrt(np.clip(np.diag(V), 0, None))
     # an input without an error (a gauge, an undetermined scalar) leaves every output it moves without one
     unknown = ~np.isfinite(np.diag(C))
     se[(np.abs(T[:, unknown]) > 0).any(axis=1)] = np.inf

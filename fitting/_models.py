@@ -73,10 +73,10 @@ IMAGING_TERMS = {
 NEAR_START = 30.0
 
 
-def _near_views(views, radius_centre):
+def _near_views(views, centre_radius):
     """Every view's directional light made a near one at :data:`NEAR_START` object radii from the
     object's centre (falloff 0)."""
-    centre, radius = radius_centre
+    centre, radius = centre_radius
     out = []
     for v in views:
         d = v.directional

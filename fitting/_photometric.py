@@ -171,10 +171,8 @@ def sphere_from_mask(mask: np.ndarray, K: np.ndarray | None, subdivisions: int =
     :data:`ORTHOGRAPHIC_DEPTH`)."""
     cx, cy, r = _object_pixels(mask)
     sphere = ds.icosphere(subdivisions)
-    if K is None:
-        cam = orthographic_camera(mask)
-        s = float(cam.pixel_size)
-        c = np.array([(cx - (mask.shape[1] - 1) / 2) * s, (cy - (mask.shape[0] - 1) / 2) * s, ORTHOGRAPHIC_DEPTH])
+    if K is None:  # (orthographic_camera's pixel size: 1/r)
+        c = np.array([(cx - (mask.shape[1] - 1) / 2) / r, (cy - (mask.shape[0] - 1) / 2) / r, ORTHOGRAPHIC_DEPTH])
         return ds.Mesh(np.asarray(sphere.vertices) + c, np.asarray(sphere.faces))
     d = np.linalg.solve(K, [cx, cy, 1.0])
     d /= np.linalg.norm(d)
@@ -199,12 +197,17 @@ def orthographic_camera(mask: np.ndarray, f: int = 1, how: str = "sample") -> ds
     return ds.OrthographicCamera.capture(w // f, h // f, pixel_size=s * f, centre=c, depth=ORTHOGRAPHIC_DEPTH)
 
 
+def _in_camera_frame(v: np.ndarray, flip_y: bool, flip_z: bool) -> np.ndarray:
+    """Capture-frame vectors (``[..., 3]``, read with the flips) in OpenCV's camera frame."""
+    flips = np.array([1.0, -1.0 if flip_y else 1.0, -1.0 if flip_z else 1.0])
+    return np.asarray(v, np.float64) * flips * np.array([1.0, -1.0, -1.0])
+
+
 def to_camera_frame(directions: np.ndarray, flip_y: bool = False, flip_z: bool = False) -> np.ndarray:
     """Capture-frame directions (towards the lights) as diffshade's propagation directions in the
     OpenCV camera frame (see the module's "Frames")."""
-    d = np.asarray(directions, np.float64) * np.array([1.0, -1.0 if flip_y else 1.0, -1.0 if flip_z else 1.0])
-    d = d / np.linalg.norm(d, axis=1, keepdims=True)
-    return -d * np.array([1.0, -1.0, -1.0])
+    d = _in_camera_frame(directions, flip_y, flip_z)
+    return -d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
 def load_photometric_stereo(
@@ -310,8 +313,7 @@ def _normal_map_geometry(path: Path, full_mask, mask, cam, K, f: int, how: str, 
     if n.shape[:2] != full_mask.shape:
         h, w = full_mask.shape
         raise FitError(f"{path}: the normal map is {n.shape[1]}x{n.shape[0]}, but the mask is {w}x{h}")
-    flip_y, flip_z = flips
-    n = n * np.array([1.0, -1.0 if flip_y else 1.0, -1.0 if flip_z else 1.0]) * np.array([1.0, -1.0, -1.0])
+    n = _in_camera_frame(n, *flips)
     has = np.linalg.norm(n, axis=-1) > 0.5
     if f > 1 and how == "average":
         n = downsample(np.where(full_mask[..., None], n, 0.0), f).image

@@ -165,12 +165,11 @@ def relinearise(prob, ev, red, best, polish_steps, rtol, n2, noise):
     """For encoded targets: residuals in code values, exactly at the model (IRLS passes of
     :meth:`Problem.relinearise`, each followed by the polish from the current best). Returns
     ``(best, evaluations, notes)``."""
-    if not prob.reweighted:
-        return best, 0, []
-    steps = 0
     from ._noise import noise_weights
 
-    passes = 0
+    if not prob.reweighted:
+        return best, 0, []
+    steps = passes = 0
     while passes < CENSORED_PASSES:
         moved = prob.relinearise(best.img, best.sigma)
         if not prob.encoded and noise_weights(prob) is None:
@@ -198,9 +197,9 @@ def relinearise_note(prob) -> str:
     if w is not None:
         fits = ", ".join(f"{a:.3g} + {b:.3g}·m" for a, b in w.models)
         what.append(f"the noise's level-dependent weights σ̄/σ(m) (σ² = {fits} per channel, σ̄ = {w.sigma:.3g})")
-    elif prob.noise_model == "level":
-        why = prob._memo.get("noise weights why", "")
-        note = f"no level-dependent noise weights ({why}): uniform weights"
-        return note if not what else "; ".join(what) + f" re-taken at the model {RELINEARISE_PASSES}×; " + note
     passes = prob._memo.get("relinearise passes", RELINEARISE_PASSES)
-    return "; ".join(what) + f" re-taken at the model {passes}× (iteratively reweighted least squares)"
+    note = "; ".join(what) + f" re-taken at the model {passes}× (iteratively reweighted least squares)"
+    if w is None and prob.noise_model == "level":
+        why = f"no level-dependent noise weights ({prob._memo.get('noise weights why', '')}): uniform weights"
+        return note + "; " + why if what else why
+    return note

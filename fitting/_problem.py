@@ -577,25 +577,19 @@ class Problem:
             n = vd.target.shape[0]
             I = np.asarray(img_flat[off * 3 : (off + n) * 3], np.float64).reshape(n, 3)
             off += n
-            if b.encoding is None and not model:
-                continue
-            if b.encoding is None and model:
-                self.data[k], moved = self._tobit_view(vd, b, I, base[k], *targets0[k])
-                change = max(change, moved)
+            if b.encoding is None:  # (linear: only the noise model re-takes anything)
+                if model:
+                    self.data[k], moved = self._tobit_view(vd, I, base[k], *targets0[k])
+                    change = max(change, moved)
                 continue
             cens = censored(vd)
-            if b.encoding is None:
-                t_new, w_new = np.asarray(vd.target, np.float64), np.asarray(base[k], np.float64)
-                level = I * w_new
-            else:
-                floor = (self.quantum or 1 / 255) / 2
-                e = np.asarray(color.encode(np.clip(I, 0.0, None), b.encoding), np.float64)
-                slope = color.decode_slope(np.clip(e, 0.0, 1.0), b.encoding, floor=floor)  # dL/dv at the model
-                t_new = np.where(cens, np.asarray(vd.target, np.float64), I + (b.codes - e) * slope)
-                w_new = b.sqrt_mask / slope
-                level = e * b.sqrt_mask
+            floor = (self.quantum or 1 / 255) / 2
+            e = np.asarray(color.encode(np.clip(I, 0.0, None), b.encoding), np.float64)
+            slope = color.decode_slope(np.clip(e, 0.0, 1.0), b.encoding, floor=floor)  # dL/dv at the model
+            t_new = np.where(cens, np.asarray(vd.target, np.float64), I + (b.codes - e) * slope)
+            w_new = b.sqrt_mask / slope
             if model:
-                w_new = w_new * noise_weights(self)(level)
+                w_new = w_new * noise_weights(self)(e * b.sqrt_mask)
             w_new = np.where(cens, np.asarray(vd.weight, np.float64), w_new)
             self.data[k] = eqx.tree_at(
                 lambda d: (d.target, d.weight),
@@ -605,7 +599,7 @@ class Problem:
         self._placed.clear()
         return change
 
-    def _tobit_view(self, vd, b, I, w_base, t0, lo0, hi0):
+    def _tobit_view(self, vd, I, w_base, t0, lo0, hi0):
         """A linear target's view data re-taken at the model ``I`` under the level-dependent noise
         model: weights ``w_base × σ̄/σ(m)``, and the entries censored at a clip level (``lo0``:
         read 0; ``hi0`` read at the saturation level; the built masks) two-sided at their censored
@@ -638,9 +632,8 @@ class Problem:
             t_new = np.where(lo0, I - sig * mills(-I / sig), t_new)
             if top is not None:
                 t_new = np.where(up, I + sig * mills((I - top) / sig), t_new)
-            first = np.asarray(vd.lo).any() or bool((np.asarray(vd.hi) & up).any())
-            was = t_new if first else np.asarray(vd.target, np.float64)
-            moved = float(np.max(np.abs(t_new - was)[em] / sig[em]))
+            # (the first pass moves them from the clip level itself: the passes' minimum goes on anyway)
+            moved = float(np.max(np.abs(t_new - np.asarray(vd.target, np.float64))[em] / sig[em]))
         vd = eqx.tree_at(
             lambda d: (d.target, d.weight, d.lo, d.hi),
             vd,

@@ -745,8 +745,6 @@ def _mean_gauge(r):
     ``view[*].camera.exposure`` was free; else None."""
     from . import FitError, mean_gauge
 
-    if not any(n.endswith("].camera.exposure") and n.startswith("view[") for n in r.names):
-        return None
     try:
         return mean_gauge(r)
     except FitError:
