@@ -4,7 +4,8 @@ errors of ±2 %, a black level), and always level-dependent noise and bloom arou
 highlights; the shape a normal map (a sphere or the scanned bunny, orthographic, no K.txt, as
 DiLiGenT ships objects). Every subset of the terms is fitted (fitting.imaging_variants) and the
 lowest BIC picks one: how often is it the truth's, does the picked fit recover the material
-(within 3 s.e.), and is the verdict right?
+(within 3 s.e.), is the verdict right, and is each present term, left out, rejected and named
+in the notes?
 
     python benchmarks/bench_imaging.py --cases 20 [--size 48] [--views 12]
 """
@@ -103,7 +104,28 @@ def run(seed: int, size: int, views: int, noise: float) -> dict:
         "delta_bic_next": float(scores[1].bic - scores[0].bic),
         "seconds": seconds,
         "rejected_without": {m.name: bool(not m.fit.successful) for m in scores},
+        "left_out": left_out(scores, present),
     }
+
+
+#: The parameter a rejected fit's notes name for each term (fitting._report.misfit_pointers).
+NAMED_BY = {
+    "near lights": "directional[0].distance",
+    "gains": "view[*].camera.exposure",
+    "black level": "camera.black_level",
+}
+
+
+def left_out(scores, present) -> dict:
+    """For each term present: is the fit with every other present term but that one rejected,
+    and do its notes name the term's parameter?"""
+    by_name = {m.name: m for m in scores}
+    out = {}
+    for t in present:
+        rest = [e for e in EFFECTS if e in present and e != t]
+        m = by_name["+ " + " + ".join(rest) if rest else "as given"]
+        out[t] = {"rejected": not m.fit.successful, "named": NAMED_BY[t] in " ".join(m.fit.notes)}
+    return out
 
 
 def main() -> None:
@@ -129,6 +151,12 @@ def main() -> None:
     print(
         f"selection right in {right}/{len(rows)}; picked fits accepted in {sum(r['accepted'] for r in rows)}/{len(rows)}"
     )
+    for t in EFFECTS:
+        lo = [r["left_out"][t] for r in rows if t in r["left_out"]]
+        print(
+            f"{t} left out: rejected in {sum(x['rejected'] for x in lo)}/{len(lo)}, "
+            f"the notes name {NAMED_BY[t]} in {sum(x['named'] for x in lo)}/{len(lo)}"
+        )
     if a.json:
         Path(a.json).write_text(json.dumps(rows, indent=1))
 

@@ -15,12 +15,15 @@ then a ratio near 1 says the held-out views are explained as well as the fitted 
 from __future__ import annotations
 
 import dataclasses
+import re
 from dataclasses import dataclass
 
+import equinox as eqx
 import numpy as np
 
 import diffshade as ds
 
+from ._gains import _GAIN
 from ._observations import FitError, Observations
 from ._params import ParamSet
 from ._problem import _cover, censored_residual_np
@@ -41,6 +44,8 @@ class Holdout:
     noise: float
     noise_source: str
     quantum: float | None
+    # with per-view gains free: each held-out view's gain (over its calibration), fitted to it alone
+    gains: list[float] | None = None
 
     @property
     def ratio(self) -> list[float]:
@@ -67,6 +72,7 @@ class Holdout:
             "ratio_all": self.ratio_all,
             "noise": self.noise,
             "noise_source": self.noise_source,
+            **({"gains": self.gains} if self.gains is not None else {}),
         }
 
     def lines(self) -> list[str]:
@@ -109,22 +115,37 @@ def subset(obs: Observations, idx) -> Observations:
 def evaluate(
     scene: ds.Scene, opts: ds.RenderOptions, obs: Observations, free, r: FitResult, held, shared=()
 ) -> Holdout:
-    """The residual of the views ``held`` of ``obs`` rendered with ``r``'s values of ``free``."""
+    """The residual of the views ``held`` of ``obs`` rendered with ``r``'s values of ``free``.
+    Per-view gains (``view[*].camera.exposure``) are the only per-view parameters a view the fit
+    did not see can have: a light's calibration error is its own, so each held-out view's gain
+    is fitted to it alone (one scalar, in closed form; :attr:`Holdout.gains`), and what is
+    scored is how well the rest predicts the image's shape."""
     names = list(free) + list(shared)
-    if any(n.startswith("view[") for n in names):
+    per_view = [n for n in names if n.startswith("view[")]
+    if any(not _PER_VIEW_GAIN.match(n) for n in per_view):
         raise FitError(
-            "holdout: a per-view parameter (view[i]. / view[*].) has no fitted value for a view the fit did not see"
+            "holdout: a per-view parameter (view[i]. / view[*].) has no fitted value for a view the fit did not "
+            "see (only per-view gains, view[*].camera.exposure, are predicted: at the training views' geometric mean)"
         )
-    pset = ParamSet(list(free), scene, shared, n_views=1)
+    free = [n for n in free if n not in per_view]
+    shared = [n for n in shared if n not in per_view]
+    pset = ParamSet(free, scene, shared, n_views=1)
+    theta = np.asarray([r.values[r.names.index(lab)] for lab in pset.labels], np.float64)
     views = obs.views_of(scene)
+    gain = training_gain(r, views, held) if per_view else 1.0
     masks = list(obs.masks) if obs.masks is not None else [None] * len(obs.targets)
     lower = obs.saturation is not None
     rms, entries, ss_all, n_all = [], [], 0.0, 0
+    gains = []
     for k in held:
-        v = pset.apply(views[k], r.values)
+        v = pset.apply(views[k], theta)
         c = _cover(k, obs.targets[k], v, masks[k], obs.encodings[k], obs, lower, opts, ds.scene_visibility)
-        img = np.asarray(ds.render(v, opts), np.float64)
         w = c.wgt[..., None] * c.chan_w * c.used[..., None]  # (as the fit weighs each entry)
+        if per_view:
+            img, g = _gain_fitted(v, opts, c, w, gain)
+            gains.append(g)
+        else:
+            img = np.asarray(ds.render(v, opts), np.float64)
         d = censored_residual_np(img - c.t, c.hi, c.lo) * w
         ss, n = float(np.sum(d**2)), int(((w > 0) & ~(c.hi | c.lo)).sum())
         rms.append(float(np.sqrt(ss / max(n, 1))))
@@ -138,7 +159,42 @@ def evaluate(
         noise=float(r.residual.noise),
         noise_source=r.residual.noise_source,
         quantum=obs.quantum,
+        gains=gains or None,
     )
+
+
+def _gain_fitted(v, opts, c, w, start: float):
+    """A held-out view's image at its own best gain, and that gain over its calibration: the
+    image is affine in the exposure (:math:`I_0 + g\\,S`, the black level added after it), so
+    two renders give it and the two-sided entries' least squares the gain."""
+    e = float(v.camera.exposure) * start
+    at = lambda x: np.asarray(ds.render(eqx.tree_at(lambda s: s.camera.exposure, v, x), opts), np.float64)  # noqa: E731
+    i1, i2 = at(e), at(2 * e)
+    S = (i2 - i1) / e
+    i0 = i1 - e * S
+    two = (w > 0) & ~(c.hi | c.lo)
+    ww = np.where(two, w * w, 0.0)
+    den = float(np.sum(ww * S * S))
+    g = float(np.sum(ww * (c.t - i0) * S)) / den if den > 0 else e
+    g = g if g > 0 else e
+    return i0 + g * S, g / float(v.camera.exposure)
+
+
+_PER_VIEW_GAIN = re.compile(r"^view\[(\d+|\*|:)\]\.camera\.exposure$")
+
+
+def training_gain(r: FitResult, views, held) -> float:
+    """The geometric mean of the training fit's gains over the exposures its views were given
+    (``views``: every view's scene, ``held``: those the fit did not see; a training view whose
+    gain is not free, the reference view 0, counts with 1): in the fit's gauge, a held-out
+    light's gain before its own is fitted (the calibration is right on average,
+    :func:`fitting.mean_gauge`)."""
+    fitted = {int(m.group(1)): float(r.values[i]) for i, n in enumerate(r.names) if (m := _GAIN.match(n))}
+    train = [k for k in range(len(views)) if k not in set(held)]
+    ratios = [
+        fitted.get(i, float(views[k].camera.exposure)) / float(views[k].camera.exposure) for i, k in enumerate(train)
+    ]
+    return float(np.exp(np.mean(np.log(ratios))))
 
 
 def holdout_fit(scene, opts, obs: Observations, free, every: int, **fit_kw) -> tuple[FitResult, Holdout]:

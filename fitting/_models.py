@@ -13,6 +13,7 @@ import diffshade as ds
 
 from . import _options
 from ._fit import fit
+from ._holdout import Holdout, holdout_fit
 from ._observations import Observations
 from ._report import FitResult
 
@@ -39,6 +40,7 @@ class ModelScore:
     rss: float
     aic: float
     bic: float
+    holdout: Holdout | None = None  # with compare_models(holdout=K): the held-out views' residual
 
 
 def model_variants(scene: ds.Scene, opts: ds.RenderOptions, free):
@@ -143,6 +145,8 @@ def compare_models(
     *,
     variants=None,
     given: FitResult | None = None,
+    holdout: int | None = None,
+    given_holdout: Holdout | None = None,
     **fit_kw,
 ) -> list[ModelScore]:
     r"""Fit every variant (default :func:`model_variants`) and score it by AIC and BIC,
@@ -160,6 +164,13 @@ def compare_models(
     keyword arguments (``shared``, ``strategy``, ...). A variant may carry its own observations
     as a fifth element (:func:`imaging_variants`: near lights change every view's scene); they
     must hold the same entries (the scores compare one data set).
+
+    ``holdout``: every ``holdout``-th view held out (:func:`fitting.holdout_fit`): each variant is
+    fitted on the others, its criteria are those of that fit, and its :attr:`ModelScore.holdout`
+    is the held-out views' residual under it (per-view gains predicted at the training views'
+    geometric mean): the held-out error ranks the variants by what they predict, beside the
+    criteria's ranking by what they explain. ``given`` is then a fit on the training views
+    and ``given_holdout`` its held-out residual.
     """
     targets = observations.targets
     variants = model_variants(scene, opts, free) if variants is None else variants
@@ -169,16 +180,27 @@ def compare_models(
     out = []
     for name, o, fr, sc, *obs in variants:
         obs = obs[0] if obs else observations
-        r = given if (given is not None and name == "as given") else fit(sc, o, obs, fr, **fit_kw)
+        held = None
+        if given is not None and name == "as given":
+            r, held = given, given_holdout
+        elif holdout is not None:
+            r, held = holdout_fit(sc, o, obs, fr, holdout, **fit_kw)
+        else:
+            r = fit(sc, o, obs, fr, **fit_kw)
         n = int(r.residual.n)
         k = len(r.names) - len(r.diagnostics.undetermined)
         ms = max(r.residual.rss / n, (eps**2) * scale2)
         aic = n * np.log(ms) + 2 * k
         bic = n * np.log(ms) + k * np.log(n)
-        out.append(ModelScore(name, o, fr, r, n, k, r.residual.rss, float(aic), float(bic)))
-    out.sort(key=lambda m: m.bic)
-    # within TOLD_APART of the lowest BIC the images do not tell the models apart: the simplest of
-    # them (the fewest free parameters) is the one they support, and goes first
+        out.append(ModelScore(name, o, fr, r, n, k, r.residual.rss, float(aic), float(bic), held))
+    return ranked(out)
+
+
+def ranked(scores: list[ModelScore]) -> list[ModelScore]:
+    """Scores of one data set sorted by BIC, the supported model first: within
+    :data:`TOLD_APART` of the lowest BIC the images do not tell the models apart, and the
+    simplest of those (the fewest free parameters) is the one they support."""
+    out = sorted(scores, key=lambda m: m.bic)
     close = [m for m in out if m.bic - out[0].bic < TOLD_APART]
     pick = min(close, key=lambda m: (len(m.free), m.bic))
     return [pick] + [m for m in out if m is not pick]

@@ -16,6 +16,14 @@ Photon noise grows with the signal: per channel, the variance is fitted as :math
 (:math:`a, b \ge 0`) against the windows' mean :math:`m` in up to 8 quantile bins, and the noise
 level the verdict compares the residual with is the mean of :math:`a + b\,t_i` over the used
 entries :math:`t_i` — what :math:`\mathrm{RSS}/n` is expected to be at the truth.
+
+Where the dark entries are clipped at the sensor's zero (an attached shadow of a linear capture
+without a black level), no 3×3 window there is whole, the lowest bin sits far above 0 and the
+read noise :math:`a` is an extrapolation (measured: 8.5e-6 for a true 1.6e-5, the bins at
+m ≥ 0.15). The level-dependent weights then measure it where the signal is 0
+(:func:`dark_read_noise`): the censored (Tobit) likelihood of the entries whose model level is
+within a few σ of 0, with a free offset (so that a black level the model lacks is not taken for
+noise), and :math:`b` refitted to the bins with that intercept.
 """
 
 from __future__ import annotations
@@ -77,20 +85,25 @@ def robust_variance(d: np.ndarray, floor: float = 0.0) -> float:
     return v
 
 
-def variance_model(d: np.ndarray, m: np.ndarray, floor: float) -> tuple[float, float]:
-    """``(a, b)`` of the variance :math:`a + b\\,m`, both ``>= 0``, from the windows' details ``d``
-    and means ``m``, fitted over quantile bins of ``m`` weighted by their counts."""
+def level_bins(d: np.ndarray, m: np.ndarray, floor: float) -> list[tuple[float, float, int]]:
+    """``(mean level, robust variance, windows)`` of up to :data:`MAX_BINS` quantile bins of the
+    windows' means ``m`` (bins of tied means, e.g. many windows at one code, can be empty: left
+    out, as are those of fewer than :data:`MIN_WINDOWS`)."""
     k = int(np.clip(len(d) // WINDOWS_PER_BIN, 1, MAX_BINS))
-    if k == 1:
-        return robust_variance(d, floor), 0.0
     edges = np.quantile(m, np.linspace(0, 1, k + 1))
     which = np.clip(np.searchsorted(edges, m, side="right") - 1, 0, k - 1)
-    # (bins of tied means, e.g. many windows at one code, can be empty: left out)
-    rows = [
-        (np.mean(m[which == j]), robust_variance(d[which == j], floor), np.sum(which == j))
+    return [
+        (float(np.mean(m[which == j])), robust_variance(d[which == j], floor), int(np.sum(which == j)))
         for j in range(k)
         if np.sum(which == j) >= MIN_WINDOWS
     ]
+
+
+def variance_model(d: np.ndarray, m: np.ndarray, floor: float) -> tuple[float, float]:
+    """``(a, b)`` of the variance :math:`a + b\\,m`, both ``>= 0``, from the windows' details ``d``
+    and means ``m``, fitted over quantile bins of ``m`` (:func:`level_bins`) weighted by their
+    counts."""
+    rows = level_bins(d, m, floor) if len(d) // WINDOWS_PER_BIN >= 2 else []
     if len(rows) < 2 or np.ptp([row[0] for row in rows]) <= 0:
         return robust_variance(d, floor), 0.0
     mb, vb, wb = (np.asarray(x, np.float64) for x in zip(*rows))
@@ -102,6 +115,43 @@ def variance_model(d: np.ndarray, m: np.ndarray, floor: float) -> tuple[float, f
     if a < 0:
         return 0.0, float(np.sum(wb * vb * mb) / max(np.sum(wb * mb * mb), 1e-300))
     return float(a), float(b)
+
+
+#: The dark entries (:func:`dark_read_noise`): model level within this many of the lowest bin's
+#: σ of 0, at least :data:`DARK_MIN` of them per channel.
+DARK_SIGMAS = 2.0
+DARK_MIN = 200
+
+
+def dark_read_noise(y, mu, censored, b: float) -> tuple[float, float]:
+    r"""``(a, c)``: the read noise :math:`a` and an offset :math:`c` by the censored (Tobit)
+    likelihood of dark entries ``y`` (residual units; ``censored``: read at the sensor's zero, so
+    that only :math:`y \le 0` is known) about the model's levels ``mu``, with the variance
+    :math:`a + b\,\max(\mu, 0)` (``b`` the photon term, as the bins give it):
+
+    .. math:: -\ln L = \sum_{\text{read}} \Big[\tfrac{(y - \mu - c)^2}{2 s^2} + \ln s\Big]
+       - \sum_{\text{clipped}} \ln \Phi\!\Big(\frac{-\mu - c}{s}\Big).
+
+    The offset takes a constant the model lacks there (a black level), which would otherwise
+    read as noise."""
+    from scipy.optimize import minimize
+    from scipy.special import log_ndtr
+
+    y, mu = np.asarray(y, np.float64), np.asarray(mu, np.float64)
+    cens = np.asarray(censored, bool)
+    photon = b * np.clip(mu, 0.0, None)
+    read = ~cens
+    scale = float(np.sqrt(np.mean((y[read] - mu[read]) ** 2))) if read.any() else 1.0
+    scale = scale if scale > 0 else 1.0
+
+    def nll(p):
+        c, la = p[0] * scale, p[1]
+        s = np.sqrt(np.exp(la) * scale**2 + photon)
+        z = (y - mu - c) / s
+        return float(np.sum((0.5 * z * z + np.log(s))[read]) - np.sum(log_ndtr(-(mu + c) / s)[cens])) / y.size
+
+    res = minimize(nll, np.array([0.0, 0.0]), method="Nelder-Mead", options=dict(xatol=1e-6, fatol=1e-12))
+    return float(np.exp(res.x[1]) * scale**2), float(res.x[0] * scale)
 
 
 def target_noise(prob, used=None) -> tuple[float, int] | None:
@@ -122,30 +172,60 @@ def _target_noise(prob, used):
     fitted = _variance_models(prob, used)
     if fitted is None:
         return None
-    models, windows, images, used = fitted
+    models, windows, images, used, _ = fitted
+    return _mean_noise(models, images, used), windows
+
+
+def _mean_noise(models, images, used) -> float:
+    """The root of the mean of :math:`a_c + b_c\\,t` over the used entries :math:`t`."""
     total, n = 0.0, 0
     for c, (a, b) in enumerate(models):
         t = np.concatenate([img[..., c][u[..., c]] for img, u in zip(images, used)])
         total += float(np.sum(a + b * t))
         n += t.size
-    return float(np.sqrt(total / max(n, 1))), windows
+    return float(np.sqrt(total / max(n, 1)))
 
 
 def _variance_models(prob, used):
-    r"""``(per channel (a, b), windows, images, used)`` of the targets' variance :math:`a + b\,m`
-    (:func:`variance_model`), None where a channel has too few windows."""
+    r"""``(per channel (a, b), windows, images, used, per channel bins)`` of the targets'
+    variance :math:`a + b\,m` (:func:`variance_model`, :func:`level_bins`), None where a channel
+    has too few windows."""
     images, used = measured_images(prob, used)
     per = [details(img, u) for img, u in zip(images, used)]
     floor = 2.0 * (prob.quantum or 0.0)  # a code step or two: where discrete codes make the median 0
-    models, windows = [], 0
+    models, windows, bins = [], 0, []
     for c in range(3):
         d = np.concatenate([p[0][c] for p in per])
         m = np.concatenate([p[1][c] for p in per])
         if d.size < MIN_WINDOWS:
             return None
         models.append(variance_model(d, m, floor))
+        bins.append(level_bins(d, m, floor) if d.size // WINDOWS_PER_BIN >= 2 else [])
         windows += d.size
-    return models, windows, images, used
+    return models, windows, images, used, bins
+
+
+def anchored(models, bins, dark) -> tuple[list, list]:
+    """The variance models with each channel's read noise measured on its dark entries
+    (:func:`dark_read_noise`; ``dark``: per channel ``(y, mu, censored)`` in the residual's
+    units, at the model) and its photon term refitted to the bins with that intercept;
+    with, per channel, ``(entries, offset)`` of the dark estimate (None: too few dark entries,
+    the channel's model kept)."""
+    out, used = [], []
+    for (a, b), rows, (y, mu, cens) in zip(models, bins, dark):
+        v_low = min(rows)[1] if rows else a
+        dark_c = np.asarray(mu) <= DARK_SIGMAS * np.sqrt(max(v_low, 0.0))
+        if int(dark_c.sum()) < DARK_MIN or v_low <= 0:
+            out.append((a, b))
+            used.append(None)
+            continue
+        a_d, c = dark_read_noise(np.asarray(y)[dark_c], np.asarray(mu)[dark_c], np.asarray(cens)[dark_c], b)
+        if rows:
+            mb, vb, wb = (np.asarray(x, np.float64) for x in zip(*rows))
+            b = max(float(np.sum(wb * (vb - a_d) * mb) / max(np.sum(wb * mb * mb), 1e-300)), 0.0)
+        out.append((a_d, b))
+        used.append((int(dark_c.sum()), c))
+    return out, used
 
 
 #: The level-dependent weights' variance floor, as a share of the mean variance: no entry weighs
@@ -158,7 +238,7 @@ WEIGHT_FLOOR = 0.01
 TRUSTED_RATIO = 1.5
 
 
-def noise_weights(prob, sigma: float | None = None):
+def noise_weights(prob, sigma: float | None = None, dark=None):
     r"""The level-dependent noise model's weighting (``Observations(noise_model="level")``): a
     function of the model's levels ``m`` (``[n, 3]``, the residual's units) giving each entry's
     factor :math:`\bar\sigma/\sigma(m)`, :math:`\sigma^2 = a_c + b_c\,m` per channel as the targets
@@ -170,7 +250,9 @@ def noise_weights(prob, sigma: float | None = None):
     ``sigma``: the noise level a fit with uniform weights found (the first call's decides): where
     the targets' own estimate exceeds it by more than :data:`TRUSTED_RATIO` their 3×3 windows
     measure the shading's curvature, not noise (a noise-free or detailed target), and the model
-    is not used (None)."""
+    is not used (None). ``dark``: per channel ``(y, mu, censored)`` of the entries of linear
+    targets at the model (the first call's decides): the read noise is measured on those near 0
+    (:func:`anchored`) and the verdict's noise level (:func:`target_noise`) follows."""
     if "noise weights" not in prob._memo:
         fitted = _variance_models(prob, None)
         own = target_noise(prob)
@@ -185,6 +267,11 @@ def noise_weights(prob, sigma: float | None = None):
             )
         else:
             models, sbar = fitted[0], own[0]
+            prob._memo["dark read noise"] = None
+            if dark is not None:
+                models, prob._memo["dark read noise"] = anchored(models, fitted[4], dark)
+                sbar = _mean_noise(models, fitted[2], fitted[3])
+                prob._memo["target noise"] = (sbar, own[1])
             a, b = (np.array([m[i] for m in models]) for i in (0, 1))
             floor = max(WEIGHT_FLOOR * sbar**2, (prob.quantum or 0.0) ** 2 / 12)
 

@@ -165,14 +165,13 @@ def relinearise(prob, ev, red, best, polish_steps, rtol, n2, noise):
     """For encoded targets: residuals in code values, exactly at the model (IRLS passes of
     :meth:`Problem.relinearise`, each followed by the polish from the current best). Returns
     ``(best, evaluations, notes)``."""
-    from ._noise import noise_weights
 
     if not prob.reweighted:
         return best, 0, []
     steps = passes = 0
     while passes < CENSORED_PASSES:
         moved = prob.relinearise(best.img, best.sigma)
-        if not prob.encoded and noise_weights(prob) is None:
+        if not prob.encoded and not prob._memo.get("censored EM"):
             break  # (nothing was re-taken)
         if passes >= RELINEARISE_PASSES and moved < CENSORED_TOLERANCE:
             break
@@ -196,10 +195,19 @@ def relinearise_note(prob) -> str:
     w = noise_weights(prob) if prob.noise_model == "level" else None
     if w is not None:
         fits = ", ".join(f"{a:.3g} + {b:.3g}·m" for a, b in w.models)
+        dark = prob._memo.get("dark read noise") or []
+        if any(d is not None for d in dark):
+            fits += (
+                "; read noise on "
+                + ", ".join(f"{d[0]} dark entries" if d is not None else "the windows" for d in dark)
+                + " (censored likelihood)"
+            )
         what.append(f"the noise's level-dependent weights σ̄/σ(m) (σ² = {fits} per channel, σ̄ = {w.sigma:.3g})")
     passes = prob._memo.get("relinearise passes", RELINEARISE_PASSES)
     note = "; ".join(what) + f" re-taken at the model {passes}× (iteratively reweighted least squares)"
     if w is None and prob.noise_model == "level":
         why = f"no level-dependent noise weights ({prob._memo.get('noise weights why', '')}): uniform weights"
+        if prob._memo.get("censored EM") and not prob.encoded:
+            why += f"; the clipped entries by the censored likelihood at the fit's σ, {passes} passes"
         return note + "; " + why if what else why
     return note

@@ -444,6 +444,17 @@ def _compact(k, c: _Cover, codes, n, dtype, opts):
     return vd, book
 
 
+def _uniform(sigma: float):
+    """The uniform noise model in :func:`fitting._noise.noise_weights`'s form: every entry's
+    factor 1, its σ the fit's."""
+
+    def weigh(level):
+        return np.ones(np.shape(level))
+
+    weigh.sigma = float(sigma)
+    return weigh
+
+
 def censored_residual_np(d, hi, lo) -> np.ndarray:
     """A host residual ``d = I − t``, one-sided where the target is censored."""
     return np.where(hi, np.minimum(d, 0), np.where(lo, np.maximum(d, 0), d))
@@ -571,15 +582,20 @@ class Problem:
 
         base = self._memo.setdefault("base weights", [vd.weight for vd in self.data])
         targets0 = self._memo.setdefault("base targets", [(vd.target, vd.lo, vd.hi) for vd in self.data])
-        model = self.noise_model == "level" and noise_weights(self, sigma) is not None
+        dark = self._dark_entries(img_flat, base, targets0) if "noise weights" not in self._memo else None
+        weigh = noise_weights(self, sigma, dark) if self.noise_model == "level" else None
+        model = weigh is not None
+        if self.noise_model == "level" and not model and sigma:
+            weigh = _uniform(sigma)  # (no level-dependent weights: the censored likelihood at the fit's σ)
+        self._memo["censored EM"] = weigh is not None
         off, change = 0, 0.0
         for k, (vd, b) in enumerate(zip(self.data, self.views)):
             n = vd.target.shape[0]
             I = np.asarray(img_flat[off * 3 : (off + n) * 3], np.float64).reshape(n, 3)
             off += n
             if b.encoding is None:  # (linear: only the noise model re-takes anything)
-                if model:
-                    self.data[k], moved = self._tobit_view(vd, I, base[k], *targets0[k])
+                if weigh is not None:
+                    self.data[k], moved = self._tobit_view(vd, I, base[k], *targets0[k], weigh)
                     change = max(change, moved)
                 continue
             cens = censored(vd)
@@ -599,7 +615,27 @@ class Problem:
         self._placed.clear()
         return change
 
-    def _tobit_view(self, vd, I, w_base, t0, lo0, hi0):
+    def _dark_entries(self, img_flat, base, targets0):
+        """Per channel ``(y, mu, censored)`` in the residual's units over the linear targets'
+        used entries and those read 0 (:func:`fitting._noise.dark_read_noise`), at the model
+        ``img_flat``; None when no target is linear."""
+        parts, off = [], 0
+        for k, (vd, b) in enumerate(zip(self.data, self.views)):
+            n = vd.target.shape[0]
+            I = np.asarray(img_flat[off * 3 : (off + n) * 3], np.float64).reshape(n, 3)
+            off += n
+            if b.encoding is not None:
+                continue
+            t0, lo0, hi0 = (np.asarray(x) for x in targets0[k])
+            w = np.broadcast_to(np.asarray(base[k], np.float64), t0.shape)
+            ok = (w > 0) & ~np.asarray(hi0, bool)
+            parts.append((t0 * w, I * w, np.asarray(lo0, bool), ok))
+        if not parts:
+            return None
+        y, mu, cens, ok = (np.concatenate([q[i] for q in parts]) for i in range(4))
+        return [(y[ok[:, c], c], mu[ok[:, c], c], cens[ok[:, c], c]) for c in range(3)]
+
+    def _tobit_view(self, vd, I, w_base, t0, lo0, hi0, weigh):
         """A linear target's view data re-taken at the model ``I`` under the level-dependent noise
         model: weights ``w_base × σ̄/σ(m)``, and the entries censored at a clip level (``lo0``:
         read 0; ``hi0`` read at the saturation level; the built masks) two-sided at their censored
@@ -608,9 +644,6 @@ class Problem:
         one-sided: its clip level is not known.)"""
         from scipy.special import log_ndtr
 
-        from ._noise import noise_weights
-
-        weigh = noise_weights(self)
         w_base = np.asarray(w_base, np.float64)
         f = weigh(I * w_base)
         t_new = np.asarray(t0, np.float64)

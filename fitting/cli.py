@@ -511,6 +511,7 @@ def _photometric_inputs(args, folder: Path):
         saturation=1.0 if cap.quantum is not None else None,
         quantum=cap.quantum,
         clipped=cap.clipped,
+        centre=cap.centre,
     )
     return cap.scene, cap.opts, cap.views, tg, [cap.mask] * len(cap.targets)
 
@@ -624,23 +625,49 @@ def _check_outputs(args, inputs) -> list[Path]:
     return outputs
 
 
-def _compare(scene, opts, obs, args, r, fit_kw):
-    """``--compare``: the nested term sets fitted and ranked by BIC; report lines and records."""
-    from . import _options, compare_models
+def _compare(scene, opts, obs, args, r, fit_kw, held=None, centre=None):
+    """``--compare``: the nested term sets fitted and ranked by BIC (and, with ``--holdout``, by
+    the held-out views' error); report lines and records. For a capture folder (``centre``: its
+    object's centre and radius) the imaging terms first (:func:`fitting.imaging_variants`), then
+    the reflectance's variants with the imaging terms the images support: one table, one data set."""
+    from . import _options, compare_models, imaging_variants, model_variants
+    from ._models import ranked
 
     fit_kw = dict(fit_kw, strategy=fit_kw["strategy"].replace(verbose=False))  # verbose: the main fit only
-    scores = compare_models(scene, opts, obs, args.free, given=r, **fit_kw)
+    kw = dict(given=r, holdout=args.holdout, given_holdout=held, **fit_kw)
+    if centre is None:
+        scores = compare_models(scene, opts, obs, args.free, **kw)
+    else:
+        scores = compare_models(
+            scene, opts, obs, args.free, variants=imaging_variants(scene, opts, obs, args.free, centre=centre), **kw
+        )
+        best = scores[0]
+        b_obs = next(v for v in imaging_variants(scene, opts, obs, args.free, centre=centre) if v[0] == best.name)[4]
+        b_scene = b_obs.views[0] if b_obs.views is not None else scene
+        more = [
+            (f"{best.name} · {name}" if best.name != "as given" else name, o, fr, sc, b_obs)
+            for name, o, fr, sc in model_variants(b_scene, best.opts, best.free)[1:]
+        ]
+        kw.pop("given"), kw.pop("given_holdout")
+        scores = ranked(scores + compare_models(scene, opts, obs, args.free, variants=more, **kw))
+    ho = args.holdout is not None
+    wide = max(14, *(len(m.name) for m in scores))
     report = [
         "",
-        "model comparison (by BIC, the supported model first: the simplest within ΔBIC 2 of the lowest; ΔBIC > 10 is strong evidence):",
-        f"{'model':14s} {'k':>3s} {'RSS':>11s} {'AIC':>14s} {'BIC':>14s} {'ΔBIC':>9s} result",
+        "model comparison (by BIC, the supported model first: the simplest within ΔBIC 2 of the lowest; ΔBIC > 10 is strong evidence"
+        + ("; held out: every " + f"{args.holdout}-th view predicted, RMS over the noise" if ho else "")
+        + "):",
+        f"{'model':{wide}s} {'k':>3s} {'RSS':>11s} {'AIC':>14s} {'BIC':>14s} {'ΔBIC':>9s}"
+        + (f" {'held out':>9s}" if ho else "")
+        + " result",
     ]
     comparison = []
     low = min(m.bic for m in scores)
     for m in scores:
         report.append(
-            f"{m.name:14s} {m.k:3d} {m.rss:11.4e} {m.aic:14.1f} {m.bic:14.1f} "
-            f"{m.bic - low:9.1f} {m.fit.result or 'successful'}"
+            f"{m.name:{wide}s} {m.k:3d} {m.rss:11.4e} {m.aic:14.1f} {m.bic:14.1f} {m.bic - low:9.1f}"
+            + (f" {m.holdout.ratio_all:8.3f}x" if m.holdout is not None else "")
+            + f" {m.fit.result or 'successful'}"
         )
         comparison.append(
             {
@@ -654,10 +681,21 @@ def _compare(scene, opts, obs, args, r, fit_kw):
                 "aic": m.aic,
                 "bic": m.bic,
                 "delta_bic": m.bic - low,
+                **({"holdout": m.holdout.as_dict()} if m.holdout is not None else {}),
                 "fit": m.fit.as_dict(),
             }
         )
     report.append(f"the images support: {scores[0].name}")
+    if ho:
+        lowest = min(scores, key=lambda m: m.holdout.ratio_all)
+        report.append(
+            f"lowest held-out error: {lowest.name} ({lowest.holdout.ratio_all:.3f}x the noise)"
+            + (
+                " — the same model"
+                if lowest is scores[0]
+                else f"; the supported model's {scores[0].holdout.ratio_all:.3f}x"
+            )
+        )
     return report, comparison
 
 
@@ -810,7 +848,7 @@ def cmd_fit(args) -> int:
         report += _gain_lines(gauged)
     comparison = []
     if args.compare:
-        more, comparison = _compare(scene, opts, obs, args, r, fit_kw)
+        more, comparison = _compare(scene, opts, obs, args, r, fit_kw, held, getattr(tg, "centre", None))
         report += more
     print("\n".join(report[1:]))
     from ._sheet import contact_sheet

@@ -206,3 +206,24 @@ def test_level_dependent_noise_weights_calibrate_the_standard_errors():
     assert (np.abs(z["level"]) > 3).sum() <= 3
     assert z["uniform"][:, 3:6].std(0).max() > 1.25, z["uniform"].std(0)
     assert any("level-dependent weights" in n for n in r.notes), r.notes
+
+
+@pytest.mark.parametrize("offset", [0.0, 0.006])
+def test_the_read_noise_is_measured_where_the_signal_is_zero(offset):
+    """Dark entries clipped at the sensor's zero (an attached shadow, half of it read 0): the
+    censored likelihood gives the read noise back (within 10 %; the clipped entries' mean
+    square, taken as read, is 0.5σ²), and a constant the model lacks there (a black level) is
+    the offset, not noise."""
+    from fitting._noise import dark_read_noise
+
+    rng = np.random.default_rng(3)
+    sigma, b = 0.004, 6e-5
+    mu = np.where(rng.uniform(size=4000) < 0.7, 0.0, rng.uniform(0, 2 * sigma, 4000))  # shadow and its rim
+    y_true = mu + offset + rng.normal(size=mu.size) * np.sqrt(sigma**2 + b * mu)
+    cens = y_true <= 0
+    y = np.where(cens, 0.0, y_true)
+    assert 0.2 < cens.mean() < 0.5 or offset > 0
+    a, c = dark_read_noise(y, mu, cens, b)
+    assert abs(np.sqrt(a) / sigma - 1) < 0.1 and abs(c - offset) < 0.1 * sigma
+    naive = float(np.mean((y - mu - offset) ** 2))  # the clipped entries' residuals taken as read
+    assert abs(np.sqrt(naive) / sigma - 1) > 0.2 or offset > 0
