@@ -33,6 +33,7 @@ def write_capture(
     black_level=0.0,
     photon=0.0,
     bloom=0.0,
+    mixed=0,
 ):
     """Write the capture; returns ``(scene, opts, directions)``: the truth's first view, its
     options, and the light directions as written (capture frame, towards the lights). ``size``:
@@ -47,7 +48,9 @@ def write_capture(
     The camera's imaging: ``black_level`` added to every pixel; the noise's variance
     ``noise² + photon · I`` (read and photon noise); ``bloom``: that share of each pixel's excess
     above 1 spread over its 8 neighbours (a clipped highlight bleeding into them) before the
-    codes clip."""
+    codes clip; ``mixed``: each pixel the mean of ``mixed``² sub-pixels (a camera integrating over
+    its pixels: the silhouette's pixels mixed with the black background), the mask those at
+    least half covered (whose centre is covered: the normal map's pixels have a normal)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
@@ -87,6 +90,15 @@ def write_capture(
     )
     opts = ds.RenderOptions.from_keys(shading="phong", specular="blinn", fog="none")
     render = jax.jit(lambda s: ds.render(s, opts))
+    mask = np.asarray(ds.scene_visibility(scene, opts))[0] >= 0
+    if mixed:
+        fine = _finer(cam, K, mixed, w, h)
+        render = _averaging(render, fine, mixed)
+        cover = _block_mean(
+            (np.asarray(ds.scene_visibility(eqx.tree_at(lambda s: s.camera, scene, fine), opts))[0] >= 0)[..., None],
+            mixed,
+        )[..., 0]
+        mask = mask & (cover >= 0.5)
     names = []
     for i in range(n):
         v = eqx.tree_at(
@@ -101,7 +113,6 @@ def write_capture(
         img = img + black_level + rng.normal(0, 1, (h, w, 3)) * sd
         names.append(f"{i:03d}.png")
         ds.write_image(folder / names[-1], np.clip(img, 0, 1), "linear", 16)
-    mask = np.asarray(ds.scene_visibility(scene, opts))[0] >= 0
     ds.write_image(folder / "mask.png", mask.astype(np.float64), "linear", 8)
     (folder / "filenames.txt").write_text("\n".join(names) + "\n")
     np.savetxt(folder / "light_directions.txt", written)
@@ -114,6 +125,24 @@ def write_capture(
     if normal_map is not None:
         _write_normals(folder / normal_map, scene, opts, mask)
     return scene, opts, written
+
+
+def _finer(cam, K, s: int, w: int, h: int):
+    """The camera with ``s × s`` sub-pixels per pixel, on the same image plane."""
+    if isinstance(cam, ds.OrthographicCamera):
+        return ds.OrthographicCamera.capture(s * w, s * h, pixel_size=float(cam.pixel_size) / s, depth=4.0)
+    Kf = np.array([[s * K[0, 0], 0, s * K[0, 2] + (s - 1) / 2], [0, s * K[1, 1], s * K[1, 2] + (s - 1) / 2], [0, 0, 1]])
+    return ds.OpenCVCamera.from_opencv(Kf, np.eye(3), np.zeros(3), width=s * w, height=s * h, near=0.01, far=100.0)
+
+
+def _block_mean(img, s: int):
+    h, w = img.shape[0] // s, img.shape[1] // s
+    return np.asarray(img, np.float64).reshape(h, s, w, s, -1).mean(axis=(1, 3))
+
+
+def _averaging(render, fine, s: int):
+    """``render`` of a view through ``fine``'s sub-pixels, averaged over each pixel."""
+    return lambda v: _block_mean(render(eqx.tree_at(lambda x: x.camera, v, fine)), s)
 
 
 def _bloomed(img, share):

@@ -727,15 +727,16 @@ NEAR_PROBE_VIEWS = 8  # the views a rejected capture's fit renders to probe for 
 def misfit_pointers(prob, cand: Candidate) -> list[str]:
     """What the structure of a rejected fit's residual points at, beyond the reflectance (each a
     note where its signal stands well above the noise): the excess around clipped pixels (a
-    camera's bloom: ``clip_margin``), per-view gain errors (the lights' or exposures' calibration:
+    camera's bloom: ``clip_margin``), in the outermost pixels (pixels mixed with the background:
+    ``margin``), per-view gain errors (the lights' or exposures' calibration:
     ``view[*].camera.exposure``), shadows that read brighter than the model (a black level:
     ``camera.black_level``), and the side facing each light brighter than a distant light predicts
     (near lights: :func:`_near_light_signal`)."""
-    from skimage.morphology import dilation
+    from skimage.morphology import dilation, erosion
 
     sigma = float(cand.sigma)
     models = prob.full_images(cand.img)
-    ring_e = ring_n = all_e = all_n = 0.0
+    ring_e = ring_n = all_e = all_n = rim_e = rim_n = 0.0
     gains, dark_d, dark_n = [], 0.0, 0
     # the entries censored from above, as the problem holds them (at saturation, or known clipped)
     highs = prob.images_of(np.concatenate([np.asarray(vd.hi).reshape(-1) for vd in prob.data]))
@@ -747,6 +748,8 @@ def misfit_pointers(prob, cand: Candidate) -> list[str]:
             continue
         e = np.where(used, res * res - sigma**2, 0.0).sum(-1)
         all_e, all_n = all_e + float(e[u].sum()), all_n + int(u.sum())
+        rim = u & ~erosion(u, np.ones((3, 3), bool))  # the outermost pixels: next to an unused one
+        rim_e, rim_n = rim_e + float(e[rim].sum()), rim_n + int(rim.sum())
         if clipped.any():
             ring = dilation(clipped.any(-1), np.ones((5, 5), bool)) & u
             ring_e, ring_n = ring_e + float(e[ring].sum()), ring_n + int(ring.sum())
@@ -765,6 +768,12 @@ def misfit_pointers(prob, cand: Candidate) -> list[str]:
             f"{100 * ring_e / total:.0f} % of the misfit lies within 2 px of clipped pixels ({100 * ring_n / all_n:.0f} % "
             "of the pixels): a camera's clipped highlights bleed into their neighbours; leave them out "
             "(Observations(clip_margin=1 or 2), --clip-margin)"
+        )
+    if rim_n and rim_e > 0.5 * total and rim_e / total > 3 * rim_n / max(all_n, 1):
+        notes.append(
+            f"{100 * rim_e / total:.0f} % of the misfit lies in the outermost pixels ({100 * rim_n / all_n:.0f} % of "
+            "the pixels): pixels mixed with the background (a camera integrates over each pixel) or a silhouette "
+            "out of place; leave them out (Observations(margin=1), --margin 1)"
         )
     if len(gains) >= 3:
         g = np.array([x for x, _ in gains])

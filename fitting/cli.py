@@ -1042,7 +1042,9 @@ def _add_fit_solve(p) -> None:
     p.add_argument(
         "--compare",
         action="store_true",
-        help="also fit the nested term sets (no specular, Phong<->Blinn, no fog) and rank by BIC",
+        help="also fit the nested term sets (no specular, Phong<->Blinn, no fog; for a capture folder its imaging "
+        "terms first: near lights, per-view gains, a black level) and rank by BIC (with --holdout: and by the "
+        "held-out error)",
     )
     p.add_argument(
         "--encoding",

@@ -621,3 +621,25 @@ def test_the_comparison_scores_every_model_on_held_out_lights(tmp_path):
     expect = err[[2, 5, 8]] / err[0]
     assert np.abs(np.asarray(best.holdout.gains) / expect - 1).max() < 0.005, (best.holdout.gains, expect)
     assert scores["+ near lights"].holdout.gains is None
+
+
+def test_the_command_line_compares_a_captures_imaging_and_reflectance(tmp_path, capsys):
+    """``fit CAPTURE --compare --holdout 3``: the imaging terms' subsets, then the reflectance's
+    variants with the supported ones, in one table with each model's held-out error; near LEDs
+    (10 radii) are what the images support, and fit.json's comparison carries the held-out
+    residuals."""
+    import json
+
+    from fitting.cli import main
+
+    write_capture(tmp_path / "c", n=6, size=24, noise=0.004, seed=2, light_distance=10.0)
+    out = tmp_path / "out"
+    args = ["fit", str(tmp_path / "c"), "-p", *PARAMS, "--margin", "1", "--compare", "--holdout", "3", "-o", str(out)]
+    main(args)
+    printed = capsys.readouterr().out
+    assert "the images support: + near lights\n" in printed, printed
+    for name in ("+ black level", "+ near lights + gains + black level", "+ near lights · no specular"):
+        assert f"\n{name} " in printed, (name, printed)
+    assert "lowest held-out error: + near lights" in printed, printed
+    rows = json.loads((out / "fit.json").read_text())["comparison"]
+    assert len(rows) == 10 and all(len(r["holdout"]["views"]) == 2 for r in rows)
