@@ -4,7 +4,8 @@ silhouette's pixels are mixed with the black background; bloom around clipped hi
 photon noise), read at ``downsample_by`` 1, 2 and 4 (sampled: the block's centre pixel, as
 ``--downsample`` reads them), and fitted with the silhouette's ``margin`` 0-2 (at clip_margin 1)
 and ``clip_margin`` 0-3 (at margin 1): is the fit accepted, how far is the material from the
-truth (max |z| over k_d, k_s, m), and what does each margin cost in entries?
+truth (max |z| over k_d, k_s, m; the relative errors: a camera's pixel integrates over the
+highlight, the renderer shades its centre), and what does each margin cost in entries?
 
     python benchmarks/bench_margins.py [--seeds 3] [--size 160] [--views 10]
 """
@@ -52,6 +53,9 @@ def run(seed: int, size: int, views: int, factors) -> list[dict]:
                         "accepted": bool(r.successful),
                         "ratio": float(r.residual.noise_ratio),
                         "max_abs_z": float(np.max(np.abs(z))),
+                        "rel_error": {
+                            n: float(e) for n, e in zip(("k_d", "k_s", "m"), _rel_errors(np.asarray(r.values), truth))
+                        },
                         "entries": int(r.residual.n),
                         "seconds": time.perf_counter() - t0,
                     }
@@ -60,10 +64,20 @@ def run(seed: int, size: int, views: int, factors) -> list[dict]:
                 print(
                     f"seed {seed} /{f} ({x['size']}²) margin {margin} clip_margin {clip_margin}: "
                     f"{'accepted' if x['accepted'] else 'rejected'} {x['ratio']:.3f}x, max |z| {x['max_abs_z']:.2f}, "
-                    f"{x['entries']} entries, {x['seconds']:.1f} s",
+                    f"{x['entries']} entries, error k_d {100 * x['rel_error']['k_d']:+.2f} % "
+                    f"k_s {100 * x['rel_error']['k_s']:+.2f} % m {100 * x['rel_error']['m']:+.2f} %, {x['seconds']:.1f} s",
                     flush=True,
                 )
     return rows
+
+
+def _rel_errors(values, truth):
+    """The relative errors of the mean k_d, the mean k_s and m."""
+    return (
+        values[:3].mean() / truth[:3].mean() - 1,
+        values[3:6].mean() / truth[3:6].mean() - 1,
+        values[6] / truth[6] - 1,
+    )
 
 
 def main() -> None:
@@ -84,7 +98,9 @@ def main() -> None:
             print(
                 f"/{f} margin {margin} clip_margin {clip_margin}: accepted {sum(x['accepted'] for x in sel)}/{len(sel)}, "
                 f"ratio {np.median([x['ratio'] for x in sel]):.3f}x, max |z| {max(x['max_abs_z'] for x in sel):.2f}, "
-                f"entries {int(np.median([x['entries'] for x in sel]))}"
+                f"entries {int(np.median([x['entries'] for x in sel]))}, median error k_s "
+                f"{100 * np.median([x['rel_error']['k_s'] for x in sel]):+.2f} % m "
+                f"{100 * np.median([x['rel_error']['m'] for x in sel]):+.2f} %"
             )
     if a.json:
         Path(a.json).write_text(json.dumps(rows, indent=1))

@@ -207,24 +207,25 @@ def _variance_models(prob, used):
 
 def anchored(models, bins, dark) -> tuple[list, list]:
     """The variance models with each channel's read noise measured on its dark entries
-    (:func:`dark_read_noise`; ``dark``: per channel ``(y, mu, censored)`` in the residual's
-    units, at the model) and its photon term refitted to the bins with that intercept;
-    with, per channel, ``(entries, offset)`` of the dark estimate (None: too few dark entries,
-    the channel's model kept)."""
+    (:func:`dark_read_noise`; ``dark``: a function of per channel level bounds giving per channel
+    ``(y, mu, censored)`` in the residual's units, at the model, of the entries whose level is
+    within its bound: :data:`DARK_SIGMAS` of the lowest bin's σ) and its photon term refitted to
+    the bins with that intercept; with, per channel, ``(entries, offset)`` of the dark estimate
+    (None: too few dark entries, the channel's model kept)."""
+    lowest = [min(rows)[1] if rows else a for (a, _), rows in zip(models, bins)]
+    entries = dark([DARK_SIGMAS * np.sqrt(max(v, 0.0)) for v in lowest])
     out, used = [], []
-    for (a, b), rows, (y, mu, cens) in zip(models, bins, dark):
-        v_low = min(rows)[1] if rows else a
-        dark_c = np.asarray(mu) <= DARK_SIGMAS * np.sqrt(max(v_low, 0.0))
-        if int(dark_c.sum()) < DARK_MIN or v_low <= 0:
+    for (a, b), rows, v_low, (y, mu, cens) in zip(models, bins, lowest, entries):
+        if y.size < DARK_MIN or v_low <= 0:
             out.append((a, b))
             used.append(None)
             continue
-        a_d, c = dark_read_noise(np.asarray(y)[dark_c], np.asarray(mu)[dark_c], np.asarray(cens)[dark_c], b)
+        a_d, c = dark_read_noise(y, mu, cens, b)
         if rows:
             mb, vb, wb = (np.asarray(x, np.float64) for x in zip(*rows))
             b = max(float(np.sum(wb * (vb - a_d) * mb) / max(np.sum(wb * mb * mb), 1e-300)), 0.0)
         out.append((a_d, b))
-        used.append((int(dark_c.sum()), c))
+        used.append((int(y.size), c))
     return out, used
 
 
@@ -250,9 +251,9 @@ def noise_weights(prob, sigma: float | None = None, dark=None):
     ``sigma``: the noise level a fit with uniform weights found (the first call's decides): where
     the targets' own estimate exceeds it by more than :data:`TRUSTED_RATIO` their 3×3 windows
     measure the shading's curvature, not noise (a noise-free or detailed target), and the model
-    is not used (None). ``dark``: per channel ``(y, mu, censored)`` of the entries of linear
-    targets at the model (the first call's decides): the read noise is measured on those near 0
-    (:func:`anchored`) and the verdict's noise level (:func:`target_noise`) follows."""
+    is not used (None). ``dark``: the linear targets' entries near 0 at the model, as
+    :func:`anchored` takes them (the first call's decides): the read noise is measured on them
+    and the verdict's noise level (:func:`target_noise`) follows."""
     if "noise weights" not in prob._memo:
         fitted = _variance_models(prob, None)
         own = target_noise(prob)

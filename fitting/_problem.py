@@ -616,24 +616,33 @@ class Problem:
         return change
 
     def _dark_entries(self, img_flat, base, targets0):
-        """Per channel ``(y, mu, censored)`` in the residual's units over the linear targets'
-        used entries and those read 0 (:func:`fitting._noise.dark_read_noise`), at the model
-        ``img_flat``; None when no target is linear."""
-        parts, off = [], 0
+        """The linear targets' entries near 0 at the model ``img_flat``, for
+        :func:`fitting._noise.dark_read_noise`: a function of per channel level bounds giving per
+        channel ``(y, mu, censored)`` in the residual's units over the used entries and those read
+        0 whose model level is within its bound; None when no target is linear."""
+        views, off = [], 0
         for k, (vd, b) in enumerate(zip(self.data, self.views)):
             n = vd.target.shape[0]
-            I = np.asarray(img_flat[off * 3 : (off + n) * 3], np.float64).reshape(n, 3)
+            sl = slice(off * 3, (off + n) * 3)
             off += n
-            if b.encoding is not None:
-                continue
-            t0, lo0, hi0 = (np.asarray(x) for x in targets0[k])
-            w = np.broadcast_to(np.asarray(base[k], np.float64), t0.shape)
-            ok = (w > 0) & ~np.asarray(hi0, bool)
-            parts.append((t0 * w, I * w, np.asarray(lo0, bool), ok))
-        if not parts:
+            if b.encoding is None:
+                views.append((k, sl, n))
+        if not views:
             return None
-        y, mu, cens, ok = (np.concatenate([q[i] for q in parts]) for i in range(4))
-        return [(y[ok[:, c], c], mu[ok[:, c], c], cens[ok[:, c], c]) for c in range(3)]
+
+        def select(bounds):
+            parts = [[] for _ in range(3)]
+            for k, sl, n in views:
+                t0, lo0, hi0 = (np.asarray(x) for x in targets0[k])
+                w = np.broadcast_to(np.asarray(base[k], np.float64), t0.shape)
+                mu = np.asarray(img_flat[sl], np.float64).reshape(n, 3) * w
+                ok = (w > 0) & ~np.asarray(hi0, bool) & (mu <= np.asarray(bounds)[None, :])
+                for c in range(3):
+                    i = ok[:, c]
+                    parts[c].append((t0[i, c] * w[i, c], mu[i, c], np.asarray(lo0, bool)[i, c]))
+            return [tuple(np.concatenate([q[j] for q in parts[c]]) for j in range(3)) for c in range(3)]
+
+        return select
 
     def _tobit_view(self, vd, I, w_base, t0, lo0, hi0, weigh):
         """A linear target's view data re-taken at the model ``I`` under the level-dependent noise

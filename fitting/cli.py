@@ -655,7 +655,7 @@ def _compare(scene, opts, obs, args, r, fit_kw, held=None, centre=None):
     report = [
         "",
         "model comparison (by BIC, the supported model first: the simplest within ΔBIC 2 of the lowest; ΔBIC > 10 is strong evidence"
-        + ("; held out: every " + f"{args.holdout}-th view predicted, RMS over the noise" if ho else "")
+        + (f"; held out: 1 view in {args.holdout} predicted, RMS over the noise" if ho else "")
         + "):",
         f"{'model':{wide}s} {'k':>3s} {'RSS':>11s} {'AIC':>14s} {'BIC':>14s} {'ΔBIC':>9s}"
         + (f" {'held out':>9s}" if ho else "")
@@ -667,7 +667,7 @@ def _compare(scene, opts, obs, args, r, fit_kw, held=None, centre=None):
         report.append(
             f"{m.name:{wide}s} {m.k:3d} {m.rss:11.4e} {m.aic:14.1f} {m.bic:14.1f} {m.bic - low:9.1f}"
             + (f" {m.holdout.ratio_all:8.3f}x" if m.holdout is not None else "")
-            + f" {m.fit.result or 'successful'}"
+            + f" {(m.fit.result or 'successful').split(' (σ')[0]}"
         )
         comparison.append(
             {
@@ -686,6 +686,7 @@ def _compare(scene, opts, obs, args, r, fit_kw, held=None, centre=None):
             }
         )
     report.append(f"the images support: {scores[0].name}")
+    report += _what_each_removes(scores)
     if ho:
         lowest = min(scores, key=lambda m: m.holdout.ratio_all)
         report.append(
@@ -697,6 +698,35 @@ def _compare(scene, opts, obs, args, r, fit_kw, held=None, centre=None):
             )
         )
     return report, comparison
+
+
+def _times(ratio: float) -> str:
+    """A ratio above 1 in words: by a percentage, or a factor from 2×."""
+    return f"{ratio:.3g}×" if ratio >= 2 else f"by {100 * (ratio - 1):.3g} %"
+
+
+def _what_each_removes(scores) -> list[str]:
+    """For each imaging term of the supported model (a comparison of :func:`fitting.imaging_variants`):
+    what leaving it out costs, in RSS and BIC; then what is left (the supported fit's residual over
+    the noise, and where its misfit sits when rejected)."""
+    from . import IMAGING_TERMS
+
+    best = scores[0]
+    by_name = {m.name: m for m in scores}
+    imaging = best.name.split(" · ")[0]
+    have = [t for t in imaging[2:].split(" + ") if t in IMAGING_TERMS] if imaging.startswith("+ ") else []
+    out = []
+    for t in have:
+        rest = [x for x in have if x != t]
+        other = by_name.get("+ " + " + ".join(rest) if rest else "as given")
+        if other is not None:
+            out.append(
+                f"  {t}: leaving it out raises the RSS {_times(other.rss / best.rss)} "
+                f"(ΔBIC +{other.bic - best.bic:.1f}; that fit {'accepted' if other.fit.successful else 'rejected'})"
+            )
+    left = f"  left: the residual is {best.fit.residual.noise_ratio:.3g}× the noise"
+    where = [n for n in best.fit.notes if n.startswith("where the misfit sits")]
+    return out + [left + (f"; {where[0]}" if where else "")]
 
 
 def _fit_images(pset, r, scene, opts, views, tg: _Targets):
