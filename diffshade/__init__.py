@@ -21,7 +21,7 @@ from ._fast import kernel_partials
 from ._io import DEFAULT_SCENE, SceneError, default_scene, load_camera, load_scene, scene_from_dict
 from ._lighting import LightVisibility, illuminate
 from ._mesh import Mesh, MeshError, box, combine, icosphere, load_mesh, mesh_from_arrays, quad
-from ._mtl import load_material
+from ._mtl import load_material, save_material
 from ._normal_map import integrate_normals, normal_map_mesh, read_normal_map
 from ._options import FogModel, Lighting, Output, Raster, Rays, RenderOptions, ShadowMaps, ShadowRays, Transparency
 from ._raster import Fragments, fragments, interpolate, pixel_centres, rasterize, visibility, visibility_passes
@@ -93,6 +93,7 @@ __all__ = [
     "load_camera",
     "load_mesh",
     "load_material",
+    "save_material",
     "load_scene",
     "mesh_from_arrays",
     "no_directional",

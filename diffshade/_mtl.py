@@ -7,6 +7,9 @@ exporters write it with both meanings (MeshLab writes ``Tr 1`` on opaque materia
 says the same thing unambiguously. A map's ``-clamp on`` is ``wrap = "clamp"``; options that
 would change the coordinates (``-o``, ``-s``, ``-t``) or the values (``-mm``, ``-bm``,
 ``-imfchan``) are refused by name rather than ignored.
+
+:func:`save_material` writes a scene's materials (or one material) back in the same keys, its
+maps as 16-bit PNGs beside the file; :func:`load_material` reads them again.
 """
 
 from __future__ import annotations
@@ -164,3 +167,95 @@ def load_material(path: str | Path, name: str | None = None, encoding: str | Non
         return Material(**fields)
     except ValueError as exc:
         raise MeshError(f"{path}: material {name!r}: {exc}") from exc
+
+
+def save_material(path, material, opts=None, header: str = "") -> Path:
+    """Write ``material`` (a :class:`Material`, or a :class:`Scene`: its material, its other
+    materials as ``material_1``, ... and its back material) as a Wavefront MTL file at ``path``,
+    in the keys :func:`load_material` reads: ``Ka Kd Ks Ke`` (linear colours), ``Ns`` (the
+    exponent of ``opts``' specular model, said in the file's comment: Phong's by default), ``Ni``,
+    ``d`` (the opacity, where ``opts`` has transparency), ``Tf`` (the transmission, where ``opts``
+    has it), ``illum``; what MTL has no key for (absorption, Kay's opacity) as a comment line above
+    its material. Maps go beside the file as 16-bit PNGs (``<stem>_<material>_<field>.png``:
+    colour maps sRGB-encoded, the shininess and opacity maps linear grey, each declaring its
+    encoding) named by ``map_*`` lines: a shininess map beyond 1 is scaled into the file and its
+    scale moved into ``Ns`` (MTL multiplies the two); a map with ``wrap = "clamp"`` gets
+    ``-clamp on``. ``header``: comment lines at the top. Written to a temporary file and moved
+    into place (no half-written file). Returns the path."""
+    from ._options import RenderOptions
+    from ._scene import Scene
+
+    path = Path(path)
+    opts = RenderOptions() if opts is None else opts
+    if isinstance(material, Scene):
+        mats = [("material", material.material)] + [(f"material_{i + 1}", x) for i, x in enumerate(material.materials)]
+        if material.back_material is not None:
+            mats.append(("back_material", material.back_material))
+    elif isinstance(material, Material):
+        mats = [("material", material)]
+    else:
+        raise TypeError(f"save_material: a Material or a Scene, not {type(material).__name__}")
+    spec = opts.lighting.specular
+    transparency, absorption = opts.layered, opts.layered and opts.transparency.absorption
+    lines = [f"# {ln}" for ln in header.splitlines()]
+    lines.append(
+        f"# Ns is the {'Blinn-Phong' if spec == 'blinn' else 'Phong'} exponent; colours are linear; Ke = emission"
+    )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    for name, m in mats:
+        extra = []
+        if absorption:
+            extra.append(f"# absorption mu {_rgb(m.absorption)} (per unit length)")
+        if transparency and m.kay:
+            extra.append(
+                f"# Kay opacity t_min {float(m.kay_min):.6g} t_max {float(m.kay_max):.6g} p {float(m.kay_power):.6g}"
+            )
+        opacity = float(m.opacity) if transparency and not m.kay else 1.0
+        lines += [
+            "",
+            *extra,
+            f"newmtl {name}",
+            f"Ka {_rgb(m.ambient)}",
+            f"Kd {_rgb(m.diffuse)}",
+            f"Ks {_rgb(m.specular)}",
+            f"Ns {float(m.shininess):.6g}",
+            f"Ke {_rgb(m.emission)}",
+            f"Ni {float(m.ior):.6g}",
+            f"d {opacity:.6g}",
+        ]
+        if opts.lighting.transmission:
+            lines.append(f"Tf {_rgb(m.transmission)}")
+        lines.append(f"illum {1 if spec == 'none' else (4 if transparency else 2)}")
+        lines += _save_maps(m, path.parent, f"{path.stem}_{name}", lines)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text("\n".join(lines) + "\n")
+    tmp.replace(path)
+    return path
+
+
+def _rgb(x) -> str:
+    return " ".join(f"{float(c):.6g}" for c in np.broadcast_to(np.asarray(x), (3,)))
+
+
+def _save_maps(m, folder: Path, stem: str, lines: list) -> list[str]:
+    """A material's maps as 16-bit PNGs and the ``map_*`` lines that name them (``lines``, the
+    material's lines so far, gets a shininess map's scale in ``Ns``)."""
+    from .images import write_image
+
+    out = []
+    for key, field in _MAPS.items():
+        field = field.removesuffix("_map")
+        tex = getattr(m, field + "_map")
+        if tex is None:
+            continue
+        texels = np.asarray(tex.texels, np.float64)
+        if field == "shininess" and texels.max() > 1:
+            scale = float(texels.max())
+            texels = texels / scale
+            k = next(i for i in range(len(lines) - 1, -1, -1) if lines[i].startswith("Ns "))
+            lines[k] = f"Ns {float(m.shininess) * scale:.6g}"
+        file = folder / f"{stem}_{field}.png"
+        grey = field in ("shininess", "opacity")
+        write_image(file, texels[..., 0] if texels.shape[-1] == 1 else texels, "linear" if grey else "srgb", bits=16)
+        out.append(f"{key} {'-clamp on ' if tex.wrap == 'clamp' else ''}{file.name}")
+    return out

@@ -89,86 +89,6 @@ def load_target(
     return out + ((alpha,) if with_alpha else ())
 
 
-def write_mtl(scene, opts, path: Path, header: str) -> None:
-    """The scene's materials (and back material) as a Wavefront MTL file.
-
-    ``d`` is the opacity (dissolve), ``Tf`` the transmission k_t; what MTL has no key for
-    (absorption μ, Kay's opacity) is written as a comment line above its material."""
-    import numpy as np
-
-    def rgb(x):
-        return " ".join(f"{float(c):.6g}" for c in np.broadcast_to(np.asarray(x), (3,)))
-
-    from . import _options
-
-    o = _options.mtl_flags(opts)
-    lines = [f"# {ln}" for ln in header.splitlines()]
-    lines.append(
-        f"# Ns is the {'Blinn-Phong' if o['specular'] == 'blinn' else 'Phong'} exponent; "
-        "colours are linear; Ke = emission"
-    )
-    mats = [("material", scene.material)] + [(f"material_{i + 1}", m) for i, m in enumerate(scene.materials)]
-    if scene.back_material is not None:
-        mats.append(("back_material", scene.back_material))
-    for name, m in mats:
-        extra = []
-        if o["absorption"]:
-            extra.append(f"# absorption mu {rgb(m.absorption)} (per unit length)")
-        if o["transparency"] and m.kay:
-            extra.append(
-                f"# Kay opacity t_min {float(m.kay_min):.6g} t_max {float(m.kay_max):.6g} p {float(m.kay_power):.6g}"
-            )
-        opacity = float(m.opacity) if o["transparency"] and not m.kay else 1.0
-        lines += [
-            "",
-            *extra,
-            f"newmtl {name}",
-            f"Ka {rgb(m.ambient)}",
-            f"Kd {rgb(m.diffuse)}",
-            f"Ks {rgb(m.specular)}",
-            f"Ns {float(m.shininess):.6g}",
-            f"Ke {rgb(m.emission)}",
-            f"Ni {float(m.ior):.6g}",
-            f"d {opacity:.6g}",
-        ]
-        if o["transmission"]:
-            lines.append(f"Tf {rgb(m.transmission)}")
-        lines.append(f"illum {1 if o['specular'] == 'none' else (4 if o['transparency'] else 2)}")
-        lines += write_maps(m, path.parent, f"{path.stem}_{name}", lines)
-    _write_text("\n".join(lines) + "\n", path)
-
-
-_MTL_MAPS = {"ambient": "Ka", "diffuse": "Kd", "specular": "Ks", "emission": "Ke", "shininess": "Ns", "opacity": "d"}
-
-
-def write_maps(m, folder: Path, stem: str, lines: list) -> list[str]:
-    """A material's texture maps as 16-bit PNGs beside its MTL (``stem_<field>.png``: colour maps
-    sRGB-encoded, the shininess and opacity maps linear grey; the file declares which), and the
-    ``map_*`` lines that name them. A shininess map beyond 1 is scaled into the file and its
-    scale moved into ``Ns`` (``lines``, the material's lines so far, is updated), as MTL
-    multiplies the two. A map with ``wrap = "clamp"`` gets ``-clamp on``."""
-    import numpy as np
-
-    import diffshade as ds
-
-    out = []
-    for field, key in _MTL_MAPS.items():
-        tex = getattr(m, field + "_map")
-        if tex is None:
-            continue
-        texels = np.asarray(tex.texels, np.float64)
-        if field == "shininess" and texels.max() > 1:
-            scale = float(texels.max())
-            texels = texels / scale
-            k = next(i for i in range(len(lines) - 1, -1, -1) if lines[i].startswith("Ns "))
-            lines[k] = f"Ns {float(m.shininess) * scale:.6g}"
-        file = folder / f"{stem}_{field}.png"
-        grey = field in ("shininess", "opacity")
-        ds.write_image(file, texels[..., 0] if texels.shape[-1] == 1 else texels, "linear" if grey else "srgb", bits=16)
-        out.append(f"map_{key} {'-clamp on ' if tex.wrap == 'clamp' else ''}{file.name}")
-    return out
-
-
 def _write_text(text: str, out: Path) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(out.name + ".tmp")
@@ -766,15 +686,17 @@ def _write_outputs(args, meta, r, report, comparison, outputs, fitted, sheet, en
     """fit.json, material.mtl, fit.png and report.txt."""
     import json
 
+    import diffshade as ds
+
     doc = {**meta, **r.as_dict()}
     if comparison:
         doc["comparison"] = comparison
     _write_text(json.dumps(doc, indent=2, default=float) + "\n", outputs[0])
-    write_mtl(
+    ds.save_material(
+        outputs[1],
         fitted,
         opts,
-        outputs[1],
-        f"{report[0]}\nfree: {' '.join(args.free)}; result: {r.result or 'successful'}; standard errors in fit.json",
+        header=f"{report[0]}\nfree: {' '.join(args.free)}; result: {r.result or 'successful'}; standard errors in fit.json",
     )
     _write_image(sheet, outputs[2], True, encoding)
     _write_text("\n".join(report) + "\n", outputs[3])

@@ -143,10 +143,8 @@ def test_what_a_map_fit_refuses():
 
 
 def test_fitted_maps_export_as_png_and_mtl_and_load_back(tmp_path):
-    """write_mtl writes each map as a 16-bit PNG named by a map_* line; load_material reads the
+    """save_material writes each map as a 16-bit PNG named by a map_* line; load_material reads the
     same material back (sRGB colour codes, linear grey ones, a shininess map's scale in Ns)."""
-    from fitting.cli import write_mtl
-
     rng = np.random.default_rng(5)
     scene, opts = ds.default_scene()
     maps = {
@@ -155,7 +153,7 @@ def test_fitted_maps_export_as_png_and_mtl_and_load_back(tmp_path):
         "shininess_map": ds.Texture(rng.uniform(0.5, 3.0, (3, 5, 1))),
     }
     mat = dataclasses.replace(scene.material, **maps)
-    write_mtl(dataclasses.replace(scene, material=mat), opts, tmp_path / "material.mtl", "test")
+    ds.save_material(tmp_path / "material.mtl", dataclasses.replace(scene, material=mat), opts, header="test")
     text = (tmp_path / "material.mtl").read_text()
     assert "map_Kd -clamp on material_material_diffuse.png" in text
     back = ds.load_material(tmp_path / "material.mtl")
