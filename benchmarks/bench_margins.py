@@ -35,7 +35,15 @@ def run(seed: int, size: int, views: int, factors) -> list[dict]:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         write_capture(
-            tmp, n=views, size=size, noise=0.004, photon=6.4e-5, bloom=0.3, mixed=4, seed=seed, camera="orthographic"
+            tmp,
+            n=views,
+            size=size,
+            noise=0.004,
+            photon=6.4e-5,
+            bloom=0.3,
+            pixel_area=4,
+            seed=seed,
+            camera="orthographic",
         )
         for f in factors:
             cap = load_photometric_stereo(tmp, downsample_by=f)

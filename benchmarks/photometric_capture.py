@@ -34,6 +34,7 @@ def write_capture(
     photon=0.0,
     bloom=0.0,
     mixed=0,
+    pixel_area=0,
 ):
     """Write the capture; returns ``(scene, opts, directions)``: the truth's first view, its
     options, and the light directions as written (capture frame, towards the lights). ``size``:
@@ -48,9 +49,11 @@ def write_capture(
     The camera's imaging: ``black_level`` added to every pixel; the noise's variance
     ``noise² + photon · I`` (read and photon noise); ``bloom``: that share of each pixel's excess
     above 1 spread over its 8 neighbours (a clipped highlight bleeding into them) before the
-    codes clip; ``mixed``: each pixel the mean of ``mixed``² sub-pixels (a camera integrating over
-    its pixels: the silhouette's pixels mixed with the black background), the mask those at
-    least half covered (whose centre is covered: the normal map's pixels have a normal)."""
+    codes clip; ``mixed``: the silhouette's pixels mixed with the black background, each its
+    centre's shading times its coverage (of ``mixed``² sub-pixels), the mask those at least half
+    covered whose centre is covered (the normal map's pixels have a normal); ``pixel_area``:
+    each pixel the mean of ``pixel_area``² sub-pixels (a camera integrating over its pixels: the
+    silhouette mixed, and the shading averaged over each pixel, which blurs a highlight)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
@@ -91,14 +94,17 @@ def write_capture(
     opts = ds.RenderOptions.from_keys(shading="phong", specular="blinn", fog="none")
     render = jax.jit(lambda s: ds.render(s, opts))
     mask = np.asarray(ds.scene_visibility(scene, opts))[0] >= 0
-    if mixed:
-        fine = _finer(cam, K, mixed, w, h)
-        render = _averaging(render, fine, mixed)
-        cover = _block_mean(
-            (np.asarray(ds.scene_visibility(eqx.tree_at(lambda s: s.camera, scene, fine), opts))[0] >= 0)[..., None],
-            mixed,
-        )[..., 0]
-        mask = mask & (cover >= 0.5)
+    if mixed or pixel_area:
+        s = mixed or pixel_area
+        fine = _finer(cam, K, s, w, h)
+        seen = np.asarray(ds.scene_visibility(eqx.tree_at(lambda x: x.camera, scene, fine), opts))[0] >= 0
+        cover = _block_mean(seen[..., None], s)
+        mask = mask & (cover[..., 0] >= 0.5)
+        if pixel_area:
+            render = _averaging(render, fine, s)
+        else:
+            centre = render
+            render = lambda v: np.asarray(centre(v), np.float64) * cover  # noqa: E731
     names = []
     for i in range(n):
         v = eqx.tree_at(

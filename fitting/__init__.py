@@ -13,13 +13,14 @@ from ._fit import fit
 from ._gains import GainGauge, mean_gauge
 from ._holdout import Holdout, holdout_fit
 from ._models import IMAGING_TERMS, ModelScore, compare_models, imaging_variants, model_variants
-from ._observations import CAPTURE_CLIP_MARGIN, FitError, Observations, Optimistix, Strategy, VarPro
+from ._observations import CAPTURE_CLIP_MARGIN, CAPTURE_MARGIN, FitError, Observations, Optimistix, Strategy, VarPro
 from ._params import Param, ParamError, ParamSet, direction_frame, direction_of, tilt_of
 from ._photometric import Capture, frame_check, load_photometric_stereo, sphere_from_mask
 from ._report import Diagnostics, FitResult, Intervals, ResidualStats
 
 __all__ = [
     "CAPTURE_CLIP_MARGIN",
+    "CAPTURE_MARGIN",
     "Holdout",
     "IMAGING_TERMS",
     "holdout_fit",

@@ -23,7 +23,7 @@ read noise :math:`a` is an extrapolation (measured: 8.5e-6 for a true 1.6e-5, th
 m ≥ 0.15). The level-dependent weights then measure it where the signal is 0
 (:func:`dark_read_noise`): the censored (Tobit) likelihood of the entries whose model level is
 within a few σ of 0, with a free offset (so that a black level the model lacks is not taken for
-noise), and :math:`b` refitted to the bins with that intercept.
+noise), taken as one more point of the line through the bins, each weighed by its precision.
 """
 
 from __future__ import annotations
@@ -106,6 +106,12 @@ def variance_model(d: np.ndarray, m: np.ndarray, floor: float) -> tuple[float, f
     rows = level_bins(d, m, floor) if len(d) // WINDOWS_PER_BIN >= 2 else []
     if len(rows) < 2 or np.ptp([row[0] for row in rows]) <= 0:
         return robust_variance(d, floor), 0.0
+    return line_fit(rows)
+
+
+def line_fit(rows) -> tuple[float, float]:
+    """``(a, b)``, both ``>= 0``, of :math:`a + b\\,m` through ``(m, variance, weight)`` rows by
+    weighted least squares."""
     mb, vb, wb = (np.asarray(x, np.float64) for x in zip(*rows))
     k = len(rows)
     A = np.stack([np.ones(k), mb], axis=1) * np.sqrt(wb)[:, None]
@@ -120,7 +126,12 @@ def variance_model(d: np.ndarray, m: np.ndarray, floor: float) -> tuple[float, f
 #: The dark entries (:func:`dark_read_noise`): model level within this many of the lowest bin's
 #: σ of 0, at least :data:`DARK_MIN` of them per channel.
 DARK_SIGMAS = 2.0
-DARK_MIN = 200
+DARK_MIN = 50
+#: Independent details per window: overlapping 3×3 windows' second differences correlate (the
+#: kernel's autocorrelation, (1 + 2·(4/6)² + 2·(1/6)²)² = 3.78 windows per independent one).
+WINDOW_OVERLAP = 3.78
+#: The information on σ² a dark entry carries, half of them censored, against an uncensored one.
+CENSORED_INFORMATION = 0.6
 
 
 def dark_read_noise(y, mu, censored, b: float) -> tuple[float, float]:
@@ -209,8 +220,8 @@ def anchored(models, bins, dark) -> tuple[list, list]:
     """The variance models with each channel's read noise measured on its dark entries
     (:func:`dark_read_noise`; ``dark``: a function of per channel level bounds giving per channel
     ``(y, mu, censored)`` in the residual's units, at the model, of the entries whose level is
-    within its bound: :data:`DARK_SIGMAS` of the lowest bin's σ) and its photon term refitted to
-    the bins with that intercept; with, per channel, ``(entries, offset)`` of the dark estimate
+    within its bound: :data:`DARK_SIGMAS` of the lowest bin's σ) as one more point of the line
+    through the bins (at their mean level; every point weighed by its precision); with, per channel, ``(entries, offset)`` of the dark estimate
     (None: too few dark entries, the channel's model kept)."""
     lowest = [min(rows)[1] if rows else a for (a, _), rows in zip(models, bins)]
     entries = dark([DARK_SIGMAS * np.sqrt(max(v, 0.0)) for v in lowest])
@@ -221,10 +232,15 @@ def anchored(models, bins, dark) -> tuple[list, list]:
             used.append(None)
             continue
         a_d, c = dark_read_noise(y, mu, cens, b)
-        if rows:
-            mb, vb, wb = (np.asarray(x, np.float64) for x in zip(*rows))
-            b = max(float(np.sum(wb * (vb - a_d) * mb) / max(np.sum(wb * mb * mb), 1e-300)), 0.0)
-        out.append((a_d, b))
+        m_d = float(np.mean(np.clip(mu, 0.0, None)))
+        v_d = a_d + b * m_d
+        # the dark estimate one more point of the line, at its entries' mean level; every point
+        # weighed by the inverse of its variance's variance, 2v²/n_eff: a bin's windows overlap
+        # (n_eff = windows / WINDOW_OVERLAP), the dark entries are partly censored (n_eff =
+        # CENSORED_INFORMATION × entries)
+        pts = [(m, v, n / WINDOW_OVERLAP / max(v, 1e-300) ** 2) for m, v, n in rows]
+        pts.append((m_d, v_d, CENSORED_INFORMATION * y.size / max(v_d, 1e-300) ** 2))
+        out.append(line_fit(pts) if rows else (a_d, b))
         used.append((int(y.size), c))
     return out, used
 

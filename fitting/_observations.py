@@ -35,6 +35,12 @@ def as_list(targets) -> list:
 #: within 1-3 full-resolution pixels of clipped highlight cores; docs/photographs.md).
 CAPTURE_CLIP_MARGIN = 1
 
+#: ``Observations.margin`` of a photometric capture: 1 pixel. A camera integrates over each pixel,
+#: so the silhouette's pixels are mixed with the background; a mask keeps them (measured on
+#: captures whose rim pixels are their coverage times the shading: every masked pixel fitted,
+#: 21.9x the noise at 32² and rejected; margin 1, the truth to 3e-6; docs/photographs.md).
+CAPTURE_MARGIN = 1
+
 
 @dataclass(frozen=True, eq=False)
 class Observations:
@@ -63,7 +69,7 @@ class Observations:
       camera's clipped highlight bleeds into the pixels around it (bloom, smear), which then read
       brighter than the scene; of the clipped entries only those this far inside their clipped
       region stay, censored (at its rim the neighbours' bloom may be what clipped them). 0 (the default) for renders; a photometric capture
-      is read with :data:`fitting.CAPTURE_CLIP_MARGIN`;
+      is read with :data:`fitting.CAPTURE_CLIP_MARGIN` (and ``margin`` :data:`fitting.CAPTURE_MARGIN`);
     - ``noise_model``: ``"uniform"`` (the default: every entry's noise the same) or ``"level"``:
       the variance rises with the level, :math:`\\sigma^2 = a + b\\,m` per channel (read noise and
       photon noise), :math:`a, b` estimated from the targets (:mod:`fitting._noise`), and each

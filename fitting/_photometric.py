@@ -45,7 +45,7 @@ import numpy as np
 import diffshade as ds
 
 from ._downsample import downsample
-from ._observations import CAPTURE_CLIP_MARGIN, FitError, Observations
+from ._observations import CAPTURE_CLIP_MARGIN, CAPTURE_MARGIN, FitError, Observations
 
 
 @dataclass(frozen=True)
@@ -73,9 +73,10 @@ class Capture:
 
     def observations(self, **kw) -> Observations:
         """The :class:`Observations` of every image (each its own view, the mask, clipping; the
-        pixels beside clipped ones left out, ``clip_margin`` :data:`CAPTURE_CLIP_MARGIN`; the
+        pixels beside clipped ones left out, ``clip_margin`` :data:`CAPTURE_CLIP_MARGIN`, and the
+        silhouette's outermost pixels, mixed with the background, ``margin`` :data:`CAPTURE_MARGIN`; the
         level-dependent noise model, ``noise_model="level"``: a camera's photon noise)."""
-        kw = {"clip_margin": CAPTURE_CLIP_MARGIN, "noise_model": "level", **kw}
+        kw = {"clip_margin": CAPTURE_CLIP_MARGIN, "margin": CAPTURE_MARGIN, "noise_model": "level", **kw}
         return Observations(
             self.targets,
             views=self.views,

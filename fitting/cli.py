@@ -715,9 +715,9 @@ def _observations(args, tg, views, masks):
         saturation=tg.saturation,
         quantum=tg.quantum,
         noise=args.noise,
-        margin=args.margin,
+        margin=_capture_default(args.margin, tg, "CAPTURE_MARGIN"),
         clipped=getattr(tg, "clipped", None),
-        clip_margin=_clip_margin(args, tg),
+        clip_margin=_capture_default(args.clip_margin, tg, "CAPTURE_CLIP_MARGIN"),
         noise_model=args.noise_model or ("level" if capture else "uniform"),
     )
 
@@ -756,14 +756,16 @@ def _gain_lines(g) -> list[str]:
     ]
 
 
-def _clip_margin(args, tg) -> int:
-    """``--clip-margin``, by default :data:`fitting.CAPTURE_CLIP_MARGIN` for a capture folder
-    (a real camera's clipped highlights bleed into their neighbours) and 0 for images."""
-    from . import CAPTURE_CLIP_MARGIN
+def _capture_default(given, tg, name: str) -> int:
+    """A margin as given, by default ``fitting.<name>`` for a capture folder
+    (:data:`fitting.CAPTURE_MARGIN`: its silhouette's pixels are mixed with the background;
+    :data:`fitting.CAPTURE_CLIP_MARGIN`: its clipped highlights bleed into their neighbours) and 0
+    for images."""
+    import fitting
 
-    if args.clip_margin is not None:
-        return args.clip_margin
-    return CAPTURE_CLIP_MARGIN if getattr(tg, "clipped", None) is not None else 0
+    if given is not None:
+        return given
+    return getattr(fitting, name) if getattr(tg, "clipped", None) is not None else 0
 
 
 def cmd_fit(args) -> int:
@@ -907,11 +909,11 @@ def _add_fit(sub) -> None:
     p.add_argument(
         "--margin",
         type=str,
-        default=0,
+        default=None,
         metavar="PX",
         help="leave out pixels within PX of the model's silhouette, of an occlusion edge inside it, or of "
-        "the mask's edge (where a slightly misregistered mesh puts the wrong surface into the residual); "
-        "default 0",
+        "the mask's edge (where a slightly misregistered mesh puts the wrong surface into the residual, and a "
+        "camera's pixels mix the object with the background); default: 1 for a capture folder, 0 for images",
     )
     p.add_argument(
         "--holdout",

@@ -559,16 +559,22 @@ def test_clipped_shadows_do_not_fit_a_black_level(tmp_path):
         folder = tmp_path / f"dark{level}"
         truth, opts, _ = write_capture(folder, n=8, size=40, noise=0.004, photon=6.4e-5, seed=4, black_level=level)
         cap = load_photometric_stereo(folder, truth.mesh, opts=opts)
-        r = fit(cap.scene, cap.opts, cap.observations(), free)
+        # (margin 0: every masked pixel, the exact mesh has no mixed rim; the attached shadows lie
+        # along the rim, and the margin would leave 94 of their 245 entries per channel)
+        r = fit(cap.scene, cap.opts, cap.observations(margin=0), free)
         assert r.successful, r.result
         i = [k for k, n in enumerate(r.names) if n.startswith("camera.black_level")]
         z = (np.asarray(r.values)[i] - level) / np.asarray(r.stderr)[i]
         assert np.abs(z).max() < 3.0, (level, np.asarray(r.values)[i], z)
         note = next(n for n in r.notes if "re-taken at the model" in n)
         if level == 0.0:  # the read noise measured on the clipped shadows, not extrapolated from the windows
-            a = [float(x) for x in re.findall(r"([0-9.e+-]+) \+ [0-9.e+-]+·m", note)]
-            assert "dark entries (censored likelihood)" in note and len(a) == 3, note
-            assert all(abs(x / 0.004**2 - 1) < 0.25 for x in a), note
+            # each channel's within 3 of its standard errors (σ² from n entries, 0.6 of their
+            # information left by the censoring: sqrt(2 / 0.6n)), their mean within 15 % (the
+            # windows' extrapolation alone was 49 % low in a channel on another seed)
+            a = np.array([float(x) for x in re.findall(r"([0-9.e+-]+) \+ [0-9.e+-]+·m", note)]) / 0.004**2
+            n = np.array([int(x) for x in re.findall(r"(\d+) dark entries", note)])
+            assert len(a) == 3 and len(n) == 3, note
+            assert (np.abs(a - 1) < 3 * np.sqrt(2 / (0.6 * n))).all() and abs(a.mean() - 1) < 0.15, (a, n)
 
 
 def test_the_evidence_picks_a_captures_imaging_terms(tmp_path):
@@ -647,17 +653,26 @@ def test_the_command_line_compares_a_captures_imaging_and_reflectance(tmp_path, 
 
 
 def test_mixed_silhouette_pixels_are_named_and_left_out_by_the_margin(tmp_path):
-    """A camera integrates over each pixel: the silhouette's pixels (4×4 sub-pixels each) are
-    mixed with the black background. Fitted with every masked pixel, the fit is rejected and its
-    notes point at the outermost pixels and the margin; with margin 1 it is accepted. (The
-    material then carries the pixel integration's own blur of the highlight, which the renderer,
-    shading each pixel's centre, does not model: k_s 4 % low at this size; benchmarks/bench_margins.py
-    measures it against the resolution.)"""
+    """The silhouette's pixels mixed with the black background (each its coverage of 4×4
+    sub-pixels times the shading). Fitted with every masked pixel, the fit is rejected and its
+    notes point at the outermost pixels and the margin; with margin 1 it is accepted and the
+    material is within 3 s.e. of the truth."""
     folder = tmp_path / "mixed"
-    write_capture(folder, n=6, size=32, noise=0.004, photon=6.4e-5, seed=1, camera="orthographic", mixed=4)
+    write_capture(
+        folder,
+        n=6,
+        size=32,
+        noise=0.004,
+        photon=6.4e-5,
+        seed=1,
+        camera="orthographic",
+        mixed=4,
+        normal_map="Normal_gt.mat",
+    )
     cap = load_photometric_stereo(folder)
     r = fit(cap.scene, cap.opts, cap.observations(margin=0), PARAMS)
     assert not r.successful
     assert any("outermost pixels" in n and "margin=1" in n for n in r.notes), r.notes
     r = fit(cap.scene, cap.opts, cap.observations(margin=1), PARAMS)
-    assert r.successful, r.result
+    truth = np.r_[TRUTH["diffuse"], [TRUTH["specular"]] * 3, TRUTH["shininess"]]
+    assert r.successful and np.abs((np.asarray(r.values) - truth) / np.asarray(r.stderr)).max() < 3, r.values
