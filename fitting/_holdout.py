@@ -9,7 +9,9 @@ values; its residual is taken exactly as the fit takes one (the same pixels: mas
 the RMS per view and over all, in the residual's units (linear values, or code values of an
 encoded target), in codes of the files' step where the targets have one (``quantum``), and
 relative to the noise the training fit's verdict used (given, or estimated from its residual:
-then a ratio near 1 says the held-out views are explained as well as the fitted ones).
+then a ratio near 1 says the held-out views are explained as well as the fitted ones; under the
+level-dependent noise model, each held-out view's own noise at its levels, since a view's
+brightness sets its noise).
 """
 
 from __future__ import annotations
@@ -46,11 +48,14 @@ class Holdout:
     quantum: float | None
     # with per-view gains free: each held-out view's gain (over its calibration), fitted to it alone
     gains: list[float] | None = None
+    # under the level-dependent noise model: each held-out view's noise at its own levels
+    noises: list[float] | None = None
 
     @property
     def ratio(self) -> list[float]:
-        """Per held-out view, its RMS over the noise."""
-        return [r / self.noise if self.noise > 0 else float("inf") for r in self.rms]
+        """Per held-out view, its RMS over the noise (its own, under the level-dependent model)."""
+        noises = self.noises or [self.noise] * len(self.rms)
+        return [r / s if s > 0 else float("inf") for r, s in zip(self.rms, noises)]
 
     @property
     def ratio_all(self) -> float:
@@ -73,6 +78,7 @@ class Holdout:
             "noise": self.noise,
             "noise_source": self.noise_source,
             **({"gains": self.gains} if self.gains is not None else {}),
+            **({"noises": self.noises} if self.noises is not None else {}),
         }
 
     def lines(self) -> list[str]:
@@ -136,7 +142,8 @@ def evaluate(
     masks = list(obs.masks) if obs.masks is not None else [None] * len(obs.targets)
     lower = obs.saturation is not None
     rms, entries, ss_all, n_all = [], [], 0.0, 0
-    gains = []
+    gains, noises = [], []
+    vm = None if r.residual.noise_source.startswith("given") else r.residual.variance_model  # (a σ given: the user's)
     for k in held:
         v = pset.apply(views[k], theta)
         c = _cover(k, obs.targets[k], v, masks[k], obs.encodings[k], obs, lower, opts, ds.scene_visibility)
@@ -148,18 +155,28 @@ def evaluate(
             img = np.asarray(ds.render(v, opts), np.float64)
         d = censored_residual_np(img - c.t, c.hi, c.lo) * w
         ss, n = float(np.sum(d**2)), int(((w > 0) & ~(c.hi | c.lo)).sum())
+        if vm is not None:  # the level-dependent noise at this view's levels (the model's, as the fit weighs)
+            two = (w > 0) & ~(c.hi | c.lo)
+            a, b = (np.array([x[i] for x in vm]) for i in (0, 1))
+            var = np.broadcast_to(a, img.shape) + b * np.clip(img * w, 0.0, None)
+            noises.append(float(np.sqrt(np.mean(var[two]))) if two.any() else float(r.residual.noise))
         rms.append(float(np.sqrt(ss / max(n, 1))))
         entries.append(n)
         ss_all, n_all = ss_all + ss, n_all + n
+    noise, source = float(r.residual.noise), r.residual.noise_source
+    if vm is not None:
+        noise = float(np.sqrt(np.average(np.square(noises), weights=np.maximum(entries, 1))))
+        source = "the fit's level-dependent noise model at each held-out view's levels"
     return Holdout(
         views=list(held),
         rms=rms,
         entries=entries,
         rms_all=float(np.sqrt(ss_all / max(n_all, 1))),
-        noise=float(r.residual.noise),
-        noise_source=r.residual.noise_source,
+        noise=noise,
+        noise_source=source,
         quantum=obs.quantum,
         gains=gains or None,
+        noises=noises or None,
     )
 
 

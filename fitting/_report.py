@@ -71,6 +71,9 @@ class ResidualStats:
     noise_ratio: float  # s / σ
     psnr: float  # of the first view
     ssim: float
+    # the level-dependent noise model the fit was weighted by: per channel (a, b) of the variance
+    # a + b·m in the residual's units (fitting._noise); None with uniform weights
+    variance_model: list | None = None
 
 
 @dataclass(frozen=True)
@@ -699,6 +702,7 @@ def build_result(
         noise_ratio=best.ratio,
         psnr=psnr,
         ssim=ssim,
+        variance_model=_variance_model(prob),
     )
     return FitResult(
         names=labels,
@@ -719,6 +723,12 @@ def build_result(
         history=run.history,
         covariance=covariance(best.J, s2, stderr),
     )
+
+
+def _variance_model(prob) -> list | None:
+    """The level-dependent noise model's per channel ``(a, b)`` where it weighted the fit."""
+    w = prob._memo.get("noise weights") if prob.noise_model == "level" else None
+    return None if w is None else [tuple(map(float, ab)) for ab in w.models]
 
 
 NEAR_PROBE_VIEWS = 8  # the views a rejected capture's fit renders to probe for near lights
