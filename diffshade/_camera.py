@@ -223,6 +223,7 @@ class OrthographicCamera(_Pinhole):
 
         xs, ys = pixel_centres(self.height, self.width, dtype)
         X, Y = jnp.meshgrid(xs, ys)
+        dtype = xs.dtype  # (float64 asked for without x64: what pixel_centres gave, not a warning)
         R = self.view_matrix()[:3, :3].astype(dtype)
         a, b = self.pixel_size * self.width / 2, self.pixel_size * self.height / 2
         o = self.eye.astype(dtype) + (a * X)[..., None] * R[0] + (b * Y)[..., None] * R[1]
