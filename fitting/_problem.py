@@ -582,8 +582,10 @@ class Problem:
 
         base = self._memo.setdefault("base weights", [vd.weight for vd in self.data])
         targets0 = self._memo.setdefault("base targets", [(vd.target, vd.lo, vd.hi) for vd in self.data])
-        dark = self._dark_entries(img_flat, base, targets0) if "noise weights" not in self._memo else None
-        weigh = noise_weights(self, sigma, dark) if self.noise_model == "level" else None
+        first = "noise weights" not in self._memo and self.noise_model == "level"
+        dark = self._dark_entries(img_flat, base, targets0) if first else None
+        model_images = self.images_of(self._residual_units(img_flat, base)) if first else None
+        weigh = noise_weights(self, sigma, dark, model_images) if self.noise_model == "level" else None
         model = weigh is not None
         if self.noise_model == "level" and not model and sigma:
             weigh = _uniform(sigma)  # (no level-dependent weights: the censored likelihood at the fit's σ)
@@ -614,6 +616,21 @@ class Problem:
             )
         self._placed.clear()
         return change
+
+    def _residual_units(self, img_flat, base) -> np.ndarray:
+        """The model ``img_flat`` in the residual's units, flat (:func:`fitting._noise.measured_images`'
+        units: code values × √mask for an encoded target, the value × its base weight otherwise)."""
+        out, off = [], 0
+        for k, (vd, b) in enumerate(zip(self.data, self.views)):
+            n = vd.target.shape[0]
+            I = np.asarray(img_flat[off * 3 : (off + n) * 3], np.float64).reshape(n, 3)
+            off += n
+            if b.encoding is None:
+                out.append(I * np.broadcast_to(np.asarray(base[k], np.float64), I.shape))
+            else:
+                e = np.asarray(color.encode(np.clip(I, 0.0, None), b.encoding), np.float64)
+                out.append(e * np.asarray(b.sqrt_mask, np.float64))
+        return np.concatenate([x.reshape(-1) for x in out])
 
     def _dark_entries(self, img_flat, base, targets0):
         """The linear targets' entries near 0 at the model ``img_flat``, for
