@@ -72,7 +72,8 @@ class ResidualStats:
     psnr: float  # of the first view
     ssim: float
     # the level-dependent noise model the fit was weighted by: per channel (a, b) of the variance
-    # a + b·m in the residual's units (fitting._noise); None with uniform weights
+    # a + b·m in the residual's units (fitting._noise), its mean over the fitted entries the
+    # verdict's noise²; None with uniform weights
     variance_model: list | None = None
 
 
@@ -702,7 +703,7 @@ def build_result(
         noise_ratio=best.ratio,
         psnr=psnr,
         ssim=ssim,
-        variance_model=_variance_model(prob),
+        variance_model=_variance_model(prob, best.sigma),
     )
     return FitResult(
         names=labels,
@@ -725,10 +726,15 @@ def build_result(
     )
 
 
-def _variance_model(prob) -> list | None:
-    """The level-dependent noise model's per channel ``(a, b)`` where it weighted the fit."""
+def _variance_model(prob, sigma: float) -> list | None:
+    """The level-dependent noise model's per channel ``(a, b)`` where it weighted the fit, scaled
+    so that its mean over the fitted entries is the verdict's ``sigma``² (the model gives the
+    noise's shape across levels, the verdict its level)."""
     w = prob._memo.get("noise weights") if prob.noise_model == "level" else None
-    return None if w is None else [tuple(map(float, ab)) for ab in w.models]
+    if w is None:
+        return None
+    s = (float(sigma) / w.sigma) ** 2 if w.sigma > 0 else 1.0
+    return [(float(a) * s, float(b) * s) for a, b in w.models]
 
 
 NEAR_PROBE_VIEWS = 8  # the views a rejected capture's fit renders to probe for near lights
