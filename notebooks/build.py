@@ -1184,7 +1184,7 @@ assert abs(r.values[n] - 0.2) <= 4 * r.stderr[n]""",
         """\
 ## Export
 
-`diffshade fit` writes the fitted material as an MTL; each fitted map goes beside it as a 16-bit
+`ds.save_material` (which `diffshade fit` uses) writes the fitted material as an MTL; each fitted map goes beside it as a 16-bit
 PNG (sRGB for colour), named by a `map_Kd` line, so the result opens in any viewer and loads back
 with `ds.load_material`.""",
     ),
@@ -1192,11 +1192,10 @@ with `ds.load_material`.""",
         "code",
         """\
 import tempfile
-from fitting.cli import write_mtl
 out = Path(tempfile.mkdtemp())
 pset = fitting.ParamSet(["material.diffuse_map", "material.specular"], starts[0])
 scene_fit = pset.apply(starts[0], jnp.asarray(r.values, starts[0].mesh.vertices.dtype))
-write_mtl(scene_fit, opts, out / "material.mtl", "notebook 7")
+ds.save_material(out / "material.mtl", scene_fit, opts, header="notebook 7")
 print((out / "material.mtl").read_text())
 back = ds.load_material(out / "material.mtl")
 err = np.abs(np.asarray(back.diffuse_map.texels) - np.clip(x, 0, 1)).max()
