@@ -222,13 +222,15 @@ def _variance_models(prob, used, model=None):
     return models, windows, images, used, bins
 
 
-def anchored(models, bins, dark) -> tuple[list, list]:
+def anchored(models, bins, dark, floor: float = 0.0) -> tuple[list, list]:
     """The variance models with each channel's read noise measured on its dark entries
     (:func:`dark_read_noise`; ``dark``: a function of per channel level bounds giving per channel
     ``(y, mu, censored)`` in the residual's units, at the model, of the entries whose level is
     within its bound: :data:`DARK_SIGMAS` of the lowest bin's σ) as one more point of the line
-    through the bins (at their mean level; every point weighed by its precision); with, per channel, ``(entries, offset)`` of the dark estimate
-    (None: too few dark entries, the channel's model kept)."""
+    through the bins (at their mean level; every point weighed by its precision; no variance
+    below ``floor``, the codes' quantisation: noise-free dark entries at one code are not a zero
+    variance that outweighs every bin); with, per channel, ``(entries, offset)`` of the dark
+    estimate (None: too few dark entries, the channel's model kept)."""
     lowest = [min(rows)[1] if rows else a for (a, _), rows in zip(models, bins)]
     entries = dark([DARK_SIGMAS * np.sqrt(max(v, 0.0)) for v in lowest])
     out, used = [], []
@@ -238,13 +240,14 @@ def anchored(models, bins, dark) -> tuple[list, list]:
             used.append(None)
             continue
         a_d, c = dark_read_noise(y, mu, cens, b)
+        a_d = max(a_d, floor)
         m_d = float(np.mean(np.clip(mu, 0.0, None)))
         v_d = a_d + b * m_d
         # the dark estimate one more point of the line, at its entries' mean level; every point
         # weighed by the inverse of its variance's variance, 2v²/n_eff: a bin's windows overlap
         # (n_eff = windows / WINDOW_OVERLAP), the dark entries are partly censored (n_eff =
         # CENSORED_INFORMATION × entries)
-        pts = [(m, v, n / WINDOW_OVERLAP / max(v, 1e-300) ** 2) for m, v, n in rows]
+        pts = [(m, v, n / WINDOW_OVERLAP / max(v, floor, 1e-300) ** 2) for m, v, n in rows]
         pts.append((m_d, v_d, CENSORED_INFORMATION * y.size / max(v_d, 1e-300) ** 2))
         out.append(line_fit(pts) if rows else (a_d, b))
         used.append((int(y.size), c))
@@ -298,7 +301,8 @@ def noise_weights(prob, sigma: float | None = None, dark=None, model=None):
             models, sbar = fitted[0], own[0]
             prob._memo["dark read noise"] = None
             if dark is not None:
-                models, prob._memo["dark read noise"] = anchored(models, fitted[4], dark)
+                q2 = (prob.quantum or 0.0) ** 2 / 12
+                models, prob._memo["dark read noise"] = anchored(models, fitted[4], dark, q2)
                 sbar = _mean_noise(models, fitted[2], fitted[3])
                 prob._memo["target noise"] = (sbar, own[1])
             a, b = (np.array([m[i] for m in models]) for i in (0, 1))
