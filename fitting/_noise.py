@@ -249,7 +249,8 @@ def anchored(models, bins, dark, floor: float = 0.0) -> tuple[list, list]:
         # CENSORED_INFORMATION × entries)
         pts = [(m, v, n / WINDOW_OVERLAP / max(v, floor, 1e-300) ** 2) for m, v, n in rows]
         pts.append((m_d, v_d, CENSORED_INFORMATION * y.size / max(v_d, 1e-300) ** 2))
-        out.append(line_fit(pts) if rows else (a_d, b))
+        a_l, b_l = line_fit(pts) if rows else (a_d, b)
+        out.append((max(a_l, floor), b_l))
         used.append((int(y.size), c))
     return out, used
 

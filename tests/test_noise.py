@@ -227,3 +227,23 @@ def test_the_read_noise_is_measured_where_the_signal_is_zero(offset):
     assert abs(np.sqrt(a) / sigma - 1) < 0.1 and abs(c - offset) < 0.1 * sigma
     naive = float(np.mean((y - mu - offset) ** 2))  # the clipped entries' residuals taken as read
     assert abs(np.sqrt(naive) / sigma - 1) > 0.2 or offset > 0
+
+
+def test_noise_free_dark_entries_do_not_pin_the_variance_at_zero():
+    """Noise-free 16-bit dark entries all read one code: their censored-likelihood variance is
+    0, and as a point of the variance line weighed by its precision it would outweigh every bin
+    (weights of 1e18: a fit's residual then read 1e-10× the noise and a wrong model passed). The
+    variance stays at or above the codes' quantisation q²/12, and the bins still shape the line."""
+    from fitting._noise import anchored
+
+    q2 = (1 / 65535) ** 2 / 12
+    bins = [[(0.2, 3e-11, 500), (0.5, 5e-11, 500), (0.8, 7e-11, 500)]] * 3
+    models = [(1.8e-11, 6.7e-11)] * 3
+
+    def dark(bounds):
+        return [(np.full(300, 0.015), np.zeros(300), np.zeros(300, bool))] * 3
+
+    out, used = anchored(models, bins, dark, q2)
+    for a, b in out:
+        assert a >= q2 * 0.99 and b > 0, (a, b)
+    assert all(u is not None and u[0] == 300 and abs(u[1] - 0.015) < 1e-6 for u in used)
