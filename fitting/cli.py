@@ -553,7 +553,8 @@ def _compare(scene, opts, obs, args, r, fit_kw, held=None, centre=None):
     from . import _options, compare_models, imaging_variants, model_variants
     from ._models import ranked
 
-    fit_kw = dict(fit_kw, strategy=fit_kw["strategy"].replace(verbose=False))  # verbose: the main fit only
+    # verbose and the profile-likelihood intervals: the main fit's only (a comparison reads criteria)
+    fit_kw = dict(fit_kw, strategy=fit_kw["strategy"].replace(verbose=False), intervals=False)
     kw = dict(given=r, holdout=args.holdout, given_holdout=held, **fit_kw)
     if centre is None:
         scores = compare_models(scene, opts, obs, args.free, **kw)
