@@ -25,7 +25,6 @@ import numpy as np
 
 import diffshade as ds
 
-from ._gains import _GAIN
 from ._observations import FitError, Observations
 from ._params import ParamSet
 from ._problem import _cover, censored_residual_np
@@ -138,7 +137,6 @@ def evaluate(
     pset = ParamSet(free, scene, shared, n_views=1)
     theta = np.asarray([r.values[r.names.index(lab)] for lab in pset.labels], np.float64)
     views = obs.views_of(scene)
-    gain = training_gain(r, views, held) if per_view else 1.0
     masks = list(obs.masks) if obs.masks is not None else [None] * len(obs.targets)
     lower = obs.saturation is not None
     rms, entries, ss_all, n_all = [], [], 0.0, 0
@@ -149,7 +147,7 @@ def evaluate(
         c = _cover(k, obs.targets[k], v, masks[k], obs.encodings[k], obs, lower, opts, ds.scene_visibility)
         w = c.wgt[..., None] * c.chan_w * c.used[..., None]  # (as the fit weighs each entry)
         if per_view:
-            img, g = _gain_fitted(v, opts, c, w, gain)
+            img, g = _gain_fitted(v, opts, c, w)
             gains.append(g)
         else:
             img = np.asarray(ds.render(v, opts), np.float64)
@@ -180,11 +178,11 @@ def evaluate(
     )
 
 
-def _gain_fitted(v, opts, c, w, start: float):
+def _gain_fitted(v, opts, c, w):
     """A held-out view's image at its own best gain, and that gain over its calibration: the
     image is affine in the exposure (:math:`I_0 + g\\,S`, the black level added after it), so
     two renders give it and the two-sided entries' least squares the gain."""
-    e = float(v.camera.exposure) * start
+    e = float(v.camera.exposure)  # (any exposure: the two renders give the line exactly)
     at = lambda x: np.asarray(ds.render(eqx.tree_at(lambda s: s.camera.exposure, v, x), opts), np.float64)  # noqa: E731
     i1, i2 = at(e), at(2 * e)
     S = (i2 - i1) / e
@@ -198,20 +196,6 @@ def _gain_fitted(v, opts, c, w, start: float):
 
 
 _PER_VIEW_GAIN = re.compile(r"^view\[(\d+|\*|:)\]\.camera\.exposure$")
-
-
-def training_gain(r: FitResult, views, held) -> float:
-    """The geometric mean of the training fit's gains over the exposures its views were given
-    (``views``: every view's scene, ``held``: those the fit did not see; a training view whose
-    gain is not free, the reference view 0, counts with 1): in the fit's gauge, a held-out
-    light's gain before its own is fitted (the calibration is right on average,
-    :func:`fitting.mean_gauge`)."""
-    fitted = {int(m.group(1)): float(r.values[i]) for i, n in enumerate(r.names) if (m := _GAIN.match(n))}
-    train = [k for k in range(len(views)) if k not in set(held)]
-    ratios = [
-        fitted.get(i, float(views[k].camera.exposure)) / float(views[k].camera.exposure) for i, k in enumerate(train)
-    ]
-    return float(np.exp(np.mean(np.log(ratios))))
 
 
 def holdout_fit(scene, opts, obs: Observations, free, every: int, **fit_kw) -> tuple[FitResult, Holdout]:
