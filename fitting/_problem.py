@@ -590,11 +590,8 @@ class Problem:
         if self.noise_model == "level" and not model and sigma:
             weigh = _uniform(sigma)  # (no level-dependent weights: the censored likelihood at the fit's σ)
         self._memo["censored EM"] = weigh is not None
-        off, change = 0, 0.0
-        for k, (vd, b) in enumerate(zip(self.data, self.views)):
-            n = vd.target.shape[0]
-            I = np.asarray(img_flat[off * 3 : (off + n) * 3], np.float64).reshape(n, 3)
-            off += n
+        change = 0.0
+        for k, vd, b, I in self._model_views(img_flat):
             if b.encoding is None:  # (linear: only the noise model re-takes anything)
                 if weigh is not None:
                     self.data[k], moved = self._tobit_view(vd, I, base[k], *targets0[k], weigh)
@@ -617,14 +614,19 @@ class Problem:
         self._placed.clear()
         return change
 
+    def _model_views(self, img_flat):
+        """Per view ``(k, view data, book, the model's [n, 3] slice of img_flat)``."""
+        off = 0
+        for k, (vd, b) in enumerate(zip(self.data, self.views)):
+            n = vd.target.shape[0]
+            yield k, vd, b, np.asarray(img_flat[off * 3 : (off + n) * 3], np.float64).reshape(n, 3)
+            off += n
+
     def _residual_units(self, img_flat, base) -> np.ndarray:
         """The model ``img_flat`` in the residual's units, flat (:func:`fitting._noise.measured_images`'
         units: code values × √mask for an encoded target, the value × its base weight otherwise)."""
-        out, off = [], 0
-        for k, (vd, b) in enumerate(zip(self.data, self.views)):
-            n = vd.target.shape[0]
-            I = np.asarray(img_flat[off * 3 : (off + n) * 3], np.float64).reshape(n, 3)
-            off += n
+        out = []
+        for k, _, b, I in self._model_views(img_flat):
             if b.encoding is None:
                 out.append(I * np.broadcast_to(np.asarray(base[k], np.float64), I.shape))
             else:
@@ -637,22 +639,16 @@ class Problem:
         :func:`fitting._noise.dark_read_noise`: a function of per channel level bounds giving per
         channel ``(y, mu, censored)`` in the residual's units over the used entries and those read
         0 whose model level is within its bound; None when no target is linear."""
-        views, off = [], 0
-        for k, (vd, b) in enumerate(zip(self.data, self.views)):
-            n = vd.target.shape[0]
-            sl = slice(off * 3, (off + n) * 3)
-            off += n
-            if b.encoding is None:
-                views.append((k, sl, n))
+        views = [(k, I) for k, _, b, I in self._model_views(img_flat) if b.encoding is None]
         if not views:
             return None
 
         def select(bounds):
             parts = [[] for _ in range(3)]
-            for k, sl, n in views:
+            for k, I in views:
                 t0, lo0, hi0 = (np.asarray(x) for x in targets0[k])
                 w = np.broadcast_to(np.asarray(base[k], np.float64), t0.shape)
-                mu = np.asarray(img_flat[sl], np.float64).reshape(n, 3) * w
+                mu = I * w
                 ok = (w > 0) & ~np.asarray(hi0, bool) & (mu <= np.asarray(bounds)[None, :])
                 for c in range(3):
                     i = ok[:, c]
