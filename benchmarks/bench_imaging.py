@@ -39,7 +39,7 @@ def bunny():
     return ds.Mesh((v - c) / np.linalg.norm(v - c, axis=1).max() @ R.T + [0.0, 0.0, 4.0], np.asarray(b.faces))
 
 
-def case(seed: int, folder: Path, size: int, views: int, noise: float):
+def case(seed: int, folder: Path, size: int, views: int, noise: float, depth: bool = False):
     """One random capture: ``(effects present, its write_capture keywords)``."""
     rng = np.random.default_rng(1000 + seed)
     present = [e for e in EFFECTS if rng.uniform() < 0.5]
@@ -54,6 +54,7 @@ def case(seed: int, folder: Path, size: int, views: int, noise: float):
         camera="orthographic",
         normal_map="Normal_gt.mat",
         mesh=bunny() if seed % 2 else None,
+        depth_map="depth.npy" if depth else None,
     )
     if "near lights" in present:
         kw["light_distance"] = float(rng.uniform(15, 30))
@@ -65,11 +66,11 @@ def case(seed: int, folder: Path, size: int, views: int, noise: float):
     return present, kw
 
 
-def run(seed: int, size: int, views: int, noise: float) -> dict:
+def run(seed: int, size: int, views: int, noise: float, depth: bool = False) -> dict:
     from fitting import compare_models, holdout_fit, imaging_variants, load_photometric_stereo
 
     with tempfile.TemporaryDirectory() as tmp:
-        present, kw = case(seed, Path(tmp), size, views, noise)
+        present, kw = case(seed, Path(tmp), size, views, noise, depth)
         cap = load_photometric_stereo(tmp)
         obs = cap.observations()
         t0 = time.perf_counter()
@@ -148,10 +149,11 @@ def main() -> None:
     ap.add_argument("--views", type=int, default=12)
     ap.add_argument("--noise", type=float, default=0.004)
     ap.add_argument("--json", type=str, default=None)
+    ap.add_argument("--depth", action="store_true", help="the folders carry the truth's depth map (depth.npy)")
     a = ap.parse_args()
     rows = []
     for seed in range(a.first, a.first + a.cases):
-        row = run(seed, a.size, a.views, a.noise)
+        row = run(seed, a.size, a.views, a.noise, a.depth)
         rows.append(row)
         print(
             f"case {seed:2d} {row['object']:6s} present {row['present']!s:40s} picked {row['picked']!s:40s} "

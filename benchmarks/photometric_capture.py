@@ -29,6 +29,7 @@ def write_capture(
     falloff=0.0,
     camera="pinhole",
     normal_map=None,
+    depth_map=None,
     gain_error=0.0,
     black_level=0.0,
     photon=0.0,
@@ -44,6 +45,8 @@ def write_capture(
     object folders: the sphere spans 60 % of the image's height); ``normal_map``: also write the
     truth's normals at the pixel centres (capture frame) to this file name in the folder
     (``Normal_gt.mat``, ``normal.png`` as 16-bit codes ``(n + 1)/2``, ``normal.npy``);
+    ``depth_map``: also write the truth's eye-space depths at the pixel centres to this file
+    name (``depth.npy``; orthographic: in pixel widths, the loader's convention);
     ``gain_error``: the intensities written are each light's true one times ``1 + e``, ``e``
     uniform in ±``gain_error`` (a calibration's per-light error; the truth renders the true ones).
     The camera's imaging: ``black_level`` added to every pixel; the noise's variance
@@ -130,6 +133,8 @@ def write_capture(
         np.savetxt(folder / "K.txt", K)
     if normal_map is not None:
         _write_normals(folder / normal_map, scene, opts, mask)
+    if depth_map is not None:
+        _write_depth(folder / depth_map, scene, opts, mask)
     return scene, opts, written
 
 
@@ -182,6 +187,16 @@ def true_normals(scene, opts) -> np.ndarray:
     if opts.camera_lighting.two_sided:
         n = np.where(np.asarray(surf.front[0])[..., None], n, -n)
     return np.where((np.asarray(ids[0]) >= 0)[..., None], n, 0.0)
+
+
+def _write_depth(path: Path, scene, opts, mask) -> None:
+    covered = np.asarray(ds.scene_visibility(scene, opts))[0] >= 0
+    V = np.asarray(scene.camera.view_matrix(), np.float64)
+    z = np.full(covered.shape, np.nan)
+    z[covered] = -(_visible_points(scene, opts) @ V[:3, :3].T + V[:3, 3])[:, 2]
+    if scene.camera.orthographic:
+        z = z / float(scene.camera.pixel_size)
+    np.save(path, np.where(mask, z, np.nan))
 
 
 def _write_normals(path: Path, scene, opts, mask) -> None:

@@ -13,6 +13,9 @@ The layout (DiLiGenT's and most photometric-stereo data sets'): one folder with
   object's radius (from the mask's area) one scene unit;
 - the shape (optional): a normal map, ``Normal_gt.mat`` (DiLiGenT's) or ``normal.png`` /
   ``normal.exr`` / ``normal.npy`` (:func:`diffshade.read_normal_map`), in the capture frame.
+- its depth (optional, with a normal map): ``depth.npy`` / ``depth.exr`` / ``depth.tif``, the
+  surface's eye-space depth per pixel (:func:`read_depth_map`), where a scan or a depth sensor
+  gives it: the normals alone fix a surface only up to its discontinuities.
 
 **Frames.** The light directions are given in the *capture frame*: :math:`x` to the right of the
 image, :math:`y` up, :math:`z` towards the viewer (the camera looks along :math:`-z`). The views'
@@ -117,6 +120,47 @@ def _camera_matrix(folder: Path, K) -> np.ndarray:
 
 #: The normal-map files a capture folder's shape may be given in, in the order looked for.
 NORMAL_MAP_FILES = ("Normal_gt.mat", "normal.png", "normal.exr", "normal.npy", "normal.tif")
+
+
+#: The depth-map files a capture folder may carry beside its normal map, looked for in this order.
+DEPTH_MAP_FILES = ("depth.npy", "depth.exr", "depth.tif", "depth.tiff")
+
+
+def _depth_map_file(folder: Path, depth):
+    """The depth map's path: ``depth`` given, or the folder's own (None: none, or not wanted)."""
+    if depth is False:
+        return None
+    if depth is not None:
+        return Path(depth)
+    return next((folder / f for f in DEPTH_MAP_FILES if (folder / f).is_file()), None)
+
+
+def read_depth_map(path) -> np.ndarray:
+    """``[H, W]`` depths of a depth-map file (``.npy``, or a float EXR / TIFF: its first
+    channel), as stored; NaN, infinite or zero depths are left for the caller to judge (outside
+    the mask they are the usual background)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FitError(f"{path}: no such depth-map file")
+    if path.suffix.lower() == ".npy":
+        try:
+            z = np.load(path)
+        except (ValueError, OSError) as exc:
+            raise FitError(f"{path}: not a NumPy array file ({exc})") from exc
+    else:
+        try:
+            im = ds.read_image(path)
+        except ds.ImageError as exc:
+            raise FitError(str(exc)) from exc
+        if im.bits is not None:
+            raise FitError(f"{path}: a depth map holds floats (EXR, float TIFF, .npy), not {im.bits}-bit codes")
+        z = im.values()
+    z = np.asarray(z, np.float64)
+    if z.ndim == 3:
+        z = z[..., 0]
+    if z.ndim != 2:
+        raise FitError(f"{path}: a depth map is [H, W], got shape {z.shape}")
+    return z
 
 
 def _normal_map_file(folder: Path, normals):
@@ -226,6 +270,7 @@ def load_photometric_stereo(
     normals=None,
     normals_flip_y: bool = False,
     normals_flip_z: bool = False,
+    depth=None,
 ) -> Capture:
     r"""The capture in ``folder`` (the layout of the module's docstring) as views with one
     directional light each; ``mesh`` in the camera frame, or None for a sphere placed from the
@@ -246,7 +291,13 @@ def load_photometric_stereo(
 
     ``normals``: the shape as a normal-map file (the module's "Geometry"); None (the default):
     the folder's own (:data:`NORMAL_MAP_FILES`) where there is one and no ``mesh``; False: none
-    (a sphere from the mask). ``K``: the camera matrix, for a folder without one (default: the
+    (a sphere from the mask). ``depth``: the normal map's surface depths as a depth-map file
+    (:func:`read_depth_map`; eye-space depths along the view axis: under an orthographic camera
+    in the full image's pixel widths, about any mean; under a pinhole camera in any unit, scaled
+    to the capture's); None (the default): the folder's own (:data:`DEPTH_MAP_FILES`) where there
+    is one, else the depths the normals integrate to (:func:`diffshade.integrate_normals`: a
+    surface with depth discontinuities is smoothed across them, which matters to near lights);
+    False: integrated. ``K``: the camera matrix, for a folder without one (default: the
     folder's, else an orthographic camera)."""
     if downsample_how not in ("average", "sample"):
         raise FitError(f"downsample_how must be 'average' or 'sample', got {downsample_how!r}")
@@ -272,7 +323,9 @@ def load_photometric_stereo(
     centre = object_centre(mesh) if mesh is not None else None
     if nfile is not None:
         flips = (normals_flip_y, normals_flip_z)
-        mesh, mask, geometry = _normal_map_geometry(nfile, full_mask, mask, cam, K, f, how, flips)
+        mesh, mask, geometry = _normal_map_geometry(
+            nfile, full_mask, mask, cam, K, f, how, flips, _depth_map_file(folder, depth)
+        )
         centre = surface_centre(np.asarray(mesh.vertices).reshape(-1, 4, 3).mean(1))  # (the pixels' points)
     prop = to_camera_frame(dirs, flip_y, flip_z)
     near = {}
@@ -304,7 +357,7 @@ def load_photometric_stereo(
     return Capture(views, opts, list(targets), mask, list(clipped), quantum[0], names, geometry, model, centre)
 
 
-def _normal_map_geometry(path: Path, full_mask, mask, cam, K, f: int, how: str, flips):
+def _normal_map_geometry(path: Path, full_mask, mask, cam, K, f: int, how: str, flips, dpath=None):
     """``(mesh, mask, description)``: the normal map at ``path`` as the capture's shape, on the
     reduced images' pixels (sampled, or each block's normals averaged), in the camera frame."""
     try:
@@ -335,15 +388,45 @@ def _normal_map_geometry(path: Path, full_mask, mask, cam, K, f: int, how: str, 
         depth = ORTHOGRAPHIC_DEPTH
     else:  # the object's radius one unit, as a sphere from the mask
         depth = float(np.sqrt(K[0, 0] * K[1, 1])) / _object_pixels(mask)[2]
+    z = None if dpath is None else _surface_depth(dpath, full_mask.shape, used, depth, K, cam, f, how)
     try:
-        mesh = ds.normal_map_mesh(n, cam, used, depth=depth)
+        mesh = ds.normal_map_mesh(n, cam, used, depth=depth, surface_depth=z)
     except ValueError as exc:
         raise FitError(f"{path}: {exc}") from exc
     dropped = int((mask & ~has).sum())
     what = f"the normal map {path.name}" + (
         f" ({dropped} pixels of the mask without a normal left out)" if dropped else ""
     )
+    what += f", at the depths of {dpath.name}" if dpath is not None else ", at the depth its normals integrate to"
     return mesh, used, what
+
+
+def _surface_depth(path: Path, shape, used, depth: float, K, cam, f: int, how: str) -> np.ndarray:
+    """``[h, w]`` eye-space depths (scene units) of the depth map at ``path`` on the reduced
+    images' pixels, placed as an integrated surface is (the module's "Geometry")."""
+    z = read_depth_map(path)
+    if z.shape != shape:
+        raise FitError(f"{path}: the depth map is {z.shape[1]}x{z.shape[0]}, but the mask is {shape[1]}x{shape[0]}")
+    if f > 1 and how == "average":
+        h, w = shape[0] // f * f, shape[1] // f * f
+        z = z[:h, :w].reshape(h // f, f, w // f, f).mean((1, 3))
+    elif f > 1:
+        z = z[f // 2 :: f, f // 2 :: f]
+    z = z[: used.shape[0], : used.shape[1]]
+    bad = used & ~(np.isfinite(z) & ((z > 0) if K is not None else True))
+    if bad.any():
+        i, j = np.argwhere(bad)[0]
+        want = "finite" if K is None else "finite and > 0"
+        raise FitError(
+            f"{path}: {int(bad.sum())} pixel(s) of the mask have no depth ({want} expected: row {i}, column {j} "
+            f"of the reduced image reads {z[i, j]})"
+        )
+    out = np.full(used.shape, np.nan)
+    if K is None:  # in the full image's pixel widths: about the capture's depth
+        out[used] = depth + (z[used] - z[used].mean()) * float(cam.pixel_size) / f
+    else:  # any unit: scaled to the capture's (geometric) mean depth
+        out[used] = depth * z[used] / np.exp(np.mean(np.log(z[used])))
+    return out
 
 
 def _listing(folder: Path):

@@ -415,6 +415,7 @@ def _photometric_inputs(args, folder: Path):
             normals=False if args.normals == "none" else args.normals,
             normals_flip_y=args.normals_flip_y,
             normals_flip_z=args.normals_flip_z,
+            depth=False if args.depth == "none" else args.depth,
         )
     except FitError as exc:
         raise InputError(str(exc)) from exc
@@ -956,6 +957,13 @@ def _add_fit_capture(p) -> None:
         default=None,
         help="a capture folder's shape as a normal map (.mat, .png, .exr, .npy; default: the folder's "
         "Normal_gt.mat or normal.*; none: a sphere from the mask)",
+    )
+    p.add_argument(
+        "--depth",
+        metavar="FILE",
+        default=None,
+        help="a normal map's surface depths (.npy, float .exr/.tif; orthographic: in pixel widths; default: the "
+        "folder's depth.*, else integrated from the normals; none: integrated)",
     )
     p.add_argument("--normals-flip-y", action="store_true", help="the normal map's y points down")
     p.add_argument("--normals-flip-z", action="store_true", help="the normal map's z points away from the viewer")
