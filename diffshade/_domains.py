@@ -91,6 +91,10 @@ _MATERIAL = {
     "diffuse": UNIT,
     "specular": UNIT,
     "shininess": NONNEG,  # 0: OpenGL's default (the highlight is the whole lit side)
+    "roughness": Domain(lo=0.0, lo_open=True, hi=1.0),
+    "roughness_y": Domain(lo=0.0, lo_open=True, hi=1.0),
+    "diffuse_roughness": NONNEG,
+    "tangent": REAL,
     "ior": POSITIVE,
     "opacity": UNIT,
     "kay_min": UNIT,

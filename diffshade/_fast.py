@@ -97,6 +97,8 @@ def applies(scene: Scene, opts: RenderOptions, pixels) -> bool:
         return False  # (Phong: the specular sum clamped apart per pixel)
     if lt.transmission or scene.area.count or scene.multi_lobe.count:
         return False
+    if lt.specular not in _SPECULAR or lt.diffuse_model != "lambert":
+        return False  # (the other local models, docs/model.md §7: the JAX stages)
     if (pixels is not None and len(pixels) != 2) or 0 in scene.mesh.faces.shape[:1] + scene.mesh.vertices.shape[:1]:
         return False
     if scene.materials and scene.mesh.material_ids is not None:

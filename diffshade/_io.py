@@ -281,6 +281,10 @@ def _material(v: _V, m: dict, where: str, gl: bool = False, base: Path | None = 
         specular=v.vec(m, "specular", where, default=np.asarray(d.specular), lo=0.0, hi=1.0, scalar_ok=True),
         shininess=v.num(m, "shininess", where, default=float(d.shininess), lo=0.0, lo_open=not gl),
         ior=v.num(m, "ior", where, default=float(d.ior), lo=0.0, lo_open=True),
+        roughness=v.num(m, "roughness", where, default=float(d.roughness), lo=0.0, lo_open=True, hi=1.0),
+        roughness_y=v.num(m, "roughness_y", where, default=float(d.roughness_y), lo=0.0, lo_open=True, hi=1.0),
+        diffuse_roughness=v.num(m, "diffuse_roughness", where, default=float(d.diffuse_roughness), lo=0.0),
+        tangent=v.vec(m, "tangent", where, default=np.asarray(d.tangent), nonzero=True),
         **maps,
     )
 

@@ -12,12 +12,14 @@ shadow visibility, :mod:`diffshade._shadow`).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from . import _local_models as M
 from . import _shade as S
 from ._materials import _select, _select_sides
 from ._options import Lighting, Output
@@ -46,12 +48,23 @@ class LightVisibility:
 def _direct(ndl, n, l, v, mat: Material, lt: Lighting, back: bool):
     r"""The scalar factors of one light at the points: diffuse :math:`(n\cdot l)^+`, specular
     (Fresnel-weighted where asked) and directed transmission, each ``None`` where off."""
-    dif = S.lambert(ndl) if lt.diffuse else None
+    dif = None
+    if lt.diffuse:
+        dif = S.lambert(ndl) if lt.diffuse_model == "lambert" else M.oren_nayar(n, l, v, mat.diffuse_roughness)
     spec = None
-    if lt.specular != "none":
-        spec = (S.phong_specular if lt.specular == "phong" else S.blinn_specular)(n, l, v, mat.shininess)
-        if lt.fresnel != "none":
-            spec = (S.fresnel_schlick if lt.fresnel == "schlick" else S.fresnel_dielectric)(ndl, mat.ior) * spec
+    fresnel = None
+    if lt.fresnel != "none":
+        fresnel = functools.partial(S.fresnel_schlick if lt.fresnel == "schlick" else S.fresnel_dielectric, ior=mat.ior)
+    if lt.specular in ("beckmann", "ggx"):  # (its Fresnel term of v.h, inside)
+        spec = M.cook_torrance(n, l, v, mat.roughness, lt.specular, lt.masking, fresnel)
+    elif lt.specular != "none":
+        if lt.specular == "ward":
+            frame = M.tangent_frame(n, _rgb(mat.tangent))
+            spec = M.ward(n, l, v, mat.roughness, mat.roughness_y, *frame)
+        else:
+            spec = (S.phong_specular if lt.specular == "phong" else S.blinn_specular)(n, l, v, mat.shininess)
+        if fresnel is not None:
+            spec = fresnel(ndl) * spec
     trans = S.directed_transmission(n, l, v, mat.shininess, mat.ior, back, lt.fresnel) if lt.transmission else None
     return dif, spec, trans
 

@@ -34,7 +34,9 @@ from typing import Any, Literal
 import numpy as np
 
 Shading = Literal["flat", "gouraud", "phong"]
-SpecularModel = Literal["none", "phong", "blinn"]
+SpecularModel = Literal["none", "phong", "blinn", "beckmann", "ggx", "ward"]
+DiffuseModel = Literal["lambert", "oren_nayar"]
+Masking = Literal["smith", "v_cavity"]
 Fresnel = Literal["none", "schlick", "dielectric"]
 FogMode = Literal["linear", "exp", "exp2"]
 FogDistance = Literal["euclidean", "depth"]
@@ -118,8 +120,13 @@ class Lighting:
     r"""Which terms of the local model exist and how they are evaluated (docs/model.md §1–2);
     a term that is off costs nothing.
 
-    ``specular``: ``"phong"``, ``"blinn"`` or ``"none"``; ``fresnel``: ``"none"``, ``"schlick"``
-    or ``"dielectric"`` weighting of the specular term. ``emission``, ``ambient``, ``diffuse``,
+    ``specular``: the classic ``"phong"`` or ``"blinn"``, Cook–Torrance's microfacets with
+    ``"beckmann"``'s or ``"ggx"``'s distribution (``masking``: Smith's ``"smith"`` of the same
+    distribution, or Cook–Torrance's ``"v_cavity"``), Ward's anisotropic ``"ward"``, or
+    ``"none"``; ``diffuse_model``: ``"lambert"`` or Oren–Nayar's rough ``"oren_nayar"``
+    (docs/model.md §7); ``fresnel``: ``"none"``, ``"schlick"`` or ``"dielectric"`` weighting of
+    the specular term (of :math:`n\cdot l` in the classic and Ward terms, of :math:`v\cdot h` in
+    Cook–Torrance's). ``emission``, ``ambient``, ``diffuse``,
     ``transmission`` (directed transmission :math:`k_t I_p \cos^m\beta`) and
     ``per_light_ambient`` (:math:`k_a I_{a,i}` of each light) switch terms. ``two_sided`` lights
     back faces with the reversed normal (and the scene's ``back_material`` where it has one).
@@ -131,6 +138,8 @@ class Lighting:
 
     specular: SpecularModel = "phong"
     fresnel: Fresnel = "none"
+    diffuse_model: DiffuseModel = "lambert"
+    masking: Masking = "smith"
     emission: bool = False
     ambient: bool = True
     diffuse: bool = True
@@ -142,7 +151,9 @@ class Lighting:
     area_grid: tuple[int, int] = (4, 4)
 
     def __post_init__(self):
-        _choice(self, "specular", ("none", "phong", "blinn"))
+        _choice(self, "specular", ("none", "phong", "blinn", "beckmann", "ggx", "ward"))
+        _choice(self, "diffuse_model", ("lambert", "oren_nayar"))
+        _choice(self, "masking", ("smith", "v_cavity"))
         _choice(self, "fresnel", ("none", "schlick", "dielectric"))
         _choice(self, "spot_edge", ("hard", "smooth"))
         _choice(self, "viewer", ("local", "infinite"))
@@ -277,6 +288,8 @@ _KEYS: dict[str, tuple[str, str]] = {
         for k in (
             "specular",
             "fresnel",
+            "diffuse_model",
+            "masking",
             "emission",
             "ambient",
             "diffuse",

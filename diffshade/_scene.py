@@ -50,6 +50,13 @@ class Material(eqx.Module):
     it as :math:`m'` directly, see :func:`diffshade.phong_to_blinn`), ``ior`` :math:`\eta`
     (for the Fresnel-weighted specular and the refraction of directed transmission).
 
+    The other local models (docs/model.md §7, chosen by :class:`diffshade.Lighting`):
+    ``roughness`` :math:`\alpha \in (0, 1]` (Cook–Torrance's microfacet roughness; Ward's
+    :math:`\alpha_x`), ``roughness_y`` (Ward's :math:`\alpha_y`; :math:`\alpha_x = \alpha_y`
+    is isotropic Ward), ``tangent`` (Ward's tangent direction :math:`t`, world space, projected on
+    each point's tangent plane) and ``diffuse_roughness`` :math:`\sigma \ge 0` (Oren–Nayar's slope
+    spread in radians; 0 is Lambert).
+
     Texture maps (docs/model.md §15): ``emission_map``, ``ambient_map``, ``diffuse_map``,
     ``specular_map``, ``shininess_map`` and ``opacity_map`` (each a :class:`diffshade.Texture`, or
     None) multiply their field per pixel at the mesh's texture coordinates (``Mesh.uv``); the
@@ -81,6 +88,10 @@ class Material(eqx.Module):
     diffuse: Float[Array, "3"] = eqx.field(converter=_rgb, default=(0.7, 0.7, 0.7))
     specular: Float[Array, "3"] = eqx.field(converter=_rgb, default=(0.3, 0.3, 0.3))
     shininess: Float[Array, ""] = eqx.field(converter=as_float_array, default=32.0)
+    roughness: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.3)
+    roughness_y: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.3)
+    diffuse_roughness: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.3)
+    tangent: Float[Array, "3"] = eqx.field(converter=_rgb, default=(1.0, 0.0, 0.0))
     ior: Float[Array, ""] = eqx.field(converter=as_float_array, default=1.5)
     opacity: Float[Array, ""] = eqx.field(converter=as_float_array, default=1.0)
     kay_min: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.9)

@@ -56,9 +56,16 @@ def needs(opts: RenderOptions) -> Needs:
     if lt.ambient or lt.per_light_ambient:
         used.add("ambient")
     if lt.diffuse:
-        used.add("diffuse")
+        used |= {"diffuse"} | ({"diffuse_roughness"} if lt.diffuse_model == "oren_nayar" else set())
     if lt.specular != "none":  # (a Fresnel term replaces k_s: then k_s, and a map of it, are unread)
-        used |= {"shininess"} | ({"ior"} if lt.fresnel != "none" else {"specular"})
+        used |= {"ior"} if lt.fresnel != "none" else {"specular"}
+        used |= {
+            "phong": {"shininess"},
+            "blinn": {"shininess"},
+            "beckmann": {"roughness"},
+            "ggx": {"roughness"},
+            "ward": {"roughness", "roughness_y", "tangent"},
+        }[lt.specular]
     if lt.transmission:
         used |= {"transmission", "shininess", "ior"}
     if tr is not None:

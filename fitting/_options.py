@@ -21,7 +21,7 @@ def fog(opts: ds.RenderOptions) -> str:
 
 
 def specular(opts: ds.RenderOptions) -> str:
-    """The specular model (``"none"``, ``"phong"``, ``"blinn"``)."""
+    """The specular model (``"none"``, ``"phong"``, ``"blinn"``, ``"beckmann"``, ``"ggx"``, ``"ward"``)."""
     return opts.lighting.specular
 
 

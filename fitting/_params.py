@@ -13,7 +13,8 @@ through an unconstrained ``u``:
 
 Names: ``material.<field>``, ``material[i].<field>`` (material id ``i`` of a multi-material
 scene; ``material[0]`` is ``material``) and ``back_material.<field>`` (emission, ambient, diffuse,
-specular, shininess, ior, opacity, kay_min, kay_max, kay_power, transmission, absorption, mirror, refraction);
+specular, shininess, roughness, roughness_y, diffuse_roughness, ior, opacity, kay_min, kay_max, kay_power,
+transmission, absorption, mirror, refraction; the roughnesses α of Cook–Torrance and Ward in (0, 1), Oren–Nayar's σ positive);
 ``ambient_light``; ``<kind>[i].<field>`` with kind ``directional``, ``point``,
 ``spot`` or ``area`` and field ``color``, ``specular`` (a separate specular colour, where the scene gives
 one), ``ambient``, ``a0``/``a1``/``a2`` (attenuation), ``position``
@@ -65,6 +66,9 @@ _MATERIAL = {
     "diffuse": "unit",
     "specular": "unit",
     "shininess": "positive",
+    "roughness": (0.0, 1.0),
+    "roughness_y": (0.0, 1.0),
+    "diffuse_roughness": "positive",
     "ior": (1.0, 4.0),
     "opacity": "unit",
     "kay_min": "unit",

@@ -19,6 +19,7 @@ from ._params import Param
 
 _RANGES = {  # plausible ranges (natural units) searched on a log scale for positive parameters
     "shininess": (1.0, 1000.0),
+    "diffuse_roughness": (0.01, 1.5),
     "a0": (1e-3, 10.0),
     "a1": (1e-3, 10.0),
     "a2": (1e-3, 10.0),

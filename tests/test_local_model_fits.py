@@ -1,0 +1,138 @@
+"""The other local models in the renderer and in fits (docs/model.md §2, "The other local
+models"): every model renders in every shading mode, with two-sided lighting, shadows and the
+ray-traced mode, finite; a render's gradients in the models' parameters agree with finite
+differences (float64, forward and reverse); noise-free fits recover k_d, k_s and the roughness
+(k's linear, the roughness a nonlinear scalar of the variable projection) to 1e-4; a new
+roughness does not recompile; scene files and bad values."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import float64
+from jax.test_util import check_grads
+
+import diffshade as ds
+from fitting import Observations, fit
+
+MODELS = [  # (diffuse_model, specular, the truth's fields, the fit's free roughness names)
+    ("oren_nayar", "blinn", dict(diffuse_roughness=0.6, shininess=60.0), ["material.diffuse_roughness"]),
+    ("lambert", "ggx", dict(roughness=0.25), ["material.roughness"]),
+    ("lambert", "beckmann", dict(roughness=0.3), ["material.roughness"]),
+    ("lambert", "ward", dict(roughness=0.15, roughness_y=0.4), ["material.roughness", "material.roughness_y"]),
+]
+
+
+def _scene(size=40, **render):
+    """The default scene on a 320-face icosphere, without its fog."""
+    d = {k: v for k, v in ds.DEFAULT_SCENE.items() if k != "fog"}
+    d["camera"] = dict(d["camera"], width=size, height=size)
+    d["mesh"] = {"icosphere": 2}
+    d["render"] = dict(d["render"], fog="none", **render)
+    return ds.scene_from_dict(d)
+
+
+@pytest.mark.parametrize("shading", ["phong", "gouraud", "flat"])
+def test_every_model_renders_finite_in_every_shading_mode(shading):
+    for dm, spec, fields, _ in MODELS:
+        scene, opts = _scene(24, shading=shading, specular=spec, diffuse_model=dm)
+        scene = eqx.tree_at(lambda s: [getattr(s.material, k) for k in fields], scene, list(fields.values()))
+        img = np.asarray(ds.render(scene, opts))
+        assert np.isfinite(img).all() and img.max() > 0.1, (dm, spec, shading)
+
+
+def test_the_models_with_shadows_rays_and_one_sided_lighting():
+    for dm, spec, _, _ in MODELS:
+        for keys in (dict(shadows=True), dict(ray_depth=1), dict(two_sided=False)):
+            scene, opts = _scene(24, specular=spec, diffuse_model=dm, **keys)
+            scene = eqx.tree_at(lambda s: s.material.mirror, scene, jnp.full(3, 0.2))
+            img = np.asarray(ds.render(scene, opts))
+            assert np.isfinite(img).all() and img.max() > 0.1, (dm, spec, keys)
+
+
+def test_oren_nayar_at_zero_is_lambert_in_the_renderer():
+    scene, opts = _scene(24, specular="ggx")
+    on = opts.with_keys(diffuse_model="oren_nayar")
+    flat = eqx.tree_at(lambda s: s.material.diffuse_roughness, scene, jnp.zeros_like(scene.material.diffuse_roughness))
+    np.testing.assert_allclose(
+        np.asarray(ds.render(flat, on)), np.asarray(ds.render(scene, opts)), rtol=1e-12, atol=1e-15
+    )
+    assert np.abs(np.asarray(ds.render(scene, on)) - np.asarray(ds.render(scene, opts))).max() > 0.01
+
+
+def test_render_gradients_in_the_roughnesses_against_finite_differences():
+    """float64 (the JAX stages), forward and reverse mode, at a 12² render."""
+    for dm, spec, fields, _ in MODELS:
+        scene, opts = _scene(12, specular=spec, diffuse_model=dm, backend="jax")
+        scene = float64(scene)
+        names = [k for k in fields if k != "shininess"]
+
+        def f(*vals):
+            s = eqx.tree_at(lambda s: [getattr(s.material, k) for k in names], scene, list(vals))
+            return ds.render(s, opts)
+
+        vals = tuple(jnp.asarray(fields[k], jnp.float64) for k in names)
+        check_grads(f, vals, order=1, modes=("fwd", "rev"), atol=1e-5, rtol=1e-4)
+
+
+@pytest.mark.parametrize("dm,spec,fields,free", MODELS, ids=[f"{m[0]}-{m[1]}" for m in MODELS])
+def test_noise_free_fits_recover_the_roughness(dm, spec, fields, free):
+    """Targets from the truth; the fit starts at k_d 0.5, k_s 0.2 and each roughness off by a
+    factor (0.5 for α, σ from 0.2); k_d and k_s are the linear block, the roughness nonlinear."""
+    scene, opts = _scene(40, specular=spec, diffuse_model=dm)
+    truth = eqx.tree_at(lambda s: [getattr(s.material, k) for k in fields], scene, list(fields.values()))
+    target = np.asarray(ds.render(truth, opts))
+    starts = {k: (0.2 if k == "diffuse_roughness" else 0.5 * v if k != "shininess" else v) for k, v in fields.items()}
+    start = eqx.tree_at(
+        lambda s: [s.material.diffuse, s.material.specular, *[getattr(s.material, k) for k in starts]],
+        truth,
+        [jnp.full(3, 0.5), jnp.full(3, 0.2), *starts.values()],
+    )
+    params = ["material.diffuse", "material.specular", *free]
+    r = fit(start, opts, Observations(target), params)
+    assert r.successful, (r.result, r.notes)
+    want = np.r_[
+        np.asarray(truth.material.diffuse), np.asarray(truth.material.specular), [fields[n.split(".")[1]] for n in free]
+    ]
+    np.testing.assert_allclose(np.asarray(r.values), want, rtol=1e-4)
+
+
+def test_a_new_roughness_does_not_recompile():
+    scene, opts = _scene(16, specular="ggx", diffuse_model="oren_nayar")
+    f = jax.jit(lambda s: ds.render(s, opts))
+    f(scene)
+    n, dt = f._cache_size(), scene.material.roughness.dtype
+    for a, s in ((0.1, 0.9), (0.7, 0.0)):
+        f(
+            eqx.tree_at(
+                lambda x: (x.material.roughness, x.material.diffuse_roughness),
+                scene,
+                (jnp.asarray(a, dt), jnp.asarray(s, dt)),
+            )
+        )
+    assert f._cache_size() == n
+
+
+def test_scene_files_and_bad_values():
+    d = {k: v for k, v in ds.DEFAULT_SCENE.items() if k != "fog"}
+    d["render"] = dict(d["render"], fog="none", specular="ward", diffuse_model="oren_nayar", masking="v_cavity")
+    d["material"] = dict(d["material"], roughness=0.2, roughness_y=0.5, diffuse_roughness=0.4, tangent=[0, 1, 0])
+    scene, opts = ds.scene_from_dict(d)
+    assert opts.lighting.specular == "ward" and opts.lighting.masking == "v_cavity"
+    assert float(scene.material.roughness_y) == 0.5 and np.asarray(scene.material.tangent).tolist() == [0, 1, 0]
+    for key, val, msg in (
+        ("roughness", 0.0, "material.roughness"),
+        ("roughness", 1.5, "material.roughness"),
+        ("diffuse_roughness", -0.1, "material.diffuse_roughness"),
+        ("tangent", [0, 0, 0], "material.tangent"),
+    ):
+        bad = dict(d, material=dict(d["material"], **{key: val}))
+        with pytest.raises(ds.SceneError, match=msg):
+            ds.scene_from_dict(bad)
+    with pytest.raises(ds.SceneError, match="specular"):
+        ds.scene_from_dict(dict(d, render=dict(d["render"], specular="cook")))
+    with pytest.raises(ValueError, match="roughness"):
+        ds.check_scene(eqx.tree_at(lambda s: s.material.roughness, scene, jnp.asarray(-0.2)))
