@@ -87,6 +87,10 @@ def _parse_mtl(path: Path) -> dict:
                 cur[_COLOURS[key]] = _numbers(words, 3, where)
             elif key == "Ns":
                 cur["shininess"] = _numbers(words, 1, where)[0]
+            elif key == "Pr":  # the PBR extension's roughness: Cook-Torrance's alpha (docs/model.md §2)
+                cur["roughness"] = _numbers(words, 1, where)[0]
+                if not 0.0 < cur["roughness"] <= 1.0:
+                    raise MeshError(f"{where}: Pr (the roughness) must be in (0, 1], got {cur['roughness']:g}")
             elif key == "d":
                 cur["opacity"] = _numbers(words[-1:], 1, where)[0]
             elif key in _MAPS:
@@ -134,7 +138,8 @@ def load_material(path: str | Path, name: str | None = None, encoding: str | Non
     (``mtllib``); by default the one material the OBJ uses (or the MTL's first). Maps are read
     through :func:`diffshade.texture_from_image`, colour maps decoded by their declared encoding
     (sRGB where a file declares none; ``encoding`` overrides it), shininess and opacity maps as
-    linear values. Raises :class:`diffshade.MeshError` naming the file and line: a missing or
+    linear values; ``Pr`` (the PBR extension's roughness) as ``roughness``. Raises
+    :class:`diffshade.MeshError` naming the file and line: a missing or
     unreadable MTL or image, an unknown statement or option, a grey map in colour."""
     path = Path(path)
     if not path.is_file():
@@ -173,7 +178,10 @@ def save_material(path, material, opts=None, header: str = "") -> Path:
     """Write ``material`` (a :class:`Material`, or a :class:`Scene`: its material, its other
     materials as ``material_1``, ... and its back material) as a Wavefront MTL file at ``path``,
     in the keys :func:`load_material` reads: ``Ka Kd Ks Ke`` (linear colours), ``Ns`` (the
-    exponent of ``opts``' specular model, said in the file's comment: Phong's by default), ``Ni``,
+    exponent of ``opts``' specular model, said in the file's comment: Phong's by default; for the
+    microfacet and Ward models the Phong exponent nearest the lobe), ``Pr`` (those models'
+    roughness :math:`\alpha`, the PBR extension's key; Oren–Nayar's :math:`\sigma` and Ward's
+    :math:`\alpha_y` and tangent have no key: a comment line says them), ``Ni``,
     ``d`` (the opacity, where ``opts`` has transparency), ``Tf`` (the transmission, where ``opts``
     has it), ``illum``; what MTL has no key for (absorption, Kay's opacity) as a comment line above
     its material. Maps go beside the file as 16-bit PNGs (``<stem>_<material>_<field>.png``:
@@ -198,8 +206,16 @@ def save_material(path, material, opts=None, header: str = "") -> Path:
     spec = opts.lighting.specular
     transparency, absorption = opts.layered, opts.layered and opts.transparency.absorption
     lines = [f"# {ln}" for ln in header.splitlines()]
+    rough = spec in ("beckmann", "ggx", "ward")
+    if rough:
+        what = {"beckmann": "Cook-Torrance Beckmann", "ggx": "Cook-Torrance GGX", "ward": "Ward (alpha_x)"}[spec]
+        lines.append(
+            f"# Pr is the {what} roughness alpha; Ns the Phong exponent nearest its lobe, (2/alpha^2 - 2)/4 "
+            "(Walter et al. 2007's Beckmann-Blinn-Phong correspondence m' = 2/alpha^2 - 2, and m = m'/4)"
+        )
     lines.append(
-        f"# Ns is the {'Blinn-Phong' if spec == 'blinn' else 'Phong'} exponent; colours are linear; Ke = emission"
+        f"# {'' if rough else 'Ns is the ' + ('Blinn-Phong' if spec == 'blinn' else 'Phong') + ' exponent; '}"
+        "colours are linear; Ke = emission"
     )
     path.parent.mkdir(parents=True, exist_ok=True)
     for name, m in mats:
@@ -210,7 +226,13 @@ def save_material(path, material, opts=None, header: str = "") -> Path:
             extra.append(
                 f"# Kay opacity t_min {float(m.kay_min):.6g} t_max {float(m.kay_max):.6g} p {float(m.kay_power):.6g}"
             )
+        if opts.lighting.diffuse_model == "oren_nayar":
+            extra.append(f"# Oren-Nayar sigma {float(m.diffuse_roughness):.6g} (radians; MTL has no key for it)")
+        if spec == "ward":
+            extra.append(f"# Ward alpha_y {float(m.roughness_y):.6g}, tangent {_rgb(m.tangent)} (MTL has no key for them)")
         opacity = float(m.opacity) if transparency and not m.kay else 1.0
+        a = float(m.roughness)
+        ns = (2.0 / (a * a) - 2.0) / 4.0 if rough else float(m.shininess)
         lines += [
             "",
             *extra,
@@ -218,7 +240,8 @@ def save_material(path, material, opts=None, header: str = "") -> Path:
             f"Ka {_rgb(m.ambient)}",
             f"Kd {_rgb(m.diffuse)}",
             f"Ks {_rgb(m.specular)}",
-            f"Ns {float(m.shininess):.6g}",
+            f"Ns {ns:.6g}",
+            *([f"Pr {a:.6g}"] if rough else []),
             f"Ke {_rgb(m.emission)}",
             f"Ni {float(m.ior):.6g}",
             f"d {opacity:.6g}",

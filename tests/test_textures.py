@@ -610,3 +610,13 @@ def test_a_material_saved_as_mtl_loads_back(tmp_path):
     with pytest.raises(TypeError, match="a Material or a Scene"):
         ds.save_material(tmp_path / "c.mtl", {"diffuse": 0.5})
     assert not list(tmp_path.glob("*.tmp"))
+    # the microfacet models: Pr the roughness, Ns the nearest Phong exponent, both said
+    rough = ds.Material(diffuse=0.5, specular=0.2, roughness=0.25, diffuse_roughness=0.4)
+    ggx = ds.RenderOptions.from_keys(specular="ggx", diffuse_model="oren_nayar")
+    text = ds.save_material(tmp_path / "g.mtl", rough, ggx).read_text()
+    assert "# Pr is the Cook-Torrance GGX roughness alpha; Ns the Phong exponent nearest" in text
+    assert "Pr 0.25\n" in text and "Ns 7.5\n" in text and "# Oren-Nayar sigma 0.4" in text
+    assert float(ds.load_material(tmp_path / "g.mtl").roughness) == pytest.approx(0.25)
+    (tmp_path / "bad.mtl").write_text("newmtl x\nPr 1.5\n")
+    with pytest.raises(ds.MeshError, match=r"line 2: Pr \(the roughness\) must be in \(0, 1\], got 1.5"):
+        ds.load_material(tmp_path / "bad.mtl")
