@@ -175,7 +175,7 @@ def load_material(path: str | Path, name: str | None = None, encoding: str | Non
 
 
 def save_material(path, material, opts=None, header: str = "") -> Path:
-    """Write ``material`` (a :class:`Material`, or a :class:`Scene`: its material, its other
+    r"""Write ``material`` (a :class:`Material`, or a :class:`Scene`: its material, its other
     materials as ``material_1``, ... and its back material) as a Wavefront MTL file at ``path``,
     in the keys :func:`load_material` reads: ``Ka Kd Ks Ke`` (linear colours), ``Ns`` (the
     exponent of ``opts``' specular model, said in the file's comment: Phong's by default; for the
@@ -229,7 +229,9 @@ def save_material(path, material, opts=None, header: str = "") -> Path:
         if opts.lighting.diffuse_model == "oren_nayar":
             extra.append(f"# Oren-Nayar sigma {float(m.diffuse_roughness):.6g} (radians; MTL has no key for it)")
         if spec == "ward":
-            extra.append(f"# Ward alpha_y {float(m.roughness_y):.6g}, tangent {_rgb(m.tangent)} (MTL has no key for them)")
+            extra.append(
+                f"# Ward alpha_y {float(m.roughness_y):.6g}, tangent {_rgb(m.tangent)} (MTL has no key for them)"
+            )
         opacity = float(m.opacity) if transparency and not m.kay else 1.0
         a = float(m.roughness)
         ns = (2.0 / (a * a) - 2.0) / 4.0 if rough else float(m.shininess)
