@@ -29,7 +29,13 @@ Scoring:
 attenuation coefficient traded against the others) only to its float floor, which the fit's
 standard errors and notes report; in float64 the same fits reach ~1e-13.
 
+``--model DIFFUSE+SPECULAR`` (``lambert+ggx``, ``oren_nayar+blinn``, ``lambert+ward``, ...: the
+other local models, docs/model.md §2) replaces each case's specular model with that one and its
+diffuse model: the lobe's parameters free instead of m (α log-uniform in [0.08, 0.6]; Ward's α_x,
+α_y each; Oren–Nayar's σ uniform in [0.1, 1], free beside k_d).
+
     python benchmarks/bench_fit_suite.py [--cases 20] [--size 64] [--seed0 0] [--bunny PATH | --no-bunny] [--x64]
+        [--model lambert+ggx]
 """
 
 from __future__ import annotations
@@ -178,6 +184,28 @@ def make_case(seed: int, size: int, bunny: str | None):
     return scene, opts, free, name, rng
 
 
+def with_model(scene, opts, free, name, model: str, rng):
+    """The case under ``model`` (``"diffuse+specular"``): its lobe's parameters drawn and free."""
+    import equinox as eqx
+
+    dm, sm = model.split("+")
+    m = scene.material
+    a = lambda: float(np.exp(rng.uniform(np.log(0.08), np.log(0.6))))  # noqa: E731
+    fields = {"diffuse_roughness": float(rng.uniform(0.1, 1.0))} if dm == "oren_nayar" else {}
+    if sm in ("beckmann", "ggx"):
+        fields["roughness"] = a()
+    elif sm == "ward":
+        fields.update(roughness=a(), roughness_y=a())
+    dt = m.shininess.dtype
+    m = eqx.tree_at(lambda x: [getattr(x, k) for k in fields], m, [jnp.asarray(v, dt) for v in fields.values()])
+    lobe = [f"material.{k}" for k in fields if k != "diffuse_roughness"] or ["material.shininess"]
+    free = [n for n in free if n != "material.shininess"] + lobe
+    if dm == "oren_nayar":
+        free.append("material.diffuse_roughness")
+    name = name.replace(f"/{opts.lighting.specular}/", f"/{model}/")
+    return eqx.tree_at(lambda s: s.material, scene, m), opts.with_keys(specular=sm, diffuse_model=dm), free, name
+
+
 def random_start(pset, true, rng):
     """Each scalar anywhere in its domain (positive ones log-uniform within 30x of the truth),
     a quarter exactly on a bound."""
@@ -210,6 +238,7 @@ def main():
     ap.add_argument("--clean-only", action="store_true")
     ap.add_argument("--starts", type=int, default=None, help="fit(starts=...): the global search's start count")
     ap.add_argument("--x64", action="store_true", help="scenes, targets and fits in float64 (jax_enable_x64)")
+    ap.add_argument("--model", default=None, help="the other local models: DIFFUSE+SPECULAR, e.g. lambert+ggx")
     args = ap.parse_args()
     if args.x64:
         jax.config.update("jax_enable_x64", True)
@@ -217,6 +246,8 @@ def main():
     rows = []
     for case in range(args.seed0, args.seed0 + args.cases):
         scene, opts, free, name, rng = make_case(case, args.size, None if args.no_bunny else args.bunny)
+        if args.model is not None:
+            scene, opts, free, name = with_model(scene, opts, free, name, args.model, rng)
         pset = ParamSet(free, scene)
         true = np.asarray(pset.theta_of(scene), np.float64)
         clean = np.asarray(render(scene, opts))

@@ -17,13 +17,10 @@ from ._holdout import Holdout, holdout_fit
 from ._observations import Observations
 from ._report import FitResult
 
-_SPECULAR_PARAMS = (
-    "material.specular",
-    "material.shininess",
-    "material.ior",
-    "back_material.specular",
-    "back_material.shininess",
-    "back_material.ior",
+_SPECULAR_PARAMS = tuple(
+    f"{m}.{f}"
+    for m in ("material", "back_material")
+    for f in ("specular", "shininess", "roughness", "roughness_y", "ior")
 )
 
 
@@ -42,20 +39,97 @@ class ModelScore:
     bic: float
     holdout: Holdout | None = None  # with compare_models(holdout=K): the held-out views' residual
 
+    @property
+    def seconds(self) -> float:
+        """The variant's fit, compile apart (:attr:`FitResult.solve_s`): the cost side of the ladder."""
+        return float(self.fit.solve_s)
 
-def model_variants(scene: ds.Scene, opts: ds.RenderOptions, free):
+
+#: The reflectance ladder :func:`model_variants` fits: every diffuse × specular combination.
+DIFFUSE_MODELS = ("lambert", "oren_nayar")
+SPECULAR_MODELS = ("phong", "blinn", "beckmann", "ggx", "ward")
+#: The parameters that shape each model's lobe (besides its k).
+_SHAPE = {
+    "phong": ("shininess",),
+    "blinn": ("shininess",),
+    "beckmann": ("roughness",),
+    "ggx": ("roughness",),
+    "ward": ("roughness", "roughness_y"),
+    "oren_nayar": ("diffuse_roughness",),
+    "lambert": (),
+    "none": (),
+}
+_SHAPE_FIELDS = {"shininess", "roughness", "roughness_y", "diffuse_roughness"}
+
+
+def _blinn_exponent(model: str, m: ds.Material) -> float:
+    """The lobe of ``model`` with ``m``'s parameters as the nearest Blinn–Phong exponent m'
+    (Phong's m' = 4m; a microfacet α's m' = 2/α² − 2, Walter et al. 2007; Ward's at √(α_x α_y))."""
+    if model == "phong":
+        return 4.0 * float(m.shininess)
+    if model == "blinn":
+        return float(m.shininess)
+    a = float(m.roughness) if model != "ward" else float(np.sqrt(float(m.roughness) * float(m.roughness_y)))
+    return 2.0 / (a * a) - 2.0
+
+
+def _with_lobe(m: ds.Material, model: str, mp: float) -> ds.Material:
+    """``m`` with ``model``'s lobe parameters set from the Blinn–Phong exponent ``mp``."""
+    if model == "phong":
+        return eqx.tree_at(lambda x: x.shininess, m, jnp.asarray(max(mp / 4.0, 1.0), m.shininess.dtype))
+    if model == "blinn":
+        return eqx.tree_at(lambda x: x.shininess, m, jnp.asarray(max(mp, 1.0), m.shininess.dtype))
+    a = float(np.clip(np.sqrt(2.0 / (max(mp, 0.0) + 2.0)), 0.02, 0.98))
+    if model == "ward":
+        return eqx.tree_at(lambda x: (x.roughness, x.roughness_y), m, (jnp.asarray(a, m.roughness.dtype),) * 2)
+    return eqx.tree_at(lambda x: x.roughness, m, jnp.asarray(a, m.roughness.dtype))
+
+
+def _ladder_free(free, given: tuple[str, str], to: tuple[str, str]) -> list[str]:
+    r"""``free`` with the given models' lobe parameters replaced by ``to``'s (where the given's were
+    free: a user who fixed the exponent fixes the new lobe at its conversion); Oren–Nayar's
+    :math:`\sigma` free with a free :math:`k_d`."""
+    out, added = [], []
+    for n in free:
+        prefix, _, field = n.rpartition(".")
+        if prefix in ("material", "back_material") and field in _SHAPE_FIELDS:
+            if field in _SHAPE[given[1]] and not added:
+                added += [f"{prefix}.{f}" for f in _SHAPE[to[1]]]
+            continue
+        out.append(n)
+    if to[0] == "oren_nayar" and "material.diffuse" in free:
+        added.append("material.diffuse_roughness")
+    return out + [n for n in added if n not in out]
+
+
+def model_variants(scene: ds.Scene, opts: ds.RenderOptions, free, diffuse=DIFFUSE_MODELS, specular=SPECULAR_MODELS):
     """The nested or competing term sets of ``opts``: ``[(name, opts, free, scene), ...]``.
 
-    Given specular: without it, and Phong ↔ Blinn–Phong (the exponent's start converted by
-    m' = 4m); given fog: without it. Free parameters of a removed term are dropped."""
+    Given specular: without it; the reflectance ladder, every combination of a diffuse model in
+    ``diffuse`` (:data:`DIFFUSE_MODELS`: Lambert, Oren–Nayar) and a specular model in
+    ``specular`` (:data:`SPECULAR_MODELS`: Phong, Blinn–Phong, Cook–Torrance Beckmann and GGX,
+    Ward), each lobe's start converted from the given one's through the nearest Blinn–Phong
+    exponent (Phong m' = 4m, microfacet m' = 2/α² − 2), its parameters free where the given's
+    were (Oren–Nayar's σ where k_d is, from 0.3); named by the specular model (``"blinn"``,
+    ``"ggx"``) where the diffuse model is the given one's, else ``"oren_nayar + ggx"``. Given
+    fog: without it. Free parameters of a removed term are dropped."""
     out = [("as given", opts, list(free), scene)]
-    if _options.specular(opts) != "none":
+    lt = opts.lighting
+    given = (lt.diffuse_model, _options.specular(opts))
+    if given[1] != "none":
         drop = [n for n in free if n in _SPECULAR_PARAMS]
         out.append(("no specular", _options.without_specular(opts), [n for n in free if n not in drop], scene))
-        other = "blinn" if _options.specular(opts) == "phong" else "phong"
-        conv = ds.phong_to_blinn if other == "blinn" else ds.blinn_to_phong
-        s2 = eqx.tree_at(lambda s: s.material.shininess, scene, conv(scene.material.shininess))
-        out.append((other, _options.with_specular(opts, other), list(free), s2))
+    mp = _blinn_exponent(given[1], scene.material) if given[1] != "none" else None
+    for dm in diffuse if lt.diffuse else (lt.diffuse_model,):
+        for sm in specular if given[1] != "none" else ("none",):
+            if (dm, sm) == given:
+                continue
+            m = scene.material if mp is None else _with_lobe(scene.material, sm, mp)
+            if dm == "oren_nayar" and given[0] != "oren_nayar":
+                m = eqx.tree_at(lambda x: x.diffuse_roughness, m, jnp.asarray(0.3, m.diffuse_roughness.dtype))
+            name = sm if dm == given[0] else f"{dm} + {sm}"
+            o = opts.with_keys(specular=sm, diffuse_model=dm)
+            out.append((name, o, _ladder_free(free, given, (dm, sm)), eqx.tree_at(lambda s: s.material, scene, m)))
     if _options.fog(opts) != "none":
         out.append(("no fog", _options.without_fog(opts), [n for n in free if not n.startswith("fog.")], scene))
     return out

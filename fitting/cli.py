@@ -546,6 +546,24 @@ def _check_outputs(args, inputs) -> list[Path]:
     return outputs
 
 
+def _ladder(text: str | None) -> tuple[tuple, tuple]:
+    """``(diffuse, specular)`` models of ``--compare-models`` (default: every one)."""
+    from ._models import DIFFUSE_MODELS, SPECULAR_MODELS
+
+    if text is None:
+        return DIFFUSE_MODELS, SPECULAR_MODELS
+    names = [t.strip() for t in text.split(",") if t.strip()]
+    bad = [t for t in names if t not in DIFFUSE_MODELS + SPECULAR_MODELS]
+    if bad:
+        raise InputError(
+            f"--compare-models: unknown model(s) {', '.join(bad)}; the diffuse models are {', '.join(DIFFUSE_MODELS)}, "
+            f"the specular ones {', '.join(SPECULAR_MODELS)}"
+        )
+    dm = tuple(t for t in names if t in DIFFUSE_MODELS)
+    sm = tuple(t for t in names if t in SPECULAR_MODELS)
+    return dm or DIFFUSE_MODELS, sm or SPECULAR_MODELS
+
+
 def _compare(scene, opts, obs, args, r, fit_kw, held=None, centre=None):
     """``--compare``: the nested term sets fitted and ranked by BIC (and, with ``--holdout``, by
     the held-out views' error); report lines and records. For a capture folder (``centre``: its
@@ -557,8 +575,11 @@ def _compare(scene, opts, obs, args, r, fit_kw, held=None, centre=None):
     # verbose and the profile-likelihood intervals: the main fit's only (a comparison reads criteria)
     fit_kw = dict(fit_kw, strategy=fit_kw["strategy"].replace(verbose=False), intervals=False)
     kw = dict(given=r, holdout=args.holdout, given_holdout=held, **fit_kw)
+    ladder = _ladder(args.compare_models)
     if centre is None:
-        scores = compare_models(scene, opts, obs, args.free, **kw)
+        scores = compare_models(
+            scene, opts, obs, args.free, variants=model_variants(scene, opts, args.free, *ladder), **kw
+        )
     else:
         scores = compare_models(
             scene, opts, obs, args.free, variants=imaging_variants(scene, opts, obs, args.free, centre=centre), **kw
@@ -568,7 +589,7 @@ def _compare(scene, opts, obs, args, r, fit_kw, held=None, centre=None):
         b_scene = b_obs.views[0] if b_obs.views is not None else scene
         more = [
             (f"{best.name} · {name}" if best.name != "as given" else name, o, fr, sc, b_obs)
-            for name, o, fr, sc in model_variants(b_scene, best.opts, best.free)[1:]
+            for name, o, fr, sc in model_variants(b_scene, best.opts, best.free, *ladder)[1:]
         ]
         kw.pop("given"), kw.pop("given_holdout")
         scores = ranked(scores + compare_models(scene, opts, obs, args.free, variants=more, **kw))
@@ -581,7 +602,7 @@ def _compare(scene, opts, obs, args, r, fit_kw, held=None, centre=None):
         + "):",
         f"{'model':{wide}s} {'k':>3s} {'RSS':>11s} {'AIC':>14s} {'BIC':>14s} {'ΔBIC':>9s}"
         + (f" {'held out':>9s}" if ho else "")
-        + " result",
+        + f" {'s/fit':>7s} result",
     ]
     comparison = []
     low = min(m.bic for m in scores)
@@ -589,13 +610,15 @@ def _compare(scene, opts, obs, args, r, fit_kw, held=None, centre=None):
         report.append(
             f"{m.name:{wide}s} {m.k:3d} {m.rss:11.4e} {m.aic:14.1f} {m.bic:14.1f} {m.bic - low:9.1f}"
             + (f" {m.holdout.ratio_all:8.3f}x" if m.holdout is not None else "")
-            + f" {(m.fit.result or 'successful').split(' (σ')[0]}"
+            + f" {m.seconds:7.3g} {(m.fit.result or 'successful').split(' (σ')[0]}"
         )
         comparison.append(
             {
                 "model": m.name,
                 "specular": _options.specular(m.opts),
+                "diffuse_model": m.opts.lighting.diffuse_model,
                 "fog": _options.fog(m.opts),
+                "solve_s": m.seconds,
                 "free": m.free,
                 "k": m.k,
                 "n": m.n,
@@ -1005,9 +1028,16 @@ def _add_fit_solve(p) -> None:
     p.add_argument(
         "--compare",
         action="store_true",
-        help="also fit the nested term sets (no specular, Phong<->Blinn, no fog; for a capture folder its imaging "
-        "terms first: near lights, per-view gains, a black level) and rank by BIC (with --holdout: and by the "
-        "held-out error)",
+        help="also fit the nested and competing term sets (no specular; every diffuse x specular model of the "
+        "ladder, --compare-models; no fog; for a capture folder its imaging terms first: near lights, per-view "
+        "gains, a black level) and rank by BIC (with --holdout: and by the held-out error)",
+    )
+    p.add_argument(
+        "--compare-models",
+        metavar="MODELS",
+        default=None,
+        help="--compare's reflectance ladder, comma-separated: diffuse models (lambert, oren_nayar) and specular "
+        "ones (phong, blinn, beckmann, ggx, ward); default all of them",
     )
     p.add_argument(
         "--encoding",

@@ -82,6 +82,8 @@ def test_fit_writes_parameters_mtl_image_and_report(files, tmp_path, capsys):
             "-o",
             str(out),
             "--compare",
+            "--compare-models",
+            "lambert,blinn,ggx",
         ]
     )
     text = capsys.readouterr().out
@@ -109,6 +111,9 @@ def test_fit_writes_parameters_mtl_image_and_report(files, tmp_path, capsys):
     ranks = {c["model"]: c for c in doc["comparison"]}
     assert doc["comparison"][0]["model"] == "as given"
     assert ranks["no specular"]["delta_bic"] > 10 and ranks["no fog"]["delta_bic"] > 10
+    # the ladder: Blinn-Phong and GGX for the Phong highlight, their time per fit beside
+    assert {"blinn", "ggx"} <= set(ranks) and ranks["ggx"]["specular"] == "ggx" and ranks["ggx"]["solve_s"] > 0
+    assert "material.roughness" in ranks["ggx"]["free"] and "material.shininess" not in ranks["ggx"]["free"]
     assert "the images support: as given" in text and "result: successful" in (out / "report.txt").read_text()
     # Outputs are not silently replaced.
     rc = main(["fit", str(files / "start.toml"), str(target), "-p", "material.diffuse", "-o", str(out)])

@@ -136,3 +136,31 @@ def test_scene_files_and_bad_values():
         ds.scene_from_dict(dict(d, render=dict(d["render"], specular="cook")))
     with pytest.raises(ValueError, match="roughness"):
         ds.check_scene(eqx.tree_at(lambda s: s.material.roughness, scene, jnp.asarray(-0.2)))
+
+
+def test_compare_models_ranks_the_ladder_and_picks_the_truth():
+    """A GGX highlight (α 0.3) in an 8-bit image, fitted from the usual guess (Blinn–Phong,
+    m' 40): the ladder's variants each with their lobe's start converted and parameters free,
+    GGX the supported model by ΔBIC > 10 over Blinn–Phong and Phong, each with its time."""
+    from fitting import compare_models, model_variants
+
+    scene, opts = _scene(40, specular="ggx")
+    truth = eqx.tree_at(lambda s: s.material.roughness, scene, jnp.asarray(0.3, scene.material.roughness.dtype))
+    rng = np.random.default_rng(3)
+    clean = np.asarray(ds.render(truth, opts))
+    target = np.round(np.clip(clean + rng.normal(0, 2 / 255, clean.shape), 0, 1) * 255) / 255
+    obs = Observations(target, saturation=1.0, quantum=1 / 255)
+    guess = opts.with_keys(specular="blinn")
+    start = eqx.tree_at(lambda s: s.material.shininess, truth, jnp.asarray(40.0, truth.material.shininess.dtype))
+    free = ["material.diffuse", "material.specular", "material.shininess"]
+    variants = model_variants(start, guess, free, diffuse=("lambert",))
+    assert [v[0] for v in variants] == ["as given", "no specular", "phong", "beckmann", "ggx", "ward"]
+    ggx = dict((v[0], v) for v in variants)["ggx"]
+    assert ggx[2] == ["material.diffuse", "material.specular", "material.roughness"]
+    assert float(ggx[3].material.roughness) == pytest.approx(np.sqrt(2 / 42))  # m' = 2/α² − 2
+    scores = compare_models(start, guess, obs, free, variants=variants, intervals=False)
+    by = {m.name: m for m in scores}
+    assert scores[0].name == "ggx", [(m.name, m.bic) for m in scores]
+    assert by["as given"].bic - by["ggx"].bic > 10 and by["phong"].bic - by["ggx"].bic > 10
+    assert by["ggx"].fit.successful and abs(by["ggx"].fit.values[-1] - 0.3) < 3 * by["ggx"].fit.stderr[-1]
+    assert all(m.seconds > 0 for m in scores)

@@ -673,7 +673,7 @@ def test_the_command_line_compares_a_captures_imaging_and_reflectance(tmp_path, 
     write_capture(tmp_path / "c", n=6, size=24, noise=0.004, seed=2, light_distance=10.0)
     out = tmp_path / "out"
     args = ["fit", str(tmp_path / "c"), "-p", *PARAMS, "--margin", "1", "--compare", "--holdout", "3", "-o", str(out)]
-    main(args)
+    main([*args, "--compare-models", "lambert,phong,blinn"])
     printed = capsys.readouterr().out
     assert "the images support: + near lights\n" in printed, printed
     for name in ("+ black level", "+ near lights + gains + black level", "+ near lights · no specular"):
