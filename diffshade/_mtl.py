@@ -29,6 +29,7 @@ _MAPS = {
     "map_Ks": "specular",
     "map_Ke": "emission",
     "map_Ns": "shininess",
+    "map_Pr": "roughness",
     "map_d": "opacity",
 }
 _IGNORED = {"illum", "Ni", "Tr", "Tf", "sharpness", "bump", "map_bump", "disp", "decal", "refl", "map_refl", "norm"}
@@ -280,7 +281,7 @@ def _save_maps(m, folder: Path, stem: str, lines: list) -> list[str]:
             k = next(i for i in range(len(lines) - 1, -1, -1) if lines[i].startswith("Ns "))
             lines[k] = f"Ns {float(m.shininess) * scale:.6g}"
         file = folder / f"{stem}_{field}.png"
-        grey = field in ("shininess", "opacity")
+        grey = field in SCALAR_MAPPED
         write_image(file, texels[..., 0] if texels.shape[-1] == 1 else texels, "linear" if grey else "srgb", bits=16)
         out.append(f"{key} {'-clamp on ' if tex.wrap == 'clamp' else ''}{file.name}")
     return out

@@ -23,8 +23,8 @@ from ._texture import Texture
 from ._util import as_float_array, is_concrete
 from ._util import rgb_array as _rgb
 
-MAPPED_FIELDS = ("emission", "ambient", "diffuse", "specular", "shininess", "opacity")
-SCALAR_MAPPED = ("shininess", "opacity")  # one-channel maps; the others are colours
+MAPPED_FIELDS = ("emission", "ambient", "diffuse", "specular", "shininess", "roughness", "opacity")
+SCALAR_MAPPED = ("shininess", "roughness", "opacity")  # one-channel maps; the others are colours
 
 
 def _rows(n: int):
@@ -58,7 +58,7 @@ class Material(eqx.Module):
     spread in radians; 0 is Lambert).
 
     Texture maps (docs/model.md §15): ``emission_map``, ``ambient_map``, ``diffuse_map``,
-    ``specular_map``, ``shininess_map`` and ``opacity_map`` (each a :class:`diffshade.Texture`, or
+    ``specular_map``, ``shininess_map``, ``roughness_map`` and ``opacity_map`` (each a :class:`diffshade.Texture`, or
     None) multiply their field per pixel at the mesh's texture coordinates (``Mesh.uv``); the
     ambient term follows the diffuse map unless it has its own.
 
@@ -108,6 +108,7 @@ class Material(eqx.Module):
     diffuse_map: Texture | None = None
     specular_map: Texture | None = None
     shininess_map: Texture | None = None
+    roughness_map: Texture | None = None
     opacity_map: Texture | None = None
     # (field, first field): a field whose map is the very Texture an earlier field has, decided
     # when the material is made (and kept from ``map_sharing`` where given: a material rebuilt

@@ -365,9 +365,10 @@ def _textured(scene, raster, need, frags, bary, clip, mids, sites: Sites, pmat: 
             return replace(sites, material=m, back_material=m, modulate=colour), _modulated(sites.material, texels)
         m = _modulated(sites.material, texels)
         return replace(sites, material=m, back_material=m), m
-    if "shininess" in texels:
-        raise ValueError(
-            f"a shininess map needs Phong shading ({raster.shading} shading lights the vertices or faces, not the pixels)"
-        )
+    for f in ("shininess", "roughness"):
+        if f in texels:
+            raise ValueError(
+                f"a {f} map needs Phong shading ({raster.shading} shading lights the vertices or faces, not the pixels)"
+            )
     pixel = {f: t for f, t in texels.items() if f in SCALAR_MAPPED}
     return replace(sites, modulate=colour or None), _modulated(pmat, pixel)

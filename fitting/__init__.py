@@ -12,7 +12,15 @@ from ._downsample import Downsampled, downsample
 from ._fit import fit
 from ._gains import GainGauge, mean_gauge
 from ._holdout import Holdout, holdout_fit
-from ._models import IMAGING_TERMS, ModelScore, compare_models, imaging_variants, model_variants
+from ._models import (
+    DIFFUSE_MODELS,
+    IMAGING_TERMS,
+    SPECULAR_MODELS,
+    ModelScore,
+    compare_models,
+    imaging_variants,
+    model_variants,
+)
 from ._observations import CAPTURE_CLIP_MARGIN, CAPTURE_MARGIN, FitError, Observations, Optimistix, Strategy, VarPro
 from ._params import Param, ParamError, ParamSet, direction_frame, direction_of, tilt_of
 from ._photometric import Capture, frame_check, load_photometric_stereo, sphere_from_mask
@@ -53,5 +61,7 @@ __all__ = [
     "mean_gauge",
     "sphere_from_mask",
     "model_variants",
+    "DIFFUSE_MODELS",
+    "SPECULAR_MODELS",
     "tilt_of",
 ]

@@ -291,7 +291,7 @@ class Param:
         return [f"{self.name}[{axes[c]}]" for c in range(3)] if self.size == 3 else [self.name]
 
 
-MAP_FIELDS = ("emission", "ambient", "diffuse", "specular", "shininess", "opacity")
+MAP_FIELDS = ("emission", "ambient", "diffuse", "specular", "shininess", "roughness", "opacity")
 LINEAR_MAPS = ("emission", "ambient", "diffuse", "specular")  # the image is linear in their texels
 
 

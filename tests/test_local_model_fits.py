@@ -164,3 +164,40 @@ def test_compare_models_ranks_the_ladder_and_picks_the_truth():
     assert by["as given"].bic - by["ggx"].bic > 10 and by["phong"].bic - by["ggx"].bic > 10
     assert by["ggx"].fit.successful and abs(by["ggx"].fit.values[-1] - 0.3) < 3 * by["ggx"].fit.stderr[-1]
     assert all(m.seconds > 0 for m in scores)
+
+
+def test_a_roughness_map_multiplies_the_roughness_per_pixel():
+    """A constant roughness map c renders as the roughness α·c; a varying one differs from it;
+    Gouraud and flat shading refuse it (they light vertices or faces); MTL's map_Pr round trips."""
+    import dataclasses
+
+    scene, opts = _scene(24, specular="ggx")
+    v = np.asarray(scene.mesh.vertices)
+    uv = np.stack([np.arctan2(v[:, 1], v[:, 0]) / (2 * np.pi) + 0.5, 0.5 + 0.5 * v[:, 2]], 1)
+    mesh = ds.Mesh(scene.mesh.vertices, scene.mesh.faces, normals=scene.mesh.normals, uv=uv)
+    a = 0.4
+    flat = ds.Texture(np.full((4, 4, 1), 0.5))
+    mapped = dataclasses.replace(
+        scene, mesh=mesh, material=dataclasses.replace(scene.material, roughness=a, roughness_map=flat)
+    )
+    plain = dataclasses.replace(scene, mesh=mesh, material=dataclasses.replace(scene.material, roughness=a * 0.5))
+    np.testing.assert_allclose(
+        np.asarray(ds.render(mapped, opts)), np.asarray(ds.render(plain, opts)), rtol=1e-12, atol=1e-15
+    )
+    ramp = ds.Texture(np.linspace(0.2, 1.0, 16).reshape(4, 4, 1))
+    varied = dataclasses.replace(mapped, material=dataclasses.replace(mapped.material, roughness_map=ramp))
+    assert np.abs(np.asarray(ds.render(varied, opts)) - np.asarray(ds.render(plain, opts))).max() > 0.01
+    with pytest.raises(ValueError, match="a roughness map needs Phong shading"):
+        ds.render(varied, opts.with_keys(shading="gouraud"))
+    # not read by a model without a roughness: Blinn-Phong renders as without the map
+    blinn = opts.with_keys(specular="blinn")
+    np.testing.assert_array_equal(np.asarray(ds.render(varied, blinn)), np.asarray(ds.render(plain, blinn)))
+
+
+def test_a_roughness_map_round_trips_through_mtl(tmp_path):
+    ramp = ds.Texture(np.linspace(0.2, 1.0, 16).reshape(4, 4, 1))
+    m = ds.Material(roughness=0.5, roughness_map=ramp)
+    out = ds.save_material(tmp_path / "r.mtl", m, ds.RenderOptions.from_keys(specular="beckmann"))
+    assert "map_Pr r_material_roughness.png" in out.read_text()
+    back = ds.load_material(out)
+    np.testing.assert_allclose(np.asarray(back.roughness_map.texels), np.asarray(ramp.texels), atol=2e-5)
