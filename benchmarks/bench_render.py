@@ -20,7 +20,13 @@ is also timed with ``Raster(cull="back")`` (the same image of this closed sphere
 difference is printed), and Gouraud-shaded with it (what DEODR computes: colours lit at the
 vertices and interpolated).
 
+``--models``: the other local models (docs/model.md §2) against Blinn–Phong in one run, on the
+``phong`` term set's scene (one point and one directional light): each diffuse × specular model's
+full render and its 12-tangent Jacobian (k_a, k_d, k_s, the lobe's parameter — m, α or σ — and
+the point light's a1, a2), and their ratios to Blinn–Phong's.
+
     python benchmarks/bench_render.py [--repeats N] [--quick] [--sizes 256,512] [--subdivisions 4,6]
+    python benchmarks/bench_render.py --models [--sizes 256,512] [--subdivisions 4]
 """
 
 from __future__ import annotations
@@ -97,20 +103,81 @@ def make_scene(v, f, res, terms):
     return scene, opts
 
 
-def params_of(scene):
+def params_of(scene, lobe="shininess"):
     m = scene.material
     att = scene.point.attenuation[0, 1:] if scene.point.count else jnp.zeros(2)
-    return jnp.concatenate([m.ambient, m.diffuse, m.specular, m.shininess[None], att])
+    return jnp.concatenate([m.ambient, m.diffuse, m.specular, getattr(m, lobe)[None], att])
 
 
-def with_params(scene, p):
+def with_params(scene, p, lobe="shininess"):
     m = scene.material
-    mat = eqx.tree_at(lambda x: (x.ambient, x.diffuse, x.specular, x.shininess), m, (p[0:3], p[3:6], p[6:9], p[9]))
+    mat = eqx.tree_at(lambda x: (x.ambient, x.diffuse, x.specular, getattr(x, lobe)), m, (p[0:3], p[3:6], p[6:9], p[9]))
     scene = eqx.tree_at(lambda s: s.material, scene, mat)
     if scene.point.count:
         att = scene.point.attenuation.at[0, 1:].set(p[10:12])
         scene = eqx.tree_at(lambda s: s.point.attenuation, scene, att)
     return scene
+
+
+MODEL_LADDER = [  # (name, diffuse model, specular model, the lobe's parameter in the 12 tangents)
+    ("blinn", "lambert", "blinn", "shininess"),
+    ("phong", "lambert", "phong", "shininess"),
+    ("beckmann", "lambert", "beckmann", "roughness"),
+    ("ggx", "lambert", "ggx", "roughness"),
+    ("ward", "lambert", "ward", "roughness"),
+    ("oren_nayar + blinn", "oren_nayar", "blinn", "diffuse_roughness"),
+    ("oren_nayar + ggx", "oren_nayar", "ggx", "roughness"),
+]
+
+
+def models(args) -> None:
+    """The local models' render and Jacobian times against Blinn–Phong's, one run."""
+    subs = tuple(int(x) for x in args.subdivisions.split(","))
+    sizes = tuple(int(x) for x in args.sizes.split(","))
+    rows = []
+    for sub in subs:
+        mesh = trimesh.creation.icosphere(subdivisions=sub)
+        v, f = np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
+        for res in sizes:
+            base = None
+            for name, dm, sm, lobe in MODEL_LADDER:
+                scene, opts = make_scene(v, f, res, "phong")
+                opts = opts.with_keys(specular=sm, diffuse_model=dm)
+                p0 = params_of(scene, lobe)
+                ids = jax.jit(ds.scene_visibility, static_argnums=1)(scene, opts)
+                full = jax.jit(lambda s, opts=opts: ds.render(s, opts))
+
+                def img_of(p, scene=scene, opts=opts, ids=ids, lobe=lobe):
+                    return ds.render(with_params(scene, p, lobe), opts, ids=ids).reshape(-1)
+
+                E = jnp.eye(12, dtype=p0.dtype)
+
+                def jac_of(p, img_of=img_of, E=E):
+                    with ds.kernel_partials():
+                        return jax.vmap(lambda e: jax.jvp(img_of, (p,), (e,))[1])(E)
+
+                jac = jax.jit(jac_of)
+                r = {"faces": len(f), "res": res, "model": name}
+                r["full_c"], r["full"] = timed(full, scene, repeats=args.repeats)
+                r["jvp_c"], r["jvp"] = timed(jac, p0, repeats=args.repeats)
+                r["native"] = ds._fast.applies(scene, opts, None)
+                base = base or r
+                r["full_x"], r["jvp_x"] = r["full"] / base["full"], r["jvp"] / base["jvp"]
+                r["jvp_per_full"] = r["jvp"] / r["full"]
+                rows.append(r)
+                print(
+                    f"{len(f):6d} faces {res:4d}² {name:20s} full {r['full']:8.2f} ms ({r['full_x']:.2f}x Blinn-Phong; "
+                    f"{'native kernel' if r['native'] else 'JAX stages'})  jvp×12 {r['jvp']:8.2f} ms "
+                    f"({r['jvp_x']:.2f}x; {r['jvp_per_full']:.2f}x its render)  compile {r['full_c']:.1f} + {r['jvp_c']:.1f} s",
+                    flush=True,
+                )
+    print("\n| faces | size | model | path | full ms | × Blinn–Phong | jvp×12 ms | × Blinn–Phong | jvp / render |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(
+            f"| {r['faces']} | {r['res']}² | {r['model']} | {'native' if r['native'] else 'JAX'} | {r['full']:.2f} | "
+            f"{r['full_x']:.2f} | {r['jvp']:.2f} | {r['jvp_x']:.2f} | {r['jvp_per_full']:.2f} |"
+        )
 
 
 def main():
@@ -119,7 +186,10 @@ def main():
     ap.add_argument("--quick", action="store_true", help="5,120 faces at 256² only")
     ap.add_argument("--sizes", default="256,512", help="image sides (default 256,512)")
     ap.add_argument("--subdivisions", default="4,6", help="icosphere subdivisions (4: 5,120 faces, 6: 81,920)")
+    ap.add_argument("--models", action="store_true", help="the other local models against Blinn-Phong")
     args = ap.parse_args()
+    if args.models:
+        return models(args)
     print(f"jax {jax.__version__}, device {jax.devices()[0]}")
     subs = (4,) if args.quick else tuple(int(x) for x in args.subdivisions.split(","))
     sizes = (256,) if args.quick else tuple(int(x) for x in args.sizes.split(","))

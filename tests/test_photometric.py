@@ -476,7 +476,8 @@ def test_a_normal_map_png_under_a_pinhole_camera_downsampled(tmp_path):
     folder = tmp_path / "png"
     _, opts, _ = write_capture(folder, n=8, size=64, noise=0.0, mesh=_placed_bunny(), normal_map="normal.png")
     cap = load_photometric_stereo(folder, opts=opts, downsample_by=2)
-    assert cap.geometry == "the normal map normal.png" and cap.camera_model == "pinhole"
+    assert cap.geometry == "the normal map normal.png, at the depth its normals integrate to"
+    assert cap.camera_model == "pinhole"
     assert cap.mask.shape == (32, 32)
     r = fit(cap.scene, cap.opts, cap.observations(), PARAMS)
     want = np.r_[TRUTH["diffuse"], [TRUTH["specular"]] * 3, TRUTH["shininess"]]
@@ -512,7 +513,10 @@ def test_the_command_line_fits_a_normal_map_folder(bunny_capture, capsys):
     out = folder.parent / "out_cli"
     assert main(["fit", str(folder), "-p", *PARAMS, "-o", str(out)]) == 0, capsys.readouterr()
     printed = capsys.readouterr().out
-    assert "the shape: the normal map Normal_gt.mat; the camera: orthographic (no K.txt)" in printed, printed
+    assert (
+        "the shape: the normal map Normal_gt.mat, at the depth its normals integrate to; the camera: orthographic (no K.txt)"
+        in printed
+    ), printed
     assert main(["fit", str(folder), "-p", *PARAMS, "-o", str(out), "--normals", "none", "--overwrite"]) in (
         0,
         4,
