@@ -202,7 +202,8 @@ def with_model(scene, opts, free, name, model: str, rng):
     free = [n for n in free if n != "material.shininess"] + lobe
     if dm == "oren_nayar":
         free.append("material.diffuse_roughness")
-    name = name.replace(f"/{opts.lighting.specular}/", f"/{model}/")
+    parts = name.split("/")  # (kind/shading/specular/lights/fog)
+    name = "/".join([*parts[:2], model, *parts[3:]])
     return eqx.tree_at(lambda s: s.material, scene, m), opts.with_keys(specular=sm, diffuse_model=dm), free, name
 
 

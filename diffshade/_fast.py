@@ -2,7 +2,8 @@ r"""The native shading kernel (``csrc/shade.cc``): a render's value in one pass 
 
 For the renders most scenes ask for — Phong or Gouraud shading, one material (with or without
 texture maps for its emission, ambient, diffuse and specular colours and, Phong, its shininess),
-directional, point and spot lights, any specular model and Fresnel term, two-sided lighting,
+directional, point and spot lights, any diffuse and specular model (the other local models of
+docs/model.md §2 too) and Fresnel term, two-sided lighting,
 clamping and fog (in Gouraud shading OpenGL's separate specular colour too), one depth layer,
 no shadows, rays or antialiasing — the stages after
 visibility (fragments, surface, lighting, composite) are computed by one C++ loop instead of
@@ -54,7 +55,7 @@ from ._surface import needs
 _TARGET = "diffshade_shade"
 # The layout of a light's row in csrc/shade.cc (kLight): see there.
 _LIGHT = 24
-_SPECULAR = {"none": 0, "phong": 1, "blinn": 2}
+_SPECULAR = {"none": 0, "phong": 1, "blinn": 2, "beckmann": 3, "ggx": 4, "ward": 5}
 _FRESNEL = {"none": 0, "schlick": 1, "dielectric": 2}
 _FOG = {"linear": 1, "exp": 2, "exp2": 3}
 # The maps' description (csrc/shade.cc: Maps, kMapsHeader, kMapInts)
@@ -62,9 +63,10 @@ _MAP_FIELDS = ("emission", "ambient", "diffuse", "specular", "shininess")
 _MAX_PARTS = 4
 # csrc/shade.cc's kParams, and the first of them a pixel reads in Gouraud shading (the fog's: the
 # materials, ambient light and lights are lit at the vertices)
-_NUMBERS = 2 * 14 + 21
+_MAT = 20  # csrc/shade.cc's kMat: a material's floats (_material)
+_NUMBERS = 2 * _MAT + 21
 _PARTIALS_BYTES = 1 << 28  # the partials' size at most (an image per scalar; beyond, the stages)
-_PIXEL_NUMBERS = 2 * 14 + 9
+_PIXEL_NUMBERS = 2 * _MAT + 9
 
 
 _PARTIALS = contextvars.ContextVar("diffshade_kernel_partials", default=False)
@@ -97,8 +99,8 @@ def applies(scene: Scene, opts: RenderOptions, pixels) -> bool:
         return False  # (Phong: the specular sum clamped apart per pixel)
     if lt.transmission or scene.area.count or scene.multi_lobe.count:
         return False
-    if lt.specular not in _SPECULAR or lt.diffuse_model != "lambert":
-        return False  # (the other local models, docs/model.md §7: the JAX stages)
+    if lt.specular not in _SPECULAR:
+        return False
     if (pixels is not None and len(pixels) != 2) or 0 in scene.mesh.faces.shape[:1] + scene.mesh.vertices.shape[:1]:
         return False
     if scene.materials and scene.mesh.material_ids is not None:
@@ -110,6 +112,8 @@ def applies(scene: Scene, opts: RenderOptions, pixels) -> bool:
         return False
     if "shininess" in maps and (r.shading != "phong" or maps["shininess"].channels != 1):
         return False
+    if "roughness" in maps:
+        return False  # (a roughness map: the JAX stages)
     if needs(opts).lit_maps and set(maps) & set(_COLOUR_FIELDS):
         return False  # (GL_MODULATE's order per pixel: each map's lit colour clamped apart, in the stages)
     if any(t.mipmaps != "float" for t in maps.values()) or (maps and r.texture_lod != "pixel"):
@@ -193,7 +197,7 @@ def _shading_leaf(path: str, gouraud: bool = False) -> bool:
     if "_map" in path:
         return False
     if head in ("[0].material", "[0].back_material"):
-        return gouraud or field != "ior"
+        return gouraud or field not in ("ior", "tangent")
     if head in ("[0].directional", "[0].point", "[0].spot"):
         return gouraud or field in _LIGHT_FIELDS
     return head == "[0].fog" or path in _SCENE_FIELDS
@@ -261,7 +265,8 @@ def _texture_inputs(scene: Scene, maps: dict, parts: list):
 
 
 def _material(m) -> jax.Array:
-    return jnp.concatenate([m.emission, m.ambient, m.diffuse, m.specular, m.shininess[None], m.ior[None]])
+    scalars = [m.shininess, m.ior, m.roughness, m.roughness_y, m.diffuse_roughness]
+    return jnp.concatenate([m.emission, m.ambient, m.diffuse, m.specular, *(x[None] for x in scalars), m.tangent])
 
 
 def _lights(scene: Scene, opts: RenderOptions) -> jax.Array:
@@ -351,6 +356,8 @@ def _switches(opts: RenderOptions, lt, gouraud: bool, orthographic: bool = False
         clamp == "pixel" or (clamp == "vertex" and not gouraud),  # before fog (Phong: per vertex is per pixel)
         clamp == "vertex",  # after fog
         gouraud,
+        lt.diffuse_model == "oren_nayar",
+        lt.masking == "v_cavity",
     )
     fog = 0 if opts.fog is None else _FOG[opts.fog.mode] + (4 if opts.fog.distance == "depth" else 0)
     return dict(

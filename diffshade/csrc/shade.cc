@@ -41,8 +41,10 @@ namespace {
 // corners' normals (3 x 3; Gouraud: their front colours), their positions (3 x 3), whether the
 // face is front-facing (D > 0; 1 or 0), and (Gouraud) the corners' back colours (3 x 3).
 constexpr int kFace = 41;
-// Per material, kMat floats: emission, ambient, diffuse, specular (3 each), shininess, ior.
-constexpr int kMat = 14;
+// Per material, kMat floats: emission, ambient, diffuse, specular (3 each), shininess, ior, and
+// the other local models' roughness (Cook-Torrance's alpha, Ward's alpha_x), roughness_y (Ward's
+// alpha_y), diffuse_roughness (Oren-Nayar's sigma) and tangent (3, Ward's).
+constexpr int kMat = 20;
 // The scene's numbers: two materials (front, back), the ambient light (3), the eye (3), the
 // eye-space +z axis in world coordinates (3), the fog's colour (3), start, end, density, the
 // background (3), the camera's gain (3).
@@ -129,10 +131,11 @@ inline float Dielectric(float c, float ior) {  // _shade.fresnel_dielectric, bra
 
 // Static configuration (the FFI attributes).
 struct Config {
-  int32_t specular;  // 0 none, 1 phong, 2 blinn
+  int32_t specular;  // 0 none, 1 phong, 2 blinn, 3 beckmann, 4 ggx (Cook-Torrance), 5 ward
   int32_t fresnel;   // 0 none, 1 schlick, 2 dielectric
   int32_t flags;     // bits: emission, ambient, diffuse, per-light ambient, two-sided, infinite viewer,
-                     // clamp before fog, clamp after fog, Gouraud (the colours are the vertices')
+                     // clamp before fog, clamp after fog, Gouraud (the colours are the vertices'),
+                     // Oren-Nayar's diffuse, Cook-Torrance's V-cavity masking (else Smith's)
   int32_t fog;       // 0 none, 1 linear, 2 exp, 3 exp2; +4: by eye-space depth
   bool Flag(int bit) const { return (flags >> bit) & 1; }
 };
@@ -200,6 +203,9 @@ struct Block {
   // the specular term, the fog's factor; a spot light's cosine to its axis and its lobe cos^e
   // (zeroed: MapLanes reads up to a multiple of 8 past a block's last pixel)
   float spec[kBlock] = {}, fog[kBlock] = {}, cs[kBlock] = {}, lobe[kBlock] = {};
+  // the diffuse factor (Lambert's (n.l)+ or Oren-Nayar's, times the diffuse switch); the other
+  // local models' scratch (zeroed: ExpN reads them in lanes of eight)
+  float dif[kBlock] = {}, t0[kBlock] = {}, t1[kBlock] = {};
   float col[3][kBlock], base[3][kBlock];
   // the material per pixel (emission, ambient, diffuse, specular, shininess): the side's
   // constants, times the texels where a field has a map
@@ -411,6 +417,184 @@ DIFFSHADE_CLONES void SampleMap(const Map& t, Block& k, int m, float (*out)[kBlo
   }
 }
 
+// The other local models (docs/model.md §2, "The other local models"): diffshade/_local_models.py
+// term by term, with its guards; each fills the block's dif (Oren-Nayar) or spec (Cook-Torrance,
+// Ward) for one light after AddLight's l, ndl. Their parameters are the lit side's constants (a
+// roughness map takes the JAX stages).
+constexpr float kPi = 3.14159265358979f;
+constexpr float kBeckmannFloor = 1e-4f;  // _local_models.BECKMANN_FLOOR
+constexpr float kWardGrazing = 1e-6f;    // _local_models.WARD_GRAZING
+
+inline float NdotV(const Block& k, int q) { return k.nx[q] * k.vx[q] + k.ny[q] * k.vy[q] + k.nz[q] * k.vz[q]; }
+
+// Oren-Nayar's A and B of sigma, and their derivatives in sigma.
+inline void OrenNayarAB(float s, float* a, float* b, float* da, float* db) {
+  const float s2 = s * s, ea = s2 + 0.33f, eb = s2 + 0.09f;
+  *a = 1.0f - 0.5f * s2 / ea, *b = 0.45f * s2 / eb;
+  *da = -0.33f * s / (ea * ea), *db = 0.081f * s / (eb * eb);
+}
+
+// (l.v - (n.l)(n.v)) / max(n.l, n.v): cos(phi_l - phi_v) sin(alpha) tan(beta), 0 where unseen.
+inline float OrenNayarAcross(float ndl, float ndv, float ldv) {
+  const float big = std::max(ndl, ndv);
+  const float a = ndv > 0 ? std::max(ldv - ndl * ndv, 0.0f) : 0.0f;
+  return a / (big > 0 ? big : 1.0f);
+}
+
+// The diffuse factor into k.dif: Lambert's (n.l)+ or Oren-Nayar's, times the diffuse switch.
+inline void Diffuse(const Config& cfg, const float* front, const float* backm, Block& k, int m) {
+  const float on = cfg.Flag(2) ? 1.0f : 0.0f;
+  float* __restrict dif = k.dif;
+  if (!cfg.Flag(9)) {
+    for (int q = 0; q < m; ++q) dif[q] = std::max(k.ndl[q], 0.0f) * on;
+    return;
+  }
+  for (int q = 0; q < m; ++q) {
+    float a, b, da, db;
+    OrenNayarAB(Pick(k.back[q], backm[16], front[16]), &a, &b, &da, &db);
+    const float ndl = k.ndl[q], ldv = k.lx[q] * k.vx[q] + k.ly[q] * k.vy[q] + k.lz[q] * k.vz[q];
+    const float across = OrenNayarAcross(ndl, NdotV(k, q), ldv);
+    dif[q] = (ndl > 0 && std::max(ndl, NdotV(k, q)) > 0 ? ndl * (a + b * across) : 0.0f) * on;
+  }
+}
+
+// G1(w)/(n.w) of Smith's masking (GGX exact; Beckmann by Walter et al.'s rational form) and its
+// logarithm's derivative in alpha.
+inline float SmithGgx(float c, float a2) { return 2.0f / (c + std::sqrt(a2 + (1.0f - a2) * c * c)); }
+inline float SmithGgxDlog(float c, float alpha) {
+  const float a2 = alpha * alpha, r = std::sqrt(a2 + (1.0f - a2) * c * c);
+  return -(alpha * (1.0f - c * c) / r) / (c + r);
+}
+inline float SmithBeckmann(float c, float alpha, float* dlog) {
+  const float s2 = std::max(1.0f - c * c, 0.0f);
+  const bool near = !(s2 > 0);
+  const float s = std::sqrt(s2 > 0 ? s2 : 1.0f);
+  const float a = c / (alpha * s);
+  const float num = 3.535f + 2.181f * a, den = 1.0f + 2.276f * a + 2.577f * a * a;
+  const float rational = num / (den * alpha * s);
+  const bool one = near || a >= 1.6f;
+  *dlog = one ? 0.0f : (2.181f / num - (2.276f + 5.154f * a) / den) * (-a / alpha) - 1.0f / alpha;
+  return one ? (c > 0 ? 1.0f / c : 0.0f) : rational;
+}
+
+// Cook-Torrance's D G F / (4 (n.l)(n.v)) (n.l)+ into k.spec (F of v.h), and with dlog its
+// logarithm's derivative in alpha (the partials: dspec/dalpha = spec dlog).
+DIFFSHADE_CLONES void CookTorrance(const Config& cfg, const float* front, const float* backm, Block& k, int m,
+                                   float* dlog) {
+  const bool ggx = cfg.specular == 4, vcavity = cfg.Flag(10);
+  float* __restrict spec = k.spec;
+  float* __restrict x = k.t0;  // Beckmann: the exponent, then its exp
+  for (int q = 0; q < m; ++q) {
+    const float hx = k.lx[q] + k.vx[q], hy = k.ly[q] + k.vy[q], hz = k.lz[q] + k.vz[q];
+    const float sq = hx * hx + hy * hy + hz * hz;
+    const float inv = sq > 0 ? 1.0f / std::sqrt(sq) : 0.0f;
+    const float ndh = (k.nx[q] * hx + k.ny[q] * hy + k.nz[q] * hz) * inv;
+    const float alpha = Pick(k.back[q], backm[14], front[14]), a2 = alpha * alpha;
+    const float c2 = ndh * ndh, c2s = c2 > kBeckmannFloor ? c2 : 1.0f;
+    x[q] = ggx ? 0.0f : -(1.0f - c2s) / (c2s * a2);
+    k.t1[q] = ndh;
+  }
+  if (!ggx) ExpN(x, x, m);
+  for (int q = 0; q < m; ++q) {
+    const float hx = k.lx[q] + k.vx[q], hy = k.ly[q] + k.vy[q], hz = k.lz[q] + k.vz[q];
+    const float sq = hx * hx + hy * hy + hz * hz;
+    const float inv = sq > 0 ? 1.0f / std::sqrt(sq) : 0.0f;
+    const float vdh = (k.vx[q] * hx + k.vy[q] * hy + k.vz[q] * hz) * inv;
+    const float ndh = k.t1[q], ndl = k.ndl[q], ndv = NdotV(k, q);
+    const bool lit = ndl > 0 && ndv > 0;
+    const float alpha = Pick(k.back[q], backm[14], front[14]), a2 = alpha * alpha;
+    float D, dD;
+    if (ggx) {
+      const float c = std::max(ndh, 0.0f), c2 = std::min(c * c, 1.0f), d = (1.0f - c2) + c2 * a2;
+      D = ndh > 0 ? a2 / (kPi * d * d) : 0.0f;
+      dD = 2.0f / alpha - 4.0f * alpha * c2 / d;
+    } else {
+      const float c2 = ndh * ndh;
+      const bool ok = c2 > kBeckmannFloor;
+      const float c2s = ok ? c2 : 1.0f;
+      D = ok ? x[q] / (kPi * a2 * c2s * c2s) : 0.0f;
+      dD = 2.0f * (1.0f - c2s) / (c2s * a2 * alpha) - 2.0f / alpha;
+    }
+    const float cl = lit ? ndl : 1.0f, cv = lit ? ndv : 1.0f;
+    float vis, dG = 0.0f;
+    if (vcavity) {
+      const float vh = vdh > 0 ? vdh : 1.0f;
+      vis = std::min(1.0f / (4.0f * cl * cv), 0.5f * ndh / vh * std::min(1.0f / cl, 1.0f / cv));
+    } else if (ggx) {
+      vis = SmithGgx(cl, a2) * SmithGgx(cv, a2) / 4.0f;
+      dG = SmithGgxDlog(cl, alpha) + SmithGgxDlog(cv, alpha);
+    } else {
+      float gl, gv;
+      vis = SmithBeckmann(cl, alpha, &gl) * SmithBeckmann(cv, alpha, &gv) / 4.0f;
+      dG = gl + gv;
+    }
+    float F = 1.0f;
+    if (cfg.fresnel != 0) {
+      const float ior = Pick(k.back[q], backm[13], front[13]);
+      F = cfg.fresnel == 1 ? Schlick(Clip01(vdh), ior) : Dielectric(Clip01(vdh), ior);
+    }
+    spec[q] = lit ? D * vis * F * cl : 0.0f;
+    if (dlog) dlog[q] = dD + dG;
+  }
+}
+
+// Ward's tangent frame at the block's pixels: t (into tx, ty, tz) the material's tangent
+// projected on the tangent plane (where it is along n, the world axis farthest from n), b = n x t.
+inline void WardFrame(const Block& k, int q, const float* a, float* t, float* b) {
+  const float nx = k.nx[q], ny = k.ny[q], nz = k.nz[q];
+  const float na = nx * a[0] + ny * a[1] + nz * a[2];
+  float px = a[0] - nx * na, py = a[1] - ny * na, pz = a[2] - nz * na;
+  const float pp = px * px + py * py + pz * pz, aa = a[0] * a[0] + a[1] * a[1] + a[2] * a[2];
+  if (!(pp > 1e-12f * std::max(aa, 1e-30f))) {
+    const float ax = std::abs(nx), ay = std::abs(ny), az = std::abs(nz);
+    const bool ex = ax <= ay && ax <= az, ey = !ex && ay <= az;
+    const float e0 = ex ? 1.0f : 0.0f, e1 = ey ? 1.0f : 0.0f, e2 = (!ex && !ey) ? 1.0f : 0.0f;
+    const float ne = nx * e0 + ny * e1 + nz * e2;
+    px = e0 - nx * ne, py = e1 - ny * ne, pz = e2 - nz * ne;
+  }
+  const float sq = px * px + py * py + pz * pz;
+  const float inv = sq > 0 ? 1.0f / std::sqrt(sq) : 0.0f;
+  t[0] = px * inv, t[1] = py * inv, t[2] = pz * inv;
+  b[0] = ny * t[2] - nz * t[1], b[1] = nz * t[0] - nx * t[2], b[2] = nx * t[1] - ny * t[0];
+}
+
+// Ward's anisotropic term into k.spec (times F of n.l with a Fresnel option); with dx, dy the
+// derivatives of its logarithm in alpha_x and alpha_y.
+DIFFSHADE_CLONES void Ward(const Config& cfg, const float* front, const float* backm, Block& k, int m, float* dx,
+                           float* dy) {
+  float* __restrict x = k.t0;
+  float* __restrict spec = k.spec;
+  for (int q = 0; q < m; ++q) {
+    const bool bk = k.back[q] > 0;
+    const float* mat = bk ? backm : front;
+    float t[3], b[3];
+    WardFrame(k, q, mat + 17, t, b);
+    const float hx = k.lx[q] + k.vx[q], hy = k.ly[q] + k.vy[q], hz = k.lz[q] + k.vz[q];
+    const float ndl = k.ndl[q], ndv = NdotV(k, q);
+    const float hn0 = k.nx[q] * hx + k.ny[q] * hy + k.nz[q] * hz;
+    const bool ok = ndl > 0 && ndv > 0 && hn0 > 0;
+    const float hn = ok ? hn0 : 1.0f, ax = mat[14], ay = mat[15];
+    const float ht = (hx * t[0] + hy * t[1] + hz * t[2]) / ax, hb = (hx * b[0] + hy * b[1] + hz * b[2]) / ay;
+    const float e = (ht * ht + hb * hb) / (hn * hn);
+    x[q] = -e;
+    k.t1[q] = ok ? 1.0f : 0.0f;
+    if (dx) dx[q] = 2.0f * ht * ht / (hn * hn * ax) - 1.0f / ax, dy[q] = 2.0f * hb * hb / (hn * hn * ay) - 1.0f / ay;
+  }
+  ExpN(x, x, m);
+  for (int q = 0; q < m; ++q) {
+    const bool bk = k.back[q] > 0;
+    const float ax = bk ? backm[14] : front[14], ay = bk ? backm[15] : front[15];
+    const bool ok = k.t1[q] > 0;
+    const float cl = ok ? k.ndl[q] : 1.0f, cv = std::max(ok ? NdotV(k, q) : 1.0f, kWardGrazing);
+    float w = ok ? x[q] * std::sqrt(cl / cv) / (4.0f * kPi * ax * ay) : 0.0f;
+    if (cfg.fresnel != 0) {
+      const float ior = bk ? backm[13] : front[13];
+      w = (cfg.fresnel == 1 ? Schlick(k.ndl[q], ior) : Dielectric(k.ndl[q], ior)) * w;
+    }
+    spec[q] = w;
+  }
+}
+
 // One light's direct terms (and per-light ambient) added to the block's m pixels. Not inlined:
 // inlined into ShadeRange, the all-terms render at 512² took 19.8 ms against 9.4-10.9 ms.
 __attribute__((noinline)) DIFFSHADE_CLONES void AddLight(const Config& cfg, const float* front, const float* backm, const float* li,
@@ -455,6 +639,7 @@ __attribute__((noinline)) DIFFSHADE_CLONES void AddLight(const Config& cfg, cons
   float* __restrict ndl = k.ndl;
   float* __restrict spec = k.spec;
   for (int q = 0; q < m; ++q) ndl[q] = k.nx[q] * lx[q] + k.ny[q] * ly[q] + k.nz[q] * lz[q];
+  Diffuse(cfg, front, backm, k, m);
   if (cfg.specular == 1) {  // v.r = 2 (n.l)(n.v) - v.l
     for (int q = 0; q < m; ++q) {
       const float ndv = k.nx[q] * k.vx[q] + k.ny[q] * k.vy[q] + k.nz[q] * k.vz[q];
@@ -469,7 +654,11 @@ __attribute__((noinline)) DIFFSHADE_CLONES void AddLight(const Config& cfg, cons
       spec[q] = (k.nx[q] * hx + k.ny[q] * hy + k.nz[q] * hz) * inv;
     }
   }
-  if (cfg.specular != 0) {
+  if (cfg.specular == 3 || cfg.specular == 4) {
+    CookTorrance(cfg, front, backm, k, m, nullptr);
+  } else if (cfg.specular == 5) {
+    Ward(cfg, front, backm, k, m, nullptr, nullptr);
+  } else if (cfg.specular != 0) {
     const float* __restrict bk = k.back;
     const float* __restrict sh = k.sh;
     const float iorf = front[13], iorb = backm[13];
@@ -483,8 +672,8 @@ __attribute__((noinline)) DIFFSHADE_CLONES void AddLight(const Config& cfg, cons
   } else {
     for (int q = 0; q < m; ++q) spec[q] = 0.0f;
   }
-  // (flags as factors of 1 or 0 and separate loops: branch-free inner loops, vectorised)
-  const float dif_on = cfg.Flag(2) ? 1.0f : 0.0f;
+  // (flags as factors of 1 or 0 and separate loops: branch-free inner loops, vectorised; the
+  // diffuse switch is in k.dif)
   const bool has_spec = li[10] > 0;
   for (int c = 0; c < 3; ++c) {
     const float color = li[1 + c], sc = li[7 + c];
@@ -494,12 +683,12 @@ __attribute__((noinline)) DIFFSHADE_CLONES void AddLight(const Config& cfg, cons
     // the order of _lighting._terms: one colour, or the specular with its own
     if (has_spec) {
       for (int q = 0; q < m; ++q) {
-        const float acc = kd[q] * (std::max(ndl[q], 0.0f) * dif_on);
+        const float acc = kd[q] * k.dif[q];
         out[q] += att[q] * (acc * color) + att[q] * ((ks[q] * spec[q]) * sc);
       }
     } else {
       for (int q = 0; q < m; ++q) {
-        const float acc = kd[q] * (std::max(ndl[q], 0.0f) * dif_on);
+        const float acc = kd[q] * k.dif[q];
         out[q] += att[q] * ((acc + ks[q] * spec[q]) * color);
       }
     }
@@ -947,7 +1136,8 @@ struct Entry {
 inline bool Supported(int64_t slot) {
   if (slot < kParams) {
     const int64_t s = slot < 2 * kMat ? slot % kMat : slot;
-    return slot < 2 * kMat ? s <= 12 : (s < 2 * kMat + 3 || s >= 2 * kMat + 9);  // (not ior, eye, view axis)
+    // (not ior, the tangent, the eye, the view axis)
+    return slot < 2 * kMat ? (s <= 12 || (s >= 14 && s <= 16)) : (s < 2 * kMat + 3 || s >= 2 * kMat + 9);
   }
   const int64_t f = (slot - kParams) % kLight;
   return (f >= 1 && f <= 9) || (f >= 14 && f <= 16);
@@ -972,8 +1162,9 @@ inline void Side(const Maps& mp, const Block& k, int field, int channel, bool ba
 
 // One light's part of every direction's derivative of the (unclamped, unfogged) colour, after
 // AddLight filled the block's att, ndl, spec (and l) for it.
-DIFFSHADE_CLONES void LightPartials(const Config& cfg, const Maps& mp, const float* li, int64_t light, const std::vector<Entry>& es,
-                   int64_t m_pixels, Block& k, float* dcol, float* g, float* h) {
+DIFFSHADE_CLONES void LightPartials(const Config& cfg, const Maps& mp, const float* front, const float* backm,
+                                    const float* li, int64_t light, const std::vector<Entry>& es, int64_t m_pixels,
+                                    Block& k, float* dcol, float* g, float* h) {
   const int m = static_cast<int>(m_pixels);
   const int kind = static_cast<int>(li[0]);
   const bool has_spec = li[10] > 0, per_light_ambient = cfg.Flag(3);
@@ -985,8 +1176,46 @@ DIFFSHADE_CLONES void LightPartials(const Config& cfg, const Maps& mp, const flo
     const bool mat = e.slot < 2 * kMat;
     if (!mat && (e.slot < first || e.slot >= first + kLight)) continue;
     const int f = mat ? static_cast<int>(e.slot % kMat) : static_cast<int>(e.slot - first);
+    if (mat && f >= 14 && f <= 16) {  // the other local models' roughness, roughness_y, sigma
+      const bool back_slot = e.slot >= kMat;
+      for (int q = 0; q < m; ++q) sel[q] = back_slot ? k.back[q] : 1.0f - k.back[q];
+      if (f == 16) {  // Oren-Nayar's sigma: d dif / d sigma = (n.l) (dA + dB across), times k_d I_p att
+        if (!cfg.Flag(9) || dif_on == 0.0f) continue;
+        float a, b, da, db;
+        OrenNayarAB(back_slot ? backm[16] : front[16], &a, &b, &da, &db);
+        for (int q = 0; q < m; ++q) {
+          const float ndl = k.ndl[q], ndv = NdotV(k, q);
+          const float ldv = k.lx[q] * k.vx[q] + k.ly[q] * k.vy[q] + k.lz[q] * k.vz[q];
+          const float across = OrenNayarAcross(ndl, ndv, ldv);
+          gg[q] = ndl > 0 && std::max(ndl, ndv) > 0 ? k.att[q] * ndl * (da + db * across) * sel[q] : 0.0f;
+        }
+        for (int c = 0; c < 3; ++c) {
+          float* __restrict d = dcol + (int64_t{e.j} * 3 + c) * kBlock;
+          const float* __restrict kd = k.kd[c];
+          const float lc = li[1 + c];
+          for (int q = 0; q < m; ++q) d[q] += e.w * (gg[q] * kd[q] * lc);
+        }
+        continue;
+      }
+      if (cfg.specular == 3 || cfg.specular == 4) {  // d spec / d alpha = spec dlog
+        if (f != 14) continue;
+        CookTorrance(cfg, front, backm, k, m, gg);
+      } else if (cfg.specular == 5) {  // (the other axis's derivative into the spot's scratch)
+        Ward(cfg, front, backm, k, m, f == 14 ? gg : k.cs, f == 14 ? k.cs : gg);
+      } else {
+        continue;
+      }
+      for (int q = 0; q < m; ++q) gg[q] = k.spec[q] != 0.0f ? k.att[q] * k.spec[q] * gg[q] * sel[q] : 0.0f;
+      for (int c = 0; c < 3; ++c) {
+        const float lc = has_spec ? li[7 + c] : li[1 + c];
+        float* __restrict d = dcol + (int64_t{e.j} * 3 + c) * kBlock;
+        const float* __restrict ks = k.ks[c];
+        for (int q = 0; q < m; ++q) d[q] += e.w * (gg[q] * ks[q] * lc);
+      }
+      continue;
+    }
     if (mat && f == 12) {  // shininess: d spec / d m = spec log(the specular base) where spec is on
-      if (cfg.specular == 0) continue;
+      if (cfg.specular == 0 || cfg.specular > 2) continue;
       Side(mp, k, 4, 0, e.slot >= kMat, m, sel);
       if (cfg.specular == 1) {  // the specular base, as AddLight's
         for (int q = 0; q < m; ++q) {
@@ -1023,7 +1252,7 @@ DIFFSHADE_CLONES void LightPartials(const Config& cfg, const Maps& mp, const flo
       if (field == 1) {
         for (int q = 0; q < m; ++q) d[q] += e.w * (k.att[q] * lc * sel[q]);
       } else if (field == 2) {
-        for (int q = 0; q < m; ++q) d[q] += e.w * (k.att[q] * (std::max(k.ndl[q], 0.0f) * dif_on) * lc * sel[q]);
+        for (int q = 0; q < m; ++q) d[q] += e.w * (k.att[q] * k.dif[q] * lc * sel[q]);
       } else {
         for (int q = 0; q < m; ++q) d[q] += e.w * (k.att[q] * k.spec[q] * lc * sel[q]);
       }
@@ -1037,7 +1266,7 @@ DIFFSHADE_CLONES void LightPartials(const Config& cfg, const Maps& mp, const flo
       const float* __restrict ka = k.ka[c];
       if (which == 0) {  // colour
         for (int q = 0; q < m; ++q) {
-          const float dif = kd[q] * (std::max(k.ndl[q], 0.0f) * dif_on);
+          const float dif = kd[q] * k.dif[q];
           d[q] += e.w * (k.att[q] * (has_spec ? dif : dif + ks[q] * k.spec[q]));
         }
       } else if (which == 1 && per_light_ambient) {
@@ -1064,7 +1293,7 @@ DIFFSHADE_CLONES void LightPartials(const Config& cfg, const Maps& mp, const flo
       const float* __restrict ka = k.ka[c];
       const float color = li[1 + c], sc = has_spec ? li[7 + c] : li[1 + c], amb = per_light_ambient ? li[4 + c] : 0.0f;
       for (int q = 0; q < m; ++q) {
-        const float u = kd[q] * (std::max(k.ndl[q], 0.0f) * dif_on) * color + ks[q] * k.spec[q] * sc + ka[q] * amb;
+        const float u = kd[q] * k.dif[q] * color + ks[q] * k.spec[q] * sc + ka[q] * amb;
         d[q] += e.w * (gg[q] * u);
       }
     }
@@ -1090,7 +1319,7 @@ void PhongPartials(const Config& cfg, const Maps& mp, const float* params, const
   }
   for (int64_t i = 0; i < num_lights; ++i) {
     AddLight(cfg, front, backm, lights + i * kLight, k, m);
-    LightPartials(cfg, mp, lights + i * kLight, i, es, m, k, dcol, g, h);
+    LightPartials(cfg, mp, front, backm, lights + i * kLight, i, es, m, k, dcol, g, h);
   }
   // the ambient and emission terms: k_a I_a and k_e, and the ambient light I_a
   for (const Entry& e : es) {
