@@ -112,8 +112,8 @@ def applies(scene: Scene, opts: RenderOptions, pixels) -> bool:
         return False
     if "shininess" in maps and (r.shading != "phong" or maps["shininess"].channels != 1):
         return False
-    if "roughness" in maps:
-        return False  # (a roughness map: the JAX stages)
+    if "roughness" in maps or (lt.specular == "ward" and lt.tangent == "uv" and r.shading == "phong"):
+        return False  # (a roughness map, Ward's tangents from the texture coordinates: the JAX stages)
     if needs(opts).lit_maps and set(maps) & set(_COLOUR_FIELDS):
         return False  # (GL_MODULATE's order per pixel: each map's lit colour clamped apart, in the stages)
     if any(t.mipmaps != "float" for t in maps.values()) or (maps and r.texture_lod != "pixel"):

@@ -37,6 +37,7 @@ Shading = Literal["flat", "gouraud", "phong"]
 SpecularModel = Literal["none", "phong", "blinn", "beckmann", "ggx", "ward"]
 DiffuseModel = Literal["lambert", "oren_nayar"]
 Masking = Literal["smith", "v_cavity"]
+TangentSource = Literal["direction", "uv"]
 Fresnel = Literal["none", "schlick", "dielectric"]
 FogMode = Literal["linear", "exp", "exp2"]
 FogDistance = Literal["euclidean", "depth"]
@@ -124,7 +125,9 @@ class Lighting:
     ``"beckmann"``'s or ``"ggx"``'s distribution (``masking``: Smith's ``"smith"`` of the same
     distribution, or Cook–Torrance's ``"v_cavity"``), Ward's anisotropic ``"ward"``, or
     ``"none"``; ``diffuse_model``: ``"lambert"`` or Oren–Nayar's rough ``"oren_nayar"``
-    (docs/model.md §7); ``fresnel``: ``"none"``, ``"schlick"`` or ``"dielectric"`` weighting of
+    (docs/model.md §7); ``tangent``: Ward's tangent, the material's ``"direction"`` projected on
+    each point's tangent plane, or ``"uv"``: :math:`\partial P/\partial u` of the mesh's texture
+    coordinates (:func:`diffshade._surface.uv_tangents`); ``fresnel``: ``"none"``, ``"schlick"`` or ``"dielectric"`` weighting of
     the specular term (of :math:`n\cdot l` in the classic and Ward terms, of :math:`v\cdot h` in
     Cook–Torrance's). ``emission``, ``ambient``, ``diffuse``,
     ``transmission`` (directed transmission :math:`k_t I_p \cos^m\beta`) and
@@ -140,6 +143,7 @@ class Lighting:
     fresnel: Fresnel = "none"
     diffuse_model: DiffuseModel = "lambert"
     masking: Masking = "smith"
+    tangent: TangentSource = "direction"
     emission: bool = False
     ambient: bool = True
     diffuse: bool = True
@@ -154,6 +158,7 @@ class Lighting:
         _choice(self, "specular", ("none", "phong", "blinn", "beckmann", "ggx", "ward"))
         _choice(self, "diffuse_model", ("lambert", "oren_nayar"))
         _choice(self, "masking", ("smith", "v_cavity"))
+        _choice(self, "tangent", ("direction", "uv"))
         _choice(self, "fresnel", ("none", "schlick", "dielectric"))
         _choice(self, "spot_edge", ("hard", "smooth"))
         _choice(self, "viewer", ("local", "infinite"))
@@ -290,6 +295,7 @@ _KEYS: dict[str, tuple[str, str]] = {
             "fresnel",
             "diffuse_model",
             "masking",
+            "tangent",
             "emission",
             "ambient",
             "diffuse",

@@ -45,6 +45,7 @@ class Needs:
     positions: bool = True
     kay: bool = True
     lit_maps: bool = False
+    uv_tangents: bool = False  # Ward's tangent from the texture coordinates (Lighting.tangent = "uv")
 
 
 def needs(opts: RenderOptions) -> Needs:
@@ -80,7 +81,44 @@ def needs(opts: RenderOptions) -> Needs:
         or euclidean_fog
     )
     lit_maps = opts.output.clamp == "vertex" and opts.raster.shading == "phong"
-    return Needs(frozenset(used), positions, tr is not None, lit_maps)
+    uv_tangents = lt.specular == "ward" and lt.tangent == "uv"
+    return Needs(frozenset(used), positions, tr is not None, lit_maps, uv_tangents)
+
+
+def uv_tangents(mesh) -> Float[Array, "V 3"]:
+    r"""Per vertex, the direction of increasing :math:`u` on the surface, :math:`\partial P/\partial u`
+    of the texture coordinates: per face :math:`(e_1 \Delta v_2 - e_2 \Delta v_1)\,\mathrm{sign}(d)`
+    (:math:`e_i` the edges from the first corner, :math:`\Delta u_i, \Delta v_i` theirs in the
+    coordinates, :math:`d = \Delta u_1 \Delta v_2 - \Delta u_2 \Delta v_1`: the face's area in the
+    map, so each face weighs by its area on the surface), summed over the vertex's faces and
+    normalised (zero where no face has a mapped area: Ward's frame then falls back to a world
+    axis, :func:`diffshade._local_models.tangent_frame`)."""
+    if mesh.uv is None:
+        raise ValueError("Lighting.tangent = 'uv' (Ward's tangent from the texture coordinates) needs Mesh.uv")
+    P, uv = take(mesh.vertices, mesh.faces), take(mesh.uv, mesh.faces)
+    e1, e2 = P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]
+    d1, d2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    det = d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1]
+    t = (e1 * d2[:, 1:2] - e2 * d1[:, 1:2]) * jnp.sign(det)[:, None]
+    acc = jnp.zeros_like(mesh.vertices).at[mesh.faces.reshape(-1)].add(jnp.repeat(t, 3, axis=0))
+    return jnp.stack(S.normalize(S.vec(acc)), -1)
+
+
+def _with_tangents(scene, raster, frags, bary, sites: Sites) -> Sites:
+    """The sites' materials with Ward's tangent from the texture coordinates: interpolated to
+    the pixels (Phong), at the vertices (Gouraud), at the faces (flat)."""
+    mesh = scene.mesh
+    tv = uv_tangents(mesh)
+    if raster.shading == "phong":
+        t = jnp.stack(_lerp(frags, mesh.faces, bary)(S.vec(tv)), -1)
+    elif raster.shading == "gouraud":
+        corners = sites.points[0].shape[0] != tv.shape[0]  # (several materials: the faces' corners)
+        t = take(tv, mesh.faces.reshape(-1)) if corners else tv
+    else:
+        t = jnp.mean(take(tv, mesh.faces), axis=1)
+    mat = eqx.tree_at(lambda m: m.tangent, sites.material, t)
+    back = eqx.tree_at(lambda m: m.tangent, sites.back_material, t)
+    return replace(sites, material=mat, back_material=back)
 
 
 @dataclass(frozen=True)
@@ -185,6 +223,8 @@ def surface_points(
     need = replace(need, kay=need.kay and any(kay))
     build = {"phong": _phong_sites, "gouraud": _gouraud_sites, "flat": _flat_sites}[raster.shading]
     sites, normal, pmat = build(scene, raster, need, frags, bary, multi, pmat, back, position)
+    if need.uv_tangents:
+        sites = _with_tangents(scene, raster, frags, bary, sites)
     if any(m.maps(need.fields) for m in mats) or (scene.back_material is not None and scene.back_material.maps()):
         sites, pmat = _textured(scene, raster, need, frags, bary, clip, pix_mid, sites, pmat)
     return Surface(

@@ -414,9 +414,8 @@ assert rows[best][0] == "phong" and rows[best][2] == max(sss)""",
         """\
 ## The other local models: what each explains, at what cost
 
-Oren–Nayar, Cook–Torrance (Beckmann, GGX) and Ward cost more than Lambert and Blinn–Phong (in
-diffshade, they render through the JAX stages, Blinn–Phong through the native kernel where it
-is built). What do they buy? A target rendered with Cook–Torrance GGX (α = 0.3: the long-tailed
+Oren–Nayar, Cook–Torrance (Beckmann, GGX) and Ward cost a little more than Lambert and
+Blinn–Phong per pixel (an exponential, a square root, a division or two more). What do they buy? A target rendered with Cook–Torrance GGX (α = 0.3: the long-tailed
 highlight of a real glossy ball), 8-bit, fitted by every model of the ladder from the usual
 Blinn–Phong guess: each model's render time and time per fit against its residual. (At the
 small test size, a part of the ladder.)""",
