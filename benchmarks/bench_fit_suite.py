@@ -216,6 +216,8 @@ def random_start(pset, true, rng):
         for _ in range(p.size):
             if p.bounds is not None:
                 lo, hi = p.bounds
+                if p.path[-1] in ("roughness", "roughness_y"):
+                    lo = 1e-3  # (a roughness of 0 is outside the model: a start there is refused by name)
                 u = rng.uniform()
                 th[k] = lo if u < 0.125 else hi if u < 0.25 else rng.uniform(lo, hi)
             else:
