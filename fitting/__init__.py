@@ -20,6 +20,7 @@ from ._models import (
     compare_models,
     imaging_variants,
     model_variants,
+    not_told_apart,
 )
 from ._observations import CAPTURE_CLIP_MARGIN, CAPTURE_MARGIN, FitError, Observations, Optimistix, Strategy, VarPro
 from ._params import Param, ParamError, ParamSet, direction_frame, direction_of, tilt_of
@@ -61,6 +62,7 @@ __all__ = [
     "mean_gauge",
     "sphere_from_mask",
     "model_variants",
+    "not_told_apart",
     "DIFFUSE_MODELS",
     "SPECULAR_MODELS",
     "tilt_of",

@@ -270,6 +270,14 @@ def compare_models(
     return ranked(out)
 
 
+def not_told_apart(scores: list[ModelScore]) -> list[ModelScore]:
+    """The variants the images do not tell from the supported one (``scores`` as
+    :func:`compare_models` ranks them): the others within :data:`TOLD_APART` of the lowest BIC.
+    Where there are any, the choice among them is the simplest's, not the images'."""
+    low = min(m.bic for m in scores)
+    return [m for m in scores[1:] if m.bic - low < TOLD_APART]
+
+
 def ranked(scores: list[ModelScore]) -> list[ModelScore]:
     """Scores of one data set sorted by BIC, the supported model first: within
     :data:`TOLD_APART` of the lowest BIC the images do not tell the models apart, and the

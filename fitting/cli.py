@@ -630,7 +630,17 @@ def _compare(scene, opts, obs, args, r, fit_kw, held=None, centre=None):
                 "fit": m.fit.as_dict(),
             }
         )
-    report.append(f"the images support: {scores[0].name}")
+    from ._models import not_told_apart
+
+    close = not_told_apart(scores)
+    report.append(
+        f"the images support: {scores[0].name}"
+        + (
+            f" (not told apart from {', '.join(m.name for m in close)}: within ΔBIC 2 of the lowest; the simplest is named)"
+            if close
+            else ""
+        )
+    )
     report += _what_each_removes(scores)
     if ho:
         lowest = min(scores, key=lambda m: m.holdout.ratio_all)

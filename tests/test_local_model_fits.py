@@ -247,3 +247,20 @@ def test_wards_tangent_from_the_texture_coordinates():
     )
     with pytest.raises(ValueError, match="needs Mesh.uv"):
         ds.render(scene, uvo)
+
+
+def test_not_told_apart_names_the_models_within_two_of_the_lowest_bic():
+    from fitting import ModelScore, not_told_apart
+    from fitting._models import ranked
+
+    def score(name, bic, k):
+        return ModelScore(name, None, ["x"] * k, None, 100, k, 1.0, bic, bic)
+
+    scores = ranked(
+        [score("ggx", 10.0, 3), score("beckmann", 11.5, 3), score("blinn", 30.0, 3), score("ward", 10.5, 4)]
+    )
+    assert scores[0].name == "ggx"
+    assert [m.name for m in not_told_apart(scores)] == ["ward", "beckmann"]
+    # the simplest within 2 is the one named, even if another is lower
+    scores = ranked([score("ward", 9.0, 4), score("ggx", 10.0, 3)])
+    assert scores[0].name == "ggx" and [m.name for m in not_told_apart(scores)] == ["ward"]
