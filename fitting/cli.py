@@ -564,41 +564,16 @@ def _ladder(text: str | None) -> tuple[tuple, tuple]:
     return dm or DIFFUSE_MODELS, sm or SPECULAR_MODELS
 
 
-def _compare(scene, opts, obs, args, r, fit_kw, held=None, centre=None):
-    """``--compare``: the nested term sets fitted and ranked by BIC (and, with ``--holdout``, by
-    the held-out views' error); report lines and records. For a capture folder (``centre``: its
-    object's centre and radius) the imaging terms first (:func:`fitting.imaging_variants`), then
-    the reflectance's variants with the imaging terms the images support: one table, one data set."""
-    from . import _options, compare_models, imaging_variants, model_variants
-    from ._models import ranked
+def _comparison_table(scores, holdout):
+    """``--compare``'s table (report lines) and fit.json's records of the ranked ``scores``."""
+    from . import _options
 
-    # verbose and the profile-likelihood intervals: the main fit's only (a comparison reads criteria)
-    fit_kw = dict(fit_kw, strategy=fit_kw["strategy"].replace(verbose=False), intervals=False)
-    kw = dict(given=r, holdout=args.holdout, given_holdout=held, **fit_kw)
-    ladder = _ladder(args.compare_models)
-    if centre is None:
-        scores = compare_models(
-            scene, opts, obs, args.free, variants=model_variants(scene, opts, args.free, *ladder), **kw
-        )
-    else:
-        scores = compare_models(
-            scene, opts, obs, args.free, variants=imaging_variants(scene, opts, obs, args.free, centre=centre), **kw
-        )
-        best = scores[0]
-        b_obs = next(v for v in imaging_variants(scene, opts, obs, args.free, centre=centre) if v[0] == best.name)[4]
-        b_scene = b_obs.views[0] if b_obs.views is not None else scene
-        more = [
-            (f"{best.name} · {name}" if best.name != "as given" else name, o, fr, sc, b_obs)
-            for name, o, fr, sc in model_variants(b_scene, best.opts, best.free, *ladder)[1:]
-        ]
-        kw.pop("given"), kw.pop("given_holdout")
-        scores = ranked(scores + compare_models(scene, opts, obs, args.free, variants=more, **kw))
-    ho = args.holdout is not None
+    ho = holdout is not None
     wide = max(14, *(len(m.name) for m in scores))
     report = [
         "",
         "model comparison (by BIC, the supported model first: the simplest within ΔBIC 2 of the lowest; ΔBIC > 10 is strong evidence"
-        + (f"; held out: 1 view in {args.holdout} predicted, RMS over the noise" if ho else "")
+        + (f"; held out: 1 view in {holdout} predicted, RMS over the noise" if ho else "")
         + "):",
         f"{'model':{wide}s} {'k':>3s} {'RSS':>11s} {'AIC':>14s} {'BIC':>14s} {'ΔBIC':>9s}"
         + (f" {'held out':>9s}" if ho else "")
@@ -630,8 +605,39 @@ def _compare(scene, opts, obs, args, r, fit_kw, held=None, centre=None):
                 "fit": m.fit.as_dict(),
             }
         )
-    from ._models import not_told_apart
+    return report, comparison
 
+
+def _compare(scene, opts, obs, args, r, fit_kw, held=None, centre=None):
+    """``--compare``: the nested term sets fitted and ranked by BIC (and, with ``--holdout``, by
+    the held-out views' error); report lines and records. For a capture folder (``centre``: its
+    object's centre and radius) the imaging terms first (:func:`fitting.imaging_variants`), then
+    the reflectance's variants with the imaging terms the images support: one table, one data set."""
+    from . import compare_models, imaging_variants, model_variants
+    from ._models import not_told_apart, ranked
+
+    # verbose and the profile-likelihood intervals: the main fit's only (a comparison reads criteria)
+    fit_kw = dict(fit_kw, strategy=fit_kw["strategy"].replace(verbose=False), intervals=False)
+    kw = dict(given=r, holdout=args.holdout, given_holdout=held, **fit_kw)
+    ladder = _ladder(args.compare_models)
+    if centre is None:
+        scores = compare_models(
+            scene, opts, obs, args.free, variants=model_variants(scene, opts, args.free, *ladder), **kw
+        )
+    else:
+        scores = compare_models(
+            scene, opts, obs, args.free, variants=imaging_variants(scene, opts, obs, args.free, centre=centre), **kw
+        )
+        best = scores[0]
+        b_obs = next(v for v in imaging_variants(scene, opts, obs, args.free, centre=centre) if v[0] == best.name)[4]
+        b_scene = b_obs.views[0] if b_obs.views is not None else scene
+        more = [
+            (f"{best.name} · {name}" if best.name != "as given" else name, o, fr, sc, b_obs)
+            for name, o, fr, sc in model_variants(b_scene, best.opts, best.free, *ladder)[1:]
+        ]
+        kw.pop("given"), kw.pop("given_holdout")
+        scores = ranked(scores + compare_models(scene, opts, obs, args.free, variants=more, **kw))
+    report, comparison = _comparison_table(scores, args.holdout)
     close = not_told_apart(scores)
     report.append(
         f"the images support: {scores[0].name}"
@@ -642,7 +648,7 @@ def _compare(scene, opts, obs, args, r, fit_kw, held=None, centre=None):
         )
     )
     report += _what_each_removes(scores)
-    if ho:
+    if args.holdout is not None:
         lowest = min(scores, key=lambda m: m.holdout.ratio_all)
         report.append(
             f"lowest held-out error: {lowest.name} ({lowest.holdout.ratio_all:.3f}x the noise)"
