@@ -89,13 +89,30 @@ def run(case: int, size: int) -> dict:
     }
 
 
+def summary(rows) -> None:
+    """The counts: the truth picked, not told apart (said), wrong; cases whose images show no
+    specular term at all (the pick "no specular": the truth's highlight not in them) or whose
+    lobe the truth's own fit leaves undetermined are apart."""
+    unseen = [r for r in rows if r["pick"] == "no specular"]
+    det = [r for r in rows if r["determined"] and r not in unseen]
+    print(
+        f"picked the truth in {sum(r['right'] for r in det)}/{len(det)} cases whose lobe is determined; "
+        f"not told apart (the truth within ΔBIC {TOLD_APART:g}) in {sum(not r['told_apart'] for r in det)}; "
+        f"wrong in {sum(r['told_apart'] and not r['right'] for r in det)}; the images show no specular term in "
+        f"{len(unseen)}; the lobe undetermined in {len(rows) - len(det) - len(unseen)}"
+    )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", type=int, default=20)
     ap.add_argument("--size", type=int, default=48)
     ap.add_argument("--seed0", type=int, default=0)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--summary", nargs="*", help="only the summary of these --json files")
     a = ap.parse_args()
+    if a.summary:
+        return summary([r for f in a.summary for r in json.loads(Path(f).read_text())])
     rows = []
     for case in range(a.seed0, a.seed0 + a.cases):
         r = run(case, a.size)
@@ -107,12 +124,7 @@ def main() -> None:
             f"{'' if r['determined'] else ' [the truth lobe undetermined]'}",
             flush=True,
         )
-    det = [r for r in rows if r["determined"]]
-    print(
-        f"picked the truth in {sum(r['right'] for r in det)}/{len(det)} cases whose lobe is determined; "
-        f"not told apart (the truth within ΔBIC {TOLD_APART:g}) in {sum(not r['told_apart'] for r in det)}; "
-        f"wrong in {sum(r['told_apart'] and not r['right'] for r in det)}; undetermined {len(rows) - len(det)}"
-    )
+    summary(rows)
     for m in MODELS:
         s = [r["seconds"]["+".join(m)] for r in rows if "+".join(m) in r["seconds"]]
         if s:

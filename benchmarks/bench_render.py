@@ -131,7 +131,11 @@ MODEL_LADDER = [  # (name, diffuse model, specular model, the lobe's parameter i
 
 
 def models(args) -> None:
-    """The local models' render and Jacobian times against Blinn–Phong's, one run."""
+    """The local models' render and Jacobian times against Blinn–Phong's, one run: every program
+    compiled first, then timed in interleaved rounds (one call of each per round, the rounds'
+    medians), so that the machine's drift over the run falls on every model alike."""
+    import time
+
     subs = tuple(int(x) for x in args.subdivisions.split(","))
     sizes = tuple(int(x) for x in args.sizes.split(","))
     rows = []
@@ -139,7 +143,7 @@ def models(args) -> None:
         mesh = trimesh.creation.icosphere(subdivisions=sub)
         v, f = np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
         for res in sizes:
-            base = None
+            progs = []
             for name, dm, sm, lobe in MODEL_LADDER:
                 scene, opts = make_scene(v, f, res, "phong")
                 opts = opts.with_keys(specular=sm, diffuse_model=dm)
@@ -157,16 +161,26 @@ def models(args) -> None:
                         return jax.vmap(lambda e: jax.jvp(img_of, (p,), (e,))[1])(E)
 
                 jac = jax.jit(jac_of)
-                r = {"faces": len(f), "res": res, "model": name}
-                r["full_c"], r["full"] = timed(full, scene, repeats=args.repeats)
-                r["jvp_c"], r["jvp"] = timed(jac, p0, repeats=args.repeats)
-                r["native"] = ds._fast.applies(scene, opts, None)
-                base = base or r
+                r = {"faces": len(f), "res": res, "model": name, "native": ds._fast.applies(scene, opts, None)}
+                r["full_c"] = timed(full, scene, repeats=1)[0]
+                r["jvp_c"] = timed(jac, p0, repeats=1)[0]
+                progs.append((r, (full, scene), (jac, p0)))
+            times = {id(r): ([], []) for r, _, _ in progs}
+            for _ in range(args.repeats):
+                for r, (fa, a), (fb, b) in progs:
+                    for fn, x, out in ((fa, a, times[id(r)][0]), (fb, b, times[id(r)][1])):
+                        t0 = time.perf_counter()
+                        jax.block_until_ready(fn(x))
+                        out.append(1e3 * (time.perf_counter() - t0))
+            base = progs[0][0]
+            for r, _, _ in progs:
+                r["full"], r["jvp"] = (float(np.median(t)) for t in times[id(r)])
+            for r, _, _ in progs:
                 r["full_x"], r["jvp_x"] = r["full"] / base["full"], r["jvp"] / base["jvp"]
                 r["jvp_per_full"] = r["jvp"] / r["full"]
                 rows.append(r)
                 print(
-                    f"{len(f):6d} faces {res:4d}² {name:20s} full {r['full']:8.2f} ms ({r['full_x']:.2f}x Blinn-Phong; "
+                    f"{len(f):6d} faces {res:4d}² {r['model']:20s} full {r['full']:8.2f} ms ({r['full_x']:.2f}x Blinn-Phong; "
                     f"{'native kernel' if r['native'] else 'JAX stages'})  jvp×12 {r['jvp']:8.2f} ms "
                     f"({r['jvp_x']:.2f}x; {r['jvp_per_full']:.2f}x its render)  compile {r['full_c']:.1f} + {r['jvp_c']:.1f} s",
                     flush=True,

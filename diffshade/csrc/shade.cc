@@ -205,7 +205,8 @@ struct Block {
   float spec[kBlock] = {}, fog[kBlock] = {}, cs[kBlock] = {}, lobe[kBlock] = {};
   // the diffuse factor (Lambert's (n.l)+ or Oren-Nayar's, times the diffuse switch); the other
   // local models' scratch (zeroed: ExpN reads them in lanes of eight)
-  float dif[kBlock] = {}, t0[kBlock] = {}, t1[kBlock] = {};
+  float dif[kBlock] = {}, t0[kBlock] = {}, t1[kBlock] = {}, t2[kBlock] = {};
+  float dl0[kBlock] = {}, dl1[kBlock] = {};  // (the partials: the specular's log-derivatives in its roughnesses)
   float col[3][kBlock], base[3][kBlock];
   // the material per pixel (emission, ambient, diffuse, specular, shininess): the side's
   // constants, times the texels where a field has a map
@@ -449,12 +450,14 @@ inline void Diffuse(const Config& cfg, const float* front, const float* backm, B
     for (int q = 0; q < m; ++q) dif[q] = std::max(k.ndl[q], 0.0f) * on;
     return;
   }
+  float af, bf, ab, bb, d0, d1;  // (sigma is the side's constant: A and B once a block)
+  OrenNayarAB(front[16], &af, &bf, &d0, &d1);
+  OrenNayarAB(backm[16], &ab, &bb, &d0, &d1);
   for (int q = 0; q < m; ++q) {
-    float a, b, da, db;
-    OrenNayarAB(Pick(k.back[q], backm[16], front[16]), &a, &b, &da, &db);
-    const float ndl = k.ndl[q], ldv = k.lx[q] * k.vx[q] + k.ly[q] * k.vy[q] + k.lz[q] * k.vz[q];
-    const float across = OrenNayarAcross(ndl, NdotV(k, q), ldv);
-    dif[q] = (ndl > 0 && std::max(ndl, NdotV(k, q)) > 0 ? ndl * (a + b * across) : 0.0f) * on;
+    const float a = Pick(k.back[q], ab, af), b = Pick(k.back[q], bb, bf);
+    const float ndl = k.ndl[q], ndv = NdotV(k, q), ldv = k.lx[q] * k.vx[q] + k.ly[q] * k.vy[q] + k.lz[q] * k.vz[q];
+    const float across = OrenNayarAcross(ndl, ndv, ldv);
+    dif[q] = (ndl > 0 && std::max(ndl, ndv) > 0 ? ndl * (a + b * across) : 0.0f) * on;
   }
 }
 
@@ -484,23 +487,25 @@ DIFFSHADE_CLONES void CookTorrance(const Config& cfg, const float* front, const 
   const bool ggx = cfg.specular == 4, vcavity = cfg.Flag(10);
   float* __restrict spec = k.spec;
   float* __restrict x = k.t0;  // Beckmann: the exponent, then its exp
-  for (int q = 0; q < m; ++q) {
+  float* __restrict nh = k.t1;
+  float* __restrict vh = k.t2;
+  for (int q = 0; q < m; ++q) {  // the half vector's cosines (and Beckmann's exponent)
     const float hx = k.lx[q] + k.vx[q], hy = k.ly[q] + k.vy[q], hz = k.lz[q] + k.vz[q];
     const float sq = hx * hx + hy * hy + hz * hz;
     const float inv = sq > 0 ? 1.0f / std::sqrt(sq) : 0.0f;
-    const float ndh = (k.nx[q] * hx + k.ny[q] * hy + k.nz[q] * hz) * inv;
-    const float alpha = Pick(k.back[q], backm[14], front[14]), a2 = alpha * alpha;
-    const float c2 = ndh * ndh, c2s = c2 > kBeckmannFloor ? c2 : 1.0f;
-    x[q] = ggx ? 0.0f : -(1.0f - c2s) / (c2s * a2);
-    k.t1[q] = ndh;
+    nh[q] = (k.nx[q] * hx + k.ny[q] * hy + k.nz[q] * hz) * inv;
+    vh[q] = (k.vx[q] * hx + k.vy[q] * hy + k.vz[q] * hz) * inv;
   }
-  if (!ggx) ExpN(x, x, m);
+  if (!ggx) {
+    const float a2f = front[14] * front[14], a2b = backm[14] * backm[14];
+    for (int q = 0; q < m; ++q) {
+      const float c2 = nh[q] * nh[q], c2s = c2 > kBeckmannFloor ? c2 : 1.0f;
+      x[q] = -(1.0f - c2s) / (c2s * Pick(k.back[q], a2b, a2f));
+    }
+    ExpN(x, x, m);
+  }
   for (int q = 0; q < m; ++q) {
-    const float hx = k.lx[q] + k.vx[q], hy = k.ly[q] + k.vy[q], hz = k.lz[q] + k.vz[q];
-    const float sq = hx * hx + hy * hy + hz * hz;
-    const float inv = sq > 0 ? 1.0f / std::sqrt(sq) : 0.0f;
-    const float vdh = (k.vx[q] * hx + k.vy[q] * hy + k.vz[q] * hz) * inv;
-    const float ndh = k.t1[q], ndl = k.ndl[q], ndv = NdotV(k, q);
+    const float vdh = vh[q], ndh = nh[q], ndl = k.ndl[q], ndv = NdotV(k, q);
     const bool lit = ndl > 0 && ndv > 0;
     const float alpha = Pick(k.back[q], backm[14], front[14]), a2 = alpha * alpha;
     float D, dD;
@@ -598,7 +603,8 @@ DIFFSHADE_CLONES void Ward(const Config& cfg, const float* front, const float* b
 // One light's direct terms (and per-light ambient) added to the block's m pixels. Not inlined:
 // inlined into ShadeRange, the all-terms render at 512² took 19.8 ms against 9.4-10.9 ms.
 __attribute__((noinline)) DIFFSHADE_CLONES void AddLight(const Config& cfg, const float* front, const float* backm, const float* li,
-                                        Block& k, int m) {
+                                        Block& k, int m,
+                                        bool derivatives = false) {
   const int kind = static_cast<int>(li[0]);
   float* __restrict lx = k.lx;
   float* __restrict ly = k.ly;
@@ -655,9 +661,9 @@ __attribute__((noinline)) DIFFSHADE_CLONES void AddLight(const Config& cfg, cons
     }
   }
   if (cfg.specular == 3 || cfg.specular == 4) {
-    CookTorrance(cfg, front, backm, k, m, nullptr);
+    CookTorrance(cfg, front, backm, k, m, derivatives ? k.dl0 : nullptr);
   } else if (cfg.specular == 5) {
-    Ward(cfg, front, backm, k, m, nullptr, nullptr);
+    Ward(cfg, front, backm, k, m, derivatives ? k.dl0 : nullptr, derivatives ? k.dl1 : nullptr);
   } else if (cfg.specular != 0) {
     const float* __restrict bk = k.back;
     const float* __restrict sh = k.sh;
@@ -1197,15 +1203,10 @@ DIFFSHADE_CLONES void LightPartials(const Config& cfg, const Maps& mp, const flo
         }
         continue;
       }
-      if (cfg.specular == 3 || cfg.specular == 4) {  // d spec / d alpha = spec dlog
-        if (f != 14) continue;
-        CookTorrance(cfg, front, backm, k, m, gg);
-      } else if (cfg.specular == 5) {  // (the other axis's derivative into the spot's scratch)
-        Ward(cfg, front, backm, k, m, f == 14 ? gg : k.cs, f == 14 ? k.cs : gg);
-      } else {
-        continue;
-      }
-      for (int q = 0; q < m; ++q) gg[q] = k.spec[q] != 0.0f ? k.att[q] * k.spec[q] * gg[q] * sel[q] : 0.0f;
+      // d spec / d alpha = spec dlog (AddLight's, with the derivatives: dl0 in alpha, Ward's dl1 in alpha_y)
+      if (!((cfg.specular == 3 || cfg.specular == 4) && f == 14) && cfg.specular != 5) continue;
+      const float* __restrict dl = f == 14 ? k.dl0 : k.dl1;
+      for (int q = 0; q < m; ++q) gg[q] = k.spec[q] != 0.0f ? k.att[q] * k.spec[q] * dl[q] * sel[q] : 0.0f;
       for (int c = 0; c < 3; ++c) {
         const float lc = has_spec ? li[7 + c] : li[1 + c];
         float* __restrict d = dcol + (int64_t{e.j} * 3 + c) * kBlock;
@@ -1318,7 +1319,7 @@ void PhongPartials(const Config& cfg, const Maps& mp, const float* params, const
     for (int q = 0; q < m; ++q) k.col[c][q] = 0.0f, k.base[c][q] = 0.0f;
   }
   for (int64_t i = 0; i < num_lights; ++i) {
-    AddLight(cfg, front, backm, lights + i * kLight, k, m);
+    AddLight(cfg, front, backm, lights + i * kLight, k, m, true);
     LightPartials(cfg, mp, front, backm, lights + i * kLight, i, es, m, k, dcol, g, h);
   }
   // the ambient and emission terms: k_a I_a and k_e, and the ambient light I_a
