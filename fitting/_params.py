@@ -22,7 +22,7 @@ one), ``ambient``, ``a0``/``a1``/``a2`` (attenuation), ``position``
 ``exponent``, ``edge`` (spot), ``width``, ``height`` (area: with the colour, a gauge for a distant
 receiver, which sees only the power); ``multi_lobe[i].<position|a0|a1|a2>`` (shared by the lobes) and
 ``multi_lobe[i].lobe[j].<color|ambient|cutoff|exponent|edge>``; ``fog.<field>`` (color, start, end, density);
-``directional[i].direction`` and ``spot[i].axis``: two angles in degrees, the tilt from the
+``directional[i].direction``, ``spot[i].axis`` and ``material.tangent`` (Ward's): two angles in degrees, the tilt from the
 start direction about two axes normal to it (a chart of the sphere centred on the start: no pole
 where a light points straight down; the fitted direction is ``direction_of(tilt, frame)``);
 ``mesh.colors`` (per-vertex albedo, ``[0, 1]``, 3 per vertex; fitted by :mod:`fitting._albedo`);
@@ -418,6 +418,13 @@ def _parse_material_i(name, scene, shared, m):
 def _parse_other(name, scene, shared):
     """Materials by name, fog, the ambient light; else the list of every known name."""
     parts = name.split(".")
+    if parts[0] in ("material", "back_material") and parts[1:] == ["tangent"]:  # Ward's: a direction
+        if parts[0] == "back_material" and scene.back_material is None:
+            raise ParamError(f"unknown parameter {name!r}: the scene has no back material")
+        if shared:
+            raise ParamError(f"{name}: a direction has no shared form")
+        d0 = np.asarray(getattr(scene, parts[0]).tangent, np.float64)
+        return Param(name, tuple(parts), 2, "real", frame=direction_frame(d0))
     if parts[0] in ("material", "back_material") and len(parts) == 2 and parts[1] in _MATERIAL:
         if parts[0] == "back_material" and scene.back_material is None:
             raise ParamError(f"unknown parameter {name!r}: the scene has no back material")
@@ -429,7 +436,7 @@ def _parse_other(name, scene, shared):
     if name == "ambient_light":
         return Param(name, ("ambient_light",), 1 if shared else 3, "positive")
     raise ParamError(
-        f"unknown parameter {name!r}; known: material.<{'|'.join(_MATERIAL)}>, material[i].<...> (material id i), "
+        f"unknown parameter {name!r}; known: material.<{'|'.join(_MATERIAL)}|tangent>, material[i].<...> (material id i), "
         "back_material.<...>, ambient_light, <directional|point|spot|area>[i].<color|specular|ambient|position|a0|a1|a2|cutoff|"
         "exponent|edge|width|height>, directional[i].direction, spot[i].axis, multi_lobe[i].<position|a0|a1|a2>, multi_lobe[i].lobe[j].<color|ambient|cutoff|exponent|edge>, "
         "fog.<color|start|end|density>, camera.<exposure|white_balance|black_level|rvec|tvec>, mesh.colors, material.<field>_map, view[i].<any of these>"

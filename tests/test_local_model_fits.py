@@ -266,3 +266,29 @@ def test_not_told_apart_names_the_models_within_two_of_the_lowest_bic():
     # the simplest within 2 is the one named, even if another is lower
     scores = ranked([score("ward", 9.0, 4), score("ggx", 10.0, 3)])
     assert scores[0].name == "ggx" and [m.name for m in not_told_apart(scores)] == ["ward"]
+
+
+def test_wards_tangent_direction_is_fitted_by_name():
+    """material.tangent is a direction (two tilt angles, as a light's): a brushed sphere's
+    anisotropic highlight gives it back, with both roughnesses, noise-free to 1e-4 (its angle)."""
+    import dataclasses
+
+    scene, opts = _scene(40, specular="ward")
+    t_true = np.array([1.0, 0.4, -0.2]) / np.linalg.norm([1.0, 0.4, -0.2])
+    truth = dataclasses.replace(
+        scene, material=dataclasses.replace(scene.material, roughness=0.12, roughness_y=0.35, tangent=t_true)
+    )
+    target = np.asarray(ds.render(truth, opts))
+    start = dataclasses.replace(
+        truth, material=dataclasses.replace(truth.material, roughness=0.2, roughness_y=0.25, tangent=[1.0, 0.0, 0.0])
+    )
+    free = ["material.diffuse", "material.specular", "material.roughness", "material.roughness_y", "material.tangent"]
+    r = fit(start, opts, Observations(target), free)
+    assert r.successful, (r.result, r.notes)
+    from fitting import ParamSet
+
+    fitted = ParamSet(free, start).apply(start, jnp.asarray(r.values, start.mesh.vertices.dtype))
+    t = np.asarray(fitted.material.tangent, np.float64)
+    t = t / np.linalg.norm(t)
+    assert np.degrees(np.arccos(min(1.0, abs(float(t @ t_true))))) < 1e-2
+    np.testing.assert_allclose(np.asarray(r.values)[6:8], [0.12, 0.35], rtol=1e-4)
