@@ -17,6 +17,19 @@ import numpy as np
 
 from ._shade import add, dot, normalize, scale, sub
 
+#: The material fields each specular model's lobe reads (besides :math:`k_s`), and the diffuse
+#: models' (besides :math:`k_d`).
+LOBE_FIELDS = {
+    "none": (),
+    "phong": ("shininess",),
+    "blinn": ("shininess",),
+    "beckmann": ("roughness",),
+    "ggx": ("roughness",),
+    "ward": ("roughness", "roughness_y", "tangent"),
+    "lambert": (),
+    "oren_nayar": ("diffuse_roughness",),
+}
+
 #: Ward's :math:`1/\sqrt{n\cdot v}` diverges at a grazing view; :math:`n\cdot v` is floored here
 #: (the value at most :math:`1/\sqrt{10^{-6}} = 1000` times its face-on size, the gradient finite).
 WARD_GRAZING = 1e-6

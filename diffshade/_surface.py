@@ -24,6 +24,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from . import _shade as S
+from ._local_models import LOBE_FIELDS
 from ._materials import _COMPOSITING_FIELDS, _MATERIAL_FIELDS, _material_at
 from ._options import Raster, RenderOptions
 from ._raster import Fragments, _flat_ids, _pixel_vertex_ids, fragments, interpolate
@@ -57,16 +58,10 @@ def needs(opts: RenderOptions) -> Needs:
     if lt.ambient or lt.per_light_ambient:
         used.add("ambient")
     if lt.diffuse:
-        used |= {"diffuse"} | ({"diffuse_roughness"} if lt.diffuse_model == "oren_nayar" else set())
+        used |= {"diffuse", *LOBE_FIELDS[lt.diffuse_model]}
     if lt.specular != "none":  # (a Fresnel term replaces k_s: then k_s, and a map of it, are unread)
         used |= {"ior"} if lt.fresnel != "none" else {"specular"}
-        used |= {
-            "phong": {"shininess"},
-            "blinn": {"shininess"},
-            "beckmann": {"roughness"},
-            "ggx": {"roughness"},
-            "ward": {"roughness", "roughness_y", "tangent"},
-        }[lt.specular]
+        used |= set(LOBE_FIELDS[lt.specular])
     if lt.transmission:
         used |= {"transmission", "shininess", "ior"}
     if tr is not None:

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import diffshade as ds
+from diffshade._local_models import LOBE_FIELDS
 
 from . import _options
 from ._fit import fit
@@ -48,18 +49,10 @@ class ModelScore:
 #: The reflectance ladder :func:`model_variants` fits: every diffuse × specular combination.
 DIFFUSE_MODELS = ("lambert", "oren_nayar")
 SPECULAR_MODELS = ("phong", "blinn", "beckmann", "ggx", "ward")
-#: The parameters that shape each model's lobe (besides its k).
-_SHAPE = {
-    "phong": ("shininess",),
-    "blinn": ("shininess",),
-    "beckmann": ("roughness",),
-    "ggx": ("roughness",),
-    "ward": ("roughness", "roughness_y"),
-    "oren_nayar": ("diffuse_roughness",),
-    "lambert": (),
-    "none": (),
-}
-_SHAPE_FIELDS = {"shininess", "roughness", "roughness_y", "diffuse_roughness"}
+#: The parameters that shape each model's lobe (besides its k) that the ladder frees: the
+#: renderer's (Ward's tangent direction stays the user's).
+_SHAPE = {m: tuple(f for f in fields if f != "tangent") for m, fields in LOBE_FIELDS.items()}
+_SHAPE_FIELDS = {f for fields in _SHAPE.values() for f in fields}
 
 
 def _blinn_exponent(model: str, m: ds.Material) -> float:

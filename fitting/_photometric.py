@@ -126,13 +126,14 @@ NORMAL_MAP_FILES = ("Normal_gt.mat", "normal.png", "normal.exr", "normal.npy", "
 DEPTH_MAP_FILES = ("depth.npy", "depth.exr", "depth.tif", "depth.tiff")
 
 
-def _depth_map_file(folder: Path, depth):
-    """The depth map's path: ``depth`` given, or the folder's own (None: none, or not wanted)."""
-    if depth is False:
+def _optional_file(folder: Path, given, names):
+    """An optional file's path: ``given``, or the folder's first of ``names`` (None: none there,
+    or ``given`` False: not wanted)."""
+    if given is False:
         return None
-    if depth is not None:
-        return Path(depth)
-    return next((folder / f for f in DEPTH_MAP_FILES if (folder / f).is_file()), None)
+    if given is not None:
+        return Path(given)
+    return next((folder / f for f in names if (folder / f).is_file()), None)
 
 
 def read_depth_map(path) -> np.ndarray:
@@ -161,15 +162,6 @@ def read_depth_map(path) -> np.ndarray:
     if z.ndim != 2:
         raise FitError(f"{path}: a depth map is [H, W], got shape {z.shape}")
     return z
-
-
-def _normal_map_file(folder: Path, normals):
-    """The normal map's path: ``normals`` given, or the folder's own (None: none, or not wanted)."""
-    if normals is False:
-        return None
-    if normals is not None:
-        return Path(normals)
-    return next((folder / f for f in NORMAL_MAP_FILES if (folder / f).is_file()), None)
 
 
 def _read(path: Path) -> tuple[np.ndarray, float | None]:
@@ -307,7 +299,7 @@ def load_photometric_stereo(
     mask_img, _ = _read(folder / "mask.png")
     full_mask = mask = mask_img[..., 0] > 0
     f, how = int(downsample_by), downsample_how
-    nfile = None if mesh is not None else _normal_map_file(folder, normals)
+    nfile = None if mesh is not None else _optional_file(folder, normals, NORMAL_MAP_FILES)
     geometry = "the given mesh" if mesh is not None else "a sphere placed from the mask"
     if mesh is None and nfile is None:
         mesh = sphere_from_mask(mask, K)  # from the full mask: a reduced one is eroded
@@ -324,7 +316,7 @@ def load_photometric_stereo(
     if nfile is not None:
         flips = (normals_flip_y, normals_flip_z)
         mesh, mask, geometry = _normal_map_geometry(
-            nfile, full_mask, mask, cam, K, f, how, flips, _depth_map_file(folder, depth)
+            nfile, full_mask, mask, cam, K, f, how, flips, _optional_file(folder, depth, DEPTH_MAP_FILES)
         )
         centre = surface_centre(np.asarray(mesh.vertices).reshape(-1, 4, 3).mean(1))  # (the pixels' points)
     prop = to_camera_frame(dirs, flip_y, flip_z)

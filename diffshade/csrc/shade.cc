@@ -1166,6 +1166,18 @@ inline void Side(const Maps& mp, const Block& k, int field, int channel, bool ba
   }
 }
 
+// dcol[e.j][c] += w g k_s I_s (the specular colour's light: its own, or its colour) for a
+// specular factor's derivative g (times the attenuation and the side) at the block's pixels.
+inline void SpecularPartial(const float* li, bool has_spec, const Entry& e, const float* __restrict g, const Block& k,
+                            int m, float* dcol) {
+  for (int c = 0; c < 3; ++c) {
+    const float lc = has_spec ? li[7 + c] : li[1 + c];
+    float* __restrict d = dcol + (int64_t{e.j} * 3 + c) * kBlock;
+    const float* __restrict ks = k.ks[c];
+    for (int q = 0; q < m; ++q) d[q] += e.w * (g[q] * ks[q] * lc);
+  }
+}
+
 // One light's part of every direction's derivative of the (unclamped, unfogged) colour, after
 // AddLight filled the block's att, ndl, spec (and l) for it.
 DIFFSHADE_CLONES void LightPartials(const Config& cfg, const Maps& mp, const float* front, const float* backm,
@@ -1207,12 +1219,7 @@ DIFFSHADE_CLONES void LightPartials(const Config& cfg, const Maps& mp, const flo
       if (!((cfg.specular == 3 || cfg.specular == 4) && f == 14) && cfg.specular != 5) continue;
       const float* __restrict dl = f == 14 ? k.dl0 : k.dl1;
       for (int q = 0; q < m; ++q) gg[q] = k.spec[q] != 0.0f ? k.att[q] * k.spec[q] * dl[q] * sel[q] : 0.0f;
-      for (int c = 0; c < 3; ++c) {
-        const float lc = has_spec ? li[7 + c] : li[1 + c];
-        float* __restrict d = dcol + (int64_t{e.j} * 3 + c) * kBlock;
-        const float* __restrict ks = k.ks[c];
-        for (int q = 0; q < m; ++q) d[q] += e.w * (gg[q] * ks[q] * lc);
-      }
+      SpecularPartial(li, has_spec, e, gg, k, m, dcol);
       continue;
     }
     if (mat && f == 12) {  // shininess: d spec / d m = spec log(the specular base) where spec is on
@@ -1235,12 +1242,7 @@ DIFFSHADE_CLONES void LightPartials(const Config& cfg, const Maps& mp, const flo
       for (int q = 0; q < m; ++q) gg[q] = k.spec[q] != 0.0f ? gg[q] : 1.0f;
       LogN(gg, gg, m);
       for (int q = 0; q < m; ++q) gg[q] = k.spec[q] != 0.0f ? k.att[q] * k.spec[q] * gg[q] * sel[q] : 0.0f;
-      for (int c = 0; c < 3; ++c) {
-        const float lc = has_spec ? li[7 + c] : li[1 + c];
-        float* __restrict d = dcol + (int64_t{e.j} * 3 + c) * kBlock;
-        const float* __restrict ks = k.ks[c];
-        for (int q = 0; q < m; ++q) d[q] += e.w * (gg[q] * ks[q] * lc);
-      }
+      SpecularPartial(li, has_spec, e, gg, k, m, dcol);
       continue;
     }
     if (mat) {  // a colour of the material: the term it weighs, on its side
