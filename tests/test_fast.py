@@ -623,3 +623,22 @@ def test_the_other_local_models_in_gouraud_shading_and_what_takes_the_stages():
     # a roughness map: the JAX stages
     scene, opts = _textured("phong", size=8, maps={"roughness": ds.Texture(np.ones((2, 2, 1)))})
     assert not _fast.applies(float32(scene), opts.with_keys(specular="ggx"), None)
+
+
+@pytest.mark.parametrize("placement", [0, 1])
+def test_the_other_local_models_on_the_scanned_bunny_placed_two_ways(placement):
+    """The kernel (jitted, as a fit calls it) on the scanned bunny, rotated and offset as a user
+    places it, each model with both sides' parameters: as accurate as the stages."""
+    import pathlib
+
+    from scipy.spatial.transform import Rotation
+
+    bunny = ds.load_mesh(pathlib.Path(__file__).parent / "data" / "meshes" / "bunny.ply")
+    v = np.asarray(bunny.vertices, np.float64)
+    v = (v - v.mean(0)) / np.abs(v - v.mean(0)).max()
+    R = Rotation.from_euler("xyz", [[0.3, -0.8, 0.2], [2.1, 0.4, -1.2]][placement]).as_matrix()
+    v = v @ R.T + [[0.1, -0.05, 0.0], [-0.2, 0.1, -0.3]][placement]
+    for keys in (dict(specular="ggx"), dict(specular="ward"), dict(diffuse_model="oren_nayar", specular="beckmann")):
+        scene, opts = _local_model_scene(keys)
+        scene = dataclasses.replace(scene, mesh=ds.Mesh(vertices=v, faces=np.asarray(bunny.faces)))
+        _assert_as_accurate_as_the_stages(scene, opts, covered=100)
