@@ -50,6 +50,21 @@ def test_photon_noise_that_grows_with_the_signal_is_measured_on_average(gain):
     assert abs(b / gain - 1) < 0.2 and a < 0.5 * gain * float(SMOOTH[..., 0].mean())
 
 
+def test_a_few_windows_still_measure_the_photon_term():
+    # a small object (a 64² bunny's views: ~350 windows a channel): two bins of levels still give
+    # the line's slope, so a view brighter than the mean is not read as misfit; one bin said b = 0
+    a0, b0 = 0.004**2, 4 * 0.004**2
+    rng = np.random.default_rng(3)
+    bright = []
+    for _ in range(40):
+        m = rng.uniform(0.05, 1.0, 350)
+        d = rng.normal(0, 1, 350) * np.sqrt(a0 + b0 * m)
+        a, b = variance_model(d, m, 0.0)
+        assert b > 0 or a > 0
+        bright.append((a + b * 0.9) / (a0 + b0 * 0.9))  # the variance predicted at a bright level
+    assert abs(np.median(bright) - 1) < 0.1 and np.mean(np.abs(np.asarray(bright) - 1) < 0.3) > 0.8
+
+
 def test_edges_and_a_few_jumps_do_not_count_as_noise():
     rng = np.random.default_rng(5)
     sigma = 0.004
